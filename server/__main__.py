@@ -1,0 +1,55 @@
+"""glue-server: run the cell server (simulated cell unless hardware is configured)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import uvicorn
+
+from server.app import create_app
+from server.config import Settings
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="glue-server",
+        description="Control server for a glue-spraying robot cell. Without hardware "
+        "settings (ROBOT_IP, GLUE_CONTROLLER_PORT, VISION_CAMERA_ID) it starts the "
+        "simulators on loopback and drives them through the real protocol clients.",
+    )
+    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=8000, help="HTTP port (default 8000)")
+    parser.add_argument(
+        "--data-dir", type=Path, help="where state and journals live (default ./data)"
+    )
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    overrides = {"data_path": args.data_dir} if args.data_dir else {}
+    settings = Settings(**overrides)
+    logging.basicConfig(
+        level=settings.logging_level,
+        format="%(asctime)s.%(msecs)03d [%(levelname)s] %(name)s: %(message)s",
+        datefmt="%Y-%m-%d %H:%M:%S",
+    )
+    settings.data_path.mkdir(parents=True, exist_ok=True)
+    app = create_app(settings)
+    uvicorn.run(
+        app,
+        host=args.host,
+        port=args.port,
+        ws="websockets-sansio",
+        ws_max_size=64 * 1024,
+        ws_ping_interval=settings.ws_ping_interval,
+        ws_ping_timeout=settings.ws_ping_interval,
+        log_level=settings.logging_level.lower(),
+        timeout_graceful_shutdown=5,
+    )
+
+
+if __name__ == "__main__":
+    main()

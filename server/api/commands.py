@@ -1,0 +1,117 @@
+"""Command routes: each posts one event and answers once the worker has decided.
+
+202 when accepted, 409 when the current state refuses it (with the reason),
+503 with Retry-After when the event queue is full. The e-stop route does not
+queue behind anything: it halts the devices first, then posts the event ahead
+of everything waiting.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, Request
+from fastapi.responses import JSONResponse
+
+from server.api.schemas import CommandResult, EstopRequest, QueueFullResult, StartRequest
+from server.cell import Cell
+from server.core.worker import Outcome
+
+router = APIRouter(tags=["commands"])
+
+RESPONSES: dict[int | str, dict[str, Any]] = {
+    202: {"model": CommandResult, "description": "accepted: the machine changed state"},
+    409: {"model": CommandResult, "description": "refused: not allowed in the current state"},
+    503: {"model": QueueFullResult, "description": "the event queue is full; retry later"},
+}
+
+
+def _cell(request: Request) -> Cell:
+    return request.app.state.cell
+
+
+def _client(request: Request) -> str:
+    host = request.client.host if request.client else "unknown"
+    return f"api:{host}"
+
+
+def _answer(outcome: Outcome) -> JSONResponse:
+    body = CommandResult(
+        accepted=outcome.accepted,
+        event_id=outcome.event_id,
+        state=outcome.state.value,
+        message=outcome.message,
+    )
+    return JSONResponse(body.model_dump(), status_code=202 if outcome.accepted else 409)
+
+
+async def _run(request: Request, name: str, data: dict[str, Any] | None = None) -> JSONResponse:
+    outcome = await _cell(request).command(name, source=_client(request), data=data)
+    return _answer(outcome)
+
+
+@router.post("/start", status_code=202, responses=RESPONSES, response_model=CommandResult)
+async def start(
+    request: Request, body: Annotated[StartRequest | None, Body()] = None
+) -> JSONResponse:
+    """Start spraying (IDLE → EXECUTING_TRAJECTORY)."""
+    return await _run(request, "start", (body or StartRequest()).model_dump())
+
+
+@router.post("/calibrate-robot", status_code=202, responses=RESPONSES, response_model=CommandResult)
+async def calibrate_robot(request: Request) -> JSONResponse:
+    """Calibrate camera → robot coordinates from the ArUco markers (IDLE → CALIBRATING_ROBOT)."""
+    return await _run(request, "calibrate-robot")
+
+
+@router.post(
+    "/calibrate-camera", status_code=202, responses=RESPONSES, response_model=CommandResult
+)
+async def calibrate_camera(request: Request) -> JSONResponse:
+    """Calibrate the camera's intrinsics (IDLE → CALIBRATING_CAMERA)."""
+    return await _run(request, "calibrate-camera")
+
+
+@router.post(
+    "/create-workpiece", status_code=202, responses=RESPONSES, response_model=CommandResult
+)
+async def create_workpiece(request: Request) -> JSONResponse:
+    """Capture and store the workpiece on the table (IDLE → CREATING_WORKPIECE)."""
+    return await _run(request, "create-workpiece")
+
+
+@router.post("/pause", status_code=202, responses=RESPONSES, response_model=CommandResult)
+async def pause(request: Request) -> JSONResponse:
+    """Hold the trajectory at its next waypoint with the glue off."""
+    return await _run(request, "pause")
+
+
+@router.post("/resume", status_code=202, responses=RESPONSES, response_model=CommandResult)
+async def resume(request: Request) -> JSONResponse:
+    """Continue a paused trajectory from where it held."""
+    return await _run(request, "resume")
+
+
+@router.post("/cancel", status_code=202, responses=RESPONSES, response_model=CommandResult)
+async def cancel(request: Request) -> JSONResponse:
+    """Stop the running operation at once, glue off, and return to IDLE."""
+    return await _run(request, "cancel")
+
+
+@router.post("/estop", status_code=202, responses=RESPONSES, response_model=CommandResult)
+async def estop(
+    request: Request, body: Annotated[EstopRequest | None, Body()] = None
+) -> JSONResponse:
+    """Software stop: valve closed and robot stopped at once, then ERROR.
+
+    A supervisory stop, not a safety function: the hard-wired e-stop circuit
+    remains the cell's safety stop.
+    """
+    data = {"reason": body.reason} if body and body.reason else {}
+    return await _run(request, "estop", data)
+
+
+@router.post("/reset", status_code=202, responses=RESPONSES, response_model=CommandResult)
+async def reset(request: Request) -> JSONResponse:
+    """Leave ERROR for IDLE, once every device answers again; never restarts an operation."""
+    return await _run(request, "reset")

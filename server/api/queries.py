@@ -1,0 +1,77 @@
+"""Query routes: read-only views of the machine and the devices."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, HTTPException, Query, Request
+
+from server.api.schemas import (
+    AllowedView,
+    ErrorView,
+    HealthView,
+    HistoryView,
+    StateView,
+)
+from server.cell import Cell
+from server.core.engine import check
+from server.core.transitions import COMMANDS, normalize_command
+
+router = APIRouter(tags=["queries"])
+
+
+def _cell(request: Request) -> Cell:
+    return request.app.state.cell
+
+
+@router.get("/state", response_model=StateView)
+async def get_state(request: Request) -> dict:
+    """The current state, the running operation and its progress, the fault if any."""
+    worker = _cell(request).worker
+    assert worker is not None
+    return worker.snapshot()
+
+
+@router.get(
+    "/operations/{name}/allowed",
+    response_model=AllowedView,
+    responses={404: {"model": ErrorView, "description": "no such operation"}},
+)
+async def is_allowed(request: Request, name: str) -> AllowedView:
+    """Whether a command would be accepted in the current state, and why not."""
+    canonical = normalize_command(name)
+    if canonical is None:
+        known = ", ".join(COMMANDS)
+        raise HTTPException(404, f"unknown operation {name!r}; known operations: {known}")
+    worker = _cell(request).worker
+    assert worker is not None
+    allowed, reason = check(worker.ctx.state, COMMANDS[canonical], worker.facts())
+    return AllowedView(
+        operation=canonical, allowed=allowed, state=worker.ctx.state.value, reason=reason
+    )
+
+
+@router.get("/history", response_model=HistoryView)
+async def get_history(
+    request: Request, limit: int = Query(100, ge=1, le=10_000, description="most recent N")
+) -> HistoryView:
+    """Recent transitions, oldest first, newest last."""
+    worker = _cell(request).worker
+    assert worker is not None
+    records = list(worker.ctx.history)[-limit:]
+    return HistoryView.model_validate({"transitions": [r.as_dict() for r in records]})
+
+
+@router.get("/health", response_model=HealthView)
+async def get_health(request: Request) -> dict:
+    """Each device's link, last round-trip and last error; the worker's figures."""
+    cell = _cell(request)
+    worker = cell.worker
+    assert worker is not None
+    devices = worker.devices.health()
+    status = "ok" if all(d["connected"] for d in devices.values()) else "degraded"
+    return {
+        "status": status,
+        "state": worker.ctx.state.value,
+        "devices": devices,
+        "worker": worker.performance(),
+        "websocket_clients": request.app.state.ws_hub.client_count,
+    }

@@ -1,0 +1,136 @@
+"""Every message the HTTP API reads or writes, as strict pydantic models.
+
+Requests refuse unknown fields and bound every value, so a typo in a script
+("contourMatching") is a 422 naming the field instead of a silently ignored
+option.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+IDENTIFIER = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class StartRequest(Strict):
+    """Body of POST /start (all fields optional)."""
+
+    contour_matching: bool = Field(
+        True, description="find the workpiece in a fresh frame and match it to the library"
+    )
+    workpiece_id: str | None = Field(
+        None, pattern=IDENTIFIER, description="spray this library workpiece"
+    )
+
+
+class EstopRequest(Strict):
+    """Body of POST /estop (optional): why the stop was pressed, for the record."""
+
+    reason: str | None = Field(None, max_length=200)
+
+
+class CommandResult(BaseModel):
+    """The worker's decision on a command: 202 when accepted, 409 when refused."""
+
+    accepted: bool
+    event_id: str | None = Field(None, description="the event's id in logs and the journal")
+    state: str = Field(description="the state after the decision")
+    message: str
+
+
+class QueueFullResult(BaseModel):
+    """503: the event queue is full; retry after `retry_after` seconds."""
+
+    accepted: bool = False
+    state: str
+    message: str
+    retry_after: int
+
+
+class OperationView(BaseModel):
+    name: str
+    run_id: str
+    progress: dict[str, Any] | None = None
+
+
+class FaultView(BaseModel):
+    code: str
+    message: str
+    component: str
+    event_id: str
+    time: float
+
+
+class StateView(BaseModel):
+    """GET /state."""
+
+    state: str
+    previous_state: str | None
+    since: float = Field(description="Unix time the current state was entered")
+    time_in_state: float = Field(description="seconds in the current state")
+    operation: OperationView | None
+    error: FaultView | None = Field(description="the latest fault while in ERROR")
+    stop_reason: FaultView | None = Field(description="first-out: the fault that stopped the cell")
+    available_commands: list[str]
+    operation_result: dict[str, Any] | None = None
+
+
+class AllowedView(BaseModel):
+    """GET /operations/{name}/allowed."""
+
+    operation: str
+    allowed: bool
+    state: str
+    reason: str
+
+
+class TransitionView(BaseModel):
+    timestamp: float
+    old_state: str
+    new_state: str
+    event: str
+    event_id: str
+    time_in_old_state: float
+
+
+class HistoryView(BaseModel):
+    """GET /history: most recent last."""
+
+    transitions: list[TransitionView]
+
+
+class DeviceView(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    connected: bool
+    last_rtt_ms: float | None = None
+    last_error: str | None = None
+    last_ok_at: float | None = None
+
+
+class PerformanceView(BaseModel):
+    events_processed: int
+    events_refused: int
+    average_processing_time_ms: float
+    p99_processing_time_ms: float
+    queue_size: int
+
+
+class HealthView(BaseModel):
+    """GET /health: ok when every device answers, degraded otherwise."""
+
+    status: str
+    state: str
+    devices: dict[str, DeviceView]
+    worker: PerformanceView
+    websocket_clients: int
+
+
+class ErrorView(BaseModel):
+    detail: str

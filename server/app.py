@@ -1,0 +1,88 @@
+"""The HTTP application: FastAPI routes around one running Cell.
+
+Everything the cell does is decided by the worker; this module only wires the
+routes, maps the core's typed errors to HTTP answers, and starts and stops the
+cell with the server.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+from server.api import commands, queries, ws
+from server.cell import Cell
+from server.config import Settings
+from server.errors import EventQueueFull, WorkerStopped
+
+RETRY_AFTER_S = 1
+
+
+def create_app(settings: Settings | None = None, *, cell: Cell | None = None) -> FastAPI:
+    """Build the app; the cell starts when the server starts serving."""
+    settings = settings or (cell.settings if cell else Settings())
+    cell = cell or Cell(settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        await cell.start()
+        try:
+            yield
+        finally:
+            await cell.stop()
+
+    app = FastAPI(
+        title="Glue cell control server",
+        version="0.1.0",
+        summary="One state machine drives a glue-spraying robot cell.",
+        lifespan=lifespan,
+    )
+    app.state.cell = cell
+    app.state.settings = settings
+    app.state.ws_hub = ws.WebSocketHub(settings.max_broadcast_clients, settings.ws_client_buffer)
+    app.include_router(commands.router)
+    app.include_router(queries.router)
+    app.include_router(ws.router)
+    _install_error_handlers(app)
+    return app
+
+
+def _install_error_handlers(app: FastAPI) -> None:
+    def current_state(request: Request) -> str:
+        worker = request.app.state.cell.worker
+        return worker.ctx.state.value if worker else "INITIALIZING"
+
+    @app.exception_handler(EventQueueFull)
+    async def queue_full(request: Request, exc: EventQueueFull) -> JSONResponse:
+        body = {
+            "accepted": False,
+            "state": current_state(request),
+            "message": str(exc),
+            "retry_after": RETRY_AFTER_S,
+        }
+        return JSONResponse(body, status_code=503, headers={"Retry-After": str(RETRY_AFTER_S)})
+
+    @app.exception_handler(WorkerStopped)
+    async def worker_stopped(request: Request, exc: WorkerStopped) -> JSONResponse:
+        body = {
+            "accepted": False,
+            "state": current_state(request),
+            "message": str(exc),
+            "retry_after": RETRY_AFTER_S,
+        }
+        return JSONResponse(body, status_code=503, headers={"Retry-After": str(RETRY_AFTER_S)})
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        problems = []
+        for error in exc.errors():
+            where = ".".join(str(part) for part in error["loc"] if part != "body") or "body"
+            problems.append({"field": where, "message": error["msg"], "type": error["type"]})
+        summary = "; ".join(f"{p['field']}: {p['message']}" for p in problems)
+        return JSONResponse(
+            {"detail": f"invalid request: {summary}", "errors": problems}, status_code=422
+        )

@@ -1,0 +1,180 @@
+"""One Settings model for the whole server.
+
+Values come, highest priority first, from: keyword arguments (tests and the
+command line), `GLUE_APP_*` environment variables, the JSON file named by
+`GLUE_APP_CONFIG_PATH`, then the defaults below. The keys are the
+specification's (Appendix A) so a configuration written for the original
+application keeps working; the hardware variables keep their original names
+(`ROBOT_IP`, `VISION_CAMERA_ID`, `GLUE_CONTROLLER_PORT`) without the prefix.
+
+A device address of `sim` means "start the simulator on loopback and talk to
+it through the production client", so the default run exercises the same code
+path as a real cell.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import AliasChoices, Field, field_validator
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+)
+
+SIMULATED = "sim"
+
+# Robot positions (mm, robot base frame, on the table plane z=0) of ArUco markers 0-8.
+DEFAULT_MARKER_POSITIONS_MM: list[tuple[float, float]] = [
+    (x, y) for y in (-150.0, 0.0, 150.0) for x in (250.0, 400.0, 550.0)
+]
+
+
+class JsonFileSource(PydanticBaseSettingsSource):
+    """Reads the optional JSON file at GLUE_APP_CONFIG_PATH (keys as in Appendix A)."""
+
+    def get_field_value(self, field: Any, field_name: str) -> tuple[Any, str, bool]:
+        return None, field_name, False
+
+    def __call__(self) -> dict[str, Any]:
+        path = os.environ.get("GLUE_APP_CONFIG_PATH")
+        if not path:
+            return {}
+        try:
+            data = json.loads(Path(path).read_text(encoding="utf-8"))
+        except FileNotFoundError as exc:
+            raise ValueError(f"GLUE_APP_CONFIG_PATH names {path}, which does not exist") from exc
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"config file {path} is not valid JSON: {exc}") from exc
+        if not isinstance(data, dict):
+            raise ValueError(f"config file {path} must hold a JSON object of settings")
+        return data
+
+
+class Settings(BaseSettings):
+    """Every tunable of the cell server, with the specification's names."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="GLUE_APP_", extra="forbid", populate_by_name=True, validate_default=True
+    )
+
+    # Core state machine
+    event_queue_size: int = Field(1000, ge=1, le=1_000_000)
+    processing_timeout: float = Field(60.0, gt=0, description="seconds an operation may run")
+    max_concurrent_operations: int = Field(1, ge=1, le=1, description="the cell runs one at a time")
+    history_size: int = Field(1000, ge=10, le=1_000_000, description="transitions kept in memory")
+
+    # Error handling
+    error_recovery_attempts: int = Field(3, ge=0, le=100)
+    error_recovery_delay: float = Field(2.0, ge=0)
+    auto_recovery_enabled: bool = False
+
+    # Performance monitoring
+    performance_monitoring: bool = True
+    metrics_collection_interval: float = Field(10.0, gt=0)
+    performance_history_size: int = Field(1000, ge=10, le=1_000_000)
+
+    # Logging
+    logging_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
+        "INFO", validation_alias=AliasChoices("logging_level", "GLUE_APP_LOG_LEVEL")
+    )
+    log_file_path: str | None = None
+    log_rotation_size: str = "10MB"
+    log_retention_days: int = Field(30, ge=1)
+
+    # Persistence
+    data_path: Path = Field(Path("data"), description="where state, journal and tokens live")
+    state_persistence: bool = True
+    persistence_file: str | None = None
+    persistence_interval: float = Field(30.0, gt=0)
+
+    # Broadcasting
+    broadcast_enabled: bool = True
+    broadcast_port: int = Field(8000, ge=1, le=65535)
+    max_broadcast_clients: int = Field(100, ge=1, le=100_000)
+    ws_client_buffer: int = Field(256, ge=8, le=100_000, description="messages queued per client")
+    ws_ping_interval: float = Field(20.0, gt=0)
+
+    # Analytics
+    analytics_enabled: bool = True
+    analytics_database: str | None = None
+    analytics_retention_days: int = Field(90, ge=1)
+
+    # Hardware timeouts (seconds)
+    robot_communication_timeout: float = Field(10.0, gt=0)
+    vision_processing_timeout: float = Field(5.0, gt=0)
+    glue_system_timeout: float = Field(15.0, gt=0)
+
+    # Safety (seconds)
+    emergency_stop_timeout: float = Field(1.0, gt=0)
+    safe_position_timeout: float = Field(30.0, gt=0)
+    error_state_timeout: float = Field(300.0, gt=0)
+
+    # Hardware addresses: "sim" starts the simulator on loopback.
+    robot_ip: str = Field(SIMULATED, validation_alias=AliasChoices("robot_ip", "ROBOT_IP"))
+    robot_port: int = Field(30003, ge=0, le=65535)
+    vision_camera_id: str = Field(
+        SIMULATED, validation_alias=AliasChoices("vision_camera_id", "VISION_CAMERA_ID")
+    )
+    glue_controller_port: str = Field(
+        SIMULATED, validation_alias=AliasChoices("glue_controller_port", "GLUE_CONTROLLER_PORT")
+    )
+    glue_modbus_device_id: int = Field(1, ge=1, le=247)
+
+    # Cell geometry and motion
+    safe_position: tuple[float, float, float, float, float, float] = (
+        400.0,
+        0.0,
+        200.0,
+        180.0,
+        0.0,
+        0.0,
+    )
+    spray_height_mm: float = Field(20.0, ge=0)
+    travel_speed_mm_s: float = Field(250.0, gt=0, le=2000)
+    spray_speed_mm_s: float = Field(100.0, gt=0, le=2000)
+    acceleration_mm_s2: float = Field(1000.0, gt=0, le=20000)
+    default_flow_rate_ml_min: float = Field(30.0, ge=0, le=1000)
+    default_pressure_psi: float = Field(40.0, ge=0, le=150)
+    workspace_min_mm: tuple[float, float, float] = (100.0, -400.0, -5.0)
+    workspace_max_mm: tuple[float, float, float] = (800.0, 400.0, 500.0)
+    marker_positions_mm: list[tuple[float, float]] = Field(
+        default_factory=lambda: list(DEFAULT_MARKER_POSITIONS_MM)
+    )
+    simulation_speed_factor: float = Field(
+        1.0, gt=0, le=1000, description="simulated devices run this many times faster"
+    )
+
+    @field_validator("marker_positions_mm")
+    @classmethod
+    def _nine_markers(cls, value: list[tuple[float, float]]) -> list[tuple[float, float]]:
+        if len(value) != 9:
+            raise ValueError("marker_positions_mm needs the robot positions of markers 0-8 (nine)")
+        return value
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        return (init_settings, env_settings, JsonFileSource(settings_cls))
+
+    @property
+    def robot_simulated(self) -> bool:
+        return self.robot_ip == SIMULATED
+
+    @property
+    def glue_simulated(self) -> bool:
+        return self.glue_controller_port == SIMULATED
+
+    @property
+    def camera_simulated(self) -> bool:
+        return self.vision_camera_id == SIMULATED

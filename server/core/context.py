@@ -1,0 +1,128 @@
+"""What the machine remembers: the current state, the running operation, the
+last error, a bounded transition history and processing statistics.
+
+Only the worker writes here; everything else reads snapshots.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from server.core.transitions import State
+
+
+@dataclass(slots=True)
+class TransitionRecord:
+    """One entry of the transition history."""
+
+    timestamp: float
+    old_state: str
+    new_state: str
+    event: str
+    event_id: str
+    time_in_old_state: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(slots=True)
+class RunningOperation:
+    """The operation the cell is doing now."""
+
+    name: str
+    run_id: str
+    started_at: float
+    params: dict[str, Any] = field(default_factory=dict)
+    progress: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "run_id": self.run_id,
+            "started_at": self.started_at,
+            "params": self.params,
+            "progress": self.progress or None,
+        }
+
+
+@dataclass(slots=True)
+class FaultRecord:
+    """The fault that put (or keeps) the cell in ERROR."""
+
+    code: str
+    message: str
+    component: str
+    event_id: str
+    time: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class ProcessingStats:
+    """Events processed and refused, and processing-time figures over a bounded window."""
+
+    def __init__(self, window: int) -> None:
+        self.processed = 0
+        self.refused = 0
+        self._durations: deque[float] = deque(maxlen=window)
+
+    def record(self, seconds: float, *, accepted: bool) -> None:
+        self.processed += 1
+        if not accepted:
+            self.refused += 1
+        self._durations.append(seconds)
+
+    def snapshot(self, queue_size: int) -> dict[str, Any]:
+        durations = sorted(self._durations)
+        average = sum(durations) / len(durations) if durations else 0.0
+        p99 = (
+            durations[min(len(durations) - 1, math.ceil(0.99 * len(durations)) - 1)]
+            if durations
+            else 0.0
+        )
+        return {
+            "events_processed": self.processed,
+            "events_refused": self.refused,
+            "average_processing_time_ms": round(average * 1000, 4),
+            "p99_processing_time_ms": round(p99 * 1000, 4),
+            "queue_size": queue_size,
+        }
+
+
+@dataclass
+class MachineContext:
+    """The specification's StateMachineContext, plus what the HMI needs to show."""
+
+    history_size: int
+    state: State = State.INITIALIZING
+    previous_state: State | None = None
+    since: float = field(default_factory=time.time)
+    operation: RunningOperation | None = None
+    operation_data: dict[str, Any] = field(default_factory=dict)
+    operation_result: dict[str, Any] | None = None
+    error: FaultRecord | None = None
+    stop_reason: FaultRecord | None = None  # first-out: the first fault since the last reset
+    history: deque[TransitionRecord] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.history = deque(maxlen=self.history_size)
+
+    @property
+    def error_message(self) -> str | None:
+        return self.error.message if self.error else None
+
+    def record_error(self, error: FaultRecord) -> None:
+        """Note a fault; the first since the last reset stays the stop reason."""
+        self.error = error
+        if self.stop_reason is None:
+            self.stop_reason = error
+
+    def clear_error(self) -> None:
+        self.error = None
+        self.stop_reason = None

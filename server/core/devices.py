@@ -1,0 +1,111 @@
+"""The cell's three devices as one unit: halt them safely, probe them, report health.
+
+The safe halt is the one sequence every fault and stop goes through: the glue
+valve is commanded closed first, the robot stop right behind it (both on their
+way at once, neither waiting for the other's answer), each bounded by
+emergency_stop_timeout so a dead device cannot hold the cell.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+from server.drivers.base import Camera, FaultListener, GlueDispenser, Robot
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class HaltReport:
+    """What the safe halt achieved, device by device."""
+
+    valve_closed: bool
+    robot_stopped: bool
+    errors: list[str]
+
+
+class CellDevices:
+    """Robot, glue dispenser and camera, behind their Protocols."""
+
+    def __init__(self, robot: Robot, glue: GlueDispenser, camera: Camera) -> None:
+        self.robot = robot
+        self.glue = glue
+        self.camera = camera
+
+    def by_name(self) -> dict[str, Robot | GlueDispenser | Camera]:
+        return {"robot": self.robot, "glue": self.glue, "camera": self.camera}
+
+    def set_fault_listener(self, listener: FaultListener | None) -> None:
+        for device in self.by_name().values():
+            device.set_fault_listener(listener)
+
+    async def safe_halt(self, timeout: float) -> HaltReport:
+        """Close the glue valve and stop the robot now, valve first; never raises."""
+        valve = asyncio.ensure_future(asyncio.wait_for(self.glue.set_valve(False), timeout))
+        stop = asyncio.ensure_future(asyncio.wait_for(self.robot.stop(), timeout))
+        valve_result, stop_result = await asyncio.gather(valve, stop, return_exceptions=True)
+        errors = [
+            f"{name}: {_describe(result)}"
+            for name, result in (("glue valve close", valve_result), ("robot stop", stop_result))
+            if isinstance(result, BaseException)
+        ]
+        for error in errors:
+            log.error("safe halt: %s failed", error)
+        return HaltReport(
+            valve_closed=not isinstance(valve_result, BaseException),
+            robot_stopped=not isinstance(stop_result, BaseException),
+            errors=errors,
+        )
+
+    async def probe_faults(self, timeout: float) -> list[str]:
+        """Ask every device for a live answer; the faults that remain, one line each."""
+
+        async def probe(name: str) -> str | None:
+            try:
+                if name == "robot":
+                    await asyncio.wait_for(self.robot.get_position(), timeout)
+                elif name == "glue":
+                    status = await asyncio.wait_for(self.glue.read_status(), timeout)
+                    if status.alarms:
+                        return f"glue: alarm {', '.join(status.alarms)}"
+                else:
+                    await asyncio.wait_for(self.camera.capture(), timeout)
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:
+                return f"{name}: {_describe(exc)}"
+            return None
+
+        results = await asyncio.gather(*(probe(name) for name in self.by_name()))
+        return [fault for fault in results if fault]
+
+    def health(self) -> dict[str, dict[str, Any]]:
+        """Each device's connection state, last round-trip and last error."""
+        return {
+            name: {
+                "connected": device.health.connected,
+                "last_rtt_ms": device.health.last_rtt_ms,
+                "last_error": device.health.last_error,
+                "last_ok_at": device.health.last_ok_at,
+                **device.health.details,
+            }
+            for name, device in self.by_name().items()
+        }
+
+    async def connect(self, name: str, timeout: float) -> None:
+        """Connect one device within `timeout` (TimeoutError or DeviceError otherwise)."""
+        await asyncio.wait_for(self.by_name()[name].connect(), timeout)
+
+    async def close(self) -> None:
+        await asyncio.gather(
+            *(device.close() for device in self.by_name().values()), return_exceptions=True
+        )
+
+
+def _describe(exc: BaseException) -> str:
+    if isinstance(exc, TimeoutError):
+        return "no answer in time"
+    return str(exc) or type(exc).__name__

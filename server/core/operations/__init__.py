@@ -1,0 +1,19 @@
+"""The operations the operational states run, by name (see transitions.OPERATION_OF_STATE)."""
+
+from __future__ import annotations
+
+from server.core.operations.base import Operation, OperationContext, PauseGate
+from server.core.operations.frame_check import calibrate_camera, calibrate_robot, create_workpiece
+from server.core.operations.trajectory import execute_trajectory
+
+__all__ = ["Operation", "OperationContext", "PauseGate", "default_operations"]
+
+
+def default_operations() -> dict[str, Operation]:
+    """A fresh name → operation mapping; replace entries to plug in other implementations."""
+    return {
+        "trajectory": execute_trajectory,
+        "calibrate_robot": calibrate_robot,
+        "calibrate_camera": calibrate_camera,
+        "create_workpiece": create_workpiece,
+    }

@@ -1,0 +1,87 @@
+"""What an operation is: a plain async function of an OperationContext.
+
+An operation does the work of one operational state (spray a path, calibrate,
+create a workpiece) and returns a small JSON-able result, or raises. It never
+touches the state machine: the worker turns its return into
+OPERATION_COMPLETED and its exception into OPERATION_FAILED. That is what
+makes operations replaceable: an integrator can hand in the methods of an
+existing application as operations without touching the core.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from server.config import Settings
+from server.drivers.base import Camera, GlueDispenser, Robot
+
+ProgressReporter = Callable[[dict[str, Any]], None]
+
+
+class PauseGate:
+    """Lets a running operation hold at a safe point while the cell is PAUSED.
+
+    The worker closes the gate on PAUSE and opens it on RESUME; the operation
+    calls `checkpoint()` where stopping is safe (between waypoints).
+    """
+
+    def __init__(self) -> None:
+        self._open = asyncio.Event()
+        self._open.set()
+        self.holding = False  # the operation is waiting at a checkpoint
+        self._paused_at: float | None = None
+        self._paused_total = 0.0
+
+    @property
+    def paused(self) -> bool:
+        return not self._open.is_set()
+
+    def pause(self) -> None:
+        if self._paused_at is None:
+            self._paused_at = time.monotonic()
+        self._open.clear()
+
+    def resume(self) -> None:
+        if self._paused_at is not None:
+            self._paused_total += time.monotonic() - self._paused_at
+            self._paused_at = None
+        self._open.set()
+
+    def paused_seconds(self) -> float:
+        """Time spent paused so far; processing_timeout does not count it."""
+        current = time.monotonic() - self._paused_at if self._paused_at is not None else 0.0
+        return self._paused_total + current
+
+    async def checkpoint(self, on_hold: Callable[[], Awaitable[None]] | None = None) -> bool:
+        """Wait here while paused; run `on_hold` (e.g. close the valve) first. True if it held."""
+        if not self.paused:
+            return False
+        if on_hold is not None:
+            await on_hold()
+        self.holding = True
+        try:
+            await self._open.wait()
+        finally:
+            self.holding = False
+        return True
+
+
+@dataclass
+class OperationContext:
+    """Everything an operation may use; nothing else reaches it."""
+
+    robot: Robot
+    glue: GlueDispenser
+    camera: Camera
+    settings: Settings
+    params: dict[str, Any]
+    report: ProgressReporter
+    gate: PauseGate = field(default_factory=PauseGate)
+    run_id: str = ""
+
+
+Operation = Callable[[OperationContext], Awaitable[dict[str, Any]]]

@@ -1,0 +1,172 @@
+"""The specification's in-process API, for integrators who embed the cell.
+
+`EmbeddedCell` offers the method names and return shapes of the original
+application (`start(contourMatching=True) -> (bool, str)`, `calibrateRobot()
+-> (bool, str, image)`, ...) over the very same Cell the HTTP API drives:
+every call goes through `Cell.command`, the worker and the transition table.
+
+The cell runs on its own event loop in a background thread, so the façade can
+be called from ordinary synchronous code. Operations are replaceable: pass
+`operations={"calibrate_robot": blocking_operation(app.calibrateRobot)}` to let
+an existing application's method do the work while the state machine governs
+when it may run.
+
+    with EmbeddedCell() as cell:
+        ok, message = cell.start(contourMatching=False)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Callable, Coroutine
+from typing import Any, TypeVar
+
+import numpy as np
+
+from server.cell import Cell
+from server.config import Settings
+from server.core.devices import CellDevices
+from server.core.engine import check
+from server.core.operations import Operation, OperationContext
+from server.core.transitions import COMMANDS, State, normalize_command
+
+T = TypeVar("T")
+
+
+def blocking_operation(function: Callable[[], Any]) -> Operation:
+    """Wrap a synchronous callable (e.g. a legacy application method) as an operation.
+
+    It runs in a worker thread; its return value becomes the result (a dict is
+    kept as is, anything else is stored under "value"); an exception fails the
+    operation.
+    """
+
+    async def operation(ctx: OperationContext) -> dict[str, Any]:
+        value = await asyncio.to_thread(function)
+        return value if isinstance(value, dict) else {"value": value}
+
+    return operation
+
+
+class EmbeddedCell:
+    """The cell as a synchronous Python object with the specification's methods."""
+
+    def __init__(
+        self,
+        settings: Settings | None = None,
+        *,
+        devices: CellDevices | None = None,
+        operations: dict[str, Operation] | None = None,
+    ) -> None:
+        self.cell = Cell(settings or Settings(), devices=devices, operations=operations)
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(
+            target=self._loop.run_forever, name="glue-cell", daemon=True
+        )
+
+    # --- lifecycle ---------------------------------------------------------
+
+    def open(self, ready_timeout: float = 30.0) -> EmbeddedCell:
+        """Start the cell and wait until it has left INITIALIZING."""
+        self._thread.start()
+        self._call(self.cell.start())
+        deadline = time.monotonic() + ready_timeout
+        while self.get_current_state() is State.INITIALIZING and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return self
+
+    def close(self) -> None:
+        """Halt the devices, stop the cell and its loop."""
+        if self._thread.is_alive():
+            self._call(self.cell.stop())
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(timeout=10)
+        self._loop.close()
+
+    def __enter__(self) -> EmbeddedCell:
+        return self.open()
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    # --- the specification's methods -------------------------------------
+
+    def start(
+        self, contourMatching: bool = True, workpiece_id: str | None = None
+    ) -> tuple[bool, str]:
+        """Begin trajectory execution; returns at once with (accepted, message)."""
+        data = {"contour_matching": contourMatching, "workpiece_id": workpiece_id}
+        return self._command("start", data)
+
+    def calibrateRobot(self, timeout: float = 120.0) -> tuple[bool, str, np.ndarray | None]:
+        """Run robot calibration to its end; (success, message, annotated image or None)."""
+        ok, message, result = self._run_to_end("calibrate-robot", State.CALIBRATING_ROBOT, timeout)
+        image = result.get("image") if isinstance(result, dict) else None
+        return ok, message, image if isinstance(image, np.ndarray) else None
+
+    def calibrateCamera(self, timeout: float = 120.0) -> tuple[bool, str]:
+        """Run camera calibration to its end; (success, message)."""
+        ok, message, _ = self._run_to_end("calibrate-camera", State.CALIBRATING_CAMERA, timeout)
+        return ok, message
+
+    def createWorkpiece(self, timeout: float = 120.0) -> tuple[bool, Any]:
+        """Create a workpiece from the camera; (success, result data or message)."""
+        ok, message, result = self._run_to_end(
+            "create-workpiece", State.CREATING_WORKPIECE, timeout
+        )
+        return ok, result if ok else message
+
+    def emergency_stop(self) -> tuple[bool, str]:
+        """Stop at once: valve closed, robot stopped, cell in ERROR."""
+        return self._command("estop", {"reason": "embedded emergency_stop()"})
+
+    def reset(self) -> tuple[bool, str]:
+        """Leave ERROR for IDLE once every fault has cleared."""
+        return self._command("reset")
+
+    def pause(self) -> tuple[bool, str]:
+        return self._command("pause")
+
+    def resume(self) -> tuple[bool, str]:
+        return self._command("resume")
+
+    def cancel(self) -> tuple[bool, str]:
+        return self._command("cancel")
+
+    def get_current_state(self) -> State:
+        worker = self.cell.worker
+        return worker.ctx.state if worker else State.INITIALIZING
+
+    def can_execute_operation(self, operation: str) -> bool:
+        """Whether the named command would be accepted now (unknown names: False)."""
+        canonical = normalize_command(operation)
+        worker = self.cell.worker
+        if canonical is None or worker is None:
+            return False
+        return check(worker.ctx.state, COMMANDS[canonical], worker.facts())[0]
+
+    # --- plumbing ------------------------------------------------------------
+
+    def _call(self, coroutine: Coroutine[Any, Any, T], timeout: float = 60.0) -> T:
+        return asyncio.run_coroutine_threadsafe(coroutine, self._loop).result(timeout)
+
+    def _command(self, name: str, data: dict[str, Any] | None = None) -> tuple[bool, str]:
+        outcome = self._call(self.cell.command(name, source="embedded", data=data))
+        return outcome.accepted, outcome.message
+
+    def _run_to_end(self, name: str, state: State, timeout: float) -> tuple[bool, str, Any]:
+        accepted, message = self._command(name)
+        if not accepted:
+            return False, message, None
+        deadline = time.monotonic() + timeout
+        while self.get_current_state() is state:
+            if time.monotonic() > deadline:
+                return False, f"{name} still running after {timeout:g} s", None
+            time.sleep(0.01)
+        worker = self.cell.worker
+        assert worker is not None
+        if worker.ctx.state is State.ERROR:
+            return False, worker.ctx.error_message or f"{name} failed", None
+        return True, f"{name} completed", worker.ctx.operation_result

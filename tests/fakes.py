@@ -1,0 +1,168 @@
+"""In-process fakes of the three devices, for unit tests of the core only.
+
+They keep the Protocols' behaviour that the core relies on (a move takes
+distance / speed, stop interrupts it, a cancelled move stops the arm, faults
+can be injected) without any protocol underneath. Integration tests use the
+real clients against the network simulators instead.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+
+import numpy as np
+
+from server.drivers.base import DeviceFault, DeviceHealth, FaultListener, GlueStatus, Pose
+from server.errors import DeviceDisconnected, DeviceTimeout
+
+
+class FakeRobot:
+    def __init__(self, speed_factor: float = 50.0) -> None:
+        self.health = DeviceHealth("robot")
+        self.position = Pose(400.0, 0.0, 200.0)
+        self.speed_factor = speed_factor
+        self.moving = False
+        self.stops = 0
+        self.moves: list[Pose] = []
+        self.failing = False
+        self.stalled = False
+        self._listener: FaultListener | None = None
+        self._stop_event = asyncio.Event()
+
+    def set_fault_listener(self, listener: FaultListener | None) -> None:
+        self._listener = listener
+
+    def _check(self) -> None:
+        if self.failing:
+            raise DeviceDisconnected("robot", "connection lost")
+
+    async def connect(self) -> None:
+        self._check()
+        self.health.connected = True
+
+    async def close(self) -> None:
+        self.health.connected = False
+
+    async def move_linear(self, pose: Pose, speed: float, acceleration: float) -> None:
+        self._check()
+        if self.stalled:
+            await asyncio.sleep(3600)
+        start = self.position
+        distance = math.dist(start[:3], pose[:3])
+        duration = distance / speed / self.speed_factor
+        self.moving = True
+        self._stop_event.clear()
+        try:
+            stopped = False
+            try:
+                await asyncio.wait_for(self._stop_event.wait(), duration)
+                stopped = True
+            except TimeoutError:
+                pass
+            if not stopped:
+                self.position = pose
+                self.moves.append(pose)
+        except asyncio.CancelledError:
+            await self.stop()
+            raise
+        finally:
+            self.moving = False
+
+    async def move_joint(self, target: Pose, speed: float) -> None:
+        await self.move_linear(target, speed, 0.0)
+
+    async def get_position(self) -> Pose:
+        self._check()
+        return self.position
+
+    async def is_moving(self) -> bool:
+        return self.moving
+
+    async def stop(self) -> None:
+        self._check()
+        self.stops += 1
+        self._stop_event.set()
+
+    def fail(self, message: str = "connection lost") -> None:
+        """Simulate a dropped link: calls fail and the listener hears of it once."""
+        self.failing = True
+        self.health.connected = False
+        if self._listener:
+            self._listener(DeviceFault("robot", "COMM_LOST", message))
+
+    def recover(self) -> None:
+        self.failing = False
+        self.health.connected = True
+
+
+class FakeGlue:
+    def __init__(self) -> None:
+        self.health = DeviceHealth("glue")
+        self.valve_open = False
+        self.valve_log: list[tuple[float, bool]] = []
+        self.flow = 0.0
+        self.pressure = 0.0
+        self.alarms: tuple[str, ...] = ()
+        self.silent = False
+        self._listener: FaultListener | None = None
+
+    def set_fault_listener(self, listener: FaultListener | None) -> None:
+        self._listener = listener
+
+    async def _exchange(self) -> None:
+        if self.silent:
+            raise DeviceTimeout("glue", "no reply")
+
+    async def connect(self) -> None:
+        await self._exchange()
+        self.health.connected = True
+
+    async def close(self) -> None:
+        self.health.connected = False
+
+    async def set_valve(self, open_: bool) -> None:
+        await self._exchange()
+        self.valve_open = open_
+        self.valve_log.append((time.perf_counter(), open_))
+
+    async def set_flow_rate(self, ml_per_min: float) -> None:
+        await self._exchange()
+        self.flow = ml_per_min
+
+    async def set_pressure(self, psi: float) -> None:
+        await self._exchange()
+        self.pressure = psi
+
+    async def read_status(self) -> GlueStatus:
+        await self._exchange()
+        return GlueStatus(
+            self.valve_open,
+            self.flow,
+            self.pressure,
+            self.flow if self.valve_open else 0.0,
+            self.pressure,
+            25.0,
+            self.alarms,
+        )
+
+
+class FakeCamera:
+    def __init__(self) -> None:
+        self.health = DeviceHealth("camera")
+        self.broken = False
+
+    def set_fault_listener(self, listener: FaultListener | None) -> None:
+        pass
+
+    async def connect(self) -> None:
+        self.health.connected = True
+
+    async def close(self) -> None:
+        self.health.connected = False
+
+    async def capture(self) -> np.ndarray:
+        if self.broken:
+            raise DeviceDisconnected("camera", "no frame")
+        return np.zeros((1080, 1920, 3), np.uint8)

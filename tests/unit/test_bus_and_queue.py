@@ -1,0 +1,66 @@
+"""The bus never waits on a subscriber; the queue orders by lane, then arrival."""
+
+from __future__ import annotations
+
+import pytest
+
+from server.core.bus import SLOW_CONSUMER, Bus, SubscriptionClosed
+from server.core.event_queue import Envelope, EventQueue, Priority
+from server.core.transitions import Event
+from server.errors import EventQueueFull
+
+
+async def test_sequence_numbers_rise_by_one_for_every_subscriber() -> None:
+    bus = Bus()
+    first, second = bus.subscribe(10), bus.subscribe(10)
+    for index in range(5):
+        bus.publish("progress", {"waypoint": index})
+    for subscription in (first, second):
+        assert [(await subscription.get()).seq for _ in range(5)] == [1, 2, 3, 4, 5]
+
+
+async def test_a_slow_subscriber_is_closed_and_the_others_keep_receiving() -> None:
+    bus = Bus()
+    slow, fast = bus.subscribe(3), bus.subscribe(100)
+    for index in range(10):
+        bus.publish("progress", {"waypoint": index})
+        await fast.get()
+    with pytest.raises(SubscriptionClosed) as closed:
+        await slow.get()
+    assert closed.value.reason == SLOW_CONSUMER
+    assert bus.subscriber_count == 1
+    bus.publish("state_changed", {})
+    assert (await fast.get()).seq == 11
+
+
+async def test_a_subscription_can_filter_message_types() -> None:
+    bus = Bus()
+    only_states = bus.subscribe(10, types=["state_changed"])
+    bus.publish("progress", {})
+    bus.publish("state_changed", {"new_state": "IDLE"})
+    message = await only_states.get()
+    assert message.type == "state_changed" and message.seq == 2
+
+
+def envelope(event: Event, priority: Priority, n: int) -> Envelope:
+    return Envelope(f"e{n}", event, "test", {}, priority)
+
+
+async def test_queue_drains_emergency_then_faults_then_requests_each_in_order() -> None:
+    queue = EventQueue(capacity=10)
+    queue.put(envelope(Event.START_REQUESTED, Priority.REQUEST, 1))
+    queue.put(envelope(Event.ERROR_OCCURRED, Priority.FAULT, 2))
+    queue.put(envelope(Event.PAUSE_REQUESTED, Priority.REQUEST, 3))
+    queue.put(envelope(Event.EMERGENCY_STOP, Priority.EMERGENCY, 4))
+    assert [(await queue.get()).event_id for _ in range(4)] == ["e4", "e2", "e1", "e3"]
+
+
+def test_only_the_request_lane_is_bounded() -> None:
+    queue = EventQueue(capacity=2)
+    for n in range(2):
+        queue.put(envelope(Event.START_REQUESTED, Priority.REQUEST, n))
+    with pytest.raises(EventQueueFull):
+        queue.put(envelope(Event.START_REQUESTED, Priority.REQUEST, 3))
+    queue.put(envelope(Event.EMERGENCY_STOP, Priority.EMERGENCY, 4))
+    queue.put(envelope(Event.OPERATION_COMPLETED, Priority.REQUEST, 5), bounded=False)
+    assert len(queue) == 4

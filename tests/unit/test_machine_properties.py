@@ -1,0 +1,91 @@
+"""Random event sequences through the real worker (on fakes): the table always holds.
+
+A hypothesis stateful test: each step posts one event, lets the worker decide,
+and checks that every transition recorded is a row of the table and that an
+emergency stop always leaves the cell in ERROR.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
+
+from server.config import Settings
+from server.core.bus import Bus
+from server.core.devices import CellDevices
+from server.core.event_queue import Priority
+from server.core.operations import default_operations
+from server.core.transitions import TRANSITIONS, Event, State
+from server.core.worker import Worker
+from tests.fakes import FakeCamera, FakeGlue, FakeRobot
+
+EXTERNAL_EVENTS = [e for e in Event if e is not Event.EMERGENCY_STOP]
+
+
+class CellMachine(RuleBasedStateMachine):
+    def __init__(self) -> None:
+        super().__init__()
+        self.loop = asyncio.new_event_loop()
+        self.glue = FakeGlue()
+        self.robot = FakeRobot(speed_factor=2000)
+        config = Settings(emergency_stop_timeout=0.2, processing_timeout=5)
+        devices = CellDevices(self.robot, self.glue, FakeCamera())
+        self.worker = Worker(config, devices, default_operations(), Bus())
+        self.loop.run_until_complete(self.worker.start())
+        self.checked = 0
+
+    def teardown(self) -> None:
+        self.loop.run_until_complete(self.worker.stop())
+        self.loop.close()
+
+    def _settle(self, seconds: float = 0.0) -> None:
+        self.loop.run_until_complete(asyncio.sleep(seconds))
+
+    @rule(event=st.sampled_from(EXTERNAL_EVENTS), wait=st.sampled_from([0.0, 0.001, 0.01]))
+    def post(self, event: Event, wait: float) -> None:
+        envelope = self.worker.submit(event, source="property", priority=Priority.REQUEST,
+                                      data={"code": "TEST", "message": "injected",
+                                            "component": "test", "run_id": "any"})
+        self.loop.run_until_complete(envelope.future)
+        self._settle(wait)
+
+    @rule()
+    def emergency_stop(self) -> None:
+        outcome = self.loop.run_until_complete(self.worker.emergency_stop(source="property"))
+        assert outcome.accepted
+        assert self.worker.ctx.state is State.ERROR
+        assert self.glue.valve_open is False
+
+    @rule()
+    def reset(self) -> None:
+        self.loop.run_until_complete(self.worker.request(Event.RESET_REQUESTED, source="p"))
+
+    @rule(wait=st.sampled_from([0.005, 0.02]))
+    def let_time_pass(self, wait: float) -> None:
+        self._settle(wait)
+
+    @invariant()
+    def every_recorded_transition_is_in_the_table(self) -> None:
+        history = list(self.worker.ctx.history)
+        for record in history[self.checked:]:
+            row = TRANSITIONS[State(record.old_state)].get(Event(record.event))
+            assert row is not None, f"{record.old_state} on {record.event} is not in the table"
+            assert row.target.value == record.new_state
+        for before, after in zip(history, history[1:], strict=False):
+            assert before.new_state == after.old_state, "history must be one unbroken chain"
+        self.checked = max(0, len(history) - 1)
+
+    @invariant()
+    def the_valve_is_closed_whenever_no_trajectory_runs(self) -> None:
+        if self.worker.ctx.state not in (State.EXECUTING_TRAJECTORY, State.PAUSED):
+            assert self.glue.valve_open is False
+
+
+CellMachine.TestCase.settings = settings(
+    max_examples=60, stateful_step_count=30, deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+TestCellMachine = CellMachine.TestCase

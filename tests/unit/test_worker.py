@@ -1,0 +1,230 @@
+"""The worker on in-process fakes: ordering, overflow, e-stop, operations."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+import pytest
+
+from server.core.event_queue import Priority
+from server.core.operations import OperationContext
+from server.core.transitions import Event, State
+from server.errors import EventQueueFull, OperationError
+from tests.conftest import wait_for_state
+from tests.fakes import FakeGlue, FakeRobot
+
+
+def blocking_operation(started: asyncio.Event, cancelled: asyncio.Event):
+    async def operation(ctx: OperationContext) -> dict[str, Any]:
+        started.set()
+        try:
+            await asyncio.sleep(3600)
+        except asyncio.CancelledError:
+            cancelled.set()
+            raise
+        return {}
+
+    return operation
+
+
+async def test_comes_up_through_initializing_once_every_device_is_ready(make_worker) -> None:
+    worker = await make_worker()
+    events = [r.event for r in worker.ctx.history]
+    assert events == ["SYSTEM_READY"]
+    assert worker.ctx.previous_state is State.INITIALIZING
+
+
+async def test_a_device_that_does_not_come_up_sends_the_cell_to_error(make_worker) -> None:
+    robot = FakeRobot()
+    robot.failing = True
+    worker = await make_worker(robot=robot, wait_idle=False)
+    await wait_for_state(worker, State.ERROR)
+    assert worker.ctx.error.component == "robot"
+    assert "robot did not come up" in worker.ctx.error.message
+
+
+async def test_events_are_handled_one_at_a_time_in_arrival_order(make_worker) -> None:
+    worker = await make_worker(operations={"calibrate_robot": blocking_operation(
+        asyncio.Event(), asyncio.Event())})
+    sequence = [Event.CALIBRATE_ROBOT_REQUESTED, Event.START_REQUESTED, Event.CANCEL_REQUESTED,
+                Event.START_REQUESTED, Event.PAUSE_REQUESTED, Event.RESUME_REQUESTED,
+                Event.CANCEL_REQUESTED]
+    envelopes = [worker.submit(event, source="test") for event in sequence]
+    outcomes = [await envelope.future for envelope in envelopes]
+    assert [o.accepted for o in outcomes] == [True, False, True, True, True, True, True]
+    assert [o.state for o in outcomes] == [
+        State.CALIBRATING_ROBOT, State.CALIBRATING_ROBOT, State.IDLE, State.EXECUTING_TRAJECTORY,
+        State.PAUSED, State.EXECUTING_TRAJECTORY, State.IDLE]
+    assert [r.event_id for r in worker.ctx.history][-6:] == [
+        o.event_id for o in outcomes if o.accepted]
+
+
+async def test_a_full_queue_refuses_loudly_and_drops_nothing(make_worker, fast_settings) -> None:
+    worker = await make_worker(fast_settings.model_copy(update={"event_queue_size": 3}))
+    worker._task.cancel()  # hold the worker so the queue can fill
+    await asyncio.gather(worker._task, return_exceptions=True)
+    accepted = [worker.submit(Event.PAUSE_REQUESTED, source="test") for _ in range(3)]
+    with pytest.raises(EventQueueFull, match="3 events waiting"):
+        worker.submit(Event.PAUSE_REQUESTED, source="test")
+    assert len(worker.queue) == 3
+    worker._task = asyncio.create_task(worker._run())
+    outcomes = [await envelope.future for envelope in accepted]
+    assert len(outcomes) == 3 and worker.stats.processed >= 3
+
+
+async def test_estop_overtakes_a_full_queue(make_worker, fast_settings) -> None:
+    glue, robot = FakeGlue(), FakeRobot()
+    worker = await make_worker(fast_settings.model_copy(update={"event_queue_size": 5}),
+                               glue=glue, robot=robot)
+    worker._task.cancel()
+    await asyncio.gather(worker._task, return_exceptions=True)
+    queued = [worker.submit(Event.START_REQUESTED, source="test") for _ in range(5)]
+    with pytest.raises(EventQueueFull):
+        worker.submit(Event.START_REQUESTED, source="test")
+    estop = asyncio.create_task(worker.emergency_stop(source="test"))
+    await asyncio.sleep(0.05)
+    # The devices were halted before the worker even ran again.
+    assert robot.stops >= 1 and glue.valve_log and glue.valve_log[-1][1] is False
+    worker._task = asyncio.create_task(worker._run())
+    outcome = await estop
+    assert outcome.accepted and outcome.state is State.ERROR
+    later = [await envelope.future for envelope in queued]
+    assert not any(o.accepted for o in later)  # all refused in ERROR, none lost
+    assert worker.ctx.history[-1].event == "EMERGENCY_STOP"
+
+
+async def test_leaving_an_operational_state_cancels_its_operation(make_worker) -> None:
+    started, cancelled = asyncio.Event(), asyncio.Event()
+    glue = FakeGlue()
+    worker = await make_worker(operations={"calibrate_camera": blocking_operation(started, cancelled)},
+                               glue=glue)
+    await worker.request(Event.CALIBRATE_CAMERA_REQUESTED, source="test")
+    await asyncio.wait_for(started.wait(), 5)
+    outcome = await worker.request(Event.CANCEL_REQUESTED, source="test")
+    assert outcome.accepted and outcome.state is State.IDLE
+    assert cancelled.is_set()
+    assert glue.valve_open is False and worker.ctx.operation is None
+
+
+async def test_estop_mid_run_closes_the_valve_and_stops_the_robot(make_worker) -> None:
+    glue, robot = FakeGlue(), FakeRobot(speed_factor=2)
+    worker = await make_worker(glue=glue, robot=robot)
+    await worker.request(Event.START_REQUESTED, source="test")
+    async with asyncio.timeout(10):
+        while not glue.valve_open:
+            await asyncio.sleep(0.002)
+    outcome = await worker.emergency_stop(source="test", data={"reason": "hand in cell"})
+    assert outcome.state is State.ERROR
+    assert glue.valve_open is False and not robot.moving and robot.stops >= 1
+    assert worker.ctx.stop_reason.code == "EMERGENCY_STOP"
+    assert "hand in cell" in worker.ctx.stop_reason.message
+    assert worker.ctx.operation is None
+
+
+async def test_pause_holds_at_the_next_waypoint_and_resume_finishes_the_same_run(make_worker) -> None:
+    glue, robot = FakeGlue(), FakeRobot(speed_factor=5)
+    worker = await make_worker(glue=glue, robot=robot)
+    started = await worker.request(Event.START_REQUESTED, source="test")
+    async with asyncio.timeout(10):
+        while not worker.ctx.operation.progress.get("waypoint"):
+            await asyncio.sleep(0.002)
+    await worker.request(Event.PAUSE_REQUESTED, source="test")
+    async with asyncio.timeout(10):
+        while not worker._gate.holding:
+            await asyncio.sleep(0.002)
+    held_at = worker.ctx.operation.progress["waypoint"]
+    moves_at_hold = len(robot.moves)
+    await asyncio.sleep(0.2)
+    assert glue.valve_open is False and len(robot.moves) == moves_at_hold
+    assert worker.ctx.operation.progress["waypoint"] == held_at
+    await worker.request(Event.RESUME_REQUESTED, source="test")
+    await wait_for_state(worker, State.IDLE)
+    assert worker.ctx.history[-1].event == "OPERATION_COMPLETED"
+    assert worker.ctx.operation_result == {"workpiece": "demo", "waypoints": 7}
+    # One run: the robot visited each planned waypoint exactly once, in order.
+    planned = [tuple(w["pose"]) for w in worker.planned_path]
+    assert [tuple(m) for m in robot.moves if tuple(m) in planned] == planned
+    assert started.event_id == worker.ctx.history[-4].event_id
+
+
+async def test_a_failing_operation_ends_in_error_with_its_reason(make_worker) -> None:
+    async def failing(ctx: OperationContext) -> dict[str, Any]:
+        raise OperationError("MARKER_NOT_FOUND", "marker 4 not found: check lighting")
+
+    worker = await make_worker(operations={"calibrate_robot": failing})
+    await worker.request(Event.CALIBRATE_ROBOT_REQUESTED, source="test")
+    await wait_for_state(worker, State.ERROR)
+    assert worker.ctx.error.code == "MARKER_NOT_FOUND"
+    assert worker.ctx.error.message == "marker 4 not found: check lighting"
+
+
+async def test_processing_timeout_fails_the_operation(make_worker, fast_settings) -> None:
+    worker = await make_worker(
+        fast_settings.model_copy(update={"processing_timeout": 0.2}),
+        operations={"create_workpiece": blocking_operation(asyncio.Event(), asyncio.Event())},
+    )
+    await worker.request(Event.CREATE_WORKPIECE_REQUESTED, source="test")
+    await wait_for_state(worker, State.ERROR)
+    assert worker.ctx.error.code == "OPERATION_TIMEOUT"
+    assert "processing_timeout (0.2 s)" in worker.ctx.error.message
+
+
+async def test_paused_time_does_not_count_against_processing_timeout(make_worker, fast_settings):
+    robot = FakeRobot(speed_factor=5)
+    worker = await make_worker(fast_settings.model_copy(update={"processing_timeout": 1.5}),
+                               robot=robot)
+    await worker.request(Event.START_REQUESTED, source="test")
+    await worker.request(Event.PAUSE_REQUESTED, source="test")
+    await asyncio.sleep(2.0)
+    assert worker.ctx.state is State.PAUSED
+    await worker.request(Event.RESUME_REQUESTED, source="test")
+    await wait_for_state(worker, State.IDLE)
+    assert worker.ctx.history[-1].event == "OPERATION_COMPLETED"
+
+
+async def test_a_completion_from_an_ended_run_is_ignored(make_worker) -> None:
+    worker = await make_worker()
+    envelope = worker.submit(Event.OPERATION_COMPLETED, source="test", data={"run_id": "old"})
+    outcome = await envelope.future
+    assert not outcome.accepted and "already ended" in outcome.message
+
+
+async def test_device_fault_mid_run_ends_in_error_and_reset_waits_for_recovery(make_worker):
+    glue, robot = FakeGlue(), FakeRobot(speed_factor=2)
+    worker = await make_worker(glue=glue, robot=robot)
+    await worker.request(Event.START_REQUESTED, source="test")
+    async with asyncio.timeout(10):
+        while not glue.valve_open:
+            await asyncio.sleep(0.002)
+    robot.fail("connection lost")
+    await wait_for_state(worker, State.ERROR)
+    assert glue.valve_open is False
+    assert worker.ctx.stop_reason.component == "robot"
+    refused = await worker.request(Event.RESET_REQUESTED, source="test")
+    assert not refused.accepted and "robot: connection lost" in refused.message
+    assert worker.ctx.state is State.ERROR
+    robot.recover()
+    accepted = await worker.request(Event.RESET_REQUESTED, source="test")
+    assert accepted.accepted and accepted.state is State.IDLE
+    assert worker.ctx.stop_reason is None
+
+
+async def test_a_second_fault_keeps_the_first_out_stop_reason(make_worker) -> None:
+    worker = await make_worker()
+    for code in ("FIRST", "SECOND"):
+        worker.submit(Event.ERROR_OCCURRED, source="test", priority=Priority.FAULT,
+                      data={"code": code, "message": code.lower(), "component": "test"})
+    await wait_for_state(worker, State.ERROR)
+    await asyncio.sleep(0.05)
+    assert worker.ctx.stop_reason.code == "FIRST" and worker.ctx.error.code == "SECOND"
+
+
+async def test_stop_answers_every_waiting_sender(make_worker) -> None:
+    worker = await make_worker()
+    worker._task.cancel()
+    await asyncio.gather(worker._task, return_exceptions=True)
+    waiting = worker.submit(Event.START_REQUESTED, source="test")
+    await worker.stop()
+    with pytest.raises(Exception, match="shutting down"):
+        await waiting.future
