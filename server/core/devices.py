@@ -64,7 +64,10 @@ class CellDevices:
         """Ask every device for a live answer; the faults that remain, one line each."""
 
         async def probe(name: str) -> str | None:
+            device = self.by_name()[name]
             try:
+                if not device.health.connected:  # never came up, or the link was lost
+                    await asyncio.wait_for(device.connect(), timeout)
                 if name == "robot":
                     await asyncio.wait_for(self.robot.get_position(), timeout)
                 elif name == "glue":

@@ -263,6 +263,9 @@ class Worker:
             self.stats.record(time.perf_counter() - started, accepted=outcome.accepted)
             if envelope.future is not None and not envelope.future.done():
                 envelope.future.set_result(outcome)
+            # Let the loop run between events, so a long queue of quick refusals
+            # never starves the HTTP handlers (the e-stop route above all).
+            await asyncio.sleep(0)
 
     async def _handle(self, envelope: Envelope) -> Outcome:
         event, state = envelope.event, self.ctx.state

@@ -8,6 +8,7 @@ emergency stop always leaves the cell in ERROR.
 from __future__ import annotations
 
 import asyncio
+import itertools
 
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
@@ -46,9 +47,12 @@ class CellMachine(RuleBasedStateMachine):
 
     @rule(event=st.sampled_from(EXTERNAL_EVENTS), wait=st.sampled_from([0.0, 0.001, 0.01]))
     def post(self, event: Event, wait: float) -> None:
-        envelope = self.worker.submit(event, source="property", priority=Priority.REQUEST,
-                                      data={"code": "TEST", "message": "injected",
-                                            "component": "test", "run_id": "any"})
+        envelope = self.worker.submit(
+            event,
+            source="property",
+            priority=Priority.REQUEST,
+            data={"code": "TEST", "message": "injected", "component": "test", "run_id": "any"},
+        )
         self.loop.run_until_complete(envelope.future)
         self._settle(wait)
 
@@ -70,11 +74,11 @@ class CellMachine(RuleBasedStateMachine):
     @invariant()
     def every_recorded_transition_is_in_the_table(self) -> None:
         history = list(self.worker.ctx.history)
-        for record in history[self.checked:]:
+        for record in history[self.checked :]:
             row = TRANSITIONS[State(record.old_state)].get(Event(record.event))
             assert row is not None, f"{record.old_state} on {record.event} is not in the table"
             assert row.target.value == record.new_state
-        for before, after in zip(history, history[1:], strict=False):
+        for before, after in itertools.pairwise(history):
             assert before.new_state == after.old_state, "history must be one unbroken chain"
         self.checked = max(0, len(history) - 1)
 
@@ -85,7 +89,9 @@ class CellMachine(RuleBasedStateMachine):
 
 
 CellMachine.TestCase.settings = settings(
-    max_examples=60, stateful_step_count=30, deadline=None,
+    max_examples=60,
+    stateful_step_count=30,
+    deadline=None,
     suppress_health_check=[HealthCheck.too_slow],
 )
 TestCellMachine = CellMachine.TestCase

@@ -11,8 +11,13 @@ from server.core.transitions import COMMANDS, TRANSITIONS, Event, State, normali
 from server.errors import GuardRefused, TransitionNotAllowed
 
 S, E = State, Event
-OPERATIONAL = {S.CALIBRATING_ROBOT, S.CALIBRATING_CAMERA, S.EXECUTING_TRAJECTORY,
-               S.CREATING_WORKPIECE, S.PAUSED}
+OPERATIONAL = {
+    S.CALIBRATING_ROBOT,
+    S.CALIBRATING_CAMERA,
+    S.EXECUTING_TRAJECTORY,
+    S.CREATING_WORKPIECE,
+    S.PAUSED,
+}
 
 # Written out by hand from the specification and the issue, independently of the module.
 EXPECTED: dict[tuple[State, Event], State] = {
@@ -93,7 +98,12 @@ def test_operation_lifecycle_flags() -> None:
 
 def test_available_commands_follow_the_table() -> None:
     assert available_commands(S.IDLE) == [
-        "start", "calibrate-robot", "calibrate-camera", "create-workpiece", "estop"]
+        "start",
+        "calibrate-robot",
+        "calibrate-camera",
+        "create-workpiece",
+        "estop",
+    ]
     assert available_commands(S.EXECUTING_TRAJECTORY) == ["pause", "cancel", "estop"]
     assert available_commands(S.PAUSED) == ["resume", "cancel", "estop"]
     assert available_commands(S.ERROR, Facts(active_faults=("glue: no reply",))) == ["estop"]
@@ -104,14 +114,23 @@ def test_available_commands_follow_the_table() -> None:
 
 def test_check_gives_a_reason_either_way() -> None:
     assert check(S.IDLE, E.START_REQUESTED) == (
-        True, "start is allowed in IDLE (→ EXECUTING_TRAJECTORY)")
+        True,
+        "start is allowed in IDLE (→ EXECUTING_TRAJECTORY)",
+    )
     assert check(S.PAUSED, E.START_REQUESTED) == (False, "start is not allowed in PAUSED")
 
 
-@pytest.mark.parametrize(("given", "expected"), [
-    ("start", "start"), ("START", "start"), ("calibrate_robot", "calibrate-robot"),
-    ("create_workpiece", "create-workpiece"), ("emergency_stop", "estop"), ("bogus", None),
-])
+@pytest.mark.parametrize(
+    ("given", "expected"),
+    [
+        ("start", "start"),
+        ("START", "start"),
+        ("calibrate_robot", "calibrate-robot"),
+        ("create_workpiece", "create-workpiece"),
+        ("emergency_stop", "estop"),
+        ("bogus", None),
+    ],
+)
 def test_command_names_are_forgiving_about_case_and_underscores(given, expected) -> None:
     assert normalize_command(given) == expected
     if expected:

@@ -45,19 +45,33 @@ async def test_a_device_that_does_not_come_up_sends_the_cell_to_error(make_worke
 
 
 async def test_events_are_handled_one_at_a_time_in_arrival_order(make_worker) -> None:
-    worker = await make_worker(operations={"calibrate_robot": blocking_operation(
-        asyncio.Event(), asyncio.Event())})
-    sequence = [Event.CALIBRATE_ROBOT_REQUESTED, Event.START_REQUESTED, Event.CANCEL_REQUESTED,
-                Event.START_REQUESTED, Event.PAUSE_REQUESTED, Event.RESUME_REQUESTED,
-                Event.CANCEL_REQUESTED]
+    worker = await make_worker(
+        operations={"calibrate_robot": blocking_operation(asyncio.Event(), asyncio.Event())}
+    )
+    sequence = [
+        Event.CALIBRATE_ROBOT_REQUESTED,
+        Event.START_REQUESTED,
+        Event.CANCEL_REQUESTED,
+        Event.START_REQUESTED,
+        Event.PAUSE_REQUESTED,
+        Event.RESUME_REQUESTED,
+        Event.CANCEL_REQUESTED,
+    ]
     envelopes = [worker.submit(event, source="test") for event in sequence]
     outcomes = [await envelope.future for envelope in envelopes]
     assert [o.accepted for o in outcomes] == [True, False, True, True, True, True, True]
     assert [o.state for o in outcomes] == [
-        State.CALIBRATING_ROBOT, State.CALIBRATING_ROBOT, State.IDLE, State.EXECUTING_TRAJECTORY,
-        State.PAUSED, State.EXECUTING_TRAJECTORY, State.IDLE]
+        State.CALIBRATING_ROBOT,
+        State.CALIBRATING_ROBOT,
+        State.IDLE,
+        State.EXECUTING_TRAJECTORY,
+        State.PAUSED,
+        State.EXECUTING_TRAJECTORY,
+        State.IDLE,
+    ]
     assert [r.event_id for r in worker.ctx.history][-6:] == [
-        o.event_id for o in outcomes if o.accepted]
+        o.event_id for o in outcomes if o.accepted
+    ]
 
 
 async def test_a_full_queue_refuses_loudly_and_drops_nothing(make_worker, fast_settings) -> None:
@@ -75,8 +89,9 @@ async def test_a_full_queue_refuses_loudly_and_drops_nothing(make_worker, fast_s
 
 async def test_estop_overtakes_a_full_queue(make_worker, fast_settings) -> None:
     glue, robot = FakeGlue(), FakeRobot()
-    worker = await make_worker(fast_settings.model_copy(update={"event_queue_size": 5}),
-                               glue=glue, robot=robot)
+    worker = await make_worker(
+        fast_settings.model_copy(update={"event_queue_size": 5}), glue=glue, robot=robot
+    )
     worker._task.cancel()
     await asyncio.gather(worker._task, return_exceptions=True)
     queued = [worker.submit(Event.START_REQUESTED, source="test") for _ in range(5)]
@@ -97,8 +112,9 @@ async def test_estop_overtakes_a_full_queue(make_worker, fast_settings) -> None:
 async def test_leaving_an_operational_state_cancels_its_operation(make_worker) -> None:
     started, cancelled = asyncio.Event(), asyncio.Event()
     glue = FakeGlue()
-    worker = await make_worker(operations={"calibrate_camera": blocking_operation(started, cancelled)},
-                               glue=glue)
+    worker = await make_worker(
+        operations={"calibrate_camera": blocking_operation(started, cancelled)}, glue=glue
+    )
     await worker.request(Event.CALIBRATE_CAMERA_REQUESTED, source="test")
     await asyncio.wait_for(started.wait(), 5)
     outcome = await worker.request(Event.CANCEL_REQUESTED, source="test")
@@ -122,7 +138,9 @@ async def test_estop_mid_run_closes_the_valve_and_stops_the_robot(make_worker) -
     assert worker.ctx.operation is None
 
 
-async def test_pause_holds_at_the_next_waypoint_and_resume_finishes_the_same_run(make_worker) -> None:
+async def test_pause_holds_at_the_next_waypoint_and_resume_finishes_the_same_run(
+    make_worker,
+) -> None:
     glue, robot = FakeGlue(), FakeRobot(speed_factor=5)
     worker = await make_worker(glue=glue, robot=robot)
     started = await worker.request(Event.START_REQUESTED, source="test")
@@ -172,8 +190,9 @@ async def test_processing_timeout_fails_the_operation(make_worker, fast_settings
 
 async def test_paused_time_does_not_count_against_processing_timeout(make_worker, fast_settings):
     robot = FakeRobot(speed_factor=5)
-    worker = await make_worker(fast_settings.model_copy(update={"processing_timeout": 1.5}),
-                               robot=robot)
+    worker = await make_worker(
+        fast_settings.model_copy(update={"processing_timeout": 1.5}), robot=robot
+    )
     await worker.request(Event.START_REQUESTED, source="test")
     await worker.request(Event.PAUSE_REQUESTED, source="test")
     await asyncio.sleep(2.0)
@@ -213,8 +232,12 @@ async def test_device_fault_mid_run_ends_in_error_and_reset_waits_for_recovery(m
 async def test_a_second_fault_keeps_the_first_out_stop_reason(make_worker) -> None:
     worker = await make_worker()
     for code in ("FIRST", "SECOND"):
-        worker.submit(Event.ERROR_OCCURRED, source="test", priority=Priority.FAULT,
-                      data={"code": code, "message": code.lower(), "component": "test"})
+        worker.submit(
+            Event.ERROR_OCCURRED,
+            source="test",
+            priority=Priority.FAULT,
+            data={"code": code, "message": code.lower(), "component": "test"},
+        )
     await wait_for_state(worker, State.ERROR)
     await asyncio.sleep(0.05)
     assert worker.ctx.stop_reason.code == "FIRST" and worker.ctx.error.code == "SECOND"

@@ -1,0 +1,40 @@
+# The two commands: `make run` (the server on the simulated cell) and `make test`
+# (the whole suite). Each sets itself up on a fresh clone: a virtualenv in .venv
+# with the pinned dependencies (constraints.txt).
+
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+HOST ?= 127.0.0.1
+PORT ?= 8000
+DATA ?= data
+
+.PHONY: run test lint bench diagram openapi clean
+
+$(STAMP): pyproject.toml constraints.txt
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[test]'
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(PY) -m server --host $(HOST) --port $(PORT) --data-dir $(DATA)
+
+test: $(STAMP) lint
+	$(PY) -m pytest
+
+lint: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+
+bench: $(STAMP)
+	$(PY) -m bench
+
+diagram: $(STAMP)
+	$(PY) -m server.core.diagram --write
+
+openapi: $(STAMP)
+	$(PY) -m server.openapi --write
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis

@@ -1,0 +1,438 @@
+"""The cell camera: a real camera through OpenCV, and a simulated one with exact ground truth.
+
+Both implement `server.drivers.base.Camera` and behave the same towards the core:
+
+- the event loop never blocks: OpenCV calls and rendering run in worker threads;
+- every frame is bounded by `timeout` (the cell's vision_processing_timeout) and a camera that
+  does not deliver in time gives `DeviceTimeout`; a camera that is gone gives
+  `DeviceDisconnected`; other failures `DeviceError`. Messages say what to check;
+- a failed capture also goes to the fault listener, once per outage (the next good frame
+  re-arms it), so the machine can go to ERROR without a flood of repeats;
+- `health` shows connected, the capture time of the last frame (rtt), the last error, and
+  the resolution in `details`.
+
+`OpenCVCamera` keeps its `cv2.VideoCapture` on one dedicated daemon thread rather than
+`asyncio.to_thread`: a VideoCapture is not thread-safe, so after a timed-out read the next call
+must queue behind the stuck one instead of running beside it on another pool thread; a stuck
+driver call then ties up only that thread (not the shared pool the other drivers use), and,
+being a daemon, it cannot keep the server from exiting.
+
+`SimulatedCamera` renders the table or a cycle of chessboard views (see
+`server.drivers.sim.camera_scene`) with `asyncio.to_thread`, and takes injected faults.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, Literal, TypeVar
+
+import cv2
+import numpy as np
+
+from server.drivers.base import DeviceFault, DeviceHealth, FaultListener
+from server.drivers.sim.camera_scene import (
+    DEFAULT_CAMERA_MODEL,
+    DEFAULT_CHESSBOARD,
+    BoardPose,
+    CameraModel,
+    Chessboard,
+    Scene,
+    Workpiece,
+    default_chessboard_poses,
+    render_chessboard_view,
+    render_table,
+)
+from server.errors import DeviceDisconnected, DeviceError, DeviceTimeout
+
+logger = logging.getLogger(__name__)
+
+DEVICE = "camera"
+T = TypeVar("T")
+
+# The simulator builds its per-pixel maps (~2 s) on the first frame; connect() allows this
+# much for that one-off warm-up so a short capture timeout does not fail the connection.
+SIM_WARM_UP_S = 30.0
+
+
+class _CameraBase:
+    """Health and once-per-outage fault reporting, shared by the real and simulated camera."""
+
+    def __init__(self, timeout: float) -> None:
+        if timeout <= 0:
+            raise ValueError(f"camera timeout must be positive, got {timeout}")
+        self.timeout = float(timeout)
+        self.health = DeviceHealth(DEVICE)
+        self._listener: FaultListener | None = None
+        self._outage = False
+
+    def set_fault_listener(self, listener: FaultListener | None) -> None:
+        """Where to report capture failures (once per outage)."""
+        self._listener = listener
+
+    def _frame_ok(self, started: float) -> None:
+        self.health.record_ok(time.monotonic() - started)
+        if self._outage:
+            self._outage = False
+            logger.info("camera delivers frames again")
+
+    def _frame_failed(self, code: str, message: str, *, connected: bool | None) -> None:
+        self.health.record_error(message, connected=connected)
+        if self._outage:
+            return
+        self._outage = True
+        logger.warning("camera: %s", message)
+        listener = self._listener
+        if listener is None:
+            return
+        try:
+            listener(DeviceFault(DEVICE, code, message))
+        except Exception:  # a broken listener must not break the driver
+            logger.exception("the camera fault listener failed on %s", code)
+
+
+# --- the real camera ---------------------------------------------------------------------------
+
+
+class _CaptureThread:
+    """One daemon thread that owns a VideoCapture and runs its calls one after another."""
+
+    def __init__(self, name: str) -> None:
+        self._jobs: queue.SimpleQueue[tuple[Callable[[], Any], concurrent.futures.Future] | None]
+        self._jobs = queue.SimpleQueue()
+        threading.Thread(target=self._run, name=name, daemon=True).start()
+
+    def _run(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            call, future = job
+            if not future.set_running_or_notify_cancel():
+                continue  # the caller gave up before it started
+            try:
+                future.set_result(call())
+            except BaseException as exc:
+                future.set_exception(exc)
+
+    def submit(self, call: Callable[[], T]) -> asyncio.Future[T]:
+        future: concurrent.futures.Future[T] = concurrent.futures.Future()
+        self._jobs.put((call, future))
+        return asyncio.wrap_future(future)
+
+    def stop(self) -> None:
+        """Let the thread end once the calls already queued are done."""
+        self._jobs.put(None)
+
+
+class OpenCVCamera(_CameraBase):
+    """A USB/V4L2 (or any cv2.VideoCapture) camera looking down on the table.
+
+    The cell's vision is specified at 1920×1080. A camera that delivers less raises
+    DeviceError in connect(): a lower resolution silently degrades every measurement, and a
+    USB 2 port or hub is the usual cause. `allow_lower_resolution=True` (bench tests with a
+    webcam) only logs a warning and puts it in `health.details["resolution_warning"]`.
+    """
+
+    def __init__(
+        self,
+        camera_id: int | str,
+        *,
+        timeout: float,
+        width: int = 1920,
+        height: int = 1080,
+        allow_lower_resolution: bool = False,
+    ) -> None:
+        super().__init__(timeout)
+        self.camera_id = camera_id
+        # "0" from the environment means device index 0; anything else is a path or URL
+        self._source: int | str = (
+            int(camera_id) if isinstance(camera_id, str) and camera_id.isdigit() else camera_id
+        )
+        self.width, self.height = int(width), int(height)
+        self.allow_lower_resolution = allow_lower_resolution
+        self._cap: cv2.VideoCapture | None = None
+        self._thread: _CaptureThread | None = None
+        self.health.details.update(camera_id=str(camera_id), requested=f"{width}x{height}")
+
+    def _open_blocking(self, abandoned: threading.Event) -> tuple[cv2.VideoCapture, np.ndarray]:
+        """Open, ask for the resolution, and read one frame (runs on the capture thread)."""
+        cap = cv2.VideoCapture(self._source)
+        try:
+            if not cap.isOpened():
+                raise DeviceDisconnected(
+                    DEVICE,
+                    f"camera {self.camera_id} could not be opened: check the USB cable and "
+                    "that no other program holds it",
+                )
+            # MJPG first: most UVC cameras give 1080p at full rate only in MJPG over USB.
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*"MJPG"))
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
+            cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # keep at most one stale frame queued
+            ok, frame = cap.read()
+            if not ok or frame is None:
+                raise DeviceDisconnected(
+                    DEVICE,
+                    f"camera {self.camera_id} opened but delivered no frame: check the cable, "
+                    "the camera's power and that no other program holds it",
+                )
+        except BaseException:
+            cap.release()
+            raise
+        if abandoned.is_set():  # connect() timed out meanwhile: nobody will use it
+            cap.release()
+        return cap, frame
+
+    def _read_fresh(self) -> tuple[bool, np.ndarray | None]:
+        """Drop the frame the driver may hold from before (the robot may have moved since)."""
+        cap = self._cap
+        if cap is None:
+            return False, None
+        cap.grab()
+        return cap.read()
+
+    async def connect(self) -> None:
+        """Open the camera and read a first frame; DeviceError if it cannot deliver one."""
+        if self._cap is not None:
+            return
+        thread = _CaptureThread(f"camera-{self.camera_id}")
+        abandoned = threading.Event()
+        started = time.monotonic()
+        try:
+            async with asyncio.timeout(self.timeout):
+                cap, frame = await thread.submit(lambda: self._open_blocking(abandoned))
+        except TimeoutError:
+            abandoned.set()
+            thread.stop()
+            message = (
+                f"camera {self.camera_id} did not open within {self.timeout:g} s: check the "
+                "USB cable and that no other program holds it"
+            )
+            self.health.record_error(message, connected=False)
+            raise DeviceTimeout(DEVICE, message) from None
+        except DeviceError as exc:
+            thread.stop()
+            self.health.record_error(str(exc), connected=False)
+            raise
+        height, width = frame.shape[:2]
+        self.health.details.update(resolution=f"{width}x{height}", backend=cap.getBackendName())
+        if width < self.width or height < self.height:
+            message = (
+                f"camera {self.camera_id} delivers {width}x{height}, the cell needs "
+                f"{self.width}x{self.height}: check the camera model and that it is on a USB 3 "
+                "port without a hub"
+            )
+            if not self.allow_lower_resolution:
+                thread.submit(cap.release)
+                thread.stop()
+                self.health.record_error(message, connected=False)
+                raise DeviceError(DEVICE, message)
+            logger.warning("%s (continuing: allow_lower_resolution is set)", message)
+            self.health.details["resolution_warning"] = message
+        self._cap, self._thread = cap, thread
+        self._outage = False
+        self._frame_ok(started)
+        logger.info("camera %s open at %dx%d", self.camera_id, width, height)
+
+    async def capture(self) -> np.ndarray:
+        """One fresh BGR frame, within `timeout`."""
+        if self._thread is None:
+            raise DeviceDisconnected(DEVICE, f"camera {self.camera_id} is not open: connect first")
+        started = time.monotonic()
+        try:
+            async with asyncio.timeout(self.timeout):
+                ok, frame = await self._thread.submit(self._read_fresh)
+        except TimeoutError:
+            message = (
+                f"camera {self.camera_id} delivered no frame within {self.timeout:g} s: check "
+                "the USB cable; reconnect the camera if it persists"
+            )
+            self._frame_failed("NO_REPLY", message, connected=False)
+            raise DeviceTimeout(DEVICE, message) from None
+        if not ok or frame is None:
+            message = (
+                f"camera {self.camera_id} stopped delivering frames: check the USB cable and "
+                "the camera's power, then reconnect"
+            )
+            self._frame_failed("COMM_LOST", message, connected=False)
+            raise DeviceDisconnected(DEVICE, message)
+        self._frame_ok(started)
+        return frame
+
+    async def close(self) -> None:
+        """Release the camera; never raises, and waits at most a second for a stuck driver."""
+        cap, thread = self._cap, self._thread
+        self._cap = self._thread = None
+        self.health.connected = False
+        if thread is None or cap is None:
+            return
+        try:
+            released = thread.submit(cap.release)
+            thread.stop()
+            # asyncio.wait does not cancel: a release queued behind a stuck read still runs
+            await asyncio.wait({released}, timeout=min(1.0, self.timeout))
+        except Exception:
+            logger.exception("releasing camera %s failed", self.camera_id)
+
+
+# --- the simulated camera ----------------------------------------------------------------------
+
+FaultKind = Literal["fail", "stall"]
+
+
+class SimulatedCamera(_CameraBase):
+    """The cell camera in simulation: renders the table, or chessboard views, with ground truth.
+
+    `scene` (markers, workpieces, lighting) and `model` (the exact camera) are public so tests
+    can compare what vision measures with what is really there. In chessboard mode each
+    capture shows the next of `chessboard_poses` (cycling), so an intrinsic calibration that
+    captures N frames sees N different poses; `last_chessboard_pose` is the one just shown.
+    """
+
+    def __init__(
+        self,
+        scene: Scene | None = None,
+        model: CameraModel | None = None,
+        *,
+        seed: int = 0,
+        timeout: float = 5.0,
+    ) -> None:
+        super().__init__(timeout)
+        self.scene = scene if scene is not None else Scene()
+        self.model = model if model is not None else DEFAULT_CAMERA_MODEL
+        self._rng = np.random.default_rng(seed)
+        self._mode: Literal["table", "chessboard"] = "table"
+        self.chessboard: Chessboard = DEFAULT_CHESSBOARD
+        self.chessboard_poses: tuple[BoardPose, ...] = ()
+        self._next_view = 0
+        self.last_chessboard_pose: BoardPose | None = None
+        self._fault: FaultKind | None = None
+        self._open = False
+        self.health.details.update(simulated=True, resolution=f"{self.model.width}x"
+                                   f"{self.model.height}", mode=self._mode)  # fmt: skip
+
+    # --- what the camera looks at --------------------------------------------------------
+
+    @property
+    def mode(self) -> Literal["table", "chessboard"]:
+        return self._mode
+
+    def show_table(self) -> None:
+        """Look at the table: markers and workpieces (the default)."""
+        self._mode = "table"
+        self.health.details["mode"] = self._mode
+
+    def show_chessboard(
+        self, board: Chessboard | None = None, poses: Sequence[BoardPose] | None = None
+    ) -> None:
+        """Show a calibration board, a new pose per capture, starting from the first pose."""
+        self.chessboard = board if board is not None else DEFAULT_CHESSBOARD
+        self.chessboard_poses = (
+            tuple(poses) if poses is not None
+            else default_chessboard_poses(self.model, self.chessboard)
+        )  # fmt: skip
+        if not self.chessboard_poses:
+            raise ValueError("show_chessboard needs at least one board pose")
+        self._next_view = 0
+        self.last_chessboard_pose = None
+        self._mode = "chessboard"
+        self.health.details["mode"] = self._mode
+
+    def place_workpiece(
+        self, name: str, x: float, y: float, rotation_deg: float = 0.0
+    ) -> Workpiece:
+        """Put a library workpiece (see WORKPIECE_SHAPES) on the table at x, y mm, rotated."""
+        return self.scene.place_workpiece(name, x, y, rotation_deg)
+
+    def clear_workpieces(self) -> None:
+        self.scene.clear_workpieces()
+
+    # --- fault injection (tests) ---------------------------------------------------------
+
+    def inject_fault(self, kind: FaultKind) -> None:
+        """"fail": captures raise DeviceError; "stall": captures hang until the timeout."""
+        if kind not in ("fail", "stall"):
+            raise ValueError(f"unknown camera fault {kind!r}: use 'fail' or 'stall'")
+        self._fault = kind
+
+    def clear_faults(self) -> None:
+        """Back to normal; a capture stalled right now goes on and delivers."""
+        self._fault = None
+
+    # --- Camera protocol -----------------------------------------------------------------
+
+    async def connect(self) -> None:
+        """Open and deliver a first frame (also builds the render caches, see SIM_WARM_UP_S)."""
+        self._open = True
+        started = time.monotonic()
+        try:
+            async with asyncio.timeout(self.timeout):
+                await self._wait_out_faults()
+            async with asyncio.timeout(max(self.timeout, SIM_WARM_UP_S)):
+                await asyncio.to_thread(self._next_render(advance=False))
+        except TimeoutError:
+            self._open = False
+            message = f"simulated camera did not open within {self.timeout:g} s (stall injected)"
+            self.health.record_error(message, connected=False)
+            raise DeviceTimeout(DEVICE, message) from None
+        except DeviceError as exc:
+            self._open = False
+            self.health.record_error(str(exc), connected=False)
+            raise
+        self._outage = False
+        self._frame_ok(started)
+
+    async def capture(self) -> np.ndarray:
+        """One BGR frame (uint8, 1080×1920×3) of the table or of the next chessboard pose."""
+        if not self._open:
+            raise DeviceDisconnected(DEVICE, "simulated camera is not open: connect first")
+        started = time.monotonic()
+        try:
+            async with asyncio.timeout(self.timeout):
+                await self._wait_out_faults(report=True)
+                frame = await asyncio.to_thread(self._next_render(advance=True))
+        except TimeoutError:
+            message = (
+                f"simulated camera delivered no frame within {self.timeout:g} s "
+                "(stall injected): on a real cell, check the USB cable"
+            )
+            self._frame_failed("NO_REPLY", message, connected=False)
+            raise DeviceTimeout(DEVICE, message) from None
+        self._frame_ok(started)
+        return frame
+
+    async def close(self) -> None:
+        """Close; never raises."""
+        self._open = False
+        self.health.connected = False
+
+    # --- internals -------------------------------------------------------------------------
+
+    async def _wait_out_faults(self, *, report: bool = False) -> None:
+        while self._fault == "stall":
+            await asyncio.sleep(0.01)
+        if self._fault == "fail":
+            message = "simulated camera failure (injected): no frame delivered"
+            if report:
+                self._frame_failed("CAPTURE_FAILED", message, connected=None)
+            raise DeviceError(DEVICE, message)
+
+    def _next_render(self, *, advance: bool) -> Callable[[], np.ndarray]:
+        """Snapshot what to render now, on the event loop; the returned call runs in a thread."""
+        model = self.model
+        rng = np.random.default_rng(int(self._rng.integers(0, 2**63 - 1)))
+        if self._mode == "table":
+            scene = self.scene.snapshot()
+            return lambda: render_table(scene, model, rng)
+        board, pose = self.chessboard, self.chessboard_poses[self._next_view]
+        if advance:
+            self._next_view = (self._next_view + 1) % len(self.chessboard_poses)
+            self.last_chessboard_pose = pose
+        scene = self.scene
+        return lambda: render_chessboard_view(
+            model, board, pose, noise_sigma=scene.noise_sigma, vignetting=scene.vignetting,
+            light_gradient=scene.light_gradient, rng=rng,
+        )  # fmt: skip

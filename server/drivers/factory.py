@@ -1,0 +1,92 @@
+"""Build the cell's devices from the settings: real hardware or simulators.
+
+Each device is chosen on its own, by its address:
+
+* robot: `ROBOT_IP` = `sim` (default) or the controller's address; port `robot_port` (30003).
+* glue: `GLUE_CONTROLLER_PORT` = `sim` (default), a serial device such as
+  `/dev/ttyUSB0` (RS-485, 115200 8N1, Modbus RTU), or `tcp://host:port` for an
+  RS-485-to-Ethernet gateway in transparent mode (RTU frames over TCP).
+* camera: `VISION_CAMERA_ID` = `sim` (default), an OpenCV camera index (`0`)
+  or a device path / stream URL.
+
+`sim` starts that device's simulator on loopback and talks to it through the
+same production client a real device gets, so the default run exercises the
+real protocol code.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Awaitable, Callable
+from urllib.parse import urlsplit
+
+from server.config import Settings
+from server.core.devices import CellDevices
+from server.drivers.camera import OpenCVCamera, SimulatedCamera
+from server.drivers.glue_modbus import ModbusGlueDispenser
+from server.drivers.robot_jsonrpc import JsonRpcRobot
+
+log = logging.getLogger(__name__)
+
+
+def parse_tcp_address(value: str) -> tuple[str, int]:
+    """`tcp://host:port` → (host, port); ValueError naming the setting otherwise."""
+    parts = urlsplit(value)
+    if parts.scheme != "tcp" or not parts.hostname or not parts.port:
+        raise ValueError(f"GLUE_CONTROLLER_PORT={value!r}: expected tcp://host:port")
+    return parts.hostname, parts.port
+
+
+async def build_devices(
+    settings: Settings,
+) -> tuple[CellDevices, Callable[[], Awaitable[None]]]:
+    """The three device clients, plus a function that releases what was started for them."""
+    host = None
+    if settings.robot_simulated or settings.glue_simulated:
+        from server.drivers.sim.host import SimulatorHost
+
+        host = SimulatorHost(settings)
+        await asyncio.to_thread(host.start)
+
+    if settings.robot_simulated:
+        assert host is not None and host.robot is not None
+        robot_address = ("127.0.0.1", host.robot.port)
+        log.info("robot: simulator on 127.0.0.1:%d", host.robot.port)
+    else:
+        robot_address = (settings.robot_ip, settings.robot_port)
+    robot = JsonRpcRobot(*robot_address, timeout=settings.robot_communication_timeout)
+
+    port = settings.glue_controller_port
+    if settings.glue_simulated:
+        assert host is not None and host.glue is not None
+        glue = ModbusGlueDispenser.tcp(
+            "127.0.0.1",
+            host.glue.port,
+            device_id=settings.glue_modbus_device_id,
+            timeout=settings.glue_system_timeout,
+        )
+        log.info("glue: simulator on 127.0.0.1:%d (Modbus RTU over TCP)", host.glue.port)
+    elif port.startswith("tcp://"):
+        glue = ModbusGlueDispenser.tcp(
+            *parse_tcp_address(port),
+            device_id=settings.glue_modbus_device_id,
+            timeout=settings.glue_system_timeout,
+        )
+    else:
+        glue = ModbusGlueDispenser.serial(
+            port, device_id=settings.glue_modbus_device_id, timeout=settings.glue_system_timeout
+        )
+
+    camera_id = settings.vision_camera_id
+    if settings.camera_simulated:
+        camera = SimulatedCamera(timeout=settings.vision_processing_timeout)
+    else:
+        source: int | str = int(camera_id) if camera_id.isdigit() else camera_id
+        camera = OpenCVCamera(source, timeout=settings.vision_processing_timeout)
+
+    async def release() -> None:
+        if host is not None:
+            await asyncio.to_thread(host.stop)
+
+    return CellDevices(robot, glue, camera), release

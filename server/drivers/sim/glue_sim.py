@@ -1,0 +1,463 @@
+"""A network simulator of the glue dispenser: Modbus RTU frames carried over TCP.
+
+It serves the register map of `server.drivers.glue_registers` with a pymodbus
+server using the RTU framer on a TCP socket, so the production client
+(`ModbusGlueDispenser.tcp`, also RTU-framed) is exercised byte for byte as on
+the RS-485 line, CRC included. Like a real RS-485 slave it stays silent for
+requests addressed to another device id. Holding registers accept FC3/FC6/FC16
+and input registers FC4 only; anything else gets exception 1 or 2, and an
+out-of-range setpoint gets exception 3.
+
+Model (computed from elapsed time whenever a register is read, no background
+task): the valve feedback follows the command at once; measured flow
+approaches the flow setpoint first-order (time constant 50 ms) while the valve
+is open and is zero while it is closed; pressure approaches the pressure
+setpoint (time constant 100 ms); temperature drifts slowly around 25 °C; flow,
+pressure and temperature carry a little noise. `speed_factor` > 1 makes the
+dynamics faster, like the cell's `simulation_speed_factor`. `valve_closed_at`
+is the time.time() of the last open → closed transition, for latency benchmarks.
+
+Fault injection, in-process: `inject_no_reply(seconds=None)` (requests are
+read and dropped, the connection stays open), `set_alarm(name)` /
+`clear_alarm(name)`, `force_pressure(psi)` (measured pressure pinned),
+`inject_exception(code)` (every request answered with that Modbus exception),
+`inject_stuck_valve()` (the valve ignores its command), `clear_faults()`.
+Out of process, the same through the control channel: JSON lines over TCP on
+`control_port`, one request object per line and one reply line each, e.g.
+  {"cmd": "no_reply", "seconds": 2.0}   seconds omitted or null: until cleared
+  {"cmd": "alarm", "name": "HIGH_PRESSURE"}   {"cmd": "clear_alarm", "name": ...}
+  {"cmd": "force_pressure", "psi": 180.0}     {"cmd": "exception", "code": 4}
+  {"cmd": "stuck_valve"}   {"cmd": "clear"}   {"cmd": "status"}
+answered {"ok": true, ...} or {"ok": false, "error": "..."}. The control
+channel always answers, even while Modbus replies are suppressed.
+
+Run alone with:
+  python -m server.drivers.sim.glue_sim --host 127.0.0.1 --port 5020 [--control-port N]
+It prints `glue simulator control on HOST:PORT` (with --control-port) and then
+`glue simulator listening on HOST:PORT` once both are accepting, and exits
+cleanly on SIGTERM or SIGINT.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import random
+import signal
+import sys
+import time
+from typing import Any
+
+from pymodbus import FramerType
+from pymodbus.constants import ExcCodes
+from pymodbus.pdu import ModbusPDU
+from pymodbus.server import ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from server.drivers import glue_registers as regs
+from server.drivers.glue_registers import Register, Table
+
+logger = logging.getLogger(__name__)
+
+FLOW_TIME_CONSTANT_S = 0.05
+PRESSURE_TIME_CONSTANT_S = 0.1
+AMBIENT_C = 25.0
+_HOLDING_FCS = {3, 6, 16}
+_INPUT_FCS = {4}
+_CONTROL_LINE_LIMIT = 64 * 1024
+
+
+class GlueSimulator:
+    """A glue dispenser on a TCP port, speaking Modbus RTU frames."""
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        *,
+        device_id: int = regs.DEFAULT_DEVICE_ID,
+        control_port: int | None = None,
+        speed_factor: float = 1.0,
+        noise: bool = True,
+        seed: int | None = None,
+    ) -> None:
+        if speed_factor <= 0:
+            raise ValueError(f"speed_factor must be > 0, got {speed_factor}")
+        self.host = host
+        self._requested_port = port
+        self._requested_control_port = control_port
+        self.device_id = device_id
+        self._speed = speed_factor
+        self._noise = noise
+        self._rng = random.Random(seed)
+        self._server: ModbusTcpServer | None = None
+        self._control: asyncio.Server | None = None
+        self._control_writers: set[asyncio.StreamWriter] = set()
+        self.port = 0
+        self.control_port: int | None = None
+        # model state
+        self._valve_open = False
+        self._flow_sp = 0.0
+        self._pressure_sp = 0.0
+        self._flow = 0.0
+        self._pressure = 0.0
+        self._started = time.monotonic()
+        self._last_update = self._started
+        self.valve_closed_at: float | None = None
+        self.valve_opened_at: float | None = None
+        # faults
+        self._alarm_bits = 0
+        self._forced_pressure: float | None = None
+        self._no_reply = False
+        self._no_reply_until: float | None = None
+        self._exception_code: int | None = None
+        self._valve_stuck = False
+        self.dropped_requests = 0
+
+    # --- lifecycle ---------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Start serving Modbus (and the control channel, if a control port was given)."""
+        if self._server is not None:
+            return
+        self._started = self._last_update = time.monotonic()
+        device = SimDevice(
+            id=self.device_id,
+            simdata=[
+                SimData(
+                    address=r.address,
+                    values=0,
+                    datatype=DataType.REGISTERS,
+                    readonly=not r.writable,
+                )
+                for r in regs.REGISTERS
+            ],
+            action=self._on_access,
+        )
+        server = ModbusTcpServer(
+            device,
+            framer=FramerType.RTU,
+            address=(self.host, self._requested_port),
+            trace_pdu=self._filter_request,
+        )
+        await server.serve_forever(background=True)  # RuntimeError if the port is taken
+        self._server = server
+        self.port = server.transport.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+        if self._requested_control_port is not None:
+            try:
+                self._control = await asyncio.start_server(
+                    self._serve_control,
+                    self.host,
+                    self._requested_control_port,
+                    limit=_CONTROL_LINE_LIMIT,
+                )
+            except OSError:
+                await self.stop()
+                raise
+            self.control_port = self._control.sockets[0].getsockname()[1]
+        logger.info("glue simulator listening on %s:%d", self.host, self.port)
+
+    async def stop(self) -> None:
+        """Stop serving and drop every connection; safe to call twice."""
+        if self._control is not None:
+            self._control.close()
+            self._control = None
+        for writer in list(self._control_writers):
+            writer.close()
+        if self._server is not None:
+            server, self._server = self._server, None
+            with contextlib.suppress(Exception):
+                await server.shutdown()
+
+    async def __aenter__(self) -> GlueSimulator:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.stop()
+
+    # --- what a test may look at ------------------------------------------------
+
+    @property
+    def valve_open(self) -> bool:
+        """The valve position now (the VALVE_STATE feedback)."""
+        return self._valve_open
+
+    async def read_register(self, register: Register) -> int:
+        """A register's raw value exactly as a Modbus client would read it now."""
+        if self._server is None:
+            raise RuntimeError("the glue simulator is not running")
+        values = await self._server.async_getValues(
+            self.device_id, register.table.read_function_code, register.address, 1
+        )
+        return int(values[0])
+
+    def status(self) -> dict[str, Any]:
+        """A snapshot of the model and the active faults (also the control channel's `status`)."""
+        self._advance()
+        return {
+            "valve_open": self._valve_open,
+            "flow_setpoint_ml_min": self._flow_sp,
+            "pressure_setpoint_psi": self._pressure_sp,
+            "flow_ml_min": round(self._flow, 3),
+            "pressure_psi": round(self._measured_pressure(), 3),
+            "alarms": list(regs.alarm_names(self._alarm_bits)),
+            "no_reply": self._replies_suppressed(),
+            "exception_code": self._exception_code,
+            "valve_stuck": self._valve_stuck,
+            "forced_pressure_psi": self._forced_pressure,
+            "valve_closed_at": self.valve_closed_at,
+            "dropped_requests": self.dropped_requests,
+        }
+
+    # --- fault injection ---------------------------------------------------------
+
+    def inject_no_reply(self, seconds: float | None = None) -> None:
+        """Stop answering Modbus requests (connections stay open) for `seconds` or until cleared."""
+        self._no_reply = True
+        self._no_reply_until = None if seconds is None else time.monotonic() + seconds
+
+    def set_alarm(self, name: str) -> None:
+        """Raise an alarm bit by name, e.g. "HIGH_PRESSURE"."""
+        self._alarm_bits |= regs.alarm_bits([name])
+
+    def clear_alarm(self, name: str) -> None:
+        """Drop one alarm bit by name."""
+        self._alarm_bits &= ~regs.alarm_bits([name])
+
+    def force_pressure(self, psi: float | None) -> None:
+        """Pin the measured pressure to `psi` (None releases it)."""
+        if psi is not None:
+            regs.PRESSURE_MEASURED.encode(psi)  # refuse what the register cannot carry
+        self._forced_pressure = psi
+
+    def inject_exception(self, code: int = ExcCodes.DEVICE_FAILURE) -> None:
+        """Answer every Modbus request with exception `code` until cleared."""
+        if code not in regs.MODBUS_EXCEPTIONS:
+            raise ValueError(f"unknown Modbus exception code {code}")
+        self._exception_code = int(code)
+
+    def inject_stuck_valve(self) -> None:
+        """The valve stays where it is whatever it is commanded (VALVE_STATE keeps reporting it)."""
+        self._valve_stuck = True
+
+    def clear_faults(self) -> None:
+        """Remove every injected fault: replies, alarms, pressure, exceptions, stuck valve."""
+        self._valve_stuck = False
+        self._no_reply = False
+        self._no_reply_until = None
+        self._alarm_bits = 0
+        self._forced_pressure = None
+        self._exception_code = None
+
+    # --- the dispenser model -----------------------------------------------------
+
+    def _advance(self) -> None:
+        """Move the first-order flow and pressure models to now."""
+        now = time.monotonic()
+        dt = (now - self._last_update) * self._speed
+        self._last_update = now
+        if self._valve_open:
+            self._flow += (self._flow_sp - self._flow) * (1 - math.exp(-dt / FLOW_TIME_CONSTANT_S))
+        else:
+            self._flow = 0.0
+        gain = 1 - math.exp(-dt / PRESSURE_TIME_CONSTANT_S)
+        self._pressure += (self._pressure_sp - self._pressure) * gain
+
+    def _jitter(self, sigma: float) -> float:
+        return self._rng.gauss(0.0, sigma) if self._noise else 0.0
+
+    def _measured_pressure(self) -> float:
+        if self._forced_pressure is not None:
+            return self._forced_pressure
+        return max(0.0, self._pressure + self._jitter(0.05))
+
+    def _refresh(self, registers: list[int]) -> None:
+        """Write the model's present values into the input registers."""
+        self._advance()
+        elapsed = (time.monotonic() - self._started) * self._speed
+        flow = max(0.0, self._flow + self._jitter(0.1)) if self._valve_open else 0.0
+        temperature = AMBIENT_C + 1.5 * math.sin(2 * math.pi * elapsed / 600.0) + self._jitter(0.02)
+        values = {
+            regs.VALVE_STATE: int(self._valve_open),
+            regs.FLOW_SETPOINT_ACTIVE: regs.FLOW_SETPOINT_ACTIVE.encode(self._flow_sp),
+            regs.PRESSURE_SETPOINT_ACTIVE: regs.PRESSURE_SETPOINT_ACTIVE.encode(self._pressure_sp),
+            regs.FLOW_MEASURED: regs.FLOW_MEASURED.encode(flow, clamp=True),
+            regs.PRESSURE_MEASURED: regs.PRESSURE_MEASURED.encode(
+                self._measured_pressure(), clamp=True
+            ),
+            regs.TEMPERATURE: regs.TEMPERATURE.encode(temperature, clamp=True),
+            regs.ALARM_BITS: self._alarm_bits,
+            regs.UPTIME: int(elapsed) & 0xFFFF,
+        }
+        for register, raw in values.items():
+            registers[register.address] = raw
+
+    def _apply_write(self, register: Register, raw: int) -> None:
+        """Take a command or setpoint write (already checked against the register's range)."""
+        value = register.decode(raw)
+        self._advance()
+        if register is regs.VALVE_COMMAND and not self._valve_stuck:
+            now_open = bool(raw)
+            if self._valve_open and not now_open:
+                self.valve_closed_at = time.time()
+            elif now_open and not self._valve_open:
+                self.valve_opened_at = time.time()
+            self._valve_open = now_open
+        elif register is regs.FLOW_SETPOINT:
+            self._flow_sp = value
+        elif register is regs.PRESSURE_SETPOINT:
+            self._pressure_sp = value
+
+    async def _on_access(
+        self,
+        function_code: int,
+        start_address: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        set_values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
+        """pymodbus calls this on every register access, before it reads or writes the block."""
+        if self._exception_code is not None:
+            return ExcCodes(self._exception_code)
+        if function_code in _HOLDING_FCS:
+            table = Table.HOLDING
+        elif function_code in _INPUT_FCS:
+            table = Table.INPUT
+        else:
+            return ExcCodes.ILLEGAL_FUNCTION
+        targets = [regs.register_at(table, a) for a in range(address, address + count)]
+        if any(t is None for t in targets):
+            return ExcCodes.ILLEGAL_ADDRESS
+        if set_values is not None:
+            # validate the whole write first so a multi-register write is all or nothing
+            for register, raw in zip(targets, set_values, strict=True):
+                assert register is not None
+                if not register.minimum <= register.decode(int(raw)) <= register.maximum:
+                    return ExcCodes.ILLEGAL_VALUE
+            for register, raw in zip(targets, set_values, strict=True):
+                assert register is not None
+                self._apply_write(register, int(raw))
+            registers[regs.VALVE_STATE.address - start_address] = int(self._valve_open)
+        elif table is Table.INPUT:
+            self._refresh(registers)
+        return None
+
+    def _replies_suppressed(self) -> bool:
+        until = self._no_reply_until
+        if self._no_reply and until is not None and time.monotonic() >= until:
+            self._no_reply = False
+            self._no_reply_until = None
+        return self._no_reply
+
+    def _filter_request(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU | None:
+        """Drop requests for another device id or while no-reply is injected (no response sent)."""
+        if sending:
+            return pdu
+        if pdu.dev_id != self.device_id or self._replies_suppressed():
+            self.dropped_requests += 1
+            return None
+        return pdu
+
+    # --- control channel ---------------------------------------------------------
+
+    def control(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Carry out one control-channel request (also usable in-process)."""
+        cmd = request.get("cmd")
+        if cmd == "no_reply":
+            seconds = request.get("seconds")
+            self.inject_no_reply(None if seconds is None else float(seconds))
+        elif cmd == "alarm":
+            self.set_alarm(str(request.get("name")))
+        elif cmd == "clear_alarm":
+            self.clear_alarm(str(request.get("name")))
+        elif cmd == "force_pressure":
+            psi = request.get("psi")
+            self.force_pressure(None if psi is None else float(psi))
+        elif cmd == "exception":
+            self.inject_exception(int(request.get("code", ExcCodes.DEVICE_FAILURE)))
+        elif cmd == "stuck_valve":
+            self.inject_stuck_valve()
+        elif cmd == "clear":
+            self.clear_faults()
+        elif cmd != "status":
+            raise ValueError(
+                f"unknown cmd {cmd!r}; use no_reply, alarm, clear_alarm, force_pressure, "
+                "exception, stuck_valve, clear or status"
+            )
+        return {"ok": True, "status": self.status()}
+
+    async def _serve_control(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
+        self._control_writers.add(writer)
+        try:
+            while line := await reader.readline():
+                if not line.strip():
+                    continue
+                try:
+                    request = json.loads(line)
+                    if not isinstance(request, dict):
+                        raise ValueError("a control request is a JSON object")
+                    reply = self.control(request)
+                except (ValueError, TypeError) as exc:
+                    reply = {"ok": False, "error": str(exc)}
+                writer.write(json.dumps(reply).encode() + b"\n")
+                await writer.drain()
+        except asyncio.CancelledError:
+            raise
+        except (ConnectionError, asyncio.LimitOverrunError, asyncio.IncompleteReadError) as exc:
+            logger.debug("glue simulator control connection ended: %s", exc)
+        finally:
+            self._control_writers.discard(writer)
+            writer.close()
+
+
+async def _run(args: argparse.Namespace) -> None:
+    sim = GlueSimulator(
+        args.host,
+        args.port,
+        device_id=args.device_id,
+        control_port=args.control_port,
+        speed_factor=args.speed_factor,
+    )
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        await sim.start()
+    except (OSError, RuntimeError) as exc:
+        print(f"glue simulator could not start on {args.host}:{args.port}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from exc
+    try:
+        if sim.control_port is not None:
+            print(f"glue simulator control on {sim.host}:{sim.control_port}", flush=True)
+        print(f"glue simulator listening on {sim.host}:{sim.port}", flush=True)
+        await stop.wait()
+    finally:
+        await sim.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point: serve until SIGTERM/SIGINT."""
+    parser = argparse.ArgumentParser(description="Glue dispenser simulator (Modbus RTU over TCP)")
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=5020, help="Modbus port (0: any free port)")
+    parser.add_argument("--device-id", type=int, default=regs.DEFAULT_DEVICE_ID)
+    parser.add_argument("--control-port", type=int, default=None, help="JSON-lines fault control")
+    parser.add_argument("--speed-factor", type=float, default=1.0)
+    parser.add_argument("--log-level", default="WARNING")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr)
+    asyncio.run(_run(args))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

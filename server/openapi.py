@@ -1,0 +1,44 @@
+"""Write or check openapi.json, generated from the app itself.
+
+`python -m server.openapi --write` regenerates the file at the repository
+root; a test fails when the committed file drifts from the code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from server.app import create_app
+from server.config import Settings
+
+DEFAULT_PATH = Path("openapi.json")
+
+
+def generate() -> dict[str, Any]:
+    """The OpenAPI document of the app with default settings."""
+    return create_app(Settings()).openapi()
+
+
+def render() -> str:
+    return json.dumps(generate(), indent=2, sort_keys=True, ensure_ascii=False) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--write", action="store_true", help="write the file instead of printing")
+    parser.add_argument("--path", type=Path, default=DEFAULT_PATH)
+    args = parser.parse_args(argv)
+    if args.write:
+        args.path.write_text(render(), encoding="utf-8")
+        print(f"wrote {args.path}")
+    else:
+        sys.stdout.write(render())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

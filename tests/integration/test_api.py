@@ -1,0 +1,185 @@
+"""The HTTP API and /ws over real sockets, with the core on in-process fakes."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import secrets
+
+import httpx
+import pytest
+import websockets
+
+from server.cell import Cell
+from server.config import Settings
+from server.core.devices import CellDevices
+from server.core.transitions import Event, State
+from tests.fakes import FakeCamera, FakeGlue, FakeRobot
+from tests.serving import serve
+
+
+@pytest.fixture
+async def api(fast_settings: Settings):
+    devices = CellDevices(FakeRobot(speed_factor=5), FakeGlue(), FakeCamera())
+    cell = Cell(
+        fast_settings.model_copy(update={"max_broadcast_clients": 3, "ws_client_buffer": 8}),
+        devices=devices,
+    )
+    async with serve(cell) as url, httpx.AsyncClient(base_url=url, timeout=10) as client:
+        async with asyncio.timeout(10):
+            while (await client.get("/state")).json()["state"] != "IDLE":
+                await asyncio.sleep(0.01)
+        client.cell = cell  # type: ignore[attr-defined]
+        client.ws_url = url.replace("http", "ws") + "/ws"  # type: ignore[attr-defined]
+        yield client
+
+
+async def test_commands_answer_202_or_409_with_the_reason(api) -> None:
+    accepted = await api.post("/start")
+    assert accepted.status_code == 202
+    body = accepted.json()
+    assert body["accepted"] is True and body["state"] == "EXECUTING_TRAJECTORY" and body["event_id"]
+    refused = await api.post("/calibrate-robot")
+    assert refused.status_code == 409
+    assert refused.json()["message"] == "calibrate-robot is not allowed in EXECUTING_TRAJECTORY"
+    assert refused.json()["accepted"] is False
+
+
+@pytest.mark.parametrize(
+    ("body", "field"),
+    [
+        ({"contourMatching": True}, "contourMatching"),
+        ({"contour_matching": "maybe"}, "contour_matching"),
+        ({"workpiece_id": "../etc/passwd"}, "workpiece_id"),
+    ],
+)
+async def test_an_invalid_body_gets_422_naming_the_field(api, body, field) -> None:
+    response = await api.post("/start", json=body)
+    assert response.status_code == 422
+    assert response.json()["errors"][0]["field"] == field
+    assert field in response.json()["detail"]
+
+
+async def test_malformed_json_is_a_422_not_a_500(api) -> None:
+    response = await api.post(
+        "/start", content=b"{not json", headers={"content-type": "application/json"}
+    )
+    assert response.status_code == 422
+
+
+async def test_state_allowed_history_and_health(api) -> None:
+    state = (await api.get("/state")).json()
+    assert state["state"] == "IDLE" and state["previous_state"] == "INITIALIZING"
+    assert state["operation"] is None and state["error"] is None
+    allowed = (await api.get("/operations/start/allowed")).json()
+    assert allowed == {
+        "operation": "start",
+        "allowed": True,
+        "state": "IDLE",
+        "reason": "start is allowed in IDLE (→ EXECUTING_TRAJECTORY)",
+    }
+    refused = (await api.get("/operations/resume/allowed")).json()
+    assert refused["allowed"] is False and refused["reason"] == "resume is not allowed in IDLE"
+    unknown = await api.get("/operations/fly/allowed")
+    assert unknown.status_code == 404 and "known operations" in unknown.json()["detail"]
+    history = (await api.get("/history")).json()["transitions"]
+    assert history[-1]["old_state"] == "INITIALIZING" and history[-1]["new_state"] == "IDLE"
+    health = (await api.get("/health")).json()
+    assert health["status"] == "ok" and set(health["devices"]) == {"robot", "glue", "camera"}
+
+
+async def test_a_full_queue_answers_503_with_retry_after(api) -> None:
+    worker = api.cell.worker
+    worker._task.cancel()
+    await asyncio.gather(worker._task, return_exceptions=True)
+    for _ in range(worker.queue.capacity):
+        worker.submit(Event.PAUSE_REQUESTED, source="test")
+    response = await api.post("/pause")
+    assert response.status_code == 503
+    assert response.headers["retry-after"] == "1"
+    assert "queue is full" in response.json()["message"]
+    worker._task = asyncio.create_task(worker._run())
+
+
+async def test_ws_sends_a_snapshot_then_every_change_in_sequence(api) -> None:
+    async with websockets.connect(api.ws_url) as ws:
+        snapshot = json.loads(await ws.recv())
+        assert snapshot["type"] == "snapshot" and snapshot["state"] == "IDLE"
+        assert snapshot["history"] and "context" in snapshot
+        await api.post("/start")
+        messages = []
+        async with asyncio.timeout(20):
+            while True:
+                message = json.loads(await ws.recv())
+                messages.append(message)
+                if message["type"] == "state_changed" and message["new_state"] == "IDLE":
+                    break
+    seqs = [m["seq"] for m in messages]
+    assert seqs == list(range(snapshot["seq"] + 1, snapshot["seq"] + 1 + len(messages)))
+    waypoints = [m["waypoint"] for m in messages if m["type"] == "progress" and "waypoint" in m]
+    assert waypoints == list(range(1, 8))
+    assert messages[0]["new_state"] == "EXECUTING_TRAJECTORY"
+
+
+async def test_ws_subscribe_filters_types_and_ping_is_answered(api) -> None:
+    async with websockets.connect(api.ws_url) as ws:
+        await ws.recv()
+        await ws.send(json.dumps({"type": "subscribe", "types": ["state_changed"]}))
+        assert json.loads(await ws.recv())["type"] == "subscribed"
+        await ws.send(json.dumps({"type": "ping"}))
+        assert json.loads(await ws.recv()) == {"type": "pong"}
+        await api.post("/start")
+        async with asyncio.timeout(20):
+            while True:
+                message = json.loads(await ws.recv())
+                assert message["type"] == "state_changed"
+                if message["new_state"] == "IDLE":
+                    break
+
+
+async def test_ws_client_sending_garbage_is_closed_with_a_code(api) -> None:
+    async with websockets.connect(api.ws_url) as ws:
+        await ws.recv()
+        await ws.send("this is not json")
+        with pytest.raises(websockets.ConnectionClosed) as closed:
+            await asyncio.wait_for(ws.recv(), 5)
+    assert closed.value.rcvd.code == 1003
+    assert (await api.get("/health")).status_code == 200
+
+
+async def test_ws_over_the_client_limit_is_refused_with_a_code(api) -> None:
+    clients = [await websockets.connect(api.ws_url) for _ in range(3)]
+    try:
+        for ws in clients:
+            await ws.recv()
+        extra = await websockets.connect(api.ws_url)
+        with pytest.raises(websockets.ConnectionClosed) as closed:
+            await asyncio.wait_for(extra.recv(), 5)
+        assert closed.value.rcvd.code == 1013 and "max 3" in closed.value.rcvd.reason
+    finally:
+        for ws in clients:
+            await ws.close()
+
+
+async def test_a_client_that_never_reads_is_dropped_and_others_keep_receiving(api) -> None:
+    worker = api.cell.worker
+    async with (
+        websockets.connect(api.ws_url, max_queue=1) as stuck,
+        websockets.connect(api.ws_url) as healthy,
+    ):
+        await stuck.recv()
+        await healthy.recv()
+        stuck.transport.pause_reading()  # never read again
+        sent = 0
+        while api.cell.bus.subscriber_count == 2 and sent < 4000:
+            for _ in range(4):  # bursts within the healthy client's buffer of 8
+                worker.bus.publish(
+                    "progress", {"waypoint": sent, "padding": secrets.token_hex(10_000)}
+                )
+                sent += 1
+            for index in range(sent - 4, sent):
+                assert json.loads(await healthy.recv())["waypoint"] == index
+        assert api.cell.bus.subscriber_count == 1, "the stuck client was never dropped"
+        worker.bus.publish("progress", {"waypoint": "after"})
+        assert json.loads(await healthy.recv())["waypoint"] == "after"
+        assert worker.ctx.state is State.IDLE

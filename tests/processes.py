@@ -1,0 +1,113 @@
+"""Tier three: the simulators and the server as separate processes on loopback."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclass
+class Running:
+    process: subprocess.Popen[str]
+    port: int
+    extra_ports: dict[str, int]
+
+
+def _env(extra: dict[str, str] | None) -> dict[str, str]:
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith(("GLUE_APP_", "ROBOT_IP", "VISION_CAMERA_ID", "GLUE_CONTROLLER_PORT"))
+    }
+    env["PYTHONPATH"] = str(ROOT)
+    env["PYTHONUNBUFFERED"] = "1"
+    env.update(extra or {})
+    return env
+
+
+@contextlib.contextmanager
+def simulator(module: str, *args: str, timeout: float = 20.0) -> Iterator[Running]:
+    """Run `python -m module --port 0 ...`; read the ports it prints ("... on HOST:PORT")."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", module, "--port", "0", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=_env(None),
+        cwd=ROOT,
+    )
+    ports: dict[str, int] = {}
+    deadline = time.monotonic() + timeout
+    try:
+        assert process.stdout is not None
+        while time.monotonic() < deadline:
+            line = process.stdout.readline()
+            if not line:
+                raise RuntimeError(f"{module} exited with {process.wait()} before listening")
+            match = re.search(r"(\w+) on [\d.]+:(\d+)", line)
+            if match:
+                ports[match.group(1)] = int(match.group(2))
+            if "listening on" in line:
+                break
+        else:
+            raise RuntimeError(f"{module} did not start listening within {timeout} s")
+        yield Running(process, ports["listening"], ports)
+    finally:
+        stop(process)
+
+
+def stop(process: subprocess.Popen[str]) -> None:
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(5)
+
+
+@contextlib.contextmanager
+def server_process(
+    port: int, data_dir: Path, env: dict[str, str] | None = None, timeout: float = 60.0
+) -> Iterator[subprocess.Popen[str]]:
+    """Run `python -m server` on `port`; wait until GET /state answers."""
+    log = (data_dir / "server.log").open("w")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "server", "--port", str(port), "--data-dir", str(data_dir)],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=_env(env),
+        cwd=ROOT,
+    )
+    try:
+        deadline = time.monotonic() + timeout
+        while True:
+            if process.poll() is not None:
+                raise RuntimeError(
+                    f"server exited with {process.returncode}: "
+                    f"{(data_dir / 'server.log').read_text()[-2000:]}"
+                )
+            try:
+                httpx.get(f"http://127.0.0.1:{port}/state", timeout=1).raise_for_status()
+                break
+            except httpx.HTTPError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.1)
+        yield process
+    finally:
+        stop(process)
+        log.close()

@@ -1,0 +1,55 @@
+"""Settings come from defaults, a JSON file, environment variables and arguments."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from pydantic import ValidationError
+
+from server.config import Settings
+
+
+def test_defaults_start_the_simulated_cell() -> None:
+    settings = Settings()
+    assert settings.robot_simulated and settings.glue_simulated and settings.camera_simulated
+    assert settings.event_queue_size == 1000 and settings.robot_port == 30003
+
+
+def test_json_file_then_environment_then_arguments(tmp_path, monkeypatch) -> None:
+    config = tmp_path / "config.json"
+    config.write_text(
+        json.dumps({"event_queue_size": 50, "processing_timeout": 12, "error_state_timeout": 99})
+    )
+    monkeypatch.setenv("GLUE_APP_CONFIG_PATH", str(config))
+    monkeypatch.setenv("GLUE_APP_EVENT_QUEUE_SIZE", "70")
+    monkeypatch.setenv("GLUE_APP_LOG_LEVEL", "DEBUG")
+    monkeypatch.setenv("ROBOT_IP", "192.0.2.10")
+    monkeypatch.setenv("GLUE_CONTROLLER_PORT", "/dev/ttyUSB1")
+    settings = Settings(processing_timeout=5)
+    assert settings.event_queue_size == 70  # env beats the file
+    assert settings.processing_timeout == 5  # arguments beat everything
+    assert settings.error_state_timeout == 99  # the file beats defaults
+    assert settings.logging_level == "DEBUG"
+    assert settings.robot_ip == "192.0.2.10" and not settings.robot_simulated
+    assert settings.glue_controller_port == "/dev/ttyUSB1"
+
+
+def test_a_bad_value_names_the_key(monkeypatch) -> None:
+    monkeypatch.setenv("GLUE_APP_EVENT_QUEUE_SIZE", "0")
+    with pytest.raises(ValidationError, match="event_queue_size"):
+        Settings()
+
+
+def test_an_unknown_key_in_the_file_is_refused(tmp_path, monkeypatch) -> None:
+    config = tmp_path / "config.json"
+    config.write_text(json.dumps({"event_queue_sise": 5}))
+    monkeypatch.setenv("GLUE_APP_CONFIG_PATH", str(config))
+    with pytest.raises(ValidationError, match="event_queue_sise"):
+        Settings()
+
+
+def test_a_missing_config_file_is_a_clear_error(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("GLUE_APP_CONFIG_PATH", str(tmp_path / "nope.json"))
+    with pytest.raises(ValueError, match="does not exist"):
+        Settings()

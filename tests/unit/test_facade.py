@@ -1,0 +1,50 @@
+"""The specification's in-process API over the same core."""
+
+from __future__ import annotations
+
+import time
+
+from server.config import Settings
+from server.core.devices import CellDevices
+from server.core.transitions import State
+from server.facade import EmbeddedCell, blocking_operation
+from tests.fakes import FakeCamera, FakeGlue, FakeRobot
+
+
+def wait_for(cell: EmbeddedCell, state: State, timeout: float = 10) -> None:
+    deadline = time.monotonic() + timeout
+    while cell.get_current_state() is not state:
+        assert time.monotonic() < deadline, f"never reached {state}"
+        time.sleep(0.005)
+
+
+def test_spec_methods_and_return_shapes() -> None:
+    glue = FakeGlue()
+    devices = CellDevices(FakeRobot(speed_factor=10), glue, FakeCamera())
+    with EmbeddedCell(Settings(emergency_stop_timeout=0.5), devices=devices) as cell:
+        assert cell.get_current_state() is State.IDLE
+        assert cell.can_execute_operation("start") is True
+        assert cell.can_execute_operation("resume") is False
+        assert cell.can_execute_operation("no-such-thing") is False
+        ok, message = cell.start(contourMatching=False)
+        assert ok is True and "EXECUTING_TRAJECTORY" in message
+        assert cell.start() == (False, "start is not allowed in EXECUTING_TRAJECTORY")
+        ok, message = cell.emergency_stop()
+        assert ok and cell.get_current_state() is State.ERROR and glue.valve_open is False
+        assert cell.reset()[0] is True
+        wait_for(cell, State.IDLE)
+
+
+def test_an_existing_application_method_serves_as_an_operation() -> None:
+    calls = []
+
+    def legacy_calibrate_camera() -> dict:
+        calls.append("called")
+        return {"reprojection_error_px": 0.12}
+
+    devices = CellDevices(FakeRobot(), FakeGlue(), FakeCamera())
+    operations = {"calibrate_camera": blocking_operation(legacy_calibrate_camera)}
+    with EmbeddedCell(Settings(), devices=devices, operations=operations) as cell:
+        assert cell.calibrateCamera() == (True, "calibrate-camera completed")
+        assert calls == ["called"]
+        assert cell.cell.worker.ctx.operation_result == {"reprojection_error_px": 0.12}

@@ -1,0 +1,45 @@
+"""Generated files stay in step with the code they come from."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from server.core.diagram import TARGET_FILES, diagram_block
+from server.openapi import generate
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.parametrize("name", TARGET_FILES)
+def test_state_diagram_copy_matches_the_table(name: str) -> None:
+    text = (ROOT / name).read_text(encoding="utf-8")
+    assert diagram_block() in text, f"{name} is stale: run `make diagram`"
+
+
+def test_openapi_json_matches_the_app() -> None:
+    committed = json.loads((ROOT / "openapi.json").read_text(encoding="utf-8"))
+    assert committed == json.loads(json.dumps(generate())), (
+        "openapi.json is stale: run `make openapi`"
+    )
+
+
+def test_openapi_documents_every_command_and_its_refusals() -> None:
+    paths = generate()["paths"]
+    for command in (
+        "start",
+        "calibrate-robot",
+        "calibrate-camera",
+        "create-workpiece",
+        "pause",
+        "resume",
+        "cancel",
+        "estop",
+        "reset",
+    ):
+        responses = paths[f"/{command}"]["post"]["responses"]
+        assert {"202", "409", "503"} <= set(responses), command
+    for command in ("start", "estop"):  # the commands that take a body
+        assert "422" in paths[f"/{command}"]["post"]["responses"]
