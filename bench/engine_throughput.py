@@ -53,6 +53,8 @@ def bench_engine(events: list[Event]) -> float:
 class NullDevice:
     """Answers every call at once; the benchmark measures the machine, not I/O."""
 
+    pressure_range_psi = (0.0, 150.0)
+
     def __init__(self, name: str) -> None:
         self.health = DeviceHealth(name, connected=True)
 

@@ -100,6 +100,7 @@ class FakeRobot:
 class FakeGlue:
     def __init__(self) -> None:
         self.health = DeviceHealth("glue")
+        self.pressure_range_psi = (0.0, 150.0)
         self.valve_open = False
         self.valve_log: list[tuple[float, bool]] = []
         self.flow = 0.0

@@ -27,7 +27,14 @@ class TransitionRecord:
     time_in_old_state: float
 
     def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        return {
+            "timestamp": self.timestamp,
+            "old_state": self.old_state,
+            "new_state": self.new_state,
+            "event": self.event,
+            "event_id": self.event_id,
+            "time_in_old_state": self.time_in_old_state,
+        }
 
 
 @dataclass(slots=True)

@@ -71,9 +71,7 @@ class CellDevices:
                 if name == "robot":
                     await asyncio.wait_for(self.robot.get_position(), timeout)
                 elif name == "glue":
-                    status = await asyncio.wait_for(self.glue.read_status(), timeout)
-                    if status.alarms:
-                        return f"glue: alarm {', '.join(status.alarms)}"
+                    return await asyncio.wait_for(self._probe_glue(), timeout)
                 else:
                     await asyncio.wait_for(self.camera.capture(), timeout)
             except asyncio.CancelledError:
@@ -84,6 +82,19 @@ class CellDevices:
 
         results = await asyncio.gather(*(probe(name) for name in self.by_name()))
         return [fault for fault in results if fault]
+
+    async def _probe_glue(self) -> str | None:
+        """Re-assert the valve closed (a close lost in a fault must not linger), then check."""
+        await self.glue.set_valve(False)
+        status = await self.glue.read_status()
+        low, high = self.glue.pressure_range_psi
+        if status.valve_open:
+            return "glue: the valve still reads open after a close command"
+        if status.alarms:
+            return f"glue: alarm {', '.join(status.alarms)}"
+        if not low <= status.pressure_psi <= high:
+            return f"glue: pressure {status.pressure_psi:.1f} PSI outside {low:g}..{high:g} PSI"
+        return None
 
     def health(self) -> dict[str, dict[str, Any]]:
         """Each device's connection state, last round-trip and last error."""

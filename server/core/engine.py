@@ -112,4 +112,10 @@ def check(state: State, event: Event, facts: Facts | None = None) -> tuple[bool,
 
 def available_commands(state: State, facts: Facts | None = None) -> list[str]:
     """The operator commands accepted in `state` right now (guards included)."""
-    return [name for name, event in COMMANDS.items() if check(state, event, facts)[0]]
+    rows = TRANSITIONS[state]
+    facts = facts or Facts()
+    return [
+        name
+        for name, event in COMMANDS.items()
+        if (row := rows.get(event)) is not None and _guard_failure(row.guard, facts) is None
+    ]

@@ -126,6 +126,7 @@ class GlueDispenser(Protocol):
     """A dispenser with one valve, a flow setpoint and a pressure setpoint."""
 
     health: DeviceHealth
+    pressure_range_psi: tuple[float, float]  # measured pressure outside it is a fault
 
     async def connect(self) -> None:
         """Open the link; raise DeviceError if the dispenser does not answer."""

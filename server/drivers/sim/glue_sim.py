@@ -14,7 +14,8 @@ approaches the flow setpoint first-order (time constant 50 ms) while the valve
 is open and is zero while it is closed; pressure approaches the pressure
 setpoint (time constant 100 ms); temperature drifts slowly around 25 °C; flow,
 pressure and temperature carry a little noise. `speed_factor` > 1 makes the
-dynamics faster, like the cell's `simulation_speed_factor`. `valve_closed_at`
+dynamics faster, like the cell's `simulation_speed_factor`. `close_commanded_at`
+is the time.time() of the last write of "closed" to the valve command; `valve_closed_at`
 is the time.time() of the last open → closed transition, for latency benchmarks.
 
 Fault injection, in-process: `inject_no_reply(seconds=None)` (requests are
@@ -109,6 +110,7 @@ class GlueSimulator:
         self._last_update = self._started
         self.valve_closed_at: float | None = None
         self.valve_opened_at: float | None = None
+        self.close_commanded_at: float | None = None
         # faults
         self._alarm_bits = 0
         self._forced_pressure: float | None = None
@@ -301,6 +303,8 @@ class GlueSimulator:
         """Take a command or setpoint write (already checked against the register's range)."""
         value = register.decode(raw)
         self._advance()
+        if register is regs.VALVE_COMMAND and not raw:
+            self.close_commanded_at = time.time()  # every close command, even if already closed
         if register is regs.VALVE_COMMAND and not self._valve_stuck:
             now_open = bool(raw)
             if self._valve_open and not now_open:

@@ -14,7 +14,9 @@ Controller methods (params by position or by name):
   isMoving() -> bool
   stop() -> true                    halts at the current interpolated pose
 Motion commands answer `true` as soon as the motion starts. A move sent while
-moving replaces the current one from the current interpolated pose. Targets
+moving replaces the current one from the current interpolated pose. When the
+connection of the client that commanded a motion is lost, the motion stops
+(as a controller's communication watchdog would). Targets
 outside the x/y/z workspace box are refused with error 1001; bad params with
 -32602. Malformed JSON gets -32700 (id null) and the connection stays open;
 batch requests (arrays) are refused with -32600.
@@ -225,6 +227,10 @@ class RobotSimulator:
         self._stall_until: float | None = None
         self._refuse_until = 0.0
         self._fail_next = False
+        # Like a controller's communication watchdog: motion stops when the link
+        # of the client that commanded it is lost.
+        self._serving: asyncio.StreamWriter | None = None
+        self._motion_owner: asyncio.StreamWriter | None = None
         self.method_counts: Counter[str] = Counter()
         self.stop_received_count = 0
         self.last_stop_at: float | None = None
@@ -410,6 +416,7 @@ class RobotSimulator:
             raise JsonRpcError(INJECTED_FAILURE, f"{method} failed (injected fault)")
         self._interrupt()
         start = self._pose
+        self._motion_owner = self._serving
         self._motion = _Motion(
             method,
             start,
@@ -529,7 +536,9 @@ class RobotSimulator:
                     writer.write(encode_message(make_error(None, INVALID_REQUEST, str(exc))))
                     messages = exc.messages
                 for message in messages:
+                    self._serving = writer
                     response = self.handle(message)
+                    self._serving = None
                     if response is not None:
                         writer.write(encode_message(response))
                 await writer.drain()
@@ -540,6 +549,9 @@ class RobotSimulator:
         finally:
             self._clients.pop(writer, None)
             writer.close()
+            if self._motion is not None and self._motion_owner is writer:
+                logger.warning("robot simulator: commanding client gone; stopping motion")
+                self._interrupt()
 
 
 async def _run(args: argparse.Namespace) -> None:
