@@ -18,7 +18,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import tempfile
 import time
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -91,6 +93,7 @@ async def estop_trials(trials: int, queue_size: int) -> list[dict[str, Any]]:
         glue_controller_port=f"tcp://127.0.0.1:{host.glue.port}",
         event_queue_size=queue_size,
         emergency_stop_timeout=1.0,
+        data_path=Path(tempfile.mkdtemp(prefix="bench-cell-")),
     )
     cell = Cell(settings)
     port = free_port()
@@ -121,7 +124,9 @@ async def estop_trials(trials: int, queue_size: int) -> list[dict[str, Any]]:
             host.glue.close_commanded_at = None
             if condition != "idle":
                 await worker.request(
-                    Event.START_REQUESTED, source="bench", data={"contour_matching": False}
+                    Event.START_REQUESTED,
+                    source="bench",
+                    data={"contour_matching": False, "workpiece_id": "demo"},
                 )
                 while not host.glue.valve_open:
                     await asyncio.sleep(0.002)

@@ -13,7 +13,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import tempfile
 import time
+from pathlib import Path
 from typing import Any
 
 from bench.report import emit
@@ -24,6 +26,7 @@ from server.core.engine import Facts, step
 from server.core.transitions import Event, State
 from server.core.worker import Worker
 from server.drivers.base import DeviceHealth, GlueStatus, Pose
+from server.storage import CellStores
 
 CYCLE = [
     Event.START_REQUESTED,
@@ -87,7 +90,12 @@ async def bench_worker(events: list[Event]) -> float:
     )
     bus = Bus()
     bus.subscribe(maxsize=len(events) * 3)
-    worker = Worker(settings, devices, operations, bus)
+    with tempfile.TemporaryDirectory() as directory:
+        worker = Worker(settings, devices, operations, bus, CellStores.open(Path(directory)))
+        return await _drive(worker, events)
+
+
+async def _drive(worker: Worker, events: list[Event]) -> float:
     await worker.start()
     while worker.ctx.state is not State.IDLE:
         await asyncio.sleep(0.001)

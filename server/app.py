@@ -14,7 +14,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from server.api import commands, queries, ws
+from server.api import commands, queries, workpieces, ws
 from server.cell import Cell
 from server.config import Settings
 from server.errors import EventQueueFull, WorkerStopped
@@ -46,6 +46,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     app.state.ws_hub = ws.WebSocketHub(settings.max_broadcast_clients, settings.ws_client_buffer)
     app.include_router(commands.router)
     app.include_router(queries.router)
+    app.include_router(workpieces.router)
     app.include_router(ws.router)
     _install_error_handlers(app)
     return app

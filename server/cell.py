@@ -16,6 +16,7 @@ from server.core.devices import CellDevices
 from server.core.operations import Operation, default_operations
 from server.core.transitions import COMMANDS, Event, normalize_command
 from server.core.worker import Outcome, Worker
+from server.storage import CellStores
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +43,7 @@ class Cell:
         self._device_factory = device_factory
         self._release: Callable[[], Awaitable[None]] | None = None
         self.worker: Worker | None = None
+        self.stores: CellStores | None = None
 
     @property
     def devices(self) -> CellDevices:
@@ -57,7 +59,12 @@ class Cell:
 
                 factory = build_devices
             devices, self._release = await factory(self.settings)
-        self.worker = Worker(self.settings, devices, self.operations, self.bus)
+        self.stores = CellStores.open(self.settings.data_path)
+        if self.settings.camera_simulated and self.settings.commission_simulated_cell:
+            from server.drivers.sim.commissioning import commission_simulated_cell
+
+            await commission_simulated_cell(devices, self.stores, self.settings)
+        self.worker = Worker(self.settings, devices, self.operations, self.bus, self.stores)
         await self.worker.start()
 
     async def stop(self) -> None:

@@ -145,6 +145,16 @@ class Settings(BaseSettings):
     marker_positions_mm: list[tuple[float, float]] = Field(
         default_factory=lambda: list(DEFAULT_MARKER_POSITIONS_MM)
     )
+    calibration_max_error_mm: float = Field(
+        1.0, gt=0, le=20, description="robot calibration fails above this mean marker error"
+    )
+    chessboard_cols: int = Field(9, ge=3, le=40, description="inner corners per row")
+    chessboard_rows: int = Field(6, ge=3, le=40, description="inner corners per column")
+    chessboard_square_mm: float = Field(30.0, gt=0, le=500)
+    camera_calibration_views: int = Field(10, ge=5, le=100)
+    commission_simulated_cell: bool = Field(
+        True, description="calibrate a fresh simulated cell and put its demo part in the library"
+    )
     simulation_speed_factor: float = Field(
         1.0, gt=0, le=1000, description="simulated devices run this many times faster"
     )

@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
+import cv2
 import numpy as np
 
 from server.cell import Cell
@@ -102,9 +103,11 @@ class EmbeddedCell:
 
     def calibrateRobot(self, timeout: float = 120.0) -> tuple[bool, str, np.ndarray | None]:
         """Run robot calibration to its end; (success, message, annotated image or None)."""
-        ok, message, result = self._run_to_end("calibrate-robot", State.CALIBRATING_ROBOT, timeout)
-        image = result.get("image") if isinstance(result, dict) else None
-        return ok, message, image if isinstance(image, np.ndarray) else None
+        ok, message, _ = self._run_to_end("calibrate-robot", State.CALIBRATING_ROBOT, timeout)
+        stores = self.cell.stores
+        if not ok or stores is None or not stores.calibration.robot_image_path.exists():
+            return ok, message, None
+        return ok, message, cv2.imread(str(stores.calibration.robot_image_path))
 
     def calibrateCamera(self, timeout: float = 120.0) -> tuple[bool, str]:
         """Run camera calibration to its end; (success, message)."""

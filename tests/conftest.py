@@ -13,7 +13,20 @@ from server.core.devices import CellDevices
 from server.core.operations import Operation, default_operations
 from server.core.transitions import State
 from server.core.worker import Worker
+from server.storage import CellStores
+from server.storage.workpieces import WorkpieceIn
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
+
+# A 120 × 80 mm rectangle in the library as "demo"; start it without the camera.
+DEMO_OUTLINE_MM = [(340.0, -40.0), (460.0, -40.0), (460.0, 40.0), (340.0, 40.0)]
+START = {"contour_matching": False, "workpiece_id": "demo"}
+
+
+def demo_stores(path) -> CellStores:
+    """Stores under `path` with the demo workpiece in the library."""
+    stores = CellStores.open(path)
+    stores.workpieces.put("demo", WorkpieceIn(name="demo", outline_mm=DEMO_OUTLINE_MM))
+    return stores
 
 
 async def wait_for_state(worker: Worker, state: State, timeout: float = 10.0) -> None:
@@ -24,8 +37,9 @@ async def wait_for_state(worker: Worker, state: State, timeout: float = 10.0) ->
 
 
 @pytest.fixture
-def fast_settings() -> Settings:
+def fast_settings(tmp_path) -> Settings:
     return Settings(
+        data_path=tmp_path / "data",
         emergency_stop_timeout=0.5,
         processing_timeout=10,
         robot_communication_timeout=1,
@@ -38,7 +52,7 @@ WorkerFactory = Callable[..., Awaitable[Worker]]
 
 
 @pytest.fixture
-async def make_worker(fast_settings: Settings) -> AsyncIterator[WorkerFactory]:
+async def make_worker(fast_settings: Settings, tmp_path) -> AsyncIterator[WorkerFactory]:
     """Build a started worker on fakes; waits for IDLE unless told not to."""
     workers: list[Worker] = []
 
@@ -54,7 +68,9 @@ async def make_worker(fast_settings: Settings) -> AsyncIterator[WorkerFactory]:
         ops = default_operations()
         ops.update(operations or {})
         devices = CellDevices(robot or FakeRobot(), glue or FakeGlue(), camera or FakeCamera())
-        worker = Worker(settings or fast_settings, devices, ops, Bus())
+        worker = Worker(
+            settings or fast_settings, devices, ops, Bus(), demo_stores(tmp_path / "worker")
+        )
         await worker.start()
         workers.append(worker)
         if wait_idle:

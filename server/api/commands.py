@@ -13,7 +13,13 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Request
 from fastapi.responses import JSONResponse
 
-from server.api.schemas import CommandResult, EstopRequest, QueueFullResult, StartRequest
+from server.api.schemas import (
+    CommandResult,
+    CreateWorkpieceRequest,
+    EstopRequest,
+    QueueFullResult,
+    StartRequest,
+)
 from server.cell import Cell
 from server.core.worker import Outcome
 
@@ -75,9 +81,12 @@ async def calibrate_camera(request: Request) -> JSONResponse:
 @router.post(
     "/create-workpiece", status_code=202, responses=RESPONSES, response_model=CommandResult
 )
-async def create_workpiece(request: Request) -> JSONResponse:
-    """Capture and store the workpiece on the table (IDLE → CREATING_WORKPIECE)."""
-    return await _run(request, "create-workpiece")
+async def create_workpiece(
+    request: Request, body: Annotated[CreateWorkpieceRequest | None, Body()] = None
+) -> JSONResponse:
+    """Capture the part on the table into the library (IDLE → CREATING_WORKPIECE)."""
+    data = (body or CreateWorkpieceRequest()).model_dump(exclude_none=True)
+    return await _run(request, "create-workpiece", data)
 
 
 @router.post("/pause", status_code=202, responses=RESPONSES, response_model=CommandResult)

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi.responses import FileResponse
 
 from server.api.schemas import (
     AllowedView,
@@ -74,4 +77,45 @@ async def get_health(request: Request) -> dict:
         "devices": devices,
         "worker": worker.performance(),
         "websocket_clients": request.app.state.ws_hub.client_count,
+    }
+
+
+@router.get("/calibration")
+async def get_calibration(request: Request) -> dict[str, Any]:
+    """The current robot and camera calibrations: errors, when made, the matrices."""
+    cell = _cell(request)
+    assert cell.stores is not None
+    return cell.stores.calibration.summary()
+
+
+@router.get(
+    "/calibration/image",
+    response_class=FileResponse,
+    responses={200: {"content": {"image/png": {}}}, 404: {"model": ErrorView}},
+)
+async def get_calibration_image(request: Request) -> FileResponse:
+    """The annotated frame of the last robot calibration (markers, ids, residuals)."""
+    cell = _cell(request)
+    assert cell.stores is not None
+    path = cell.stores.calibration.robot_image_path
+    if not path.exists():
+        raise HTTPException(404, "no robot calibration yet: run calibrate-robot")
+    return FileResponse(path, media_type="image/png")
+
+
+@router.get("/trajectory", responses={404: {"model": ErrorView}})
+async def get_trajectory(request: Request) -> dict[str, Any]:
+    """The planned path of the current or last run, with the waypoint reached."""
+    worker = _cell(request).worker
+    assert worker is not None
+    if worker.trajectory is None:
+        raise HTTPException(404, "no trajectory planned since the server started")
+    running = worker.ctx.operation
+    reached = None
+    if running is not None and running.run_id == worker.trajectory["run_id"]:
+        reached = running.progress.get("waypoint")
+    return {
+        **worker.trajectory,
+        "running": reached is not None or running is not None,
+        "waypoint": reached,
     }

@@ -11,7 +11,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-IDENTIFIER = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+from server.storage.workpieces import IDENTIFIER, SpraySettings
 
 
 class Strict(BaseModel):
@@ -27,6 +27,16 @@ class StartRequest(Strict):
     workpiece_id: str | None = Field(
         None, pattern=IDENTIFIER, description="spray this library workpiece"
     )
+
+
+class CreateWorkpieceRequest(Strict):
+    """Body of POST /create-workpiece (optional)."""
+
+    name: str | None = Field(None, min_length=1, max_length=100)
+    workpiece_id: str | None = Field(
+        None, pattern=IDENTIFIER, description="store under this id (default: the next wp-NNNN)"
+    )
+    spray: SpraySettings | None = None
 
 
 class EstopRequest(Strict):

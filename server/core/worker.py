@@ -49,6 +49,7 @@ from server.core.transitions import (
 )
 from server.drivers.base import DeviceFault, Pose
 from server.errors import DeviceError, OperationError, TransitionNotAllowed, WorkerStopped
+from server.storage import CellStores
 
 log = logging.getLogger(__name__)
 
@@ -84,15 +85,17 @@ class Worker:
         devices: CellDevices,
         operations: dict[str, Operation],
         bus: Bus,
+        stores: CellStores,
     ) -> None:
         self.settings = settings
         self.devices = devices
         self.operations = operations
         self.bus = bus
+        self.stores = stores
         self.ctx = MachineContext(history_size=settings.history_size)
         self.queue = EventQueue(settings.event_queue_size)
         self.stats = ProcessingStats(settings.performance_history_size)
-        self.planned_path: list[dict[str, Any]] = []
+        self.trajectory: dict[str, Any] | None = None  # the plan of the current or last run
         self._ready: set[str] = set()
         self._boot = secrets.token_hex(3)
         self._ids = itertools.count(1)
@@ -419,6 +422,7 @@ class Worker:
             glue=self.devices.glue,
             camera=self.devices.camera,
             settings=self.settings,
+            stores=self.stores,
             params=dict(envelope.data),
             report=lambda progress: self._on_progress(run_id, progress),
             gate=self._gate,
@@ -486,7 +490,11 @@ class Worker:
             return
         update = dict(progress)
         if "planned_path" in update:
-            self.planned_path = update.pop("planned_path")
+            self.trajectory = {
+                "run_id": run_id,
+                "planned_path": update.pop("planned_path"),
+                "workpieces": update.pop("workpieces", []),
+            }
         running.progress.update(update)
         self.bus.publish(
             "progress",

@@ -353,7 +353,7 @@ class SimulatedCamera(_CameraBase):
     # --- fault injection (tests) ---------------------------------------------------------
 
     def inject_fault(self, kind: FaultKind) -> None:
-        """"fail": captures raise DeviceError; "stall": captures hang until the timeout."""
+        """ "fail": captures raise DeviceError; "stall": captures hang until the timeout."""
         if kind not in ("fail", "stall"):
             raise ValueError(f"unknown camera fault {kind!r}: use 'fail' or 'stall'")
         self._fault = kind

@@ -17,14 +17,13 @@ import httpx
 import pytest
 import websockets
 
-from server.config import Settings
-from server.core.operations.trajectory import DEMO_OUTLINE_MM, plan_outline
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.robot_jsonrpc import JsonRpcRobot
 from tests.processes import server_process, simulator
 from tests.serving import free_port
 
 SPEED_FACTOR = "8"
+SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}  # the commissioned part
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +107,7 @@ async def test_start_drives_a_full_cycle_seen_state_by_state(cell, api, robot_si
     async with websockets.connect(ws_url(cell)) as ws:
         snapshot = json.loads(await ws.recv())
         assert snapshot["type"] == "snapshot" and snapshot["state"] == "IDLE"
-        response = await api.post("/start", json={"contour_matching": False})
+        response = await api.post("/start")  # contour matching: find the part, then spray it
         assert response.status_code == 202, response.text
         messages = await messages_until(
             ws, lambda m: m["type"] == "state_changed" and m["new_state"] == "IDLE"
@@ -123,7 +122,9 @@ async def test_start_drives_a_full_cycle_seen_state_by_state(cell, api, robot_si
         range(snapshot["seq"] + 1, snapshot["seq"] + 1 + len(messages))
     )
     # The robot simulator really executed the planned path, in order.
-    planned = [w.pose for w in plan_outline(DEMO_OUTLINE_MM, Settings())]
+    trajectory = (await api.get("/trajectory")).json()
+    assert trajectory["workpieces"][0]["workpiece_id"] == "demo"
+    planned = [w["pose"] for w in trajectory["planned_path"]]
     executed = [
         s["end"]
         for s in await robot_sim.call("sim.getExecutedPath")
@@ -131,13 +132,13 @@ async def test_start_drives_a_full_cycle_seen_state_by_state(cell, api, robot_si
     ]
     assert len(executed) >= len(planned)
     for reached, target in zip(executed, planned, strict=False):
-        assert reached == pytest.approx(list(target), abs=0.01)
+        assert reached == pytest.approx(target, abs=0.01)
 
 
 async def test_estop_mid_run_halts_the_devices_then_reset_returns_to_idle(
     cell, api, robot_sim, glue_reader
 ) -> None:
-    assert (await api.post("/start", json={"contour_matching": False})).status_code == 202
+    assert (await api.post("/start", json=SPRAY_DEMO)).status_code == 202
     async with asyncio.timeout(20):  # wait until glue is flowing
         while not (await glue_reader.read_status()).valve_open:
             await asyncio.sleep(0.01)
@@ -154,7 +155,7 @@ async def test_estop_mid_run_halts_the_devices_then_reset_returns_to_idle(
     assert snapshot["stop_reason"]["code"] == "EMERGENCY_STOP"
     assert "hand in the cell" in snapshot["stop_reason"]["message"]
     assert snapshot["available_commands"] == ["estop", "reset"]
-    refused = await api.post("/start")
+    refused = await api.post("/start", json=SPRAY_DEMO)
     assert refused.status_code == 409
     reset = await api.post("/reset")
     assert reset.status_code == 202 and reset.json()["state"] == "IDLE"
@@ -164,7 +165,7 @@ async def test_estop_mid_run_halts_the_devices_then_reset_returns_to_idle(
 async def test_pause_then_resume_finishes_the_same_run(cell, api, glue_reader) -> None:
     async with websockets.connect(ws_url(cell)) as ws:
         await ws.recv()
-        start = await api.post("/start", json={"contour_matching": False})
+        start = await api.post("/start", json=SPRAY_DEMO)
         run_id = start.json()["event_id"]
         await messages_until(ws, lambda m: m["type"] == "progress" and m.get("waypoint") == 3)
         assert (await api.post("/pause")).json()["state"] == "PAUSED"
@@ -182,7 +183,8 @@ async def test_pause_then_resume_finishes_the_same_run(cell, api, glue_reader) -
     waypoints = [m["waypoint"] for m in rest if m["type"] == "progress" and "waypoint" in m]
     # Continued from the hold, not restarted: no waypoint before the pause comes again.
     assert min(waypoints) > 3 and waypoints == sorted(set(waypoints))
-    assert [w for w in waypoints if w > held_at] == list(range(held_at + 1, 8))
+    total = next(m["of"] for m in rest if m["type"] == "progress" and "of" in m)
+    assert [w for w in waypoints if w > held_at] == list(range(held_at + 1, total + 1))
     assert {m["run_id"] for m in rest if m["type"] == "progress"} == {run_id}
     assert rest[-1]["event"] == "OPERATION_COMPLETED"
 

@@ -14,6 +14,7 @@ from server.cell import Cell
 from server.config import Settings
 from server.core.devices import CellDevices
 from server.core.transitions import Event, State
+from tests.conftest import START, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import serve
 
@@ -21,6 +22,7 @@ from tests.serving import serve
 @pytest.fixture
 async def api(fast_settings: Settings):
     devices = CellDevices(FakeRobot(speed_factor=5), FakeGlue(), FakeCamera())
+    demo_stores(fast_settings.data_path)
     cell = Cell(
         fast_settings.model_copy(update={"max_broadcast_clients": 3, "ws_client_buffer": 8}),
         devices=devices,
@@ -35,7 +37,7 @@ async def api(fast_settings: Settings):
 
 
 async def test_commands_answer_202_or_409_with_the_reason(api) -> None:
-    accepted = await api.post("/start")
+    accepted = await api.post("/start", json=START)
     assert accepted.status_code == 202
     body = accepted.json()
     assert body["accepted"] is True and body["state"] == "EXECUTING_TRAJECTORY" and body["event_id"]
@@ -106,7 +108,7 @@ async def test_ws_sends_a_snapshot_then_every_change_in_sequence(api) -> None:
         snapshot = json.loads(await ws.recv())
         assert snapshot["type"] == "snapshot" and snapshot["state"] == "IDLE"
         assert snapshot["history"] and "context" in snapshot
-        await api.post("/start")
+        await api.post("/start", json=START)
         messages = []
         async with asyncio.timeout(20):
             while True:
@@ -128,7 +130,7 @@ async def test_ws_subscribe_filters_types_and_ping_is_answered(api) -> None:
         assert json.loads(await ws.recv())["type"] == "subscribed"
         await ws.send(json.dumps({"type": "ping"}))
         assert json.loads(await ws.recv()) == {"type": "pong"}
-        await api.post("/start")
+        await api.post("/start", json=START)
         async with asyncio.timeout(20):
             while True:
                 message = json.loads(await ws.recv())

@@ -6,68 +6,22 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator
-from dataclasses import dataclass
 
-import httpx
 import pytest
 
-from server.cell import Cell
-from server.config import Settings
-from server.drivers.camera import SimulatedCamera
-from server.drivers.sim.glue_sim import GlueSimulator
-from server.drivers.sim.robot_sim import RobotSimulator
-from tests.serving import serve
-
-TIMEOUT = 1.0  # robot_communication_timeout and glue_system_timeout in these tests
+from tests.rig import TIMEOUT, Rig, open_rig
 
 
-@dataclass
-class Rig:
-    api: httpx.AsyncClient
-    cell: Cell
-    robot: RobotSimulator
-    glue: GlueSimulator
-
-    @property
-    def camera(self) -> SimulatedCamera:
-        return self.cell.devices.camera  # type: ignore[return-value]
-
-    async def state(self) -> dict:
-        return (await self.api.get("/state")).json()
-
-    async def wait_state(self, state: str, timeout: float = 15) -> dict:
-        async with asyncio.timeout(timeout):
-            while (snapshot := await self.state())["state"] != state:
-                await asyncio.sleep(0.01)
-        return snapshot
-
-    async def start_spraying(self) -> None:
-        assert (await self.api.post("/start", json={"contour_matching": False})).status_code == 202
-        async with asyncio.timeout(15):
-            while not self.glue.valve_open:
-                await asyncio.sleep(0.005)
-
-    async def reset(self) -> httpx.Response:
-        return await self.api.post("/reset")
+@pytest.fixture(scope="module")
+def cell_data(tmp_path_factory: pytest.TempPathFactory):
+    """One data directory for the module: the simulated cell is commissioned once."""
+    return tmp_path_factory.mktemp("cell")
 
 
 @pytest.fixture
-async def rig() -> AsyncIterator[Rig]:
-    async with RobotSimulator(speed_factor=4) as robot, GlueSimulator() as glue:
-        settings = Settings(
-            robot_ip="127.0.0.1",
-            robot_port=robot.port,
-            glue_controller_port=f"tcp://127.0.0.1:{glue.port}",
-            robot_communication_timeout=TIMEOUT,
-            glue_system_timeout=TIMEOUT,
-            emergency_stop_timeout=0.5,
-            vision_processing_timeout=10,
-        )
-        cell = Cell(settings)
-        async with serve(cell) as url, httpx.AsyncClient(base_url=url, timeout=10) as api:
-            rig = Rig(api, cell, robot, glue)
-            await rig.wait_state("IDLE")
-            yield rig
+async def rig(cell_data) -> AsyncIterator[Rig]:
+    async with open_rig(cell_data) as running:
+        yield running
 
 
 async def assert_safe(rig: Rig, component: str) -> dict:

@@ -8,6 +8,7 @@ from server.config import Settings
 from server.core.devices import CellDevices
 from server.core.transitions import State
 from server.facade import EmbeddedCell, blocking_operation
+from tests.conftest import demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
 
@@ -18,15 +19,17 @@ def wait_for(cell: EmbeddedCell, state: State, timeout: float = 10) -> None:
         time.sleep(0.005)
 
 
-def test_spec_methods_and_return_shapes() -> None:
+def test_spec_methods_and_return_shapes(tmp_path) -> None:
     glue = FakeGlue()
     devices = CellDevices(FakeRobot(speed_factor=10), glue, FakeCamera())
-    with EmbeddedCell(Settings(emergency_stop_timeout=0.5), devices=devices) as cell:
+    settings = Settings(emergency_stop_timeout=0.5, data_path=tmp_path)
+    demo_stores(tmp_path)
+    with EmbeddedCell(settings, devices=devices) as cell:
         assert cell.get_current_state() is State.IDLE
         assert cell.can_execute_operation("start") is True
         assert cell.can_execute_operation("resume") is False
         assert cell.can_execute_operation("no-such-thing") is False
-        ok, message = cell.start(contourMatching=False)
+        ok, message = cell.start(contourMatching=False, workpiece_id="demo")
         assert ok is True and "EXECUTING_TRAJECTORY" in message
         assert cell.start() == (False, "start is not allowed in EXECUTING_TRAJECTORY")
         ok, message = cell.emergency_stop()
@@ -35,7 +38,7 @@ def test_spec_methods_and_return_shapes() -> None:
         wait_for(cell, State.IDLE)
 
 
-def test_an_existing_application_method_serves_as_an_operation() -> None:
+def test_an_existing_application_method_serves_as_an_operation(tmp_path) -> None:
     calls = []
 
     def legacy_calibrate_camera() -> dict:
@@ -44,7 +47,7 @@ def test_an_existing_application_method_serves_as_an_operation() -> None:
 
     devices = CellDevices(FakeRobot(), FakeGlue(), FakeCamera())
     operations = {"calibrate_camera": blocking_operation(legacy_calibrate_camera)}
-    with EmbeddedCell(Settings(), devices=devices, operations=operations) as cell:
+    with EmbeddedCell(Settings(data_path=tmp_path), devices=devices, operations=operations) as cell:
         assert cell.calibrateCamera() == (True, "calibrate-camera completed")
         assert calls == ["called"]
         assert cell.cell.worker.ctx.operation_result == {"reprojection_error_px": 0.12}

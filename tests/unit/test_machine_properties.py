@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import tempfile
+from pathlib import Path
 
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
@@ -21,6 +23,7 @@ from server.core.event_queue import Priority
 from server.core.operations import default_operations
 from server.core.transitions import TRANSITIONS, Event, State
 from server.core.worker import Worker
+from tests.conftest import START, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
 EXTERNAL_EVENTS = [e for e in Event if e is not Event.EMERGENCY_STOP]
@@ -34,13 +37,16 @@ class CellMachine(RuleBasedStateMachine):
         self.robot = FakeRobot(speed_factor=2000)
         config = Settings(emergency_stop_timeout=0.2, processing_timeout=5)
         devices = CellDevices(self.robot, self.glue, FakeCamera())
-        self.worker = Worker(config, devices, default_operations(), Bus())
+        self.directory = tempfile.TemporaryDirectory()
+        stores = demo_stores(Path(self.directory.name))
+        self.worker = Worker(config, devices, default_operations(), Bus(), stores)
         self.loop.run_until_complete(self.worker.start())
         self.checked = 0
 
     def teardown(self) -> None:
         self.loop.run_until_complete(self.worker.stop())
         self.loop.close()
+        self.directory.cleanup()
 
     def _settle(self, seconds: float = 0.0) -> None:
         self.loop.run_until_complete(asyncio.sleep(seconds))
@@ -51,7 +57,13 @@ class CellMachine(RuleBasedStateMachine):
             event,
             source="property",
             priority=Priority.REQUEST,
-            data={"code": "TEST", "message": "injected", "component": "test", "run_id": "any"},
+            data={
+                "code": "TEST",
+                "message": "injected",
+                "component": "test",
+                "run_id": "any",
+                **START,
+            },
         )
         self.loop.run_until_complete(envelope.future)
         self._settle(wait)

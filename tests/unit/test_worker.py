@@ -11,7 +11,7 @@ from server.core.event_queue import Priority
 from server.core.operations import OperationContext
 from server.core.transitions import Event, State
 from server.errors import EventQueueFull, OperationError
-from tests.conftest import wait_for_state
+from tests.conftest import START, wait_for_state
 from tests.fakes import FakeGlue, FakeRobot
 
 
@@ -57,7 +57,7 @@ async def test_events_are_handled_one_at_a_time_in_arrival_order(make_worker) ->
         Event.RESUME_REQUESTED,
         Event.CANCEL_REQUESTED,
     ]
-    envelopes = [worker.submit(event, source="test") for event in sequence]
+    envelopes = [worker.submit(event, source="test", data=START) for event in sequence]
     outcomes = [await envelope.future for envelope in envelopes]
     assert [o.accepted for o in outcomes] == [True, False, True, True, True, True, True]
     assert [o.state for o in outcomes] == [
@@ -126,7 +126,7 @@ async def test_leaving_an_operational_state_cancels_its_operation(make_worker) -
 async def test_estop_mid_run_closes_the_valve_and_stops_the_robot(make_worker) -> None:
     glue, robot = FakeGlue(), FakeRobot(speed_factor=2)
     worker = await make_worker(glue=glue, robot=robot)
-    await worker.request(Event.START_REQUESTED, source="test")
+    await worker.request(Event.START_REQUESTED, source="test", data=START)
     async with asyncio.timeout(10):
         while not glue.valve_open:
             await asyncio.sleep(0.002)
@@ -143,7 +143,7 @@ async def test_pause_holds_at_the_next_waypoint_and_resume_finishes_the_same_run
 ) -> None:
     glue, robot = FakeGlue(), FakeRobot(speed_factor=5)
     worker = await make_worker(glue=glue, robot=robot)
-    started = await worker.request(Event.START_REQUESTED, source="test")
+    started = await worker.request(Event.START_REQUESTED, source="test", data=START)
     async with asyncio.timeout(10):
         while not worker.ctx.operation.progress.get("waypoint"):
             await asyncio.sleep(0.002)
@@ -159,9 +159,9 @@ async def test_pause_holds_at_the_next_waypoint_and_resume_finishes_the_same_run
     await worker.request(Event.RESUME_REQUESTED, source="test")
     await wait_for_state(worker, State.IDLE)
     assert worker.ctx.history[-1].event == "OPERATION_COMPLETED"
-    assert worker.ctx.operation_result == {"workpiece": "demo", "waypoints": 7}
+    assert worker.ctx.operation_result == {"workpieces": ["demo"], "waypoints": 7}
     # One run: the robot visited each planned waypoint exactly once, in order.
-    planned = [tuple(w["pose"]) for w in worker.planned_path]
+    planned = [tuple(w["pose"]) for w in worker.trajectory["planned_path"]]
     assert [tuple(m) for m in robot.moves if tuple(m) in planned] == planned
     assert started.event_id == worker.ctx.history[-4].event_id
 
@@ -193,7 +193,7 @@ async def test_paused_time_does_not_count_against_processing_timeout(make_worker
     worker = await make_worker(
         fast_settings.model_copy(update={"processing_timeout": 1.5}), robot=robot
     )
-    await worker.request(Event.START_REQUESTED, source="test")
+    await worker.request(Event.START_REQUESTED, source="test", data=START)
     await worker.request(Event.PAUSE_REQUESTED, source="test")
     await asyncio.sleep(2.0)
     assert worker.ctx.state is State.PAUSED
@@ -212,7 +212,7 @@ async def test_a_completion_from_an_ended_run_is_ignored(make_worker) -> None:
 async def test_device_fault_mid_run_ends_in_error_and_reset_waits_for_recovery(make_worker):
     glue, robot = FakeGlue(), FakeRobot(speed_factor=2)
     worker = await make_worker(glue=glue, robot=robot)
-    await worker.request(Event.START_REQUESTED, source="test")
+    await worker.request(Event.START_REQUESTED, source="test", data=START)
     async with asyncio.timeout(10):
         while not glue.valve_open:
             await asyncio.sleep(0.002)

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from server.core.operations.base import Operation, OperationContext, PauseGate
-from server.core.operations.frame_check import calibrate_camera, calibrate_robot, create_workpiece
+from server.core.operations.calibration import calibrate_camera, calibrate_robot
 from server.core.operations.trajectory import execute_trajectory
+from server.core.operations.workpieces import create_workpiece
 
 __all__ = ["Operation", "OperationContext", "PauseGate", "default_operations"]
 

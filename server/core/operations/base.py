@@ -18,6 +18,7 @@ from typing import Any
 
 from server.config import Settings
 from server.drivers.base import Camera, GlueDispenser, Robot
+from server.storage import CellStores
 
 ProgressReporter = Callable[[dict[str, Any]], None]
 
@@ -78,6 +79,7 @@ class OperationContext:
     glue: GlueDispenser
     camera: Camera
     settings: Settings
+    stores: CellStores
     params: dict[str, Any]
     report: ProgressReporter
     gate: PauseGate = field(default_factory=PauseGate)

@@ -1,9 +1,10 @@
-"""Trajectory execution: follow a spray path waypoint by waypoint with the glue valve.
+"""Trajectory execution: spray each workpiece's path, waypoint by waypoint.
 
-The path is planned first and checked against the workspace before the robot
-moves at all, so a violation never leaves a half-sprayed part. During the run
-the valve is opened only for segments that spray, and it is closed before the
-robot holds for a pause and whenever the run ends, however it ends.
+The whole path is planned first (every workpiece, from its spray settings)
+and checked against the workspace before the robot moves at all, so a
+violation never leaves a half-sprayed part. During the run the valve is open
+only on spraying segments; it is closed before the robot holds for a pause and
+whenever the run ends, however it ends.
 """
 
 from __future__ import annotations
@@ -14,46 +15,78 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from server.config import Settings
 from server.core.operations.base import OperationContext
+from server.core.operations.workpieces import Target, locate_workpieces
 from server.drivers.base import Pose
 from server.errors import OperationError
+from server.vision.paths import SprayPattern, spray_polylines
 
 log = logging.getLogger(__name__)
-
-# A 120 × 80 mm rectangular part centred on the table, used when no workpiece is named.
-DEMO_OUTLINE_MM: tuple[tuple[float, float], ...] = (
-    (340.0, -40.0),
-    (460.0, -40.0),
-    (460.0, 40.0),
-    (340.0, 40.0),
-)
+TRAVEL_CLEARANCE_MM = 50.0
 
 
 @dataclass(frozen=True, slots=True)
 class Waypoint:
-    """A pose to reach, and whether glue flows on the way there."""
+    """A pose to reach, whether glue flows on the way there, and for which workpiece."""
 
     pose: Pose
     spray: bool
     speed: float
+    workpiece: str
+    flow_rate_ml_min: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
-        return {"pose": list(self.pose), "spray": self.spray, "speed": self.speed}
+        return {
+            "pose": list(self.pose),
+            "spray": self.spray,
+            "speed": self.speed,
+            "workpiece": self.workpiece,
+        }
 
 
-def plan_outline(outline_mm: Sequence[tuple[float, float]], settings: Settings) -> list[Waypoint]:
-    """A closed spray path along `outline_mm` at spray height, with travel in and out."""
-    if len(outline_mm) < 3:
-        raise OperationError("PATH_INVALID", "an outline needs at least 3 points")
+def plan_path(targets: Sequence[Target], settings: Settings) -> list[Waypoint]:
+    """Travel above each polyline, descend, spray along it, lift; workpiece after workpiece."""
     z = settings.spray_height_mm
-    travel_z = z + 50.0
-    first = outline_mm[0]
-    path = [Waypoint(Pose(first[0], first[1], travel_z), False, settings.travel_speed_mm_s)]
-    path.append(Waypoint(Pose(first[0], first[1], z), False, settings.travel_speed_mm_s))
-    for x, y in [*outline_mm[1:], first]:
-        path.append(Waypoint(Pose(x, y, z), True, settings.spray_speed_mm_s))
-    path.append(Waypoint(Pose(first[0], first[1], travel_z), False, settings.travel_speed_mm_s))
+    travel_z = z + TRAVEL_CLEARANCE_MM
+    travel = settings.travel_speed_mm_s
+    path: list[Waypoint] = []
+    for target in targets:
+        spray = target.spray
+        pattern = SprayPattern(
+            outline_offset_mm=spray.outline_offset_mm,
+            outline=spray.outline,
+            fill=spray.fill,
+            fill_spacing_mm=spray.fill_spacing_mm,
+            fill_angle_deg=spray.fill_angle_deg,
+        )
+        try:
+            polylines = spray_polylines(np.asarray(target.outline_mm, dtype=np.float64), pattern)
+        except ValueError as exc:
+            raise OperationError("PATH_INVALID", f"workpiece {target.workpiece_id}: {exc}") from exc
+        for line in polylines:
+            (x0, y0), name = line[0], target.workpiece_id
+            path.append(Waypoint(Pose(x0, y0, travel_z), False, travel, name))
+            path.append(Waypoint(Pose(x0, y0, z), False, travel, name))
+            path.extend(
+                Waypoint(
+                    Pose(float(x), float(y), z),
+                    True,
+                    spray.speed_mm_s,
+                    name,
+                    spray.flow_rate_ml_min,
+                )
+                for x, y in line[1:]
+            )
+            path.append(
+                Waypoint(
+                    Pose(float(line[-1][0]), float(line[-1][1]), travel_z), False, travel, name
+                )
+            )
+    if not path:
+        raise OperationError("PATH_EMPTY", "the spray settings give nothing to spray")
     return path
 
 
@@ -65,26 +98,45 @@ def check_workspace(path: Sequence[Waypoint], settings: Settings) -> None:
             if not lo <= value <= hi:
                 raise OperationError(
                     "WORKSPACE_VIOLATION",
-                    f"waypoint {index} of {len(path)} is outside the workspace: "
-                    f"{axis}={value:.1f} mm, allowed {lo:.0f}..{hi:.0f} mm; "
-                    "check the workpiece position and the calibration",
+                    f"waypoint {index} of {len(path)} ({waypoint.workpiece}) is outside the "
+                    f"workspace: {axis}={value:.1f} mm, allowed {lo:.0f}..{hi:.0f} mm; "
+                    "move the part inside the workspace or check the calibration",
                 )
 
 
-async def execute_trajectory(ctx: OperationContext) -> dict[str, Any]:
-    """Plan, check and spray the path; report progress after every waypoint."""
-    outline = ctx.params.get("outline_mm") or DEMO_OUTLINE_MM
-    workpiece = ctx.params.get("workpiece_id") or "demo"
-    path = plan_outline(outline, ctx.settings)
-    check_workspace(path, ctx.settings)
-    ctx.report({"planned_path": [w.as_dict() for w in path], "workpiece": workpiece})
+async def resolve_targets(ctx: OperationContext) -> list[Target]:
+    """The named workpiece as stored, or the library parts found on the table."""
+    workpiece_id = ctx.params.get("workpiece_id")
+    if ctx.params.get("contour_matching", True):
+        return await locate_workpieces(ctx, workpiece_id)
+    if not workpiece_id:
+        raise OperationError("NO_WORKPIECE", "start without contour matching needs a workpiece_id")
+    try:
+        entry = await asyncio.to_thread(ctx.stores.workpieces.get, workpiece_id)
+    except KeyError as exc:
+        raise OperationError(
+            "WORKPIECE_UNKNOWN", f"workpiece {workpiece_id!r} is not in the library"
+        ) from exc
+    return [Target(entry.id, entry.name, np.asarray(entry.outline_mm), entry.spray)]
 
-    glue = ctx.glue
-    await glue.set_flow_rate(
-        float(ctx.params.get("flow_rate_ml_min", ctx.settings.default_flow_rate_ml_min))
+
+async def execute_trajectory(ctx: OperationContext) -> dict[str, Any]:
+    """Plan, check and spray; report progress after every waypoint."""
+    targets = await resolve_targets(ctx)
+    path = plan_path(targets, ctx.settings)
+    check_workspace(path, ctx.settings)
+    ctx.report(
+        {
+            "planned_path": [w.as_dict() for w in path],
+            "workpieces": [
+                {"workpiece_id": t.workpiece_id, "name": t.name, "match": t.match} for t in targets
+            ],
+        }
     )
+    glue = ctx.glue
     await glue.set_pressure(ctx.settings.default_pressure_psi)
     valve_open = False
+    flow = None
 
     async def close_valve() -> None:
         nonlocal valve_open
@@ -95,6 +147,9 @@ async def execute_trajectory(ctx: OperationContext) -> dict[str, Any]:
     try:
         for index, waypoint in enumerate(path, start=1):
             await ctx.gate.checkpoint(on_hold=close_valve)
+            if waypoint.spray and waypoint.flow_rate_ml_min != flow:
+                flow = waypoint.flow_rate_ml_min
+                await glue.set_flow_rate(flow)
             if waypoint.spray != valve_open:
                 await glue.set_valve(waypoint.spray)
                 valve_open = waypoint.spray
@@ -106,7 +161,7 @@ async def execute_trajectory(ctx: OperationContext) -> dict[str, Any]:
                     "waypoint": index,
                     "of": len(path),
                     "fraction": round(index / len(path), 4),
-                    "workpiece": workpiece,
+                    "workpiece": waypoint.workpiece,
                 }
             )
         await close_valve()
@@ -114,7 +169,7 @@ async def execute_trajectory(ctx: OperationContext) -> dict[str, Any]:
         # However the run ends (cancel, fault, e-stop), the valve must not stay open.
         if valve_open:
             await asyncio.shield(_close_quietly(ctx))
-    return {"workpiece": workpiece, "waypoints": len(path)}
+    return {"workpieces": [t.workpiece_id for t in targets], "waypoints": len(path)}
 
 
 async def _close_quietly(ctx: OperationContext) -> None:

@@ -293,7 +293,9 @@ def lighting_gain(model: CameraModel, vignetting: float, light_gradient: float) 
     """
     u, v = np.meshgrid(np.arange(model.width, dtype=np.float32),
                        np.arange(model.height, dtype=np.float32))  # fmt: skip
-    corner_r2 = max(model.cx, model.width - model.cx) ** 2 + max(model.cy, model.height - model.cy) ** 2
+    corner_r2 = (
+        max(model.cx, model.width - model.cx) ** 2 + max(model.cy, model.height - model.cy) ** 2
+    )
     r2 = ((u - model.cx) ** 2 + (v - model.cy) ** 2) / corner_r2
     gain = (1.0 - vignetting * r2) * (1.0 + light_gradient * (u / model.width - 0.5))
     gain = gain.astype(np.float32)[..., None]

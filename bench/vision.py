@@ -1,0 +1,278 @@
+"""Vision on simulated 1920×1080 frames: detection speed, calibration accuracy, workpiece cost.
+
+1. ArUco detection per frame (fresh sensor noise each frame, the default table): OpenCV's
+   default detector, the reference (full resolution + sub-pixel corners) and the fast one
+   (half resolution + the same full-resolution sub-pixel refinement); markers found, the
+   largest fast-vs-reference centre gap and the largest reference error against the
+   simulator's ground truth.
+2. Calibration: intrinsics from the twelve default chessboard views (focal-length error),
+   and the table calibration (marker residuals, and ground-truth table points over the marker
+   field mapped through it) with exact and with calibrated intrinsics.
+3. Per workpiece: undistortion, marker exclusion, contour finding, mm conversion, library
+   matching (all six simulator shapes, taught by detecting each once at 0°) and spray-path
+   planning (2 mm inward bead + 5 mm zigzag fill) on the matched library outline, with the
+   centroid and turn errors against the simulator's pose.
+
+Timing only the vision calls: frames are rendered outside the timed region. Three tables
+and JSON files: bench/results/vision_detection.json, vision_calibration.json and
+vision_workpieces.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+
+from bench.report import emit, percentiles_ms
+from server.drivers.sim.camera_chessboard import (
+    DEFAULT_CHESSBOARD,
+    chessboard_corner_pixels,
+    default_chessboard_poses,
+    render_chessboard_view,
+)
+from server.drivers.sim.camera_model import DEFAULT_CAMERA_MODEL
+from server.drivers.sim.camera_scene import (
+    WORKPIECE_SHAPES,
+    Scene,
+    aruco_dictionary,
+    marker_centre_pixels,
+    render_table,
+)
+from server.vision.homography import fit_plane_calibration, pixels_to_robot
+from server.vision.intrinsics import (
+    Intrinsics,
+    Undistorter,
+    calibrate_intrinsics,
+    find_chessboard,
+    intrinsics_of,
+)
+from server.vision.markers import MarkerDetector
+from server.vision.outlines import (
+    find_outlines,
+    match_outline,
+    outline_pose,
+    outline_to_mm,
+    transform_outline,
+)
+from server.vision.paths import SprayPattern, spray_polylines
+
+MODEL = DEFAULT_CAMERA_MODEL
+BOARD = DEFAULT_CHESSBOARD
+EXCLUSION_SCALE = 1.8
+
+
+def timed(call: Any, *args: Any, **kwargs: Any) -> tuple[Any, float]:
+    started = time.perf_counter()
+    result = call(*args, **kwargs)
+    return result, time.perf_counter() - started
+
+
+def detection_rows(frames: int) -> list[dict[str, Any]]:
+    scene = Scene()
+    truth = marker_centre_pixels(scene)
+    opencv = cv2.aruco.ArucoDetector(aruco_dictionary(), cv2.aruco.DetectorParameters())
+    reference, fast = MarkerDetector(fast=False), MarkerDetector(fast=True)
+    samples: dict[str, list[float]] = {"default": [], "reference": [], "fast": []}
+    found: dict[str, list[int]] = {"default": [], "reference": [], "fast": []}
+    gap_px = error_px = 0.0
+    rng = np.random.default_rng(1)
+    render_table(scene, rng=rng)  # warm the simulator's caches
+    for index in range(frames + 3):
+        frame = render_table(scene, rng=rng)
+        (_corners, ids, _), t_default = timed(opencv.detectMarkers, frame)
+        slow, t_reference = timed(reference.detect, frame)
+        quick, t_fast = timed(fast.detect, frame)
+        if index < 3:
+            continue  # warm-up
+        samples["default"].append(t_default)
+        samples["reference"].append(t_reference)
+        samples["fast"].append(t_fast)
+        found["default"].append(0 if ids is None else len(ids))
+        found["reference"].append(len(slow))
+        found["fast"].append(len(quick))
+        for marker_id in set(slow) & set(quick):
+            gap_px = max(
+                gap_px, float(np.linalg.norm(quick[marker_id].centre - slow[marker_id].centre))
+            )
+        for marker_id, det in slow.items():
+            error_px = max(error_px, float(np.linalg.norm(det.centre - truth[marker_id])))
+    names = {
+        "default": "ArUco: OpenCV default detectMarkers (no refinement)",
+        "reference": "ArUco: reference (full res + sub-pixel)",
+        "fast": "ArUco: fast (half res + full-res sub-pixel)",
+    }
+    rows = []
+    for key, name in names.items():
+        row: dict[str, Any] = {"measure": name, **percentiles_ms(samples[key])}
+        row["markers_found_min"] = min(found[key])
+        if key == "reference":
+            row["max_centre_error_vs_truth_px"] = round(error_px, 4)
+        if key == "fast":
+            row["max_centre_gap_vs_reference_px"] = round(gap_px, 4)
+        rows.append(row)
+    return rows
+
+
+def table_errors(intrinsics: Intrinsics) -> dict[str, float]:
+    scene = Scene()
+    undistorter = Undistorter(intrinsics)
+    frame = undistorter(render_table(scene, rng=np.random.default_rng(7)))
+    detections = MarkerDetector(fast=False).detect(frame)
+    robot_mm = dict(enumerate(scene.marker_positions_mm))
+    calibration = fit_plane_calibration({i: d.centre for i, d in detections.items()}, robot_mm)
+    grid = np.stack(np.meshgrid(np.linspace(200, 600, 17), np.linspace(-250, 250, 21)), axis=-1)
+    table = grid.reshape(-1, 2)
+    mapped = pixels_to_robot(
+        calibration.homography, undistorter.points(MODEL.table_to_pixel(table))
+    )
+    errors = np.linalg.norm(mapped - table, axis=1)
+    return {
+        "marker_residual_mean_mm": round(calibration.mean_error_mm, 4),
+        "marker_residual_max_mm": round(calibration.max_error_mm, 4),
+        "field_error_mean_mm": round(float(errors.mean()), 4),
+        "field_error_max_mm": round(float(errors.max()), 4),
+    }
+
+
+def calibration_rows() -> list[dict[str, Any]]:
+    corner_sets, times, corner_errors = [], [], []
+    for index, pose in enumerate(default_chessboard_poses(MODEL, BOARD)):
+        frame = render_chessboard_view(MODEL, BOARD, pose, rng=np.random.default_rng(index))
+        corners, seconds = timed(find_chessboard, frame, BOARD.pattern_size)
+        assert corners is not None, f"chessboard view {index} not found"
+        truth = chessboard_corner_pixels(MODEL, BOARD, pose)
+        corner_errors.append(float(np.linalg.norm(corners - truth, axis=1).max()))
+        corner_sets.append(corners)
+        times.append(seconds)
+    intrinsics, seconds = timed(
+        calibrate_intrinsics, corner_sets, BOARD.pattern_size, BOARD.square_mm, MODEL.size
+    )
+    rows: list[dict[str, Any]] = [
+        {
+            "measure": "find_chessboard (1920×1080, 9×6)",
+            **percentiles_ms(times),
+            "max_corner_error_px": round(max(corner_errors), 4),
+        },
+        {
+            "measure": f"calibrate_intrinsics ({len(corner_sets)} views)",
+            **percentiles_ms([seconds]),
+            "fx_error_pct": round(100 * (intrinsics.fx / MODEL.fx - 1), 4),
+            "fy_error_pct": round(100 * (intrinsics.fy / MODEL.fy - 1), 4),
+            "rms_px": round(intrinsics.rms_px, 4),
+        },
+    ]
+    exact = intrinsics_of(MODEL.camera_matrix, MODEL.dist_coeffs, MODEL.size)
+    for label, source in (("exact", exact), ("chessboard-calibrated", intrinsics)):
+        rows.append({"measure": f"table calibration, {label} intrinsics", **table_errors(source)})
+    return rows
+
+
+def workpiece_rows(repeats: int) -> list[dict[str, Any]]:
+    undistorter = Undistorter(intrinsics_of(MODEL.camera_matrix, MODEL.dist_coeffs, MODEL.size))
+    base = Scene()
+    frame = undistorter(render_table(base, rng=np.random.default_rng(3)))
+    detections = MarkerDetector(fast=False).detect(frame)
+    robot_mm = dict(enumerate(base.marker_positions_mm))
+    homography = fit_plane_calibration(
+        {i: d.centre for i, d in detections.items()}, robot_mm
+    ).homography
+    detector = MarkerDetector(fast=True)
+
+    def outline_of(scene: Scene, seed: int) -> np.ndarray:
+        image = undistorter(render_table(scene, rng=np.random.default_rng(seed)))
+        found = detector.detect(image)
+        exclude = [d.centre + (d.corners - d.centre) * EXCLUSION_SCALE for d in found.values()]
+        return outline_to_mm(find_outlines(image, exclude=exclude)[0], homography)
+
+    # the library as the cell builds it: each part detected once where it was taught (0°)
+    library = {}
+    for name in WORKPIECE_SHAPES:
+        teach = Scene()
+        teach.place_workpiece(name, 400.0, 300.0, 0.0)
+        library[name] = outline_of(teach, 99)
+    pattern = SprayPattern(outline_offset_mm=-2.0, fill="zigzag", fill_spacing_mm=5.0)
+    placements = [
+        ("rect-120x80", 400.0, -300.0, 179.0),
+        ("l-bracket", 400.0, 300.0, -135.0),
+        ("hexagon", 150.0, -20.0, 10.0),
+        ("disc-70", 650.0, 0.0, 0.0),
+        ("square-60", 650.0, 300.0, 44.0),
+        ("rounded-rect-100x60", 650.0, -300.0, 91.0),
+    ]
+    rows = []
+    for name, x, y, turn in placements:
+        scene = Scene()
+        scene.place_workpiece(name, x, y, turn)
+        stages: dict[str, list[float]] = {
+            k: [] for k in ("undistort", "markers", "find", "to_mm", "match", "plan")
+        }
+        centre_error = turn_error = 0.0
+        for repeat in range(repeats):
+            raw = render_table(scene, rng=np.random.default_rng(100 + repeat))
+            image, t = timed(undistorter, raw)
+            stages["undistort"].append(t)
+            found, t = timed(detector.detect, image)
+            stages["markers"].append(t)
+            exclude = [d.centre + (d.corners - d.centre) * EXCLUSION_SCALE for d in found.values()]
+            contours, t = timed(find_outlines, image, exclude=exclude)
+            stages["find"].append(t)
+            outline, t = timed(outline_to_mm, contours[0], homography)
+            stages["to_mm"].append(t)
+            match, t = timed(match_outline, outline, library)
+            stages["match"].append(t)
+            assert match is not None and match.workpiece_id == name
+            placed = transform_outline(library[name], match.transform)
+            _, t = timed(spray_polylines, placed, pattern)
+            stages["plan"].append(t)
+            pose = outline_pose(outline)
+            centre_error = max(centre_error, math.hypot(pose.x - x, pose.y - y))
+            symmetry = WORKPIECE_SHAPES[name].symmetry_deg
+            if symmetry > 0:
+                diff = (match.rotation_deg - turn) % symmetry
+                turn_error = max(turn_error, min(diff, symmetry - diff))
+        row: dict[str, Any] = {"workpiece": f"{name} at {turn:g}°"}
+        for stage, values in stages.items():
+            row[f"{stage}_p50_ms"] = percentiles_ms(values)["p50_ms"]
+        row["find+match_p50_ms"] = round(
+            percentiles_ms(
+                [
+                    a + b + c
+                    for a, b, c in zip(
+                        stages["find"], stages["to_mm"], stages["match"], strict=True
+                    )
+                ]
+            )["p50_ms"],
+            3,
+        )
+        row["centroid_error_max_mm"] = round(centre_error, 4)
+        row["rotation_error_max_deg"] = (
+            round(turn_error, 4) if WORKPIECE_SHAPES[name].symmetry_deg else None
+        )
+        rows.append(row)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--frames", type=int, default=60, help="frames for marker detection")
+    parser.add_argument("--repeats", type=int, default=10, help="frames per workpiece")
+    args = parser.parse_args(argv)
+    extra = {"opencv": cv2.__version__, "cv2_threads": cv2.getNumThreads()}
+    detection = detection_rows(args.frames)
+    emit("vision_detection", detection, {"frames": args.frames, **extra})
+    calibration = calibration_rows()
+    emit("vision_calibration", calibration, extra)
+    workpieces = workpiece_rows(args.repeats)
+    emit("vision_workpieces", workpieces, {"repeats": args.repeats, **extra})
+    return detection + calibration + workpieces
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,88 @@
+"""The workpiece library over HTTP: list, read, create, replace, delete, thumbnail.
+
+File writes run off the event loop. Identifiers are validated before they
+reach the file system.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Path, Request, Response
+from fastapi.responses import FileResponse
+from pydantic import BaseModel
+
+from server.api.schemas import ErrorView
+from server.cell import Cell
+from server.storage.workpieces import IDENTIFIER, Workpiece, WorkpieceIn, WorkpieceLibrary
+
+router = APIRouter(tags=["workpieces"])
+WorkpieceId = Annotated[str, Path(pattern=IDENTIFIER, description="workpiece identifier")]
+NOT_FOUND = {404: {"model": ErrorView, "description": "no such workpiece"}}
+
+
+class WorkpieceList(BaseModel):
+    workpieces: list[Workpiece]
+
+
+def _library(request: Request) -> WorkpieceLibrary:
+    cell: Cell = request.app.state.cell
+    assert cell.stores is not None
+    return cell.stores.workpieces
+
+
+def _missing(workpiece_id: str) -> HTTPException:
+    return HTTPException(404, f"workpiece {workpiece_id!r} is not in the library")
+
+
+@router.get("/workpieces", response_model=WorkpieceList)
+async def list_workpieces(request: Request) -> WorkpieceList:
+    """Every workpiece in the library."""
+    return WorkpieceList(workpieces=await asyncio.to_thread(_library(request).list))
+
+
+@router.post("/workpieces", response_model=Workpiece, status_code=201)
+async def create_workpiece_from_outline(request: Request, body: WorkpieceIn) -> Workpiece:
+    """Add a workpiece from a given outline (mm, table frame) and spray settings."""
+    library = _library(request)
+    workpiece_id = await asyncio.to_thread(library.new_id)
+    return await asyncio.to_thread(library.put, workpiece_id, body)
+
+
+@router.get("/workpieces/{workpiece_id}", response_model=Workpiece, responses=NOT_FOUND)
+async def get_workpiece(request: Request, workpiece_id: WorkpieceId) -> Workpiece:
+    try:
+        return await asyncio.to_thread(_library(request).get, workpiece_id)
+    except KeyError:
+        raise _missing(workpiece_id) from None
+
+
+@router.put("/workpieces/{workpiece_id}", response_model=Workpiece)
+async def put_workpiece(
+    request: Request, workpiece_id: WorkpieceId, body: WorkpieceIn
+) -> Workpiece:
+    """Create or replace the workpiece under this identifier."""
+    return await asyncio.to_thread(_library(request).put, workpiece_id, body)
+
+
+@router.delete("/workpieces/{workpiece_id}", status_code=204, responses=NOT_FOUND)
+async def delete_workpiece(request: Request, workpiece_id: WorkpieceId) -> Response:
+    try:
+        await asyncio.to_thread(_library(request).delete, workpiece_id)
+    except KeyError:
+        raise _missing(workpiece_id) from None
+    return Response(status_code=204)
+
+
+@router.get(
+    "/workpieces/{workpiece_id}/thumbnail",
+    response_class=FileResponse,
+    responses={200: {"content": {"image/png": {}}}, **NOT_FOUND},
+)
+async def get_thumbnail(request: Request, workpiece_id: WorkpieceId) -> FileResponse:
+    """The part as the camera saw it when it was created (PNG)."""
+    path = _library(request).thumbnail_path(workpiece_id)
+    if not path.exists():
+        raise HTTPException(404, f"workpiece {workpiece_id!r} has no thumbnail")
+    return FileResponse(path, media_type="image/png")

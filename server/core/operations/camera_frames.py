@@ -1,0 +1,56 @@
+"""Frames for the vision operations: captured in time, and undistorted when the
+camera is calibrated, so every measurement is taken on a true pinhole image."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+
+from server.core.operations.base import OperationContext
+from server.errors import OperationError
+from server.vision.homography import PlaneCalibration
+
+MIN_WIDTH, MIN_HEIGHT = 1920, 1080
+
+
+async def capture(ctx: OperationContext, purpose: str) -> np.ndarray:
+    """One frame within vision_processing_timeout, at least 1920×1080."""
+    timeout = ctx.settings.vision_processing_timeout
+    try:
+        frame = await asyncio.wait_for(ctx.camera.capture(), timeout)
+    except TimeoutError as exc:
+        raise OperationError(
+            "VISION_TIMEOUT", f"{purpose}: no camera frame within {timeout:g} s"
+        ) from exc
+    height, width = frame.shape[:2]
+    if width < MIN_WIDTH or height < MIN_HEIGHT:
+        raise OperationError(
+            "FRAME_TOO_SMALL",
+            f"{purpose}: the camera delivers {width}×{height}; "
+            f"at least {MIN_WIDTH}×{MIN_HEIGHT} is needed",
+        )
+    return frame
+
+
+async def capture_undistorted(ctx: OperationContext, purpose: str) -> np.ndarray:
+    frame = await capture(ctx, purpose)
+    return await asyncio.to_thread(ctx.stores.calibration.undistort, frame)
+
+
+def require_robot_calibration(ctx: OperationContext, purpose: str) -> PlaneCalibration:
+    """The image → robot map, if there is one that matches the current camera calibration."""
+    store = ctx.stores.calibration
+    if store.robot is None:
+        raise OperationError(
+            "NOT_CALIBRATED", f"{purpose} needs the robot calibration: run calibrate-robot first"
+        )
+    made_with = store.robot_meta.get("camera_calibration_at")
+    current = store.camera_meta.get("created_at")
+    if made_with != current:
+        raise OperationError(
+            "CALIBRATION_STALE",
+            f"{purpose}: the robot calibration predates the current camera calibration; "
+            "run calibrate-robot again",
+        )
+    return store.robot

@@ -1,0 +1,158 @@
+"""Workpiece creation, and finding library workpieces on the table.
+
+Both start from an undistorted frame, find part outlines (marker regions left
+out), and turn them into millimetres on the table through the robot
+calibration.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+import cv2
+import numpy as np
+
+from server.core.operations.base import OperationContext
+from server.core.operations.camera_frames import capture_undistorted, require_robot_calibration
+from server.errors import OperationError
+from server.storage.workpieces import SpraySettings, WorkpieceIn
+from server.vision.markers import MarkerDetector
+from server.vision.outlines import find_outlines, match_outline, outline_to_mm, transform_outline
+
+THUMBNAIL_PX = 256
+MARKER_EXCLUSION_SCALE = 1.8  # the printed paper around a marker, with margin
+
+
+@cache
+def _detector() -> MarkerDetector:
+    return MarkerDetector(fast=True)
+
+
+def _outlines_px(frame: np.ndarray) -> list[np.ndarray]:
+    """Part outlines in the frame, largest first, marker regions excluded."""
+    exclude = []
+    for detection in _detector().detect(frame).values():
+        centre = detection.centre
+        exclude.append(centre + (detection.corners - centre) * MARKER_EXCLUSION_SCALE)
+    return find_outlines(frame, exclude=exclude)
+
+
+def _thumbnail(frame: np.ndarray, contour_px: np.ndarray) -> bytes:
+    x, y, w, h = cv2.boundingRect(contour_px.astype(np.float32))
+    margin = max(w, h) // 10 + 4
+    crop = frame[max(0, y - margin) : y + h + margin, max(0, x - margin) : x + w + margin]
+    scale = THUMBNAIL_PX / max(crop.shape[:2])
+    if scale < 1:
+        crop = cv2.resize(crop, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    ok, png = cv2.imencode(".png", crop)
+    return png.tobytes() if ok else b""
+
+
+def _not_found(what: str) -> OperationError:
+    return OperationError(
+        "WORKPIECE_NOT_FOUND",
+        f"{what}: no workpiece found on the table; check that it lies fully inside the "
+        "camera view, away from the markers, and contrasts with the table",
+        recoverable=True,
+    )
+
+
+async def create_workpiece(ctx: OperationContext) -> dict[str, Any]:
+    """Capture the part on the table and store its outline (mm) in the library."""
+    homography = require_robot_calibration(ctx, "workpiece creation").homography
+    frame = await capture_undistorted(ctx, "workpiece creation")
+    ctx.report({"step": "finding the outline", "fraction": 0.3})
+
+    def measure() -> tuple[np.ndarray, bytes]:
+        outlines = _outlines_px(frame)
+        if not outlines:
+            raise _not_found("workpiece creation")
+        return outline_to_mm(outlines[0], homography), _thumbnail(frame, outlines[0])
+
+    outline_mm, thumbnail = await asyncio.to_thread(measure)
+    library = ctx.stores.workpieces
+    workpiece_id = ctx.params.get("workpiece_id") or library.new_id()
+    spray = SpraySettings.model_validate(ctx.params.get("spray") or {})
+    entry = WorkpieceIn(
+        name=ctx.params.get("name") or workpiece_id,
+        outline_mm=[(float(x), float(y)) for x, y in outline_mm],
+        spray=spray,
+    )
+    stored = await asyncio.to_thread(
+        library.put, workpiece_id, entry, source="camera", thumbnail_png=thumbnail
+    )
+    centroid = outline_mm.mean(axis=0)
+    ctx.report({"step": "stored", "fraction": 1.0, "workpiece": stored.id})
+    return {
+        "workpiece_id": stored.id,
+        "name": stored.name,
+        "points": len(outline_mm),
+        "area_mm2": round(float(cv2.contourArea(outline_mm.astype(np.float32))), 1),
+        "centre_mm": [round(float(c), 2) for c in centroid],
+    }
+
+
+@dataclass(frozen=True)
+class Target:
+    """One workpiece to spray, with its outline where it lies now (mm, table frame)."""
+
+    workpiece_id: str
+    name: str
+    outline_mm: np.ndarray
+    spray: SpraySettings
+    match: dict[str, Any] | None = None
+
+
+async def locate_workpieces(ctx: OperationContext, only: str | None) -> list[Target]:
+    """Find the parts on the table and match each to the library (or to `only`)."""
+    homography = require_robot_calibration(ctx, "contour matching").homography
+    entries = ctx.stores.workpieces.list()
+    if only is not None:
+        entries = [w for w in entries if w.id == only]
+        if not entries:
+            raise OperationError("WORKPIECE_UNKNOWN", f"workpiece {only!r} is not in the library")
+    if not entries:
+        raise OperationError(
+            "LIBRARY_EMPTY", "the workpiece library is empty: create a workpiece first"
+        )
+    library = {w.id: np.asarray(w.outline_mm, dtype=np.float64) for w in entries}
+    by_id = {w.id: w for w in entries}
+    frame = await capture_undistorted(ctx, "contour matching")
+
+    def match_all() -> list[Target]:
+        targets = []
+        for contour in _outlines_px(frame):
+            detected = outline_to_mm(contour, homography)
+            match = match_outline(detected, library)
+            if match is None:
+                continue
+            entry = by_id[match.workpiece_id]
+            placed = transform_outline(library[match.workpiece_id], match.transform)
+            targets.append(
+                Target(
+                    entry.id,
+                    entry.name,
+                    placed,
+                    entry.spray,
+                    {
+                        "score": round(match.score, 5),
+                        "rotation_deg": round(match.rotation_deg, 3),
+                        "translation_mm": [round(v, 3) for v in match.translation_mm],
+                        "fit_error_mm": round(match.fit_error_mm, 3),
+                    },
+                )
+            )
+        return targets
+
+    targets = await asyncio.to_thread(match_all)
+    if not targets:
+        raise OperationError(
+            "WORKPIECE_NOT_MATCHED",
+            "no part on the table matches a library workpiece: check the part, the lighting, "
+            "or create it as a workpiece first",
+            recoverable=True,
+        )
+    return targets

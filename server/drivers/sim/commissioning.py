@@ -1,0 +1,70 @@
+"""Commission the simulated cell the way a real one is delivered: calibrated,
+with one part in the library, so `POST /start` sprays it out of the box.
+
+It runs the cell's own operations (camera calibration, robot calibration,
+workpiece creation) on the simulated camera before the state machine starts:
+the same vision code, the same stores, nothing hard-coded. It never touches
+the robot or the glue, runs only for a simulated camera, only for what the
+data directory does not hold yet, and says in the log what it did.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from server.config import Settings
+from server.core.devices import CellDevices
+from server.core.operations.base import Operation, OperationContext
+from server.core.operations.calibration import calibrate_camera, calibrate_robot
+from server.core.operations.workpieces import create_workpiece
+from server.drivers.camera import SimulatedCamera
+from server.storage import CellStores
+
+log = logging.getLogger(__name__)
+
+DEMO_WORKPIECE = ("rect-120x80", 400.0, -75.0, 5.0)  # shape, x mm, y mm, rotation deg
+DEMO_ID = "demo"
+
+
+async def commission_simulated_cell(
+    devices: CellDevices, stores: CellStores, settings: Settings
+) -> list[str]:
+    """Bring a fresh simulated cell to a sprayable state; what was done, one line each."""
+    camera = devices.camera
+    if not isinstance(camera, SimulatedCamera):
+        return []
+    if not camera.scene.workpieces:
+        camera.place_workpiece(*DEMO_WORKPIECE)
+    calibration = stores.calibration
+    steps: list[tuple[str, Operation, dict]] = []
+    if calibration.camera is None:
+        steps.append(("camera calibration", calibrate_camera, {}))
+    if calibration.camera is None or calibration.robot is None:
+        steps.append(("robot calibration", calibrate_robot, {}))
+    if not stores.workpieces.list():
+        steps.append(
+            (
+                "workpiece creation",
+                create_workpiece,
+                {"workpiece_id": DEMO_ID, "name": "Demo part (simulated cell)"},
+            )
+        )
+    if not steps:
+        return []
+    await camera.connect()
+    done = []
+    for name, operation, params in steps:
+        context = OperationContext(
+            robot=devices.robot,
+            glue=devices.glue,
+            camera=camera,
+            settings=settings,
+            stores=stores,
+            params=params,
+            report=lambda _progress: None,
+        )
+        result = await operation(context)
+        line = f"simulated cell commissioned: {name}: {result}"
+        log.info(line)
+        done.append(line)
+    return done

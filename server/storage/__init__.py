@@ -1,0 +1,22 @@
+"""What the cell keeps on disk under the data directory: calibrations and the workpiece library."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from server.storage.calibration import CalibrationStore
+from server.storage.workpieces import WorkpieceLibrary
+
+
+@dataclass
+class CellStores:
+    """Everything persistent an operation may read or write."""
+
+    calibration: CalibrationStore
+    workpieces: WorkpieceLibrary
+
+    @classmethod
+    def open(cls, data_path: Path) -> CellStores:
+        data_path.mkdir(parents=True, exist_ok=True)
+        return cls(CalibrationStore(data_path), WorkpieceLibrary(data_path))

@@ -1,0 +1,149 @@
+"""The workpiece library: outlines in millimetres with their spray settings.
+
+One JSON file per workpiece (and an optional PNG thumbnail) under
+`<data>/workpieces/`, each written atomically. Outlines are stored in the
+robot's table frame at the pose where the part was when it was created, so a
+library part can be sprayed as it lies, or matched to where it lies now.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import threading
+import time
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from server.storage.files import read_json, write_bytes_atomic, write_json_atomic
+
+log = logging.getLogger(__name__)
+
+IDENTIFIER = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+_ID = re.compile(IDENTIFIER)
+
+
+class SpraySettings(BaseModel):
+    """How a workpiece is sprayed."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    outline: bool = Field(True, description="spray along the outline")
+    outline_offset_mm: float = Field(0.0, ge=-50, le=50, description=">0 outside, <0 inside")
+    fill: Literal["none", "zigzag", "raster"] = "none"
+    fill_spacing_mm: float = Field(10.0, ge=1, le=200)
+    fill_angle_deg: float = Field(0.0, ge=-180, le=180)
+    speed_mm_s: float = Field(100.0, gt=0, le=1000)
+    flow_rate_ml_min: float = Field(30.0, ge=0, le=1000)
+
+
+Point = tuple[float, float]
+
+
+class WorkpieceIn(BaseModel):
+    """What a client sends to create or replace a workpiece."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=100)
+    outline_mm: list[Point] = Field(min_length=3, max_length=2000)
+    spray: SpraySettings = Field(default_factory=SpraySettings)
+
+    @field_validator("outline_mm")
+    @classmethod
+    def _finite_and_bounded(cls, points: list[Point]) -> list[Point]:
+        for x, y in points:
+            if not (-5000 <= x <= 5000 and -5000 <= y <= 5000):
+                raise ValueError("outline points must lie within ±5000 mm")
+        return points
+
+
+class Workpiece(WorkpieceIn):
+    """A library entry."""
+
+    id: str = Field(pattern=IDENTIFIER)
+    created_at: float
+    updated_at: float
+    source: Literal["camera", "api"] = "api"
+    has_thumbnail: bool = False
+
+
+class WorkpieceLibrary:
+    """CRUD over the workpiece files; safe to call from worker threads."""
+
+    def __init__(self, data_path: Path) -> None:
+        self.directory = data_path / "workpieces"
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.Lock()
+
+    def _path(self, workpiece_id: str) -> Path:
+        if not _ID.match(workpiece_id):
+            raise KeyError(workpiece_id)
+        return self.directory / f"{workpiece_id}.json"
+
+    def thumbnail_path(self, workpiece_id: str) -> Path:
+        return self._path(workpiece_id).with_suffix(".png")
+
+    def list(self) -> list[Workpiece]:
+        items = []
+        for path in sorted(self.directory.glob("*.json")):
+            try:
+                items.append(Workpiece.model_validate(read_json(path)))
+            except (ValueError, ValidationError) as exc:
+                log.error("workpiece file %s unreadable, skipped: %s", path, exc)
+        return items
+
+    def get(self, workpiece_id: str) -> Workpiece:
+        """The workpiece, or KeyError."""
+        document = read_json(self._path(workpiece_id))
+        if document is None:
+            raise KeyError(workpiece_id)
+        return Workpiece.model_validate(document)
+
+    def new_id(self) -> str:
+        with self._lock:
+            existing = {p.stem for p in self.directory.glob("*.json")}
+            number = len(existing) + 1
+            while f"wp-{number:04d}" in existing:
+                number += 1
+            return f"wp-{number:04d}"
+
+    def put(
+        self,
+        workpiece_id: str,
+        data: WorkpieceIn,
+        *,
+        source: str = "api",
+        thumbnail_png: bytes | None = None,
+    ) -> Workpiece:
+        """Create or replace; keeps created_at of an existing entry."""
+        path = self._path(workpiece_id)
+        now = time.time()
+        with self._lock:
+            try:
+                created = self.get(workpiece_id).created_at
+            except KeyError:
+                created = now
+            if thumbnail_png is not None:
+                write_bytes_atomic(self.thumbnail_path(workpiece_id), thumbnail_png)
+            workpiece = Workpiece(
+                **data.model_dump(),
+                id=workpiece_id,
+                created_at=created,
+                updated_at=now,
+                source=source,
+                has_thumbnail=self.thumbnail_path(workpiece_id).exists(),
+            )
+            write_json_atomic(path, workpiece.model_dump(mode="json"))
+        return workpiece
+
+    def delete(self, workpiece_id: str) -> None:
+        """Remove the entry and its thumbnail; KeyError if there is none."""
+        path = self._path(workpiece_id)
+        with self._lock:
+            if not path.exists():
+                raise KeyError(workpiece_id)
+            path.unlink()
+            self.thumbnail_path(workpiece_id).unlink(missing_ok=True)
