@@ -57,8 +57,8 @@ def _install_error_handlers(app: FastAPI) -> None:
         worker = request.app.state.cell.worker
         return worker.ctx.state.value if worker else "INITIALIZING"
 
-    @app.exception_handler(EventQueueFull)
-    async def queue_full(request: Request, exc: EventQueueFull) -> JSONResponse:
+    async def try_again_later(request: Request, exc: Exception) -> JSONResponse:
+        """503 for a full event queue or a worker shutting down: nothing was changed."""
         body = {
             "accepted": False,
             "state": current_state(request),
@@ -67,15 +67,8 @@ def _install_error_handlers(app: FastAPI) -> None:
         }
         return JSONResponse(body, status_code=503, headers={"Retry-After": str(RETRY_AFTER_S)})
 
-    @app.exception_handler(WorkerStopped)
-    async def worker_stopped(request: Request, exc: WorkerStopped) -> JSONResponse:
-        body = {
-            "accepted": False,
-            "state": current_state(request),
-            "message": str(exc),
-            "retry_after": RETRY_AFTER_S,
-        }
-        return JSONResponse(body, status_code=503, headers={"Retry-After": str(RETRY_AFTER_S)})
+    app.add_exception_handler(EventQueueFull, try_again_later)
+    app.add_exception_handler(WorkerStopped, try_again_later)
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:

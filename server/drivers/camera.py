@@ -310,9 +310,11 @@ class SimulatedCamera(_CameraBase):
         self._next_view = 0
         self.last_chessboard_pose: BoardPose | None = None
         self._fault: FaultKind | None = None
+        self._stall_released: asyncio.Event | None = None
         self._open = False
-        self.health.details.update(simulated=True, resolution=f"{self.model.width}x"
-                                   f"{self.model.height}", mode=self._mode)  # fmt: skip
+        self.health.details.update(
+            simulated=True, resolution=f"{self.model.width}x{self.model.height}", mode=self._mode
+        )
 
     # --- what the camera looks at --------------------------------------------------------
 
@@ -331,9 +333,10 @@ class SimulatedCamera(_CameraBase):
         """Show a calibration board, a new pose per capture, starting from the first pose."""
         self.chessboard = board if board is not None else DEFAULT_CHESSBOARD
         self.chessboard_poses = (
-            tuple(poses) if poses is not None
+            tuple(poses)
+            if poses is not None
             else default_chessboard_poses(self.model, self.chessboard)
-        )  # fmt: skip
+        )
         if not self.chessboard_poses:
             raise ValueError("show_chessboard needs at least one board pose")
         self._next_view = 0
@@ -356,11 +359,16 @@ class SimulatedCamera(_CameraBase):
         """ "fail": captures raise DeviceError; "stall": captures hang until the timeout."""
         if kind not in ("fail", "stall"):
             raise ValueError(f"unknown camera fault {kind!r}: use 'fail' or 'stall'")
+        if kind == "stall" and self._stall_released is None:
+            self._stall_released = asyncio.Event()
         self._fault = kind
 
     def clear_faults(self) -> None:
         """Back to normal; a capture stalled right now goes on and delivers."""
         self._fault = None
+        if self._stall_released is not None:
+            self._stall_released.set()
+            self._stall_released = None
 
     # --- Camera protocol -----------------------------------------------------------------
 
@@ -412,8 +420,9 @@ class SimulatedCamera(_CameraBase):
     # --- internals -------------------------------------------------------------------------
 
     async def _wait_out_faults(self, *, report: bool = False) -> None:
-        while self._fault == "stall":
-            await asyncio.sleep(0.01)
+        released = self._stall_released
+        if self._fault == "stall" and released is not None:
+            await released.wait()
         if self._fault == "fail":
             message = "simulated camera failure (injected): no frame delivered"
             if report:
@@ -431,8 +440,9 @@ class SimulatedCamera(_CameraBase):
         if advance:
             self._next_view = (self._next_view + 1) % len(self.chessboard_poses)
             self.last_chessboard_pose = pose
-        scene = self.scene
-        return lambda: render_chessboard_view(
-            model, board, pose, noise_sigma=scene.noise_sigma, vignetting=scene.vignetting,
-            light_gradient=scene.light_gradient, rng=rng,
-        )  # fmt: skip
+        light = {
+            "noise_sigma": self.scene.noise_sigma,
+            "vignetting": self.scene.vignetting,
+            "light_gradient": self.scene.light_gradient,
+        }
+        return lambda: render_chessboard_view(model, board, pose, rng=rng, **light)

@@ -150,12 +150,16 @@ def default_chessboard_poses(
     model: CameraModel = DEFAULT_CAMERA_MODEL, board: Chessboard = DEFAULT_CHESSBOARD
 ) -> tuple[BoardPose, ...]:
     """Twelve well-conditioned board poses, each fully in view with margin to spare."""
-    poses = tuple(_aimed_pose(model, board, (u, v), d, tx, ty, sp)
-                  for u, v, d, tx, ty, sp in _DEFAULT_VIEWS)  # fmt: skip
+    poses = tuple(
+        _aimed_pose(model, board, (u, v), d, tx, ty, sp) for u, v, d, tx, ty, sp in _DEFAULT_VIEWS
+    )
     for index, pose in enumerate(poses):
         plate = model.project_camera_frame(pose.to_camera(board.plate_corners_mm()))
-        if not ((plate >= 5).all() and (plate[:, 0] <= model.width - 6).all()
-                and (plate[:, 1] <= model.height - 6).all()):  # fmt: skip
+        if not (
+            (plate >= 5).all()
+            and (plate[:, 0] <= model.width - 6).all()
+            and (plate[:, 1] <= model.height - 6).all()
+        ):
             logger.warning("default chessboard view %d is not fully inside the image", index)
     return poses
 
@@ -217,8 +221,14 @@ def _clean_view(model: CameraModel, board: Chessboard, pose: BoardPose) -> NDArr
     footprint_mm = distance / math.sqrt(model.fx * model.fy)
     sigma = footprint_blur_sigma_px() * footprint_mm / BOARD_MM_PER_PX
     blurred = cv2.GaussianBlur(texture, (0, 0), sigma)
-    view = cv2.remap(blurred, map_x, map_y, cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=BACKDROP)  # fmt: skip
+    view = cv2.remap(
+        blurred,
+        map_x,
+        map_y,
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=BACKDROP,
+    )
     with _view_lock:
         _view_cache[key] = view
         while len(_view_cache) > 16:  # 2 MB each; the default cycle has 12
@@ -255,5 +265,7 @@ def all_default_views(
     model: CameraModel = DEFAULT_CAMERA_MODEL, board: Chessboard = DEFAULT_CHESSBOARD
 ) -> Sequence[tuple[BoardPose, NDArray[np.float64]]]:
     """Every default pose with its ground-truth corner pixels, for calibration checks."""
-    return [(p, chessboard_corner_pixels(model, board, p))
-            for p in default_chessboard_poses(model, board)]  # fmt: skip
+    return [
+        (p, chessboard_corner_pixels(model, board, p))
+        for p in default_chessboard_poses(model, board)
+    ]

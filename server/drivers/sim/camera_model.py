@@ -1,4 +1,4 @@
-"""The simulated cell camera's geometry and sensor: a known model that vision can be checked against.
+"""The simulated cell camera's geometry and sensor: a known model to check vision against.
 
 The vision code later claims 0.5 mm (markers), 2 % focal length (chessboard calibration) and
 1 mm / 1° (workpieces). Those claims are only honest if the simulator's camera is known
@@ -196,7 +196,7 @@ class CameraModel:
     def table_to_pixel(self, table_xy_mm: ArrayLike, z_mm: float = 0.0) -> Array:
         """Pixels (…×2) of table points (…×2, mm) on the plane z = `z_mm`."""
         xy = np.asarray(table_xy_mm, dtype=np.float64)
-        z = np.full(xy.shape[:-1] + (1,), float(z_mm))
+        z = np.full((*xy.shape[:-1], 1), float(z_mm))
         return self.project(np.concatenate([xy, z], axis=-1))
 
     # --- inverse: pixel → world -----------------------------------------------------------
@@ -221,16 +221,22 @@ class CameraModel:
             step_y = (j_xx * res_y - j_xy * res_x) / det
             x = x - step_x
             y = y - step_y
-            if max(float(np.max(np.abs(step_x), initial=0.0)),
-                   float(np.max(np.abs(step_y), initial=0.0))) < 1e-15:  # fmt: skip
+            if (
+                max(
+                    float(np.max(np.abs(step_x), initial=0.0)),
+                    float(np.max(np.abs(step_y), initial=0.0)),
+                )
+                < 1e-15
+            ):
                 break
         return np.stack([x, y], axis=-1)
 
     def pixel_to_normalised(self, pixels: ArrayLike) -> Array:
         """Undistorted normalised coordinates (ray direction (x, y, 1)) of pixels (…×2)."""
         px = np.asarray(pixels, dtype=np.float64)
-        distorted = np.stack([(px[..., 0] - self.cx) / self.fx, (px[..., 1] - self.cy) / self.fy],
-                             axis=-1)  # fmt: skip
+        distorted = np.stack(
+            [(px[..., 0] - self.cx) / self.fx, (px[..., 1] - self.cy) / self.fy], axis=-1
+        )
         return self.undistort(distorted)
 
     def rays_to_table(self, normalised: ArrayLike, z_mm: float = 0.0) -> Array:
@@ -275,8 +281,9 @@ def normalised_pixel_grid(model: CameraModel) -> Array:
     Pixel (row v, column u) is centred at (u, v), OpenCV's convention, so renders and
     `project` agree to the bit.
     """
-    u, v = np.meshgrid(np.arange(model.width, dtype=np.float64),
-                       np.arange(model.height, dtype=np.float64))  # fmt: skip
+    u, v = np.meshgrid(
+        np.arange(model.width, dtype=np.float64), np.arange(model.height, dtype=np.float64)
+    )
     grid = model.pixel_to_normalised(np.stack([u, v], axis=-1))
     grid.setflags(write=False)
     logger.debug("computed the undistorted ray of every pixel for %r", model)
@@ -291,8 +298,9 @@ def lighting_gain(model: CameraModel, vignetting: float, light_gradient: float) 
     change from the left to the right edge (a lamp off to one side). Thresholds and marker
     detection must cope with both on a real cell, so the simulator does not hide them.
     """
-    u, v = np.meshgrid(np.arange(model.width, dtype=np.float32),
-                       np.arange(model.height, dtype=np.float32))  # fmt: skip
+    u, v = np.meshgrid(
+        np.arange(model.width, dtype=np.float32), np.arange(model.height, dtype=np.float32)
+    )
     corner_r2 = (
         max(model.cx, model.width - model.cx) ** 2 + max(model.cy, model.height - model.cy) ** 2
     )

@@ -49,6 +49,12 @@ from server.drivers.sim.camera_model import (
     lighting_gain,
     normalised_pixel_grid,
 )
+from server.drivers.sim.camera_workpieces import (
+    WORKPIECE_SHAPES,
+    Workpiece,
+    WorkpieceShape,
+    polygon_area_centroid,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -92,133 +98,6 @@ PAPER_BGR = (236.0, 236.0, 232.0)
 INK_BGR = (24.0, 24.0, 26.0)
 
 
-# --- workpieces ----------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class WorkpieceShape:
-    """A flat part's outline in its own frame (mm, counter-clockwise, area centroid at 0, 0).
-
-    `symmetry_deg` is the smallest turn that maps the outline onto itself (360: none, 0: any
-    turn, as for a disc), so a rotation check knows which answers are equally right.
-    """
-
-    name: str
-    outline_mm: tuple[tuple[float, float], ...]
-    symmetry_deg: float
-    description: str = ""
-
-    @classmethod
-    def from_outline(
-        cls, name: str, outline: ArrayLike, symmetry_deg: float, description: str = ""
-    ) -> WorkpieceShape:
-        """Re-centre any simple polygon on its area centroid and orient it counter-clockwise."""
-        pts = np.asarray(outline, dtype=np.float64)
-        area, centroid = polygon_area_centroid(pts)
-        if area < 0:
-            pts = pts[::-1]
-        pts = pts - centroid
-        return cls(name, tuple((float(x), float(y)) for x, y in pts), symmetry_deg, description)
-
-    @property
-    def area_mm2(self) -> float:
-        return abs(polygon_area_centroid(np.asarray(self.outline_mm))[0])
-
-
-def polygon_area_centroid(points: ArrayLike) -> tuple[float, NDArray[np.float64]]:
-    """Signed area (positive counter-clockwise) and area centroid of a simple polygon (shoelace)."""
-    pts = np.asarray(points, dtype=np.float64)
-    x, y = pts[:, 0], pts[:, 1]
-    xn, yn = np.roll(x, -1), np.roll(y, -1)
-    cross = x * yn - xn * y
-    area = cross.sum() / 2.0
-    centroid = np.array([((x + xn) * cross).sum(), ((y + yn) * cross).sum()]) / (6.0 * area)
-    return float(area), centroid
-
-
-def _rounded_rect(width: float, height: float, radius: float, segments: int = 12) -> NDArray:
-    corners = [(width / 2 - radius, height / 2 - radius, 0.0),
-               (-width / 2 + radius, height / 2 - radius, 90.0),
-               (-width / 2 + radius, -height / 2 + radius, 180.0),
-               (width / 2 - radius, -height / 2 + radius, 270.0)]  # fmt: skip
-    points = []
-    for cx, cy, start in corners:
-        for k in range(segments + 1):
-            a = math.radians(start + 90.0 * k / segments)
-            points.append((cx + radius * math.cos(a), cy + radius * math.sin(a)))
-    return np.array(points)
-
-
-def _regular_polygon(circumradius: float, sides: int) -> NDArray:
-    angles = np.arange(sides) * 2.0 * math.pi / sides
-    return np.stack([circumradius * np.cos(angles), circumradius * np.sin(angles)], axis=-1)
-
-
-WORKPIECE_SHAPES: dict[str, WorkpieceShape] = {
-    shape.name: shape
-    for shape in (
-        WorkpieceShape.from_outline("rect-120x80", [(-60, -40), (60, -40), (60, 40), (-60, 40)],
-                                    180.0, "rectangular plate 120 × 80 mm"),
-        WorkpieceShape.from_outline("square-60", [(-30, -30), (30, -30), (30, 30), (-30, 30)],
-                                    90.0, "square plate 60 × 60 mm"),
-        WorkpieceShape.from_outline("l-bracket", [(0, 0), (100, 0), (100, 30), (30, 30), (30, 70),
-                                                  (0, 70)],
-                                    360.0, "L bracket, legs 100 and 70 mm, 30 mm wide"),
-        WorkpieceShape.from_outline("hexagon", _regular_polygon(45.0, 6), 60.0,
-                                    "hexagonal plate, 90 mm across corners"),
-        WorkpieceShape.from_outline("disc-70", _regular_polygon(35.0, 180), 0.0,
-                                    "round plate Ø70 mm (180-gon, within 0.005 mm of a circle)"),
-        WorkpieceShape.from_outline("rounded-rect-100x60", _rounded_rect(100.0, 60.0, 12.0), 180.0,
-                                    "plate 100 × 60 mm with 12 mm corner radii"),
-    )
-}  # fmt: skip
-
-# Bead-blasted aluminium: bright against the dark table, a little darker than marker paper.
-WORKPIECE_BGR = (190.0, 193.0, 196.0)
-
-
-@dataclass(frozen=True)
-class Workpiece:
-    """A flat part lying on the table (thickness ignored: its outline is on z = 0).
-
-    The pose puts the shape's area centroid at (x_mm, y_mm) and turns it by `rotation_deg`
-    counter-clockwise seen from above (from robot +x towards +y).
-    """
-
-    shape: WorkpieceShape
-    x_mm: float
-    y_mm: float
-    rotation_deg: float = 0.0
-    colour_bgr: tuple[float, float, float] = WORKPIECE_BGR
-
-    @classmethod
-    def named(
-        cls, shape: str | WorkpieceShape, x_mm: float, y_mm: float, rotation_deg: float = 0.0
-    ) -> Workpiece:
-        """A workpiece of a library shape (see WORKPIECE_SHAPES) at a pose on the table."""
-        if isinstance(shape, str):
-            try:
-                shape = WORKPIECE_SHAPES[shape]
-            except KeyError:
-                known = ", ".join(sorted(WORKPIECE_SHAPES))
-                raise ValueError(f"no workpiece shape {shape!r}; known shapes: {known}") from None
-        return cls(shape, float(x_mm), float(y_mm), float(rotation_deg))
-
-    @property
-    def name(self) -> str:
-        return self.shape.name
-
-    def outline_table_mm(self) -> NDArray[np.float64]:
-        """The outline's vertices on the table (N×2, robot frame mm)."""
-        a = math.radians(self.rotation_deg)
-        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-        return np.asarray(self.shape.outline_mm) @ rot.T + (self.x_mm, self.y_mm)
-
-    def centroid_table_mm(self) -> NDArray[np.float64]:
-        """Area centroid of the outline on the table (equals (x_mm, y_mm) by construction)."""
-        return polygon_area_centroid(self.outline_table_mm())[1]
-
-
 def aruco_dictionary() -> cv2.aruco.Dictionary:
     """The dictionary the cell's markers are printed from."""
     return cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARY_ID)
@@ -259,11 +138,17 @@ class Scene:
         piece = Workpiece.named(shape, x_mm, y_mm, rotation_deg)
         outline = piece.outline_table_mm().astype(np.float32)
         for marker_id, corners in marker_corners_mm(self, paper=True).items():
-            overlap, _ = cv2.intersectConvexConvex(cv2.convexHull(outline),
-                                                   corners.astype(np.float32))  # fmt: skip
+            overlap, _ = cv2.intersectConvexConvex(
+                cv2.convexHull(outline), corners.astype(np.float32)
+            )
             if overlap > 0:
-                logger.warning("workpiece %s at (%.1f, %.1f) covers marker %d's paper",
-                               piece.shape.name, x_mm, y_mm, marker_id)  # fmt: skip
+                logger.warning(
+                    "workpiece %s at (%.1f, %.1f) covers marker %d's paper",
+                    piece.shape.name,
+                    x_mm,
+                    y_mm,
+                    marker_id,
+                )
         self.workpieces.append(piece)
         return piece
 
@@ -274,13 +159,21 @@ class Scene:
     def snapshot(self) -> Scene:
         """A copy whose lists are its own, so a render in a worker thread is not disturbed by
         workpieces being moved on the event loop meanwhile."""
-        return dataclasses.replace(self, workpieces=list(self.workpieces),
-                                   marker_positions_mm=list(self.marker_positions_mm))  # fmt: skip
+        return dataclasses.replace(
+            self,
+            workpieces=list(self.workpieces),
+            marker_positions_mm=list(self.marker_positions_mm),
+        )
 
     def _background_key(self) -> tuple[Hashable, ...]:
-        return (tuple((float(x), float(y)) for x, y in self.marker_positions_mm),
-                float(self.marker_size_mm), float(self.quiet_zone_mm),
-                tuple(self.table_bgr), float(self.table_texture), int(self.seed))  # fmt: skip
+        return (
+            tuple((float(x), float(y)) for x, y in self.marker_positions_mm),
+            float(self.marker_size_mm),
+            float(self.quiet_zone_mm),
+            tuple(self.table_bgr),
+            float(self.table_texture),
+            int(self.seed),
+        )
 
 
 # --- ground truth -----------------------------------------------------------------------------
@@ -294,8 +187,10 @@ def marker_corners_mm(scene: Scene, *, paper: bool = False) -> dict[int, NDArray
     """
     half = scene.marker_size_mm / 2.0 + (scene.quiet_zone_mm if paper else 0.0)
     offsets = np.array([[-half, -half], [-half, half], [half, half], [half, -half]])
-    return {i: np.asarray(c, dtype=np.float64) + offsets
-            for i, c in enumerate(scene.marker_positions_mm)}  # fmt: skip
+    return {
+        i: np.asarray(c, dtype=np.float64) + offsets
+        for i, c in enumerate(scene.marker_positions_mm)
+    }
 
 
 def marker_corner_pixels(
@@ -377,8 +272,9 @@ class _TableGrid:
 
     def to_px(self, table_xy: ArrayLike) -> NDArray[np.float64]:
         xy = np.asarray(table_xy, dtype=np.float64)
-        return np.stack([(xy[..., 0] - self.x0) / self.res, (xy[..., 1] - self.y0) / self.res],
-                        axis=-1)  # fmt: skip
+        return np.stack(
+            [(xy[..., 0] - self.x0) / self.res, (xy[..., 1] - self.y0) / self.res], axis=-1
+        )
 
 
 class _TableOptics:
@@ -398,8 +294,8 @@ class _TableOptics:
         self.map_x, self.map_y = cv2.convertMaps(src[..., 0], src[..., 1], cv2.CV_16SC2)
         # Band-limit at the table image's resolution: the footprint of one camera pixel on the
         # table is distance / focal length; the blur stands for that area plus the lens.
-        distance = float(np.linalg.norm(model.position_mm - np.append(table_xy[model.height // 2,
-                                                                      model.width // 2], 0.0)))  # fmt: skip
+        centre = np.append(table_xy[model.height // 2, model.width // 2], 0.0)
+        distance = float(np.linalg.norm(model.position_mm - centre))
         footprint_mm = distance / math.sqrt(model.fx * model.fy)
         self.blur_sigma = footprint_blur_sigma_px() * footprint_mm / res
 
@@ -498,10 +394,15 @@ def _build_background(scene: Scene, optics: _TableOptics) -> NDArray[np.uint8]:
     rng = np.random.default_rng(scene.seed)
     texture = np.zeros((grid.rows, grid.cols), dtype=np.float32)
     for scale_mm, weight in ((40.0, 1.0), (6.0, 0.4)):  # broad mottling and finer grain
-        coarse = rng.standard_normal((math.ceil(grid.rows * grid.res / scale_mm) + 2,
-                                      math.ceil(grid.cols * grid.res / scale_mm) + 2))  # fmt: skip
-        texture += weight * cv2.resize(coarse.astype(np.float32), (grid.cols, grid.rows),
-                                       interpolation=cv2.INTER_CUBIC)  # fmt: skip
+        coarse = rng.standard_normal(
+            (
+                math.ceil(grid.rows * grid.res / scale_mm) + 2,
+                math.ceil(grid.cols * grid.res / scale_mm) + 2,
+            )
+        )
+        texture += weight * cv2.resize(
+            coarse.astype(np.float32), (grid.cols, grid.rows), interpolation=cv2.INTER_CUBIC
+        )
     texture *= scene.table_texture / max(float(texture.std()), 1e-6)
     image = np.empty((grid.rows, grid.cols, 3), dtype=np.uint8)
     for channel, level in enumerate(scene.table_bgr):
@@ -523,10 +424,12 @@ def _build_frame(scene: Scene, model: CameraModel) -> NDArray[np.float32]:
     if scene.workpieces:
         table = background.copy()
         for piece in scene.workpieces:
-            _composite(table, optics.grid, [piece.outline_table_mm()], piece.colour_bgr,
-                       optics.blur_sigma)  # fmt: skip
-    frame = cv2.remap(table, optics.map_x, optics.map_y, cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_REPLICATE)  # fmt: skip
+            _composite(
+                table, optics.grid, [piece.outline_table_mm()], piece.colour_bgr, optics.blur_sigma
+            )
+    frame = cv2.remap(
+        table, optics.map_x, optics.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
     return frame.astype(np.float32) * lighting_gain(model, scene.vignetting, scene.light_gradient)
 
 
@@ -541,7 +444,12 @@ def render_table(
     same frame; pass a generator to get a fresh noise pattern per frame.
     """
     snapshot = scene.snapshot()
-    key = (model, snapshot._background_key(), tuple(snapshot.workpieces),
-           float(snapshot.vignetting), float(snapshot.light_gradient))  # fmt: skip
+    key = (
+        model,
+        snapshot._background_key(),
+        tuple(snapshot.workpieces),
+        float(snapshot.vignetting),
+        float(snapshot.light_gradient),
+    )
     clean = _frame_cache.get_or_build(key, lambda: _build_frame(snapshot, model))
     return expose(clean, snapshot.noise_sigma, rng or np.random.default_rng(snapshot.seed))
