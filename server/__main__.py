@@ -10,6 +10,7 @@ import uvicorn
 
 from server.app import create_app
 from server.config import Settings
+from server.logging_setup import configure as configure_logging
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -31,12 +32,9 @@ def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     overrides = {"data_path": args.data_dir} if args.data_dir else {}
     settings = Settings(**overrides)
-    logging.basicConfig(
-        level=settings.logging_level,
-        format="%(asctime)s.%(msecs)03d [%(levelname)s] %(name)s: %(message)s",
-        datefmt="%Y-%m-%d %H:%M:%S",
-    )
     settings.data_path.mkdir(parents=True, exist_ok=True)
+    log_file = configure_logging(settings)
+    logging.getLogger(__name__).info("logging to %s", log_file)
     app = create_app(settings)
     uvicorn.run(
         app,
@@ -47,6 +45,7 @@ def main(argv: list[str] | None = None) -> None:
         ws_ping_interval=settings.ws_ping_interval,
         ws_ping_timeout=settings.ws_ping_interval,
         log_level=settings.logging_level.lower(),
+        log_config=None,  # keep the cell's handlers: uvicorn logs through them
         timeout_graceful_shutdown=5,
     )
 

@@ -14,7 +14,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from server.api import commands, queries, workpieces, ws
+from server.api import analytics, commands, metrics, queries, workpieces, ws
 from server.cell import Cell
 from server.config import Settings
 from server.errors import EventQueueFull, WorkerStopped
@@ -30,9 +30,11 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await cell.start()
+        app.state.metrics.attach(cell)
         try:
             yield
         finally:
+            await app.state.metrics.detach()
             await cell.stop()
 
     app = FastAPI(
@@ -47,6 +49,10 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     app.include_router(commands.router)
     app.include_router(queries.router)
     app.include_router(workpieces.router)
+    app.include_router(analytics.router)
+    app.include_router(metrics.router)
+    app.state.metrics = metrics.Metrics(app)
+    app.middleware("http")(app.state.metrics.middleware)
     app.include_router(ws.router)
     _install_error_handlers(app)
     return app

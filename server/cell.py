@@ -6,15 +6,26 @@ façade both wrap a `Cell`, so they share one code path to the machine.
 
 from __future__ import annotations
 
+import asyncio
+import json
 import logging
+import time
 from collections.abc import Awaitable, Callable
 from typing import Any
 
 from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
+from server.core.journal import Journal
 from server.core.operations import Operation, default_operations
-from server.core.transitions import COMMANDS, Event, normalize_command
+from server.core.snapshot import SnapshotFile
+from server.core.transitions import (
+    COMMANDS,
+    OPERATION_OF_STATE,
+    OPERATIONAL_STATES,
+    Event,
+    normalize_command,
+)
 from server.core.worker import Outcome, Worker
 from server.storage import CellStores
 
@@ -44,6 +55,8 @@ class Cell:
         self._release: Callable[[], Awaitable[None]] | None = None
         self.worker: Worker | None = None
         self.stores: CellStores | None = None
+        self.journal: Journal | None = None
+        self._snapshot_file: SnapshotFile | None = None
 
     @property
     def devices(self) -> CellDevices:
@@ -59,12 +72,45 @@ class Cell:
 
                 factory = build_devices
             devices, self._release = await factory(self.settings)
-        self.stores = CellStores.open(self.settings.data_path)
-        if self.settings.camera_simulated and self.settings.commission_simulated_cell:
+        settings = self.settings
+        self.stores = CellStores.open(settings.data_path)
+        self.journal = Journal(
+            settings.data_file(settings.analytics_database, "journal.db"),
+            synchronous=settings.journal_synchronous,
+            retention_days=settings.analytics_retention_days,
+        )
+        await asyncio.to_thread(self.journal.open)
+        self.journal.start(asyncio.get_running_loop())
+        snapshot_file = None
+        previous = None
+        if settings.state_persistence:
+            snapshot_file = SnapshotFile(
+                settings.data_file(settings.persistence_file, "state.json"),
+                settings.persistence_interval,
+            )
+            previous = snapshot_file.load()
+            snapshot_file.start()
+        self._snapshot_file = snapshot_file
+        interruption = await asyncio.to_thread(find_interruption, self.journal, previous)
+        if interruption:
+            log.error(
+                "restart after an interruption: %s; the cell stays in ERROR until reset",
+                interruption,
+            )
+        if settings.camera_simulated and settings.commission_simulated_cell:
             from server.drivers.sim.commissioning import commission_simulated_cell
 
-            await commission_simulated_cell(devices, self.stores, self.settings)
-        self.worker = Worker(self.settings, devices, self.operations, self.bus, self.stores)
+            await commission_simulated_cell(devices, self.stores, settings)
+        self.worker = Worker(
+            settings,
+            devices,
+            self.operations,
+            self.bus,
+            self.stores,
+            journal=self.journal,
+            snapshot_file=snapshot_file,
+            interruption=interruption,
+        )
         await self.worker.start()
 
     async def stop(self) -> None:
@@ -72,6 +118,10 @@ class Cell:
             await self.worker.stop()
             await self.worker.devices.safe_halt(self.settings.emergency_stop_timeout)
             await self.worker.devices.close()
+        if self.journal is not None:
+            await asyncio.to_thread(self.journal.stop)
+        if self._snapshot_file is not None:
+            await asyncio.to_thread(self._snapshot_file.stop)
         if self._release is not None:
             await self._release()
             self._release = None
@@ -88,3 +138,27 @@ class Cell:
         if event is Event.EMERGENCY_STOP:
             return await self.worker.emergency_stop(source=source, data=data)
         return await self.worker.request(event, source=source, data=data)
+
+
+def find_interruption(journal: Journal, previous: dict[str, Any] | None) -> str | None:
+    """Why the last run of the server ended mid-operation, or None if it did not.
+
+    The journal's unfinished operations are the evidence (their rows are closed
+    as interrupted here); the snapshot adds the state (EXECUTING or PAUSED).
+    """
+    unfinished = journal.unfinished_operations()
+    state = (previous or {}).get("state")
+    if not unfinished:
+        if state in {s.value for s in OPERATIONAL_STATES}:
+            return f"interrupted during {state}; the server stopped before the operation ended"
+        return None
+    journal.mark_interrupted([op["run_id"] for op in unfinished], time.time())
+    last = unfinished[-1]
+    kind_states = [s.value for s, kind in OPERATION_OF_STATE.items() if kind == last["kind"]]
+    if state not in kind_states:
+        state = kind_states[0]
+    message = f"interrupted during {state}"
+    progress = json.loads(last["progress"] or "{}")
+    if progress.get("waypoint") and progress.get("of"):
+        message += f" at waypoint {progress['waypoint']} of {progress['of']}"
+    return f"{message} (run {last['run_id']}); the server stopped before the operation ended"

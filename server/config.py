@@ -82,14 +82,14 @@ class Settings(BaseSettings):
     logging_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
         "INFO", validation_alias=AliasChoices("logging_level", "GLUE_APP_LOG_LEVEL")
     )
-    log_file_path: str | None = None
+    log_file_path: str | None = Field(None, description="default <data>/logs/glue_cell.log")
     log_rotation_size: str = "10MB"
     log_retention_days: int = Field(30, ge=1)
 
     # Persistence
     data_path: Path = Field(Path("data"), description="where state, journal and tokens live")
     state_persistence: bool = True
-    persistence_file: str | None = None
+    persistence_file: str | None = Field(None, description="default <data>/state.json")
     persistence_interval: float = Field(30.0, gt=0)
 
     # Broadcasting
@@ -99,10 +99,17 @@ class Settings(BaseSettings):
     ws_client_buffer: int = Field(256, ge=8, le=100_000, description="messages queued per client")
     ws_ping_interval: float = Field(20.0, gt=0)
 
-    # Analytics
+    # Analytics and the journal
     analytics_enabled: bool = True
-    analytics_database: str | None = None
+    analytics_database: str | None = Field(None, description="default <data>/journal.db")
     analytics_retention_days: int = Field(90, ge=1)
+    journal_synchronous: Literal["OFF", "NORMAL", "FULL"] = Field(
+        "FULL", description="SQLite synchronous level: FULL survives power loss"
+    )
+    shift_hours: float = Field(8.0, gt=0, le=24 * 31, description="default KPI window")
+    design_cycle_time_s: float = Field(
+        30.0, gt=0, description="ideal time of one trajectory run, for OEE performance"
+    )
 
     # Hardware timeouts (seconds)
     robot_communication_timeout: float = Field(10.0, gt=0)
@@ -188,3 +195,8 @@ class Settings(BaseSettings):
     @property
     def camera_simulated(self) -> bool:
         return self.vision_camera_id == SIMULATED
+
+    def data_file(self, configured: str | None, default: str) -> Path:
+        """A file under the data directory unless configured as an absolute path."""
+        path = Path(configured) if configured else Path(default)
+        return path if path.is_absolute() else self.data_path / path

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import FileResponse
 
 from server.api.schemas import (
     AllowedView,
     ErrorView,
     HealthView,
-    HistoryView,
     StateView,
 )
 from server.cell import Cell
@@ -50,17 +49,6 @@ async def is_allowed(request: Request, name: str) -> AllowedView:
     return AllowedView(
         operation=canonical, allowed=allowed, state=worker.ctx.state.value, reason=reason
     )
-
-
-@router.get("/history", response_model=HistoryView)
-async def get_history(
-    request: Request, limit: int = Query(100, ge=1, le=10_000, description="most recent N")
-) -> HistoryView:
-    """Recent transitions, oldest first, newest last."""
-    worker = _cell(request).worker
-    assert worker is not None
-    records = list(worker.ctx.history)[-limit:]
-    return HistoryView.model_validate({"transitions": [r.as_dict() for r in records]})
 
 
 @router.get("/health", response_model=HealthView)

@@ -75,6 +75,8 @@ class FaultView(BaseModel):
     component: str
     event_id: str
     time: float
+    classification: str = Field(description="critical, recoverable or warning")
+    recommended_action: str = Field(description="what the technician should do first")
 
 
 class StateView(BaseModel):
@@ -98,21 +100,6 @@ class AllowedView(BaseModel):
     allowed: bool
     state: str
     reason: str
-
-
-class TransitionView(BaseModel):
-    timestamp: float
-    old_state: str
-    new_state: str
-    event: str
-    event_id: str
-    time_in_old_state: float
-
-
-class HistoryView(BaseModel):
-    """GET /history: most recent last."""
-
-    transitions: list[TransitionView]
 
 
 class DeviceView(BaseModel):

@@ -33,7 +33,7 @@ from server.core.bus import SubscriptionClosed
 log = logging.getLogger(__name__)
 router = APIRouter()
 
-MESSAGE_TYPES = ("state_changed", "progress", "error")
+MESSAGE_TYPES = ("state_changed", "progress", "error", "alert")
 SEND_TIMEOUT = 5.0
 SNAPSHOT_HISTORY = 20
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -66,6 +67,8 @@ class FaultRecord:
     component: str
     event_id: str
     time: float
+    classification: str = "critical"
+    recommended_action: str = ""
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -78,12 +81,15 @@ class ProcessingStats:
         self.processed = 0
         self.refused = 0
         self._durations: deque[float] = deque(maxlen=window)
+        self.listeners: list[Callable[[float], None]] = []  # e.g. a metrics histogram
 
     def record(self, seconds: float, *, accepted: bool) -> None:
         self.processed += 1
         if not accepted:
             self.refused += 1
         self._durations.append(seconds)
+        for listener in self.listeners:
+            listener(seconds)
 
     def snapshot(self, queue_size: int) -> dict[str, Any]:
         durations = sorted(self._durations)

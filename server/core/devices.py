@@ -60,11 +60,12 @@ class CellDevices:
             errors=errors,
         )
 
-    async def probe_faults(self, timeout: float) -> list[str]:
-        """Ask every device for a live answer; the faults that remain, one line each."""
+    async def probe_faults(self, timeouts: dict[str, float]) -> list[str]:
+        """Ask every device for a live answer, each within its own timeout; the faults left."""
 
         async def probe(name: str) -> str | None:
             device = self.by_name()[name]
+            timeout = timeouts[name]
             try:
                 if not device.health.connected:  # never came up, or the link was lost
                     await asyncio.wait_for(device.connect(), timeout)

@@ -24,6 +24,7 @@ import itertools
 import logging
 import secrets
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,7 +40,11 @@ from server.core.context import (
 from server.core.devices import CellDevices
 from server.core.engine import REQUIRED_DEVICES, Decision, Facts, available_commands, step
 from server.core.event_queue import Envelope, EventQueue, Priority
+from server.core.faults import classify, recommended_action
+from server.core.journal import Journal, Record
 from server.core.operations.base import Operation, OperationContext, PauseGate
+from server.core.snapshot import SnapshotFile
+from server.core.supervision import RunOutcome, supervise
 from server.core.transitions import (
     OPERATION_OF_STATE,
     READINESS_EVENTS,
@@ -48,12 +53,18 @@ from server.core.transitions import (
     event_label,
 )
 from server.drivers.base import DeviceFault, Pose
-from server.errors import DeviceError, OperationError, TransitionNotAllowed, WorkerStopped
+from server.errors import EventQueueFull, TransitionNotAllowed, WorkerStopped
+from server.logging_setup import current_event_id
 from server.storage import CellStores
 
 log = logging.getLogger(__name__)
 
 COMPLETION_EVENTS = frozenset({Event.OPERATION_COMPLETED, Event.OPERATION_FAILED})
+JOURNAL_BACKLOG_LIMIT = 10_000
+OPERATION_OUTCOME = {
+    Event.OPERATION_COMPLETED: "completed",
+    Event.CANCEL_REQUESTED: "cancelled",
+}
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,12 +97,19 @@ class Worker:
         operations: dict[str, Operation],
         bus: Bus,
         stores: CellStores,
+        *,
+        journal: Journal | None = None,
+        snapshot_file: SnapshotFile | None = None,
+        interruption: str | None = None,
     ) -> None:
         self.settings = settings
         self.devices = devices
         self.operations = operations
         self.bus = bus
         self.stores = stores
+        self.journal = journal
+        self.snapshot_file = snapshot_file
+        self.interruption = interruption  # why the last run of the server ended mid-operation
         self.ctx = MachineContext(history_size=settings.history_size)
         self.queue = EventQueue(settings.event_queue_size)
         self.stats = ProcessingStats(settings.performance_history_size)
@@ -104,6 +122,10 @@ class Worker:
         self._op_task: asyncio.Task[None] | None = None
         self._gate: PauseGate | None = None
         self._activity: asyncio.Task[None] | None = None  # start-up or homing
+        self._error_timer: asyncio.Task[None] | None = None
+        self._records: list[Record] = []  # journal records of the event being handled
+        # Called with (kind, outcome, seconds) when an operation ends, e.g. by metrics.
+        self.operation_listeners: list[Callable[[str, str, float], None]] = []
 
     # --- lifecycle ---------------------------------------------------------
 
@@ -117,10 +139,11 @@ class Worker:
 
     async def stop(self) -> None:
         """Stop draining; every waiting sender gets WorkerStopped, never a hang."""
-        for task in (self._task, self._op_task, self._activity):
+        tasks = (self._task, self._op_task, self._activity, self._error_timer)
+        for task in tasks:
             if task is not None:
                 task.cancel()
-        for task in (self._task, self._op_task, self._activity):
+        for task in tasks:
             if task is not None:
                 await asyncio.gather(task, return_exceptions=True)
         for envelope in self.queue.drain():
@@ -144,6 +167,8 @@ class Worker:
     ) -> Envelope:
         """Queue an event (loop thread only). Raises EventQueueFull when `bounded` and full."""
         loop = self._loop or asyncio.get_running_loop()
+        if bounded and self.journal is not None and self.journal.backlog > JOURNAL_BACKLOG_LIMIT:
+            raise EventQueueFull(self.queue.capacity)  # the disk is behind: refuse, never drop
         envelope = Envelope(
             event_id=self.new_event_id(),
             event=event,
@@ -246,6 +271,7 @@ class Worker:
         while True:
             envelope = await self.queue.get()
             started = time.perf_counter()
+            token = current_event_id.set(envelope.event_id)
             try:
                 outcome = await self._handle(envelope)
             except asyncio.CancelledError:
@@ -263,12 +289,63 @@ class Worker:
                     self.ctx.state,
                     f"internal error while handling {event_label(envelope.event)}: {exc}",
                 )
+            finally:
+                current_event_id.reset(token)
             self.stats.record(time.perf_counter() - started, accepted=outcome.accepted)
-            if envelope.future is not None and not envelope.future.done():
-                envelope.future.set_result(outcome)
+            self._answer(envelope, outcome, self._journal_event(envelope, outcome))
             # Let the loop run between events, so a long queue of quick refusals
             # never starves the HTTP handlers (the e-stop route above all).
             await asyncio.sleep(0)
+
+    def _journal_event(self, envelope: Envelope, outcome: Outcome) -> asyncio.Future[None] | None:
+        """Hand the event and what it caused to the journal; the future marks it durable."""
+        records, self._records = self._records, []
+        if self.journal is None:
+            return None
+        records.insert(
+            0,
+            Journal.event(
+                envelope.event_id,
+                envelope.timestamp,
+                envelope.event.value,
+                envelope.source,
+                envelope.data,
+                "accepted" if outcome.accepted else "refused",
+                outcome.message,
+                outcome.state.value,
+            ),
+        )
+        return self.journal.append(records)
+
+    @staticmethod
+    def _answer(envelope: Envelope, outcome: Outcome, durable: asyncio.Future[None] | None) -> None:
+        """Answer the sender once the event is on disk (at once without a journal)."""
+        future = envelope.future
+        if future is None or future.done():
+            return
+        if durable is None:
+            future.set_result(outcome)
+            return
+
+        def settle(written: asyncio.Future[None]) -> None:
+            if future.done():
+                return
+            if written.cancelled() or written.exception() is not None:
+                problem = "cancelled" if written.cancelled() else written.exception()
+                log.critical("event %s decided but not journaled: %s", outcome.event_id, problem)
+                future.set_result(
+                    Outcome(
+                        outcome.accepted,
+                        outcome.event_id,
+                        outcome.event,
+                        outcome.state,
+                        f"{outcome.message} (journal write failed: {problem})",
+                    )
+                )
+            else:
+                future.set_result(outcome)
+
+        durable.add_done_callback(settle)
 
     async def _handle(self, envelope: Envelope) -> Outcome:
         event, state = envelope.event, self.ctx.state
@@ -276,7 +353,7 @@ class Worker:
             return self._refuse(envelope, f"{event.value} of a run that already ended; ignored")
         facts = self.facts()
         if event is Event.RESET_REQUESTED and state is State.ERROR:
-            faults = await self.devices.probe_faults(self.settings.emergency_stop_timeout)
+            faults = await self.devices.probe_faults(self._device_timeouts())
             facts = Facts(ready_devices=facts.ready_devices, active_faults=tuple(faults))
         try:
             decision = step(state, event, facts)
@@ -314,6 +391,7 @@ class Worker:
 
         # 1. exit actions
         if decision.ends_operation:
+            self._journal_operation_end(envelope)
             if target is State.ERROR:
                 await self._halt()  # valve first, before anything else
                 halted = True
@@ -365,10 +443,14 @@ class Worker:
             envelope.event_id,
             envelope.source,
         )
+        if self.journal is not None:
+            self._records.append(Journal.transition(record.as_dict()))
+        snapshot = self.snapshot()
+        self._save_snapshot(snapshot)
         self.bus.publish(
-            "state_changed",
-            {**record.as_dict(), "source": envelope.source, "snapshot": self.snapshot()},
+            "state_changed", {**record.as_dict(), "source": envelope.source, "snapshot": snapshot}
         )
+        self._watch_error_state(decision.target)
 
     async def _halt(self) -> None:
         report = await self.devices.safe_halt(self.settings.emergency_stop_timeout)
@@ -389,8 +471,28 @@ class Worker:
             code = str(data.get("code", envelope.event.value))
             message = str(data.get("message", "unspecified fault"))
             component = str(data.get("component", envelope.source))
-        fault = FaultRecord(code, message, component, envelope.event_id, time.time())
+        fault = FaultRecord(
+            code,
+            message,
+            component,
+            envelope.event_id,
+            time.time(),
+            classify(code),
+            recommended_action(code),
+        )
         self.ctx.record_error(fault)
+        if self.journal is not None:
+            self._records.append(
+                Journal.error(
+                    fault.time,
+                    code,
+                    message,
+                    component,
+                    fault.classification,
+                    envelope.event_id,
+                    self.ctx.state.value,
+                )
+            )
         log.error("fault %s from %s (%s): %s", code, component, envelope.event_id, message)
         self.bus.publish("error", {**fault.as_dict(), "state": self.ctx.state.value})
 
@@ -415,6 +517,10 @@ class Worker:
         run_id = envelope.event_id
         self._gate = PauseGate()
         self.ctx.operation = RunningOperation(name, run_id, time.time(), dict(envelope.data))
+        if self.journal is not None:
+            self._records.append(
+                Journal.operation_started(run_id, name, time.time(), dict(envelope.data))
+            )
         self.ctx.operation_data = dict(envelope.data)
         self.ctx.operation_result = None
         op_ctx = OperationContext(
@@ -433,47 +539,36 @@ class Worker:
         )
 
     async def _supervise(self, operation: Operation, op_ctx: OperationContext) -> None:
-        """Run one operation under processing_timeout (paused time excluded); post its outcome."""
-        budget = self.settings.processing_timeout
-        task = asyncio.ensure_future(operation(op_ctx))
-        started = time.monotonic()
-        try:
-            while not task.done():
-                remaining = budget - (time.monotonic() - started - op_ctx.gate.paused_seconds())
-                if remaining <= 0 and not op_ctx.gate.paused:
-                    task.cancel()
-                    await asyncio.gather(task, return_exceptions=True)
-                    self._post_failure(
-                        op_ctx.run_id,
-                        "OPERATION_TIMEOUT",
-                        f"operation exceeded processing_timeout ({budget:g} s)",
-                        "operation",
-                    )
-                    return
-                await asyncio.wait({task}, timeout=max(remaining, 0.05))
-            result = task.result()
-        except asyncio.CancelledError:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
-            raise
-        except OperationError as exc:
-            self._post_failure(op_ctx.run_id, exc.code, str(exc), "operation")
-            return
-        except DeviceError as exc:
-            self._post_failure(op_ctx.run_id, "DEVICE_FAULT", str(exc), exc.device)
-            return
-        except Exception as exc:
-            log.exception("operation %s crashed", op_ctx.run_id)
-            self._post_failure(
-                op_ctx.run_id, "INTERNAL", f"{type(exc).__name__}: {exc}", "operation"
+        """Run one operation (budget and retries in supervision.py); post its outcome."""
+        run_id = op_ctx.run_id
+
+        def on_retry(attempt: int, code: str, succeeded: bool) -> None:
+            if self.journal is not None:
+                self.journal.append(
+                    [Journal.recovery(time.time(), run_id, code, attempt, succeeded)], durable=False
+                )
+            running = self.ctx.operation
+            self.bus.publish(
+                "progress",
+                {
+                    "operation": running.name if running else "",
+                    "run_id": run_id,
+                    "recovery_attempt": attempt,
+                    "recovered": succeeded,
+                    "cause": code,
+                },
             )
-            return
-        self.submit(
-            Event.OPERATION_COMPLETED,
-            source="operation",
-            data={"run_id": op_ctx.run_id, "result": result},
-            bounded=False,
-        )
+
+        outcome: RunOutcome = await supervise(operation, op_ctx, self.settings, on_retry)
+        if outcome.succeeded:
+            self.submit(
+                Event.OPERATION_COMPLETED,
+                source="operation",
+                data={"run_id": run_id, "result": outcome.result},
+                bounded=False,
+            )
+        else:
+            self._post_failure(run_id, outcome.code, outcome.message, outcome.component)
 
     def _post_failure(self, run_id: str, code: str, message: str, component: str) -> None:
         self.submit(
@@ -496,6 +591,10 @@ class Worker:
                 "workpieces": update.pop("workpieces", []),
             }
         running.progress.update(update)
+        if self.journal is not None:
+            self.journal.append(
+                [Journal.operation_progress(run_id, running.progress)], durable=False
+            )
         self.bus.publish(
             "progress",
             {
@@ -525,12 +624,15 @@ class Worker:
             # Wait for the robot's stop to be answered, so it cannot stop the next move.
             await asyncio.wait({task}, timeout=self.settings.emergency_stop_timeout)
 
-    async def _bring_up_devices(self) -> None:
-        timeouts = {
+    def _device_timeouts(self) -> dict[str, float]:
+        return {
             "robot": self.settings.robot_communication_timeout,
             "glue": self.settings.glue_system_timeout,
             "camera": self.settings.vision_processing_timeout,
         }
+
+    async def _bring_up_devices(self) -> None:
+        timeouts = self._device_timeouts()
         ready_event = {device: event for event, device in READINESS_EVENTS.items()}
 
         async def bring_up(name: str) -> None:
@@ -550,7 +652,21 @@ class Worker:
                 return
             self.submit(ready_event[name], source=name, bounded=False)
 
-        await asyncio.gather(*(bring_up(name) for name in timeouts))
+        if self.interruption is None:
+            await asyncio.gather(*(bring_up(name) for name in timeouts))
+            return
+        # The last run stopped mid-operation: connect, then go to ERROR (which closes
+        # the valve) before any READY event could take the cell to IDLE by itself.
+        connected = await asyncio.gather(
+            *(self.devices.connect(name, timeouts[name]) for name in timeouts),
+            return_exceptions=True,
+        )
+        self._post_fault(DeviceFault("system", "INTERRUPTED", self.interruption))
+        for name, result in zip(timeouts, connected, strict=True):
+            if isinstance(result, BaseException):
+                self._post_fault(
+                    DeviceFault(name, "DEVICE_UNAVAILABLE", f"{name} did not come up: {result}")
+                )
 
     async def _go_to_safe_position(self) -> None:
         settings = self.settings
@@ -573,4 +689,81 @@ class Worker:
                     "SAFE_POSITION_FAILED",
                     f"robot could not reach its safe position: {reason}",
                 )
+            )
+
+    # --- records beyond the state: operation ends, snapshot, ERROR watch ---------
+
+    def _journal_operation_end(self, envelope: Envelope) -> None:
+        running = self.ctx.operation
+        if running is None:
+            return
+        outcome = OPERATION_OUTCOME.get(envelope.event, "failed")
+        for listener in self.operation_listeners:
+            listener(running.name, outcome, time.time() - running.started_at)
+        if self.journal is None:
+            return
+        error = None if outcome != "failed" else str(envelope.data.get("message", envelope.event))
+        workpieces = 0
+        if (
+            running.name == "trajectory"
+            and self.trajectory is not None
+            and (self.trajectory["run_id"] == running.run_id)
+        ):
+            workpieces = len(self.trajectory["workpieces"])
+        self._records.append(
+            Journal.operation_ended(
+                running.run_id, time.time(), outcome, envelope.data.get("result"), error, workpieces
+            )
+        )
+
+    def _save_snapshot(self, snapshot: dict[str, Any]) -> None:
+        if self.snapshot_file is None:
+            return
+        running = self.ctx.operation
+        self.snapshot_file.save(
+            {
+                **snapshot,
+                "operation": running.as_dict() if running is not None else None,
+                "saved_at": time.time(),
+            }
+        )
+
+    def _watch_error_state(self, state: State) -> None:
+        """Raise an alert when the cell stays in ERROR longer than error_state_timeout."""
+        if self._error_timer is not None:
+            self._error_timer.cancel()
+            self._error_timer = None
+        if state is State.ERROR:
+            self._error_timer = asyncio.create_task(
+                self._alert_after_timeout(), name="error-state-alert"
+            )
+
+    async def _alert_after_timeout(self) -> None:
+        timeout = self.settings.error_state_timeout
+        await asyncio.sleep(timeout)
+        reason = self.ctx.stop_reason.message if self.ctx.stop_reason else "unknown"
+        message = f"the cell has been in ERROR for {timeout:g} s (first fault: {reason})"
+        log.warning("alert: %s", message)
+        alert = {
+            "code": "ERROR_STATE_TIMEOUT",
+            "message": message,
+            "component": "system",
+            "classification": "warning",
+            "state": self.ctx.state.value,
+        }
+        self.bus.publish("alert", alert)
+        if self.journal is not None:
+            self.journal.append(
+                [
+                    Journal.error(
+                        time.time(),
+                        "ERROR_STATE_TIMEOUT",
+                        message,
+                        "system",
+                        "warning",
+                        "",
+                        State.ERROR.value,
+                    )
+                ],
+                durable=False,
             )

@@ -356,7 +356,11 @@ class SimulatedCamera(_CameraBase):
     # --- fault injection (tests) ---------------------------------------------------------
 
     def inject_fault(self, kind: FaultKind) -> None:
-        """ "fail": captures raise DeviceError; "stall": captures hang until the timeout."""
+        """Make captures misbehave until clear_faults().
+
+        "fail": each capture raises DeviceError (reported once per outage); "stall": captures
+        hang, so the caller sees DeviceTimeout after `timeout`.
+        """
         if kind not in ("fail", "stall"):
             raise ValueError(f"unknown camera fault {kind!r}: use 'fail' or 'stall'")
         if kind == "stall" and self._stall_released is None:

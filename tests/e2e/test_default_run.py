@@ -25,7 +25,7 @@ def test_default_server_runs_a_full_cycle_on_its_own_simulators(tmp_path) -> Non
             assert time.monotonic() < deadline + 30
             time.sleep(0.05)
         history = httpx.get(f"{url}/history").json()["transitions"]
-        assert [(t["old_state"], t["new_state"], t["event"]) for t in history[-2:]] == [
+        assert [(t["old_state"], t["new_state"], t["event"]) for t in history[1::-1]] == [
             ("IDLE", "EXECUTING_TRAJECTORY", "START_REQUESTED"),
             ("EXECUTING_TRAJECTORY", "IDLE", "OPERATION_COMPLETED"),
         ]

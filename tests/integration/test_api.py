@@ -85,7 +85,7 @@ async def test_state_allowed_history_and_health(api) -> None:
     unknown = await api.get("/operations/fly/allowed")
     assert unknown.status_code == 404 and "known operations" in unknown.json()["detail"]
     history = (await api.get("/history")).json()["transitions"]
-    assert history[-1]["old_state"] == "INITIALIZING" and history[-1]["new_state"] == "IDLE"
+    assert history[0]["old_state"] == "INITIALIZING" and history[0]["new_state"] == "IDLE"
     health = (await api.get("/health")).json()
     assert health["status"] == "ok" and set(health["devices"]) == {"robot", "glue", "camera"}
 
@@ -172,8 +172,9 @@ async def test_a_client_that_never_reads_is_dropped_and_others_keep_receiving(ap
         await stuck.recv()
         await healthy.recv()
         stuck.transport.pause_reading()  # never read again
+        subscribers = api.cell.bus.subscriber_count  # both clients, and the metrics
         sent = 0
-        while api.cell.bus.subscriber_count == 2 and sent < 4000:
+        while api.cell.bus.subscriber_count == subscribers and sent < 4000:
             for _ in range(4):  # bursts within the healthy client's buffer of 8
                 worker.bus.publish(
                     "progress", {"waypoint": sent, "padding": secrets.token_hex(10_000)}
@@ -181,7 +182,7 @@ async def test_a_client_that_never_reads_is_dropped_and_others_keep_receiving(ap
                 sent += 1
             for index in range(sent - 4, sent):
                 assert json.loads(await healthy.recv())["waypoint"] == index
-        assert api.cell.bus.subscriber_count == 1, "the stuck client was never dropped"
+        assert api.cell.bus.subscriber_count == subscribers - 1, "the stuck client was not dropped"
         worker.bus.publish("progress", {"waypoint": "after"})
         assert json.loads(await healthy.recv())["waypoint"] == "after"
         assert worker.ctx.state is State.IDLE

@@ -27,11 +27,11 @@ from server.drivers.sim.camera_scene import (
     marker_centre_pixels,
     marker_corners_mm,
     polygon_area_centroid,
+    polygon_coverage,
     render_chessboard_view,
     render_table,
     workpiece_outline_pixels,
 )
-from server.drivers.sim.camera_scene import polygon_coverage as coverage
 
 MODEL = DEFAULT_CAMERA_MODEL
 
@@ -100,7 +100,7 @@ def test_polygon_coverage_is_area_exact() -> None:
         angles = np.sort(rng.uniform(0, 2 * np.pi, 7))
         radii = rng.uniform(8, 25, 7)
         polygon = centre + np.column_stack([radii * np.cos(angles), radii * np.sin(angles)])
-        alpha = coverage([polygon], (80, 80)).astype(np.float64)
+        alpha = polygon_coverage([polygon], (80, 80)).astype(np.float64)
         area, centroid = polygon_area_centroid(polygon)
         assert alpha.sum() == pytest.approx(abs(area), abs=0.06)  # of ~600 px²
         rows, cols = np.mgrid[0:80, 0:80]

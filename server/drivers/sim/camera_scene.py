@@ -80,6 +80,7 @@ __all__ = [
     "marker_corner_pixels",
     "marker_corners_mm",
     "polygon_area_centroid",
+    "polygon_coverage",
     "render_chessboard_view",
     "render_table",
     "workpiece_outline_pixels",

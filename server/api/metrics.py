@@ -1,0 +1,157 @@
+"""Prometheus metrics at GET /metrics (text format, prometheus-client).
+
+Counters that the worker already keeps (events processed and refused) and
+gauges of the moment (state, queue depth, devices, WebSocket clients) are read
+at scrape time; durations are observed as they happen: event processing by the
+worker's statistics hook, API requests by a middleware, operations when they
+end, transitions by a bus subscriber. Each app has its own registry.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Awaitable, Callable, Iterator
+
+from fastapi import APIRouter, FastAPI, Request, Response
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Histogram,
+    generate_latest,
+)
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+from prometheus_client.registry import Collector
+
+from server.cell import Cell
+from server.core.bus import SubscriptionClosed
+from server.core.transitions import State
+
+router = APIRouter(tags=["queries"])
+LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5)
+OPERATION_BUCKETS = (1, 5, 10, 30, 60, 120, 300, 600, 1800)
+
+
+class CellCollector(Collector):
+    """Values read from the running cell at each scrape."""
+
+    def __init__(self, app: FastAPI) -> None:
+        self.app = app
+
+    def collect(self) -> Iterator[GaugeMetricFamily | CounterMetricFamily]:
+        cell: Cell = self.app.state.cell
+        worker = cell.worker
+        if worker is None:
+            return
+        state = GaugeMetricFamily("glue_cell_state", "1 for the current state", labels=["state"])
+        for candidate in State:
+            state.add_metric([candidate.value], 1.0 if worker.ctx.state is candidate else 0.0)
+        yield state
+        processed = CounterMetricFamily("glue_cell_events_processed", "events decided")
+        processed.add_metric([], worker.stats.processed)
+        yield processed
+        refused = CounterMetricFamily("glue_cell_events_refused", "events refused")
+        refused.add_metric([], worker.stats.refused)
+        yield refused
+        depth = GaugeMetricFamily("glue_cell_event_queue_depth", "events waiting")
+        depth.add_metric([], len(worker.queue))
+        yield depth
+        clients = GaugeMetricFamily("glue_cell_websocket_clients", "connected /ws clients")
+        clients.add_metric([], self.app.state.ws_hub.client_count)
+        yield clients
+        connected = GaugeMetricFamily(
+            "glue_cell_device_connected", "1 when the device answers", labels=["device"]
+        )
+        rtt = GaugeMetricFamily(
+            "glue_cell_device_rtt_seconds", "last round trip", labels=["device"]
+        )
+        for name, health in worker.devices.health().items():
+            connected.add_metric([name], 1.0 if health["connected"] else 0.0)
+            if health["last_rtt_ms"] is not None:
+                rtt.add_metric([name], health["last_rtt_ms"] / 1000.0)
+        yield connected
+        yield rtt
+
+
+class Metrics:
+    """The app's registry and the metrics observed as things happen."""
+
+    def __init__(self, app: FastAPI) -> None:
+        self.registry = CollectorRegistry()
+        self.registry.register(CellCollector(app))
+        self.event_seconds = Histogram(
+            "glue_cell_event_processing_seconds",
+            "time to decide and act on one event",
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.request_seconds = Histogram(
+            "glue_cell_api_request_seconds",
+            "HTTP request latency",
+            ["method", "route", "status"],
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.operation_seconds = Histogram(
+            "glue_cell_operation_duration_seconds",
+            "operation run time",
+            ["kind", "outcome"],
+            buckets=OPERATION_BUCKETS,
+            registry=self.registry,
+        )
+        self.transitions = Counter(
+            "glue_cell_transitions",
+            "state transitions",
+            ["old_state", "new_state"],
+            registry=self.registry,
+        )
+        self._watcher: asyncio.Task[None] | None = None
+
+    def attach(self, cell: Cell) -> None:
+        """Hook into the running cell (after it started)."""
+        worker = cell.worker
+        assert worker is not None
+        worker.stats.listeners.append(self.event_seconds.observe)
+        worker.operation_listeners.append(
+            lambda kind, outcome, seconds: self.operation_seconds.labels(kind, outcome).observe(
+                seconds
+            )
+        )
+        self._watcher = asyncio.create_task(self._count_transitions(cell), name="metrics")
+
+    async def detach(self) -> None:
+        if self._watcher is not None:
+            self._watcher.cancel()
+            await asyncio.gather(self._watcher, return_exceptions=True)
+
+    async def _count_transitions(self, cell: Cell) -> None:
+        subscription = cell.bus.subscribe(1024, types=["state_changed"])
+        while True:
+            try:
+                message = await subscription.get()
+            except SubscriptionClosed:  # fell behind: start again, the counters stay
+                subscription = cell.bus.subscribe(1024, types=["state_changed"])
+                continue
+            self.transitions.labels(message.data["old_state"], message.data["new_state"]).inc()
+
+    async def middleware(
+        self, request: Request, call_next: Callable[[Request], Awaitable[Response]]
+    ) -> Response:
+        started = time.perf_counter()
+        response = await call_next(request)
+        route = request.scope.get("route")
+        path = getattr(route, "path", "unmatched")
+        with contextlib.suppress(Exception):
+            self.request_seconds.labels(request.method, path, str(response.status_code)).observe(
+                time.perf_counter() - started
+            )
+        return response
+
+
+@router.get("/metrics", response_class=Response, responses={200: {"content": {"text/plain": {}}}})
+async def metrics(request: Request) -> Response:
+    """Prometheus text exposition of the cell's metrics."""
+    registry = request.app.state.metrics.registry
+    return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)

@@ -1,0 +1,58 @@
+"""How serious a fault is (specification section 8.1), from its code.
+
+critical     the cell is not safe to run until a person has looked: a device link
+             lost, an e-stop, a safety or workspace violation, an alarm.
+recoverable  the work could not be done this time but nothing is wrong with the
+             cell (a marker not seen in one frame, no part found); worth an
+             automatic retry when auto_recovery_enabled.
+warning      worth knowing, not a stop (slow operation, ERROR held too long).
+
+Unknown codes are critical: when in doubt, a person decides.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+Classification = Literal["critical", "recoverable", "warning"]
+
+RECOVERABLE = frozenset(
+    {
+        "MARKER_NOT_FOUND",
+        "WORKPIECE_NOT_FOUND",
+        "WORKPIECE_NOT_MATCHED",
+        "CHESSBOARD_NOT_FOUND",
+        "VISION_TIMEOUT",
+    }
+)
+WARNING = frozenset({"ERROR_STATE_TIMEOUT", "SLOW_OPERATION", "CALIBRATION_DEGRADING"})
+
+RECOMMENDED_ACTION = {
+    "EMERGENCY_STOP": "make sure the cell is clear, then reset",
+    "COMM_LOST": "check the robot controller is on and its network cable, then reset",
+    "NO_REPLY": "check the dispenser's power and RS-485 cable, then reset",
+    "DEVICE_UNAVAILABLE": "check the named device is powered and connected, then reset",
+    "ALARM": "clear the dispenser alarm at the dispenser, then reset",
+    "PRESSURE_OUT_OF_RANGE": "check the glue supply pressure, then reset",
+    "WORKSPACE_VIOLATION": "move the part inside the workspace or recalibrate, then reset",
+    "MARKER_NOT_FOUND": "uncover or clean the named marker, check lighting, then reset",
+    "WORKPIECE_NOT_FOUND": "place the part fully in view, away from the markers, then reset",
+    "WORKPIECE_NOT_MATCHED": "check the part is in the library (create-workpiece), then reset",
+    "INTERRUPTED": "check the part and the glue line, clean if needed, then reset",
+    "NOT_CALIBRATED": "reset, then run calibrate-robot",
+    "CALIBRATION_STALE": "reset, then run calibrate-robot again",
+}
+
+
+def classify(code: str) -> Classification:
+    """The classification of a fault code."""
+    if code in RECOVERABLE:
+        return "recoverable"
+    if code in WARNING:
+        return "warning"
+    return "critical"
+
+
+def recommended_action(code: str) -> str:
+    """What the technician should do first."""
+    return RECOMMENDED_ACTION.get(code, "read the fault message, fix the cause, then reset")

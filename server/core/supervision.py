@@ -1,0 +1,115 @@
+"""Running one operation: its time budget, its retries, and what its outcome means.
+
+`processing_timeout` bounds the operation's running time, not counting time
+held in PAUSED. A failure classified *recoverable* (a marker not seen, no part
+found) is retried in place, while the cell is still in the operational state,
+when auto_recovery_enabled: after error_recovery_delay × attempt seconds, up to
+error_recovery_attempts times, each attempt reported. The cell never leaves
+ERROR by itself: once the retries are spent the failure goes to the machine
+like any other, and only a person's reset clears it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from server.config import Settings
+from server.core.faults import classify
+from server.core.operations.base import Operation, OperationContext
+from server.errors import DeviceError, OperationError
+
+log = logging.getLogger(__name__)
+
+RetryReporter = Callable[[int, str, bool], None]  # attempt, error code, succeeded
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """How an operation ended: its result, or the fault that ended it."""
+
+    result: dict[str, Any] | None = None
+    code: str = ""
+    message: str = ""
+    component: str = "operation"
+    attempts: int = 1
+
+    @property
+    def succeeded(self) -> bool:
+        return self.result is not None
+
+
+class OperationTimeout(Exception):
+    """The operation ran past processing_timeout."""
+
+
+async def _run_once(operation: Operation, op_ctx: OperationContext, budget: float) -> dict:
+    task = asyncio.ensure_future(operation(op_ctx))
+    started = time.monotonic()
+    try:
+        while not task.done():
+            remaining = budget - (time.monotonic() - started - op_ctx.gate.paused_seconds())
+            if remaining <= 0 and not op_ctx.gate.paused:
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+                raise OperationTimeout(f"operation exceeded processing_timeout ({budget:g} s)")
+            await asyncio.wait({task}, timeout=max(remaining, 0.05))
+        return task.result()
+    except asyncio.CancelledError:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        raise
+
+
+async def supervise(
+    operation: Operation, op_ctx: OperationContext, settings: Settings, on_retry: RetryReporter
+) -> RunOutcome:
+    """Run `operation` to its end under the budget and the retry policy.
+
+    `on_retry(n, code, succeeded)` is called when retry n has run: every
+    recovery attempt is on record, with the fault code that caused it.
+    """
+    attempt, cause = 1, ""
+    while True:
+        outcome = await _attempt(operation, op_ctx, settings, attempt)
+        if attempt > 1:
+            on_retry(attempt - 1, cause, outcome.succeeded)
+        retry = (
+            not outcome.succeeded
+            and settings.auto_recovery_enabled
+            and classify(outcome.code) == "recoverable"
+            and attempt <= settings.error_recovery_attempts
+        )
+        if not retry:
+            return outcome
+        delay = settings.error_recovery_delay * attempt
+        log.warning("%s (attempt %d); retrying in %.1f s", outcome.message, attempt, delay)
+        await asyncio.sleep(delay)
+        attempt, cause = attempt + 1, outcome.code
+
+
+async def _attempt(
+    operation: Operation, op_ctx: OperationContext, settings: Settings, attempt: int
+) -> RunOutcome:
+    try:
+        result = await _run_once(operation, op_ctx, settings.processing_timeout)
+    except OperationTimeout as exc:
+        return RunOutcome(code="OPERATION_TIMEOUT", message=str(exc), attempts=attempt)
+    except OperationError as exc:
+        return RunOutcome(code=exc.code, message=str(exc), attempts=attempt)
+    except DeviceError as exc:
+        return RunOutcome(
+            code="DEVICE_FAULT", message=str(exc), component=exc.device, attempts=attempt
+        )
+    except asyncio.CancelledError:
+        raise
+    except Exception as exc:
+        log.exception("operation %s crashed", op_ctx.run_id)
+        return RunOutcome(code="INTERNAL", message=f"{type(exc).__name__}: {exc}", attempts=attempt)
+    return RunOutcome(
+        result=result if isinstance(result, dict) else {"value": result}, attempts=attempt
+    )

@@ -1,0 +1,97 @@
+"""Logging as the specification writes it (section 8.3), to the console and a rotating file.
+
+    2025-08-21 14:30:25.123 [ERROR] server.core.worker: fault ... (event 3f2a1c-000042)
+
+Every line logged while the worker handles an event, or by the operation that
+event started, carries the event id, so a technician can go from a log line to
+the journal's record of that event and back. Files rotate at log_rotation_size
+and are deleted after log_retention_days.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import logging
+import logging.handlers
+import re
+import time
+from pathlib import Path
+
+from server.config import Settings
+
+current_event_id: contextvars.ContextVar[str | None] = contextvars.ContextVar(
+    "current_event_id", default=None
+)
+FORMAT = "%(asctime)s.%(msecs)03d [%(levelname)s] %(name)s: %(message)s%(event_suffix)s"
+DATE_FORMAT = "%Y-%m-%d %H:%M:%S"
+_SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([KMG]?B?)\s*$", re.IGNORECASE)
+_UNITS = {
+    "": 1,
+    "B": 1,
+    "K": 1024,
+    "KB": 1024,
+    "M": 1024**2,
+    "MB": 1024**2,
+    "G": 1024**3,
+    "GB": 1024**3,
+}
+
+
+def parse_size(text: str) -> int:
+    """'10MB' → bytes; ValueError naming the setting otherwise."""
+    match = _SIZE.match(text)
+    if not match:
+        raise ValueError(f"log_rotation_size {text!r}: expected a size such as 10MB")
+    return int(float(match.group(1)) * _UNITS[match.group(2).upper()])
+
+
+class EventIdFilter(logging.Filter):
+    """Adds ` (event <id>)` to records made while an event is being handled."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        event_id = current_event_id.get()
+        record.event_suffix = (
+            f" (event {event_id})" if event_id and event_id not in record.getMessage() else ""
+        )
+        return True
+
+
+class RetainingFileHandler(logging.handlers.RotatingFileHandler):
+    """Size-based rotation that also deletes rotated files older than the retention."""
+
+    def __init__(self, path: Path, max_bytes: int, retention_days: int) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        super().__init__(path, maxBytes=max_bytes, backupCount=1000, encoding="utf-8")
+        self.retention_s = retention_days * 86_400
+        self.prune()
+
+    def doRollover(self) -> None:
+        super().doRollover()
+        self.prune()
+
+    def prune(self) -> None:
+        base = Path(self.baseFilename)
+        cutoff = time.time() - self.retention_s
+        for rotated in base.parent.glob(base.name + ".*"):
+            if rotated.stat().st_mtime < cutoff:
+                rotated.unlink(missing_ok=True)
+
+
+def configure(settings: Settings) -> Path:
+    """Console and file logging at the configured level; the log file's path."""
+    path = settings.data_file(settings.log_file_path, "logs/glue_cell.log")
+    formatter = logging.Formatter(FORMAT, DATE_FORMAT)
+    event_filter = EventIdFilter()
+    console = logging.StreamHandler()
+    file = RetainingFileHandler(
+        path, parse_size(settings.log_rotation_size), settings.log_retention_days
+    )
+    root = logging.getLogger()
+    for handler in list(root.handlers):
+        root.removeHandler(handler)
+    for handler in (console, file):
+        handler.setFormatter(formatter)
+        handler.addFilter(event_filter)
+        root.addHandler(handler)
+    root.setLevel(settings.logging_level)
+    return path
