@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -199,5 +200,15 @@ async def test_health_reports_each_device(api) -> None:
 
 
 def test_the_server_log_is_readable(cell) -> None:
-    log = Path(cell["data"], "server.log").read_text()
-    assert "EXECUTING_TRAJECTORY" in log and "Traceback" not in log
+    """The spec's log format in the rotating file; fault lines carry their event id."""
+    text = Path(cell["data"], "logs", "glue_cell.log").read_text()
+    assert "EXECUTING_TRAJECTORY" in text and "Traceback" not in text
+    line = re.compile(
+        r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{3} \[(DEBUG|INFO|WARNING|ERROR|CRITICAL)\] "
+    )
+    lines = text.splitlines()
+    assert all(line.match(entry) for entry in lines if entry and not entry.startswith(" "))
+    faults = [
+        entry for entry in lines if "[ERROR] server.core.worker: fault EMERGENCY_STOP" in entry
+    ]
+    assert faults and all(re.search(r"\(\w{6}-\d{6}\)", entry) for entry in faults)

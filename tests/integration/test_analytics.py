@@ -1,0 +1,124 @@
+"""The journal over HTTP: history, operations, errors, events, CSV, KPIs, metrics."""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import io
+
+import httpx
+import pytest
+
+from server.cell import Cell
+from server.config import Settings
+from server.core.devices import CellDevices
+from tests.conftest import START, demo_stores
+from tests.fakes import FakeCamera, FakeGlue, FakeRobot
+from tests.serving import serve
+
+
+@pytest.fixture
+async def api(fast_settings: Settings):
+    settings = fast_settings.model_copy(
+        update={
+            "auto_recovery_enabled": True,
+            "error_recovery_attempts": 1,
+            "error_recovery_delay": 0.01,
+        }
+    )
+    demo_stores(settings.data_path)
+    cell = Cell(settings, devices=CellDevices(FakeRobot(speed_factor=50), FakeGlue(), FakeCamera()))
+    async with serve(cell) as url, httpx.AsyncClient(base_url=url, timeout=10) as client:
+        await until_state(client, "IDLE")
+        yield client
+
+
+async def until_state(client: httpx.AsyncClient, state: str) -> None:
+    async with asyncio.timeout(15):
+        while (await client.get("/state")).json()["state"] != state:
+            await asyncio.sleep(0.01)
+
+
+async def a_shift(api: httpx.AsyncClient) -> dict[str, str]:
+    """One sprayed part, one refused command, one e-stop, one failed calibration."""
+    started = (await api.post("/start", json=START)).json()["event_id"]
+    refused = (await api.post("/calibrate-robot")).json()["event_id"]
+    await until_state(api, "IDLE")
+    await api.post("/estop", json={"reason": "shift test"})
+    await api.post("/reset")
+    await until_state(api, "IDLE")
+    await api.post("/calibrate-robot")  # no calibration possible with a blank camera frame
+    await until_state(api, "ERROR")
+    return {"started": started, "refused": refused}
+
+
+async def test_history_operations_errors_events_with_filters_and_paging(api) -> None:
+    ids = await a_shift(api)
+    history = (await api.get("/history", params={"new_state": "ERROR"})).json()
+    assert history["total"] == 2 and all(t["new_state"] == "ERROR" for t in history["transitions"])
+    page = (await api.get("/history", params={"limit": 2, "offset": 1})).json()
+    assert len(page["transitions"]) == 2 and page["total"] >= 6
+    operations = (await api.get("/operations", params={"kind": "trajectory"})).json()
+    assert operations["operations"][0]["outcome"] == "completed"
+    assert operations["operations"][0]["workpieces"] == 1
+    calibration = (await api.get("/operations", params={"kind": "calibrate_robot"})).json()
+    assert calibration["operations"][0]["outcome"] == "failed"
+    errors = (await api.get("/errors")).json()["errors"]
+    assert {e["code"] for e in errors} >= {"EMERGENCY_STOP"}
+    assert all(e["classification"] in ("critical", "recoverable", "warning") for e in errors)
+    refused = (await api.get("/events", params={"outcome": "refused"})).json()["events"]
+    assert ids["refused"] in {e["id"] for e in refused}
+    accepted = (await api.get("/events", params={"type": "START_REQUESTED"})).json()["events"]
+    assert accepted[0]["id"] == ids["started"] and accepted[0]["data"] == START
+    bad = await api.get("/history", params={"limit": 0})
+    assert bad.status_code == 422 and "limit" in bad.json()["detail"]
+
+
+async def test_csv_export(api) -> None:
+    await a_shift(api)
+    response = await api.get("/export/transitions.csv")
+    assert response.status_code == 200 and response.headers["content-type"].startswith("text/csv")
+    rows = list(csv.DictReader(io.StringIO(response.text)))
+    assert rows[0]["old_state"] == "INITIALIZING" and rows[0]["new_state"] == "IDLE"
+    assert {"seq", "time", "event", "event_id", "time_in_old_state"} <= set(rows[0])
+    assert (await api.get("/export/secrets.csv")).status_code == 422
+
+
+async def test_kpis_over_the_shift(api) -> None:
+    await a_shift(api)
+    kpis = (await api.get("/kpis")).json()
+    assert kpis["window"]["hours"] == pytest.approx(8.0)
+    assert kpis["failures"] == 2
+    assert kpis["workpieces_processed"] == 1
+    assert kpis["time_in_state_s"]["EXECUTING_TRAJECTORY"] > 0
+    assert 0 < kpis["oee"]["availability"] <= 1
+    assert kpis["oee"]["quality"] == 1.0
+    assert kpis["error_recovery_success_rate"] == 0.0  # the calibration retry failed too
+    assert (await api.get("/kpis", params={"since": 10, "until": 5})).status_code == 422
+
+
+async def test_recovery_attempts_are_journaled(api) -> None:
+    await a_shift(api)
+    rows = list(csv.DictReader(io.StringIO((await api.get("/export/recoveries.csv")).text)))
+    # The blank frame shows no marker: retried once (error_recovery_attempts=1), in vain.
+    assert [(r["error_code"], r["attempt"], r["succeeded"]) for r in rows] == [
+        ("MARKER_NOT_FOUND", "1", "0")
+    ]
+
+
+async def test_prometheus_metrics(api) -> None:
+    await a_shift(api)
+    text = (await api.get("/metrics")).text
+    assert 'glue_cell_state{state="ERROR"} 1.0' in text
+    assert 'glue_cell_transitions_total{new_state="EXECUTING_TRAJECTORY",old_state="IDLE"}' in text
+    for name in (
+        "glue_cell_events_processed_total",
+        "glue_cell_events_refused_total",
+        "glue_cell_event_queue_depth",
+        "glue_cell_event_processing_seconds_bucket",
+        "glue_cell_api_request_seconds_bucket",
+        "glue_cell_websocket_clients",
+        'glue_cell_device_connected{device="robot"}',
+        "glue_cell_operation_duration_seconds_bucket",
+    ):
+        assert name in text, name

@@ -1,0 +1,135 @@
+"""Restarts: a damaged snapshot or journal never stops the cell from starting
+safely, and a cell that stopped mid-operation comes back in ERROR saying where."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sqlite3
+import time
+from pathlib import Path
+
+from server.cell import Cell
+from server.config import Settings
+from server.core.devices import CellDevices
+from server.core.journal import Journal
+from server.core.transitions import State
+from tests.conftest import START, demo_stores, wait_for_state
+from tests.fakes import FakeCamera, FakeGlue, FakeRobot
+
+
+def settings_for(data: Path, **overrides) -> Settings:
+    return Settings(data_path=data, emergency_stop_timeout=0.5, **overrides)
+
+
+async def started(data: Path, glue: FakeGlue | None = None, **overrides) -> Cell:
+    demo_stores(data)
+    cell = Cell(
+        settings_for(data, **overrides),
+        devices=CellDevices(FakeRobot(speed_factor=20), glue or FakeGlue(), FakeCamera()),
+    )
+    await cell.start()
+    assert cell.worker is not None
+    async with asyncio.timeout(10):
+        while cell.worker.ctx.state is State.INITIALIZING:
+            await asyncio.sleep(0.005)
+    return cell
+
+
+async def test_a_clean_restart_comes_up_idle_with_the_journal_kept(tmp_path) -> None:
+    cell = await started(tmp_path)
+    outcome = await cell.command("start", source="test", data=START)
+    await wait_for_state(cell.worker, State.IDLE)
+    await cell.stop()
+    cell = await started(tmp_path)
+    assert cell.worker.ctx.state is State.IDLE
+    rows = cell.journal.query("events", filters={"type": "START_REQUESTED"})
+    assert [r["id"] for r in rows] == [outcome.event_id]
+    await cell.stop()
+
+
+async def test_stopping_mid_operation_restarts_in_error_with_the_waypoint(tmp_path) -> None:
+    glue = FakeGlue()
+    cell = await started(tmp_path, glue=glue)
+    cell.worker.devices.robot.speed_factor = 1  # slow enough to stop it mid-path
+    await cell.command("start", source="test", data=START)
+    async with asyncio.timeout(10):
+        while not (
+            cell.worker.ctx.operation and cell.worker.ctx.operation.progress.get("waypoint")
+        ):
+            await asyncio.sleep(0.005)
+    await asyncio.sleep(0.2)  # the progress reaches the journal (not waited for by design)
+    await cell.stop()  # a shutdown during an operation is an interruption too
+    glue = FakeGlue()
+    glue.valve_open = True  # as if the valve had stayed open
+    cell = await started(tmp_path, glue=glue)
+    worker = cell.worker
+    assert worker.ctx.state is State.ERROR
+    reason = worker.ctx.stop_reason
+    assert reason.code == "INTERRUPTED"
+    assert reason.message.startswith("interrupted during EXECUTING_TRAJECTORY at waypoint ")
+    assert " of 7 (run " in reason.message
+    assert glue.valve_open is False  # ERROR's entry closed it
+    assert worker.ctx.operation is None  # nothing resumed
+    operations = cell.journal.query("operations")
+    assert operations[0]["outcome"] == "interrupted"
+    assert (await cell.command("reset", source="test")).state is State.IDLE
+    await cell.stop()
+
+
+async def test_a_corrupt_snapshot_is_kept_aside_and_the_cell_starts_safely(tmp_path) -> None:
+    (tmp_path / "state.json").write_text('{"state": "EXECUTING_TRAJ')  # truncated
+    cell = await started(tmp_path)
+    assert cell.worker.ctx.state is State.IDLE
+    assert list(tmp_path.glob("state.json.corrupt-*"))
+    await cell.stop()
+
+
+async def test_a_snapshot_saying_mid_operation_restarts_in_error(tmp_path) -> None:
+    (tmp_path / "state.json").write_text(json.dumps({"state": "PAUSED", "saved_at": time.time()}))
+    cell = await started(tmp_path)
+    assert cell.worker.ctx.state is State.ERROR
+    assert cell.worker.ctx.stop_reason.message.startswith("interrupted during PAUSED")
+    await cell.stop()
+
+
+async def test_a_corrupt_journal_is_kept_aside_and_a_new_one_started(tmp_path) -> None:
+    (tmp_path / "journal.db").write_bytes(b"SQLite format 3\x00" + b"\xff" * 3000)
+    cell = await started(tmp_path)
+    assert cell.worker.ctx.state is State.IDLE
+    assert list(tmp_path.glob("journal.db.corrupt-*"))
+    outcome = await cell.command("start", source="test", data=START)
+    assert cell.journal.query("events", filters={"type": "START_REQUESTED"})[0]["id"] == (
+        outcome.event_id
+    )
+    with sqlite3.connect(tmp_path / "journal.db") as connection:
+        assert connection.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    await cell.stop()
+
+
+async def test_retention_prunes_old_rows(tmp_path) -> None:
+    journal = Journal(tmp_path / "journal.db", retention_days=1)
+    journal.open()
+    journal.start(asyncio.get_running_loop())
+    old, new = time.time() - 3 * 86_400, time.time()
+    await journal.append(
+        [
+            Journal.event("old", old, "X", "t", {}, "accepted", "", "IDLE"),
+            Journal.event("new", new, "X", "t", {}, "accepted", "", "IDLE"),
+        ]
+    )
+    journal.stop()
+    journal.open()  # retention runs at open (and daily)
+    assert [row["id"] for row in journal.query("events")] == ["new"]
+
+
+async def test_a_command_answers_only_once_its_event_is_on_disk(tmp_path) -> None:
+    cell = await started(tmp_path, journal_synchronous="FULL")
+    outcome = await cell.command("calibrate-robot", source="test")
+    # Read with a separate connection, right after the answer: the row is there.
+    with sqlite3.connect(tmp_path / "journal.db") as connection:
+        row = connection.execute(
+            "SELECT outcome, state FROM events WHERE id = ?", (outcome.event_id,)
+        ).fetchone()
+    assert row == ("accepted", outcome.state.value)
+    await cell.stop()

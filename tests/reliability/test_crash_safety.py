@@ -1,0 +1,122 @@
+"""Kill the server with SIGKILL at random moments: nothing acknowledged is lost,
+the journal stays intact, and a cell that died mid-operation comes back in
+ERROR with the reason and the glue valve closed, never resuming by itself.
+
+The simulators run as their own processes and outlive every server crash, as
+real devices would.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import random
+import signal
+import sqlite3
+import time
+from pathlib import Path
+
+import httpx
+
+from server.drivers.glue_modbus import ModbusGlueDispenser
+from tests.processes import server_process, simulator
+from tests.serving import free_port
+
+KILLS = 6  # bounded for CI; each cycle starts, runs and kills a real server
+SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
+
+
+def wait_until(predicate, timeout: float = 30.0, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.02)
+
+
+def settled_state(url: str) -> dict:
+    """The state once the server has left INITIALIZING."""
+    return wait_until(
+        lambda: (s := httpx.get(f"{url}/state").json())["state"] != "INITIALIZING" and s,
+        what="the cell to leave INITIALIZING",
+    )
+
+
+def unfinished_operations(journal: Path) -> int:
+    if not journal.exists():
+        return 0
+    with sqlite3.connect(journal) as connection:
+        return connection.execute(
+            "SELECT COUNT(*) FROM operations WHERE ended_at IS NULL"
+        ).fetchone()[0]
+
+
+async def valve_reads_closed(port: int) -> bool:
+    glue = ModbusGlueDispenser.tcp("127.0.0.1", port, timeout=2, poll_interval=3600)
+    await glue.connect()
+    try:
+        return (await glue.read_status()).valve_open is False
+    finally:
+        await glue.close()
+
+
+def test_sigkill_at_random_moments(tmp_path: Path) -> None:
+    rng = random.Random(20261122)
+    data = tmp_path / "cell"
+    data.mkdir()
+    acknowledged: set[str] = set()
+    died_mid_operation = 0
+    with (
+        simulator("server.drivers.sim.robot_sim", "--speed-factor", "4") as robot,
+        simulator("server.drivers.sim.glue_sim") as glue,
+    ):
+        env = {
+            "ROBOT_IP": "127.0.0.1",
+            "GLUE_APP_ROBOT_PORT": str(robot.port),
+            "GLUE_CONTROLLER_PORT": f"tcp://127.0.0.1:{glue.port}",
+        }
+        for cycle in range(KILLS + 1):
+            unfinished = unfinished_operations(data / "journal.db")
+            port = free_port()
+            with server_process(port, data, env) as server:
+                url = f"http://127.0.0.1:{port}"
+                state = settled_state(url)
+                journal = data / "journal.db"
+                # After every crash: everything acknowledged is on disk, the file is sound.
+                with sqlite3.connect(journal) as connection:
+                    assert connection.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+                    stored = {row[0] for row in connection.execute("SELECT id FROM events")}
+                assert acknowledged <= stored, f"lost: {sorted(acknowledged - stored)}"
+                if cycle == KILLS:
+                    break
+                # Died mid-operation (an operation never closed in the journal):
+                # ERROR with the reason, valve closed; otherwise a normal start to IDLE.
+                if unfinished:
+                    died_mid_operation += 1
+                    assert state["state"] == "ERROR", state
+                    reason = state["stop_reason"]
+                    assert reason["code"] == "INTERRUPTED"
+                    assert reason["message"].startswith("interrupted during ")
+                    assert asyncio.run(valve_reads_closed(glue.port))
+                else:
+                    assert state["state"] in ("IDLE", "INITIALIZING"), state
+                if state["state"] == "ERROR":
+                    reset = httpx.post(f"{url}/reset", timeout=30)
+                    acknowledged.add(reset.json()["event_id"])
+                    assert reset.status_code == 202, reset.text
+                wait_until(
+                    lambda u=url: httpx.get(f"{u}/state").json()["state"] == "IDLE", what="IDLE"
+                )
+                # Work, acknowledged step by step, then a kill at a random moment.
+                for _ in range(rng.randint(1, 3)):
+                    for command, body in (("start", SPRAY_DEMO), ("pause", None), ("resume", None)):
+                        response = httpx.post(f"{url}/{command}", json=body, timeout=30)
+                        assert response.status_code in (202, 409), response.text
+                        acknowledged.add(response.json()["event_id"])
+                        time.sleep(rng.uniform(0.0, 0.3))
+                time.sleep(rng.uniform(0.0, 1.0))
+                server.send_signal(signal.SIGKILL)
+                server.wait(10)
+    assert died_mid_operation >= 1, "no kill landed during an operation; the test proved little"

@@ -1,0 +1,94 @@
+"""Automatic recovery retries recoverable faults in place, then stops in ERROR;
+critical faults are never retried; a cell held in ERROR raises an alert."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+from server.core.operations import OperationContext
+from server.core.transitions import Event, State
+from server.errors import OperationError
+from tests.conftest import wait_for_state
+
+
+def failing(code: str, calls: list[int], *, succeed_on: int | None = None):
+    async def operation(ctx: OperationContext) -> dict[str, Any]:
+        calls.append(len(calls) + 1)
+        if succeed_on is not None and len(calls) >= succeed_on:
+            return {"found": True}
+        raise OperationError(code, f"{code.lower()} (attempt {len(calls)})")
+
+    return operation
+
+
+def recovering(fast_settings, **overrides):
+    return fast_settings.model_copy(
+        update={
+            "auto_recovery_enabled": True,
+            "error_recovery_attempts": 2,
+            "error_recovery_delay": 0.01,
+            **overrides,
+        }
+    )
+
+
+async def test_a_recoverable_fault_is_retried_then_stays_in_error(make_worker, fast_settings):
+    calls: list[int] = []
+    worker = await make_worker(
+        recovering(fast_settings),
+        operations={"calibrate_robot": failing("MARKER_NOT_FOUND", calls)},
+    )
+    await worker.request(Event.CALIBRATE_ROBOT_REQUESTED, source="test")
+    await wait_for_state(worker, State.ERROR)
+    assert calls == [1, 2, 3]  # the first try and two retries
+    assert worker.ctx.error.classification == "recoverable"
+    await asyncio.sleep(0.1)
+    assert worker.ctx.state is State.ERROR  # never leaves ERROR by itself
+
+
+async def test_a_recovery_that_succeeds_completes_the_operation(make_worker, fast_settings):
+    calls: list[int] = []
+    op = failing("WORKPIECE_NOT_FOUND", calls, succeed_on=2)
+    worker = await make_worker(recovering(fast_settings), operations={"create_workpiece": op})
+    await worker.request(Event.CREATE_WORKPIECE_REQUESTED, source="test")
+    await wait_for_state(worker, State.IDLE)
+    assert calls == [1, 2]
+    assert worker.ctx.operation_result == {"found": True}
+
+
+async def test_a_critical_fault_is_never_retried(make_worker, fast_settings) -> None:
+    calls: list[int] = []
+    worker = await make_worker(
+        recovering(fast_settings), operations={"trajectory": failing("WORKSPACE_VIOLATION", calls)}
+    )
+    await worker.request(Event.START_REQUESTED, source="test")
+    await wait_for_state(worker, State.ERROR)
+    assert calls == [1]
+    assert worker.ctx.error.classification == "critical"
+
+
+async def test_without_auto_recovery_nothing_is_retried(make_worker, fast_settings) -> None:
+    calls: list[int] = []
+    worker = await make_worker(operations={"calibrate_robot": failing("MARKER_NOT_FOUND", calls)})
+    await worker.request(Event.CALIBRATE_ROBOT_REQUESTED, source="test")
+    await wait_for_state(worker, State.ERROR)
+    assert calls == [1]
+
+
+async def test_a_cell_left_in_error_raises_an_alert(make_worker, fast_settings) -> None:
+    worker = await make_worker(fast_settings.model_copy(update={"error_state_timeout": 0.2}))
+    alerts = worker.bus.subscribe(16, types=["alert"])
+    await worker.emergency_stop(source="test")
+    message = await asyncio.wait_for(alerts.get(), 5)
+    assert message.data["code"] == "ERROR_STATE_TIMEOUT"
+    assert "emergency stop" in message.data["message"]
+
+
+async def test_leaving_error_in_time_raises_no_alert(make_worker, fast_settings) -> None:
+    worker = await make_worker(fast_settings.model_copy(update={"error_state_timeout": 0.3}))
+    alerts = worker.bus.subscribe(16, types=["alert"])
+    await worker.emergency_stop(source="test")
+    await worker.request(Event.RESET_REQUESTED, source="test")
+    await asyncio.sleep(0.5)
+    assert alerts.pending == 0
