@@ -224,13 +224,19 @@ class Worker:
         loop.call_soon_threadsafe(self._post_fault, fault)
 
     def _post_fault(self, fault: DeviceFault) -> None:
-        log.error("device fault: %s %s: %s", fault.device, fault.code, fault.message)
-        self.submit(
+        envelope = self.submit(
             Event.ERROR_OCCURRED,
             source=fault.device,
             data={"code": fault.code, "message": fault.message, "component": fault.device},
             priority=Priority.FAULT,
             bounded=False,
+        )
+        log.error(
+            "device fault: %s %s: %s (event %s)",
+            fault.device,
+            fault.code,
+            fault.message,
+            envelope.event_id,
         )
 
     # --- queries -----------------------------------------------------------
