@@ -109,7 +109,12 @@ async def estop_trials(trials: int, queue_size: int) -> list[dict[str, Any]]:
     serving = asyncio.create_task(server.serve())
     while not server.started:
         await asyncio.sleep(0.01)
-    client = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10)  # a kept-alive HMI
+    token = (settings.data_path / "admin.token").read_text().strip()
+    client = httpx.Client(
+        base_url=f"http://127.0.0.1:{port}",
+        timeout=10,  # a kept-alive HMI
+        headers={"Authorization": f"Bearer {token}"},
+    )
     await wait_state(cell, State.IDLE)
     worker = cell.worker
     assert worker is not None

@@ -10,11 +10,13 @@ from __future__ import annotations
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI, Request
+from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 
-from server.api import analytics, commands, metrics, queries, workpieces, ws
+from server.api import analytics, auth, commands, metrics, queries, workpieces, ws
+from server.api.limits import BodySizeLimit
 from server.cell import Cell
 from server.config import Settings
 from server.errors import EventQueueFull, WorkerStopped
@@ -30,6 +32,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await cell.start()
+        app.state.access.tokens.ensure_admin()
         app.state.metrics.attach(cell)
         try:
             yield
@@ -46,13 +49,28 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     app.state.cell = cell
     app.state.settings = settings
     app.state.ws_hub = ws.WebSocketHub(settings.max_broadcast_clients, settings.ws_client_buffer)
-    app.include_router(commands.router)
-    app.include_router(queries.router)
-    app.include_router(workpieces.router)
-    app.include_router(analytics.router)
-    app.include_router(metrics.router)
+    app.state.access = auth.Access(settings)
+    gate = [Depends(auth.authorize)]  # every HTTP route: the policy in server/security/policy.py
+    for router in (
+        commands.router,
+        queries.router,
+        workpieces.router,
+        analytics.router,
+        metrics.router,
+        auth.router,
+    ):
+        app.include_router(router, dependencies=gate)
     app.state.metrics = metrics.Metrics(app)
+    app.middleware("http")(auth.audit_middleware(lambda request: request.app.state.cell.journal))
     app.middleware("http")(app.state.metrics.middleware)
+    if settings.cors_allowed_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_allowed_origins,
+            allow_methods=["GET", "POST", "PUT", "PATCH", "DELETE"],
+            allow_headers=["Authorization", "Content-Type"],
+        )
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
     app.include_router(ws.router)
     _install_error_handlers(app)
     return app

@@ -111,6 +111,13 @@ class Settings(BaseSettings):
         30.0, gt=0, description="ideal time of one trajectory run, for OEE performance"
     )
 
+    # Access
+    trusted_networks: list[str] = Field(
+        default_factory=list, description="if set, only clients from these networks (CIDR)"
+    )
+    cors_allowed_origins: list[str] = Field(default_factory=list, description="closed if empty")
+    max_request_bytes: int = Field(1024 * 1024, ge=1024, le=64 * 1024 * 1024)
+
     # Hardware timeouts (seconds)
     robot_communication_timeout: float = Field(10.0, gt=0)
     vision_processing_timeout: float = Field(5.0, gt=0)

@@ -101,7 +101,7 @@ def server_process(
                     f"{(data_dir / 'server.log').read_text()[-2000:]}"
                 )
             try:
-                httpx.get(f"http://127.0.0.1:{port}/state", timeout=1).raise_for_status()
+                httpx.get(f"http://127.0.0.1:{port}/health", timeout=1).raise_for_status()
                 break
             except httpx.HTTPError:
                 if time.monotonic() > deadline:

@@ -18,7 +18,7 @@ from server.config import Settings
 from server.drivers.camera import SimulatedCamera
 from server.drivers.sim.glue_sim import GlueSimulator
 from server.drivers.sim.robot_sim import RobotSimulator
-from tests.serving import serve
+from tests.serving import admin_headers, serve
 
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
 TIMEOUT = 1.0  # robot_communication_timeout and glue_system_timeout on the rig
@@ -70,7 +70,10 @@ async def open_rig(data_path, **overrides: Any) -> AsyncIterator[Rig]:
             **overrides,
         )
         cell = Cell(settings)
-        async with serve(cell) as url, httpx.AsyncClient(base_url=url, timeout=10) as api:
+        async with (
+            serve(cell) as url,
+            httpx.AsyncClient(base_url=url, timeout=10, headers=admin_headers(data_path)) as api,
+        ):
             rig = Rig(api, cell, robot, glue)
             await rig.wait_state("IDLE")
             yield rig

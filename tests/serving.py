@@ -6,11 +6,18 @@ import asyncio
 import contextlib
 import socket
 from collections.abc import AsyncIterator
+from pathlib import Path
 
 import uvicorn
 
 from server.app import create_app
 from server.cell import Cell
+
+
+def admin_headers(data_path: Path) -> dict[str, str]:
+    """The Authorization header of the admin token the server created on first start."""
+    token = (Path(data_path) / "admin.token").read_text(encoding="utf-8").strip()
+    return {"Authorization": f"Bearer {token}"}
 
 
 def free_port() -> int:

@@ -9,6 +9,7 @@ Close codes (also in docs/api.md):
   1009  the client sent a message over the size limit (enforced by the server)
   1013  too many clients (max_broadcast_clients); try again later
   4001  slow consumer: the client fell behind and was dropped
+  4401  unauthorized: no valid one-shot ticket (POST /ws-ticket) or bearer token
   1001  the server is shutting down
 
 Client → server messages (JSON): `{"type": "subscribe", "types": [...]}`
@@ -28,6 +29,7 @@ from typing import Any
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from server.api.auth import authenticate_websocket
 from server.core.bus import SubscriptionClosed
 
 log = logging.getLogger(__name__)
@@ -41,6 +43,7 @@ CLOSE_INVALID = 1003
 CLOSE_TOO_MANY = 1013
 CLOSE_SLOW = 4001
 CLOSE_GOING_AWAY = 1001
+CLOSE_UNAUTHORIZED = 4401
 
 
 class ClientMessage(BaseModel):
@@ -66,7 +69,12 @@ async def live(websocket: WebSocket) -> None:
     app = websocket.app
     hub: WebSocketHub = app.state.ws_hub
     worker = app.state.cell.worker
+    principal = authenticate_websocket(websocket)
     await websocket.accept()
+    if principal is None:
+        await websocket.close(CLOSE_UNAUTHORIZED, "unauthorized: open /ws with a ticket "
+                              "from POST /ws-ticket, or send a bearer token")
+        return
     if hub.client_count >= hub.max_clients:
         await websocket.close(CLOSE_TOO_MANY, f"too many clients (max {hub.max_clients})")
         return

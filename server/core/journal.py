@@ -58,6 +58,11 @@ CREATE TABLE IF NOT EXISTS recoveries (
     seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, run_id TEXT NOT NULL,
     error_code TEXT NOT NULL, attempt INTEGER NOT NULL, succeeded INTEGER NOT NULL
 );
+CREATE TABLE IF NOT EXISTS audit (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, principal TEXT NOT NULL,
+    address TEXT NOT NULL, action TEXT NOT NULL, outcome TEXT NOT NULL, detail TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS audit_time ON audit(time);
 CREATE INDEX IF NOT EXISTS events_time ON events(time);
 CREATE INDEX IF NOT EXISTS transitions_time ON transitions(time);
 CREATE INDEX IF NOT EXISTS operations_started ON operations(started_at);
@@ -90,6 +95,7 @@ TABLES = {
         ["seq", "time", "code", "message", "component", "classification", "event_id", "state"],
     ),
     "recoveries": ("time", ["seq", "time", "run_id", "error_code", "attempt", "succeeded"]),
+    "audit": ("time", ["seq", "time", "principal", "address", "action", "outcome", "detail"]),
 }
 FILTERS = {  # which columns a query may filter on by equality, per table
     "events": ("type", "source", "outcome", "state"),
@@ -97,6 +103,7 @@ FILTERS = {  # which columns a query may filter on by equality, per table
     "operations": ("kind", "outcome"),
     "errors": ("code", "component", "classification", "state"),
     "recoveries": ("run_id", "error_code"),
+    "audit": ("principal", "address", "action", "outcome"),
 }
 BACKLOG_LIMIT = 20_000
 DAY_S = 86_400.0
@@ -328,6 +335,16 @@ class Journal:
             "INSERT INTO recoveries (time, run_id, error_code, attempt, succeeded) "
             "VALUES (?,?,?,?,?)",
             (at, run_id, error_code, attempt, int(succeeded)),
+        )
+
+    @staticmethod
+    def audit(
+        at: float, principal: str, address: str, action: str, outcome: str, detail: str
+    ) -> Record:
+        return Record(
+            "INSERT INTO audit (time, principal, address, action, outcome, detail) "
+            "VALUES (?,?,?,?,?,?)",
+            (at, principal, address, action, outcome, detail),
         )
 
     # --- reading (from a thread: these block) --------------------------------

@@ -21,7 +21,7 @@ import websockets
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.robot_jsonrpc import JsonRpcRobot
 from tests.processes import server_process, simulator
-from tests.serving import free_port
+from tests.serving import admin_headers, free_port
 
 SPEED_FACTOR = "8"
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}  # the commissioned part
@@ -54,7 +54,8 @@ def cell(tmp_path_factory: pytest.TempPathFactory):
 
 @pytest.fixture
 async def api(cell) -> AsyncIterator[httpx.AsyncClient]:
-    async with httpx.AsyncClient(base_url=cell["url"], timeout=15) as client:
+    headers = admin_headers(cell["data"])
+    async with httpx.AsyncClient(base_url=cell["url"], timeout=15, headers=headers) as client:
         await wait_state(client, "IDLE", allow=("INITIALIZING", "IDLE"))
         yield client
 
@@ -105,7 +106,9 @@ def ws_url(cell) -> str:
 
 async def test_start_drives_a_full_cycle_seen_state_by_state(cell, api, robot_sim) -> None:
     await robot_sim.call("sim.clearPath")
-    async with websockets.connect(ws_url(cell)) as ws:
+    async with websockets.connect(
+        ws_url(cell), additional_headers=admin_headers(cell["data"])
+    ) as ws:
         snapshot = json.loads(await ws.recv())
         assert snapshot["type"] == "snapshot" and snapshot["state"] == "IDLE"
         response = await api.post("/start")  # contour matching: find the part, then spray it
@@ -164,7 +167,9 @@ async def test_estop_mid_run_halts_the_devices_then_reset_returns_to_idle(
 
 
 async def test_pause_then_resume_finishes_the_same_run(cell, api, glue_reader) -> None:
-    async with websockets.connect(ws_url(cell)) as ws:
+    async with websockets.connect(
+        ws_url(cell), additional_headers=admin_headers(cell["data"])
+    ) as ws:
         await ws.recv()
         start = await api.post("/start", json=SPRAY_DEMO)
         run_id = start.json()["event_id"]

@@ -14,7 +14,7 @@ from server.config import Settings
 from server.core.devices import CellDevices
 from tests.conftest import START, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
-from tests.serving import serve
+from tests.serving import admin_headers, serve
 
 
 @pytest.fixture
@@ -28,7 +28,12 @@ async def api(fast_settings: Settings):
     )
     demo_stores(settings.data_path)
     cell = Cell(settings, devices=CellDevices(FakeRobot(speed_factor=50), FakeGlue(), FakeCamera()))
-    async with serve(cell) as url, httpx.AsyncClient(base_url=url, timeout=10) as client:
+    async with (
+        serve(cell) as url,
+        httpx.AsyncClient(
+            base_url=url, timeout=10, headers=admin_headers(settings.data_path)
+        ) as client,
+    ):
         await until_state(client, "IDLE")
         yield client
 

@@ -16,7 +16,7 @@ from server.core.devices import CellDevices
 from server.core.transitions import Event, State
 from tests.conftest import START, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
-from tests.serving import serve
+from tests.serving import admin_headers, serve
 
 
 @pytest.fixture
@@ -27,7 +27,12 @@ async def api(fast_settings: Settings):
         fast_settings.model_copy(update={"max_broadcast_clients": 3, "ws_client_buffer": 8}),
         devices=devices,
     )
-    async with serve(cell) as url, httpx.AsyncClient(base_url=url, timeout=10) as client:
+    async with (
+        serve(cell) as url,
+        httpx.AsyncClient(
+            base_url=url, timeout=10, headers=admin_headers(fast_settings.data_path)
+        ) as client,
+    ):
         async with asyncio.timeout(10):
             while (await client.get("/state")).json()["state"] != "IDLE":
                 await asyncio.sleep(0.01)
@@ -104,7 +109,9 @@ async def test_a_full_queue_answers_503_with_retry_after(api) -> None:
 
 
 async def test_ws_sends_a_snapshot_then_every_change_in_sequence(api) -> None:
-    async with websockets.connect(api.ws_url) as ws:
+    async with websockets.connect(
+        api.ws_url, additional_headers={"Authorization": api.headers["authorization"]}
+    ) as ws:
         snapshot = json.loads(await ws.recv())
         assert snapshot["type"] == "snapshot" and snapshot["state"] == "IDLE"
         assert snapshot["history"] and "context" in snapshot
@@ -124,7 +131,9 @@ async def test_ws_sends_a_snapshot_then_every_change_in_sequence(api) -> None:
 
 
 async def test_ws_subscribe_filters_types_and_ping_is_answered(api) -> None:
-    async with websockets.connect(api.ws_url) as ws:
+    async with websockets.connect(
+        api.ws_url, additional_headers={"Authorization": api.headers["authorization"]}
+    ) as ws:
         await ws.recv()
         await ws.send(json.dumps({"type": "subscribe", "types": ["state_changed"]}))
         assert json.loads(await ws.recv())["type"] == "subscribed"
@@ -140,7 +149,9 @@ async def test_ws_subscribe_filters_types_and_ping_is_answered(api) -> None:
 
 
 async def test_ws_client_sending_garbage_is_closed_with_a_code(api) -> None:
-    async with websockets.connect(api.ws_url) as ws:
+    async with websockets.connect(
+        api.ws_url, additional_headers={"Authorization": api.headers["authorization"]}
+    ) as ws:
         await ws.recv()
         await ws.send("this is not json")
         with pytest.raises(websockets.ConnectionClosed) as closed:
@@ -150,11 +161,18 @@ async def test_ws_client_sending_garbage_is_closed_with_a_code(api) -> None:
 
 
 async def test_ws_over_the_client_limit_is_refused_with_a_code(api) -> None:
-    clients = [await websockets.connect(api.ws_url) for _ in range(3)]
+    clients = [
+        await websockets.connect(
+            api.ws_url, additional_headers={"Authorization": api.headers["authorization"]}
+        )
+        for _ in range(3)
+    ]
     try:
         for ws in clients:
             await ws.recv()
-        extra = await websockets.connect(api.ws_url)
+        extra = await websockets.connect(
+            api.ws_url, additional_headers={"Authorization": api.headers["authorization"]}
+        )
         with pytest.raises(websockets.ConnectionClosed) as closed:
             await asyncio.wait_for(extra.recv(), 5)
         assert closed.value.rcvd.code == 1013 and "max 3" in closed.value.rcvd.reason
@@ -166,8 +184,14 @@ async def test_ws_over_the_client_limit_is_refused_with_a_code(api) -> None:
 async def test_a_client_that_never_reads_is_dropped_and_others_keep_receiving(api) -> None:
     worker = api.cell.worker
     async with (
-        websockets.connect(api.ws_url, max_queue=1) as stuck,
-        websockets.connect(api.ws_url) as healthy,
+        websockets.connect(
+            api.ws_url,
+            additional_headers={"Authorization": api.headers["authorization"]},
+            max_queue=1,
+        ) as stuck,
+        websockets.connect(
+            api.ws_url, additional_headers={"Authorization": api.headers["authorization"]}
+        ) as healthy,
     ):
         await stuck.recv()
         await healthy.recv()

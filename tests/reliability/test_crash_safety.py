@@ -19,7 +19,7 @@ import httpx
 
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from tests.processes import server_process, simulator
-from tests.serving import free_port
+from tests.serving import admin_headers, free_port
 
 KILLS = 6  # bounded for CI; each cycle starts, runs and kills a real server
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
@@ -36,10 +36,10 @@ def wait_until(predicate, timeout: float = 30.0, what: str = "condition"):
         time.sleep(0.02)
 
 
-def settled_state(url: str) -> dict:
+def settled_state(client: httpx.Client) -> dict:
     """The state once the server has left INITIALIZING."""
     return wait_until(
-        lambda: (s := httpx.get(f"{url}/state").json())["state"] != "INITIALIZING" and s,
+        lambda: (s := client.get("/state").json())["state"] != "INITIALIZING" and s,
         what="the cell to leave INITIALIZING",
     )
 
@@ -81,8 +81,10 @@ def test_sigkill_at_random_moments(tmp_path: Path) -> None:
             unfinished = unfinished_operations(data / "journal.db")
             port = free_port()
             with server_process(port, data, env) as server:
-                url = f"http://127.0.0.1:{port}"
-                state = settled_state(url)
+                client = httpx.Client(
+                    base_url=f"http://127.0.0.1:{port}", timeout=30, headers=admin_headers(data)
+                )
+                state = settled_state(client)
                 journal = data / "journal.db"
                 # After every crash: everything acknowledged is on disk, the file is sound.
                 with sqlite3.connect(journal) as connection:
@@ -103,16 +105,14 @@ def test_sigkill_at_random_moments(tmp_path: Path) -> None:
                 else:
                     assert state["state"] in ("IDLE", "INITIALIZING"), state
                 if state["state"] == "ERROR":
-                    reset = httpx.post(f"{url}/reset", timeout=30)
+                    reset = client.post("/reset")
                     acknowledged.add(reset.json()["event_id"])
                     assert reset.status_code == 202, reset.text
-                wait_until(
-                    lambda u=url: httpx.get(f"{u}/state").json()["state"] == "IDLE", what="IDLE"
-                )
+                wait_until(lambda c=client: c.get("/state").json()["state"] == "IDLE", what="IDLE")
                 # Work, acknowledged step by step, then a kill at a random moment.
                 for _ in range(rng.randint(1, 3)):
                     for command, body in (("start", SPRAY_DEMO), ("pause", None), ("resume", None)):
-                        response = httpx.post(f"{url}/{command}", json=body, timeout=30)
+                        response = client.post(f"/{command}", json=body)
                         assert response.status_code in (202, 409), response.text
                         acknowledged.add(response.json()["event_id"])
                         time.sleep(rng.uniform(0.0, 0.3))

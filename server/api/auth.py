@@ -1,0 +1,263 @@
+"""Authentication, authorisation and the audit trail, checked in one place.
+
+Every HTTP route goes through `authorize` (the policy table in
+server/security/policy.py says which role it needs); the WebSocket checks its
+ticket or bearer token in server/api/ws.py with `authenticate_websocket`.
+Every command, every admin action and every refused attempt is written to the
+journal's audit table by `audit_middleware`: who, from where, what, outcome.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any, Literal
+
+from fastapi import APIRouter, HTTPException, Query, Request, Response, WebSocket
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from starlette.requests import HTTPConnection
+
+from server.config import Settings
+from server.core.journal import Journal
+from server.security.policy import WEBSOCKET_ROLE, required_role
+from server.security.tickets import TicketBook
+from server.security.tokens import Principal, Role, TokenStore
+
+router = APIRouter(tags=["access"])
+RUNTIME_SETTINGS = (
+    "error_state_timeout",
+    "auto_recovery_enabled",
+    "error_recovery_attempts",
+    "error_recovery_delay",
+    "calibration_max_error_mm",
+    "design_cycle_time_s",
+    "shift_hours",
+    "processing_timeout",
+    "logging_level",
+)
+
+
+class Access:
+    """The app's token store, tickets and network allowlist."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.tokens = TokenStore(settings.data_path)
+        self.tickets = TicketBook()
+        self.networks = [ipaddress.ip_network(n, strict=False) for n in settings.trusted_networks]
+
+    def address_allowed(self, host: str | None) -> bool:
+        if not self.networks:
+            return True
+        try:
+            address = ipaddress.ip_address(host or "")
+        except ValueError:
+            return False
+        return any(address in network for network in self.networks)
+
+
+def _access(connection: HTTPConnection) -> Access:
+    return connection.app.state.access
+
+
+def _bearer(connection: HTTPConnection) -> str | None:
+    header = connection.headers.get("authorization", "")
+    scheme, _, token = header.partition(" ")
+    return token.strip() if scheme.lower() == "bearer" and token.strip() else None
+
+
+def _refuse(request: Request, status: int, reason: str) -> HTTPException:
+    request.state.audit_reason = reason
+    headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
+    return HTTPException(status, reason, headers=headers)
+
+
+async def authorize(request: Request) -> None:
+    """The one gate of every HTTP route: network, token, role."""
+    access = _access(request)
+    host = request.client.host if request.client else None
+    if not access.address_allowed(host):
+        raise _refuse(request, 403, f"requests from {host} are not allowed (trusted_networks)")
+    route = request.scope.get("route")
+    needed = required_role(request.method, getattr(route, "path", request.url.path))
+    if needed is None:
+        return
+    token = _bearer(request)
+    if token is None:
+        raise _refuse(request, 401, "authentication required: send Authorization: Bearer <token>")
+    principal = access.tokens.verify(token)
+    if principal is None:
+        raise _refuse(request, 401, "the token is unknown or revoked")
+    request.state.principal = principal
+    if principal.role < needed:
+        raise _refuse(
+            request,
+            403,
+            f"this needs the {needed.label} role; {principal.name} has {principal.role.label}",
+        )
+
+
+def authenticate_websocket(websocket: WebSocket) -> Principal | None:
+    """A WebSocket's principal from its one-shot ticket or bearer token, if allowed."""
+    access = _access(websocket)
+    if not access.address_allowed(websocket.client.host if websocket.client else None):
+        return None
+    ticket = websocket.query_params.get("ticket")
+    token = _bearer(websocket)
+    principal = (
+        access.tickets.redeem(ticket)
+        if ticket
+        else (access.tokens.verify(token) if token else None)
+    )
+    if principal is None or principal.role < WEBSOCKET_ROLE:
+        return None
+    return principal
+
+
+def audit_middleware(journal_of: Callable[[Request], Journal | None]):
+    """Record commands, admin actions and refused attempts in the journal."""
+
+    async def middleware(
+        request: Request, call_next: Callable[[Request], Awaitable[Response]]
+    ) -> Response:
+        response = await call_next(request)
+        status = response.status_code
+        if request.method in ("GET", "HEAD", "OPTIONS") and status not in (401, 403):
+            return response
+        journal = journal_of(request)
+        if journal is None:
+            return response
+        principal: Principal | None = getattr(request.state, "principal", None)
+        who = principal.describe() if principal else "anonymous"
+        outcome = "accepted" if status < 400 else f"refused ({status})"
+        detail = getattr(request.state, "audit_reason", "") or ""
+        host = request.client.host if request.client else "unknown"
+        journal.append(
+            [
+                Journal.audit(
+                    time.time(), who, host, f"{request.method} {request.url.path}", outcome, detail
+                )
+            ],
+            durable=False,
+        )
+        return response
+
+    return middleware
+
+
+# --- routes ------------------------------------------------------------------
+
+
+class TicketView(BaseModel):
+    ticket: str
+    expires_in_s: float
+
+
+class TokenRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=100)
+    role: Literal["viewer", "operator", "maintenance", "admin"]
+
+
+@router.post("/ws-ticket", response_model=TicketView)
+async def issue_ticket(request: Request) -> TicketView:
+    """A one-shot ticket for `/ws?ticket=...`, valid a few seconds."""
+    try:
+        ticket, ttl = _access(request).tickets.issue(request.state.principal)
+    except OverflowError as exc:
+        raise HTTPException(503, str(exc)) from exc
+    return TicketView(ticket=ticket, expires_in_s=ttl)
+
+
+@router.get("/tokens")
+async def list_tokens(request: Request) -> dict[str, Any]:
+    """Every token, without secrets."""
+    return {"tokens": _access(request).tokens.list()}
+
+
+@router.post("/tokens", status_code=201)
+async def create_token(request: Request, body: TokenRequest) -> dict[str, Any]:
+    """A new token; its secret is shown once, in this answer only."""
+    entry, token = _access(request).tokens.create(body.name, Role.parse(body.role))
+    request.state.audit_reason = f"created token {entry.id} ({body.name}, {body.role})"
+    return {**entry.public(), "token": token}
+
+
+@router.delete("/tokens/{token_id}", status_code=204, response_class=Response)
+async def revoke_token(request: Request, token_id: str) -> Response:
+    """Revoke a token at once."""
+    try:
+        entry = _access(request).tokens.revoke(token_id)
+    except KeyError:
+        raise HTTPException(404, f"no token {token_id!r}") from None
+    request.state.audit_reason = f"revoked token {entry.id} ({entry.name})"
+    return Response(status_code=204)
+
+
+@router.get("/audit")
+async def get_audit(
+    request: Request,
+    since: float | None = Query(None, ge=0),
+    until: float | None = Query(None, ge=0),
+    outcome: str | None = Query(None, max_length=32),
+    limit: int = Query(100, ge=1, le=10_000),
+    offset: int = Query(0, ge=0),
+) -> dict[str, Any]:
+    """Who did what, when, from where, with what outcome; newest first."""
+    journal: Journal = request.app.state.cell.journal
+    filters = {"outcome": outcome} if outcome else None
+    rows, total = await asyncio.gather(
+        asyncio.to_thread(
+            journal.query,
+            "audit",
+            since=since,
+            until=until,
+            filters=filters,
+            limit=limit,
+            offset=offset,
+        ),
+        asyncio.to_thread(journal.count, "audit", since=since, until=until, filters=filters),
+    )
+    return {"audit": rows, "total": total, "limit": limit, "offset": offset}
+
+
+@router.get("/settings")
+async def get_settings(request: Request) -> dict[str, Any]:
+    """The settings in force (nothing secret is kept in settings)."""
+    return request.app.state.settings.model_dump(mode="json")
+
+
+@router.patch("/settings")
+async def patch_settings(request: Request, body: dict[str, Any]) -> dict[str, Any]:
+    """Change settings that apply at once (RUNTIME_SETTINGS); audited with old and new values."""
+    settings: Settings = request.app.state.settings
+    unknown = sorted(set(body) - set(RUNTIME_SETTINGS))
+    if unknown:
+        raise HTTPException(
+            422,
+            f"not changeable at run time: {', '.join(unknown)}; "
+            f"changeable: {', '.join(RUNTIME_SETTINGS)}",
+        )
+    try:
+        merged = Settings.model_validate({**settings.model_dump(), **body})
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise HTTPException(422, f"invalid setting {where}: {first['msg']}") from None
+    changes = {
+        k: (getattr(settings, k), getattr(merged, k))
+        for k in body
+        if getattr(settings, k) != getattr(merged, k)
+    }
+    for key, (_, new) in changes.items():
+        setattr(settings, key, new)
+    if "logging_level" in changes:
+        logging.getLogger().setLevel(settings.logging_level)
+    request.state.audit_reason = "; ".join(
+        f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items()
+    )
+    return {"changed": {k: {"old": old, "new": new} for k, (old, new) in changes.items()}}

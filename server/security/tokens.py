@@ -1,0 +1,162 @@
+"""API tokens: bearer secrets for people and programs, each with one role.
+
+A token reads `gc_<id>_<secret>`. Only a SHA-256 of the secret is stored
+(`<data>/tokens.json`, written atomically, mode 0600); the id finds the entry,
+the hash is compared in constant time. The secrets are 32 random bytes, so a
+plain hash is enough: there is nothing to brute-force. Revocation takes effect
+on the next request.
+
+On first start, with no token at all, an admin token is created and written to
+`<data>/admin.token` (mode 0600) for the CLI and the dashboard's login; the log
+says where it is, never what it is.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import logging
+import os
+import re
+import secrets
+import threading
+import time
+from dataclasses import asdict, dataclass
+from enum import IntEnum
+from pathlib import Path
+from typing import Any
+
+from server.storage.files import write_bytes_atomic
+
+log = logging.getLogger(__name__)
+TOKEN_PATTERN = re.compile(r"^gc_([0-9a-f]{8})_([A-Za-z0-9_-]{20,100})$")
+
+
+class Role(IntEnum):
+    """Each role may do everything the roles below it may."""
+
+    VIEWER = 1  # state, history, KPIs, /ws
+    OPERATOR = 2  # start, pause, resume, cancel, create workpiece
+    MAINTENANCE = 3  # calibrations, reset, workpiece library edits
+    ADMIN = 4  # settings, tokens, audit
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+    @classmethod
+    def parse(cls, name: str) -> Role:
+        try:
+            return cls[name.upper()]
+        except KeyError:
+            raise ValueError(
+                f"unknown role {name!r}: viewer, operator, maintenance or admin"
+            ) from None
+
+
+@dataclass(frozen=True)
+class Principal:
+    """Who made a request."""
+
+    token_id: str
+    name: str
+    role: Role
+
+    def describe(self) -> str:
+        return f"{self.name} ({self.role.label}, token {self.token_id})"
+
+
+@dataclass
+class TokenEntry:
+    id: str
+    name: str
+    role: str
+    secret_sha256: str
+    created_at: float
+    revoked_at: float | None = None
+
+    def public(self) -> dict[str, Any]:
+        """The entry without its hash: what an admin may list."""
+        return {k: v for k, v in asdict(self).items() if k != "secret_sha256"}
+
+
+def _digest(secret: str) -> str:
+    return hashlib.sha256(secret.encode("utf-8")).hexdigest()
+
+
+class TokenStore:
+    """The tokens of one data directory."""
+
+    def __init__(self, data_path: Path) -> None:
+        self.path = data_path / "tokens.json"
+        self.admin_token_path = data_path / "admin.token"
+        self._lock = threading.Lock()
+        self._entries: dict[str, TokenEntry] = {}
+        self._load()
+
+    def _load(self) -> None:
+        try:
+            document = json.loads(self.path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            return
+        except ValueError as exc:
+            raise ValueError(
+                f"{self.path} is not valid JSON ({exc}); restore it or remove it "
+                "to start with a new admin token"
+            ) from exc
+        self._entries = {e["id"]: TokenEntry(**e) for e in document.get("tokens", [])}
+
+    def _save(self) -> None:
+        data = json.dumps({"tokens": [asdict(e) for e in self._entries.values()]}, indent=2)
+        write_bytes_atomic(self.path, data.encode("utf-8"))
+        os.chmod(self.path, 0o600)
+
+    def ensure_admin(self) -> Path | None:
+        """Create the first admin token if there is no token at all; where it was written."""
+        with self._lock:
+            if self._entries:
+                return None
+        _, secret = self.create("initial admin", Role.ADMIN)
+        write_bytes_atomic(self.admin_token_path, (secret + "\n").encode("utf-8"))
+        os.chmod(self.admin_token_path, 0o600)
+        log.warning(
+            "no API token existed: created an admin token in %s (mode 0600)", self.admin_token_path
+        )
+        return self.admin_token_path
+
+    def create(self, name: str, role: Role) -> tuple[TokenEntry, str]:
+        """A new token; the secret is returned once and never stored."""
+        token_id = secrets.token_hex(4)
+        secret = secrets.token_urlsafe(32)
+        token = f"gc_{token_id}_{secret}"
+        entry = TokenEntry(token_id, name, role.label, _digest(token), time.time())
+        with self._lock:
+            self._entries[token_id] = entry
+            self._save()
+        return entry, token
+
+    def list(self) -> list[dict[str, Any]]:
+        with self._lock:
+            return [e.public() for e in self._entries.values()]
+
+    def revoke(self, token_id: str) -> TokenEntry:
+        """Revoke at once; KeyError for an unknown id."""
+        with self._lock:
+            entry = self._entries[token_id]
+            if entry.revoked_at is None:
+                entry.revoked_at = time.time()
+                self._save()
+            return entry
+
+    def verify(self, token: str) -> Principal | None:
+        """The principal of a valid, unrevoked token, else None."""
+        match = TOKEN_PATTERN.match(token)
+        if match is None:
+            return None
+        entry = self._entries.get(match.group(1))
+        if entry is None or entry.revoked_at is not None:
+            return None
+        if not hmac.compare_digest(entry.secret_sha256, _digest(token)):
+            return None
+        return Principal(entry.id, entry.name, Role.parse(entry.role))
