@@ -27,27 +27,29 @@ class BodySizeLimit:
         too_large = False
 
         async def counting_receive() -> Message:
+            # Past the limit the app gets an empty, final chunk; its answer is replaced below.
             nonlocal received, too_large
+            if too_large:
+                return {"type": "http.request", "body": b"", "more_body": False}
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > self.max_bytes:
                     too_large = True
-                    raise _TooLarge
+                    return {"type": "http.request", "body": b"", "more_body": False}
             return message
 
-        started = False
+        refused = False
 
-        async def tracking_send(message: Message) -> None:
-            nonlocal started
-            started = True
-            await send(message)
-
-        try:
-            await self.app(scope, counting_receive, tracking_send)
-        except _TooLarge:
-            if not started:
+        async def guarded_send(message: Message) -> None:
+            nonlocal refused
+            if not too_large:
+                await send(message)
+            elif not refused:
+                refused = True
                 await self._refuse(send)
+
+        await self.app(scope, counting_receive, guarded_send)
 
     async def _refuse(self, send: Send) -> None:
         body: dict[str, Any] = {"detail": f"request body over {self.max_bytes} bytes"}
@@ -63,7 +65,3 @@ class BodySizeLimit:
             }
         )
         await send({"type": "http.response.body", "body": payload})
-
-
-class _TooLarge(Exception):
-    pass

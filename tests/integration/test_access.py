@@ -1,0 +1,219 @@
+"""Who may do what: every route × every role, tokens, WebSocket tickets, the audit trail."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import stat
+import time
+
+import httpx
+import pytest
+import websockets
+from fastapi.routing import APIRoute
+
+from server.app import create_app
+from server.cell import Cell
+from server.config import Settings
+from server.core.devices import CellDevices
+from server.security.policy import POLICY, required_role
+from server.security.tickets import TicketBook
+from server.security.tokens import Principal, Role
+from tests.conftest import demo_stores
+from tests.fakes import FakeCamera, FakeGlue, FakeRobot
+from tests.serving import admin_headers, serve
+
+ROLES = ("viewer", "operator", "maintenance", "admin")
+
+
+@pytest.fixture
+async def server(fast_settings: Settings):
+    """The app on fakes, with one token per role; yields (client, tokens, settings)."""
+    demo_stores(fast_settings.data_path)
+    cell = Cell(fast_settings, devices=CellDevices(FakeRobot(50), FakeGlue(), FakeCamera()))
+    async with serve(cell) as url, httpx.AsyncClient(base_url=url, timeout=10) as client:
+        admin = admin_headers(fast_settings.data_path)
+        tokens = {"admin": admin["Authorization"].split()[1]}
+        for role in ROLES[:3]:
+            created = await client.post("/tokens", json={"name": role, "role": role}, headers=admin)
+            tokens[role] = created.json()["token"]
+        client.tokens = tokens  # type: ignore[attr-defined]
+        client.cell = cell  # type: ignore[attr-defined]
+        yield client
+
+
+def auth(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+def app_routes() -> list[tuple[str, str]]:
+    app = create_app(Settings())
+    return sorted(
+        {
+            (method, route.path)
+            for route in app.routes
+            if isinstance(route, APIRoute)
+            for method in route.methods
+        }
+    )
+
+
+def test_every_route_has_a_declared_role() -> None:
+    undeclared = [route for route in app_routes() if route not in POLICY]
+    assert undeclared == [], "add these routes to server/security/policy.py"
+
+
+def example_path(path: str) -> str:
+    return (
+        path.replace("{name}", "start")
+        .replace("{workpiece_id}", "demo")
+        .replace("{table}", "events")
+        .replace("{token_id}", "00000000")
+    )
+
+
+async def test_every_route_for_every_role(server) -> None:
+    """No token → 401; too low a role → 403 naming the role; enough → anything but 401/403."""
+    skip = {("DELETE", "/tokens/{token_id}")}  # revoking is checked on its own below
+    for method, path in app_routes():
+        if (method, path) in skip:
+            continue
+        needed = required_role(method, path)
+        url = example_path(path)
+        body = {} if method in ("POST", "PUT", "PATCH") else None
+        anonymous = await server.request(method, url, json=body)
+        if needed is None:
+            assert anonymous.status_code not in (401, 403), (method, path)
+            continue
+        assert anonymous.status_code == 401, (method, path, anonymous.status_code)
+        assert anonymous.headers["www-authenticate"] == "Bearer"
+        for role in ROLES:
+            response = await server.request(
+                method, url, json=body, headers=auth(server.tokens[role])
+            )
+            if Role.parse(role) >= needed:
+                assert response.status_code not in (401, 403), (method, path, role)
+            else:
+                assert response.status_code == 403, (method, path, role)
+                assert f"needs the {needed.label} role" in response.json()["detail"]
+
+
+async def test_estop_is_allowed_to_every_authenticated_role(server) -> None:
+    for role in ROLES:
+        response = await server.post("/estop", headers=auth(server.tokens[role]))
+        assert response.status_code == 202, role
+    assert (await server.post("/estop")).status_code == 401
+
+
+async def test_revocation_takes_effect_immediately(server) -> None:
+    operator = auth(server.tokens["operator"])
+    assert (await server.get("/state", headers=operator)).status_code == 200
+    listed = (await server.get("/tokens", headers=auth(server.tokens["admin"]))).json()["tokens"]
+    token_id = next(t["id"] for t in listed if t["name"] == "operator")
+    assert all("secret" not in key for t in listed for key in t)  # no secrets, no hashes
+    revoked = await server.delete(f"/tokens/{token_id}", headers=auth(server.tokens["admin"]))
+    assert revoked.status_code == 204
+    refused = await server.get("/state", headers=operator)
+    assert refused.status_code == 401 and "revoked" in refused.json()["detail"]
+
+
+async def test_the_admin_token_file_is_private_and_tokens_are_stored_hashed(
+    server, fast_settings
+) -> None:
+    token_file = fast_settings.data_path / "admin.token"
+    assert stat.S_IMODE(os.stat(token_file).st_mode) == 0o600
+    store = (fast_settings.data_path / "tokens.json").read_text()
+    for token in server.tokens.values():
+        assert token not in store and token.split("_")[-1] not in store
+
+
+async def test_websocket_needs_a_ticket_used_once_or_a_bearer_token(server) -> None:
+    url = str(server.base_url).replace("http", "ws") + "/ws"
+    async with websockets.connect(url) as anonymous:
+        with pytest.raises(websockets.ConnectionClosed) as closed:
+            await asyncio.wait_for(anonymous.recv(), 5)
+    assert closed.value.rcvd.code == 4401
+    ticket = (await server.post("/ws-ticket", headers=auth(server.tokens["viewer"]))).json()
+    assert 0 < ticket["expires_in_s"] <= 30
+    async with websockets.connect(f"{url}?ticket={ticket['ticket']}") as viewer:
+        assert (await viewer.recv()).startswith('{"type":"snapshot"')
+    async with websockets.connect(f"{url}?ticket={ticket['ticket']}") as replay:
+        with pytest.raises(websockets.ConnectionClosed) as closed:
+            await asyncio.wait_for(replay.recv(), 5)
+    assert closed.value.rcvd.code == 4401  # a ticket works once
+    async with websockets.connect(url, additional_headers=auth(server.tokens["viewer"])) as ws:
+        assert '"snapshot"' in await ws.recv()
+
+
+async def test_a_forged_ticket_is_refused(server) -> None:
+    url = str(server.base_url).replace("http", "ws") + "/ws"
+    ticket = (await server.post("/ws-ticket", headers=auth(server.tokens["viewer"]))).json()
+    async with websockets.connect(f"{url}?ticket={ticket['ticket']}x") as forged:
+        with pytest.raises(websockets.ConnectionClosed) as closed:
+            await asyncio.wait_for(forged.recv(), 5)
+    assert closed.value.rcvd.code == 4401
+
+
+def test_a_ticket_expires() -> None:
+    book = TicketBook(ttl=0.05)
+    principal = Principal("t1", "viewer", Role.VIEWER)
+    fresh, _ = book.issue(principal)
+    stale, _ = book.issue(principal)
+    assert book.redeem(fresh) == principal
+    time.sleep(0.1)
+    assert book.redeem(stale) is None
+
+
+async def test_the_audit_trail_records_commands_admin_actions_and_refusals(server) -> None:
+    admin = auth(server.tokens["admin"])
+    await server.post("/start")  # anonymous: refused
+    await server.post("/calibrate-robot", headers=auth(server.tokens["operator"]))  # 403
+    await server.post("/pause", headers=auth(server.tokens["operator"]))  # 409
+    await server.patch("/settings", json={"error_state_timeout": 120}, headers=admin)
+    await asyncio.sleep(0.2)  # audit rows are written behind the answer
+    rows = (await server.get("/audit", headers=admin)).json()["audit"]
+    by_action = {(r["action"], r["outcome"]): r for r in rows}
+    anonymous = by_action[("POST /start", "refused (401)")]
+    assert anonymous["principal"] == "anonymous" and anonymous["address"] == "127.0.0.1"
+    forbidden = by_action[("POST /calibrate-robot", "refused (403)")]
+    assert forbidden["principal"].startswith("operator (operator")
+    assert "needs the maintenance role" in forbidden["detail"]
+    assert ("POST /pause", "refused (409)") in by_action
+    change = by_action[("PATCH /settings", "accepted")]
+    assert change["detail"] == "error_state_timeout: 300.0 -> 120.0"
+    created = [r for r in rows if r["action"] == "POST /tokens"]
+    assert created and all("gc_" not in r["detail"] for r in created)  # secrets never written
+
+
+async def test_settings_changes_are_validated_and_limited(server) -> None:
+    admin = auth(server.tokens["admin"])
+    bad = await server.patch("/settings", json={"error_state_timeout": -1}, headers=admin)
+    assert bad.status_code == 422 and "error_state_timeout" in bad.json()["detail"]
+    fixed = await server.patch("/settings", json={"robot_ip": "10.0.0.1"}, headers=admin)
+    assert fixed.status_code == 422 and "robot_ip" in fixed.json()["detail"]
+    settings = (await server.get("/settings", headers=admin)).json()
+    assert settings["error_state_timeout"] == 300.0
+
+
+async def test_an_oversized_body_is_refused_with_413(server) -> None:
+    admin = auth(server.tokens["admin"])
+    huge = {"name": "x", "outline_mm": [[0.0, 0.0]] * 200_000}
+    response = await server.post("/workpieces", json=huge, headers=admin)
+    assert response.status_code == 413
+
+    async def chunks():
+        for _ in range(2000):
+            yield b"x" * 1024
+
+    streamed = await server.post(
+        "/workpieces", content=chunks(), headers={**admin, "content-type": "application/json"}
+    )
+    assert streamed.status_code == 413
+
+
+async def test_trusted_networks_close_the_api_to_other_addresses(fast_settings) -> None:
+    settings = fast_settings.model_copy(update={"trusted_networks": ["10.0.0.0/8"]})
+    cell = Cell(settings, devices=CellDevices(FakeRobot(50), FakeGlue(), FakeCamera()))
+    async with serve(cell) as url, httpx.AsyncClient(base_url=url) as client:
+        response = await client.get("/state", headers=admin_headers(settings.data_path))
+        assert response.status_code == 403 and "not allowed" in response.json()["detail"]
