@@ -180,9 +180,25 @@ async def export_csv(
     until: Until = None,
 ) -> Response:
     """A table as CSV (oldest first, at most 100 000 rows), for spreadsheets and reports."""
-    journal = _journal(request)
+    return await csv_export(_journal(request), table, since, until)
+
+
+async def csv_export(
+    journal: Journal,
+    table: str,
+    since: float | None,
+    until: float | None,
+    filters: dict[str, str] | None = None,
+) -> Response:
+    """A journal table as a CSV download, oldest first."""
     rows = await asyncio.to_thread(
-        journal.query, table, since=since, until=until, limit=EXPORT_LIMIT, newest_first=False
+        journal.query,
+        table,
+        since=since,
+        until=until,
+        filters=filters,
+        limit=EXPORT_LIMIT,
+        newest_first=False,
     )
     buffer = io.StringIO()
     if rows:

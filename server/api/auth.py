@@ -14,12 +14,13 @@ import ipaddress
 import logging
 import time
 from collections.abc import Awaitable, Callable
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response, WebSocket
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.requests import HTTPConnection
 
+from server.api.analytics import csv_export
 from server.config import Settings
 from server.core.journal import Journal
 from server.security.policy import WEBSOCKET_ROLE, required_role
@@ -198,18 +199,30 @@ async def revoke_token(request: Request, token_id: str) -> Response:
     return Response(status_code=204)
 
 
+AuditText = Annotated[str | None, Query(max_length=120)]
+
+
+def _audit_filters(
+    principal: str | None, action: str | None, outcome: str | None
+) -> dict[str, str]:
+    given = {"principal": principal, "action": action, "outcome": outcome}
+    return {k: v for k, v in given.items() if v}
+
+
 @router.get("/audit")
 async def get_audit(
     request: Request,
     since: float | None = Query(None, ge=0),
     until: float | None = Query(None, ge=0),
-    outcome: str | None = Query(None, max_length=32),
+    principal: AuditText = None,
+    action: AuditText = None,
+    outcome: AuditText = None,
     limit: int = Query(100, ge=1, le=10_000),
     offset: int = Query(0, ge=0),
 ) -> dict[str, Any]:
-    """Who did what, when, from where, with what outcome; newest first."""
+    """Who did what, when, from where, with what outcome; newest first, filterable."""
     journal: Journal = request.app.state.cell.journal
-    filters = {"outcome": outcome} if outcome else None
+    filters = _audit_filters(principal, action, outcome)
     rows, total = await asyncio.gather(
         asyncio.to_thread(
             journal.query,
@@ -223,6 +236,25 @@ async def get_audit(
         asyncio.to_thread(journal.count, "audit", since=since, until=until, filters=filters),
     )
     return {"audit": rows, "total": total, "limit": limit, "offset": offset}
+
+
+@router.get("/audit.csv", response_class=Response, responses={200: {"content": {"text/csv": {}}}})
+async def export_audit(
+    request: Request,
+    since: float | None = Query(None, ge=0),
+    until: float | None = Query(None, ge=0),
+    principal: AuditText = None,
+    action: AuditText = None,
+    outcome: AuditText = None,
+) -> Response:
+    """The audit trail as CSV, oldest first."""
+    return await csv_export(
+        request.app.state.cell.journal,
+        "audit",
+        since,
+        until,
+        _audit_filters(principal, action, outcome),
+    )
 
 
 @router.get("/settings")

@@ -72,8 +72,10 @@ async def live(websocket: WebSocket) -> None:
     principal = authenticate_websocket(websocket)
     await websocket.accept()
     if principal is None:
-        await websocket.close(CLOSE_UNAUTHORIZED, "unauthorized: open /ws with a ticket "
-                              "from POST /ws-ticket, or send a bearer token")
+        await websocket.close(
+            CLOSE_UNAUTHORIZED,
+            "unauthorized: open /ws with a ticket from POST /ws-ticket, or send a bearer token",
+        )
         return
     if hub.client_count >= hub.max_clients:
         await websocket.close(CLOSE_TOO_MANY, f"too many clients (max {hub.max_clients})")

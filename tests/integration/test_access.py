@@ -217,3 +217,14 @@ async def test_trusted_networks_close_the_api_to_other_addresses(fast_settings) 
     async with serve(cell) as url, httpx.AsyncClient(base_url=url) as client:
         response = await client.get("/state", headers=admin_headers(settings.data_path))
         assert response.status_code == 403 and "not allowed" in response.json()["detail"]
+
+
+async def test_the_audit_trail_filters_and_exports(server) -> None:
+    admin = auth(server.tokens["admin"])
+    await server.post("/start")
+    await asyncio.sleep(0.2)
+    rows = (await server.get("/audit", params={"action": "POST /start"}, headers=admin)).json()
+    assert rows["total"] >= 1 and {r["action"] for r in rows["audit"]} == {"POST /start"}
+    export = await server.get("/audit.csv", params={"outcome": "refused (401)"}, headers=admin)
+    assert export.status_code == 200 and export.text.startswith("seq,time,principal")
+    assert "POST /start" in export.text
