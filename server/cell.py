@@ -24,6 +24,7 @@ from server.core.transitions import (
     OPERATION_OF_STATE,
     OPERATIONAL_STATES,
     Event,
+    State,
     normalize_command,
 )
 from server.core.worker import Outcome, Worker
@@ -151,6 +152,9 @@ def find_interruption(journal: Journal, previous: dict[str, Any] | None) -> str 
     if not unfinished:
         if state in {s.value for s in OPERATIONAL_STATES}:
             return f"interrupted during {state}; the server stopped before the operation ended"
+        if state == State.ERROR.value:  # ERROR is latched: only a person's reset ends it
+            reason = ((previous or {}).get("stop_reason") or {}).get("message", "unknown")
+            return f"the cell was in ERROR when the server stopped (first fault: {reason})"
         return None
     journal.mark_interrupted([op["run_id"] for op in unfinished], time.time())
     last = unfinished[-1]

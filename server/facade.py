@@ -41,7 +41,9 @@ def blocking_operation(function: Callable[[], Any]) -> Operation:
 
     It runs in a worker thread; its return value becomes the result (a dict is
     kept as is, anything else is stored under "value"); an exception fails the
-    operation.
+    operation. A thread cannot be cancelled: on cancel, e-stop or a fault the
+    cell halts the devices and moves on, but the function runs to its end, so
+    it must not command the devices itself after they were halted.
     """
 
     async def operation(ctx: OperationContext) -> dict[str, Any]:

@@ -28,6 +28,7 @@ class FakeRobot:
         self.moves: list[Pose] = []
         self.failing = False
         self.stalled = False
+        self.probe_delay = 0.0  # seconds get_position takes (a slow controller)
         self._listener: FaultListener | None = None
         self._stop_event = asyncio.Event()
 
@@ -75,6 +76,8 @@ class FakeRobot:
 
     async def get_position(self) -> Pose:
         self._check()
+        if self.probe_delay:
+            await asyncio.sleep(self.probe_delay)
         return self.position
 
     async def is_moving(self) -> bool:

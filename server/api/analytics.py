@@ -24,8 +24,12 @@ from server.core.kpis import Window, compute_kpis
 
 router = APIRouter(tags=["analytics"])
 
-Since = Annotated[float | None, Query(ge=0, description="Unix time, inclusive")]
-Until = Annotated[float | None, Query(ge=0, description="Unix time, exclusive")]
+Since = Annotated[
+    float | None, Query(ge=0, le=1e11, allow_inf_nan=False, description="Unix time, inclusive")
+]
+Until = Annotated[
+    float | None, Query(ge=0, le=1e11, allow_inf_nan=False, description="Unix time, exclusive")
+]
 Limit = Annotated[int, Query(ge=1, le=10_000)]
 Offset = Annotated[int, Query(ge=0, le=10_000_000)]
 Text = Annotated[str | None, Query(max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")]
@@ -191,23 +195,22 @@ async def csv_export(
     filters: dict[str, str] | None = None,
 ) -> Response:
     """A journal table as a CSV download, oldest first."""
-    rows = await asyncio.to_thread(
-        journal.query,
-        table,
-        since=since,
-        until=until,
-        filters=filters,
-        limit=EXPORT_LIMIT,
-        newest_first=False,
-    )
-    buffer = io.StringIO()
-    if rows:
-        writer = csv.DictWriter(buffer, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+
+    def build() -> str:  # reading and formatting 100k rows is work for a thread, not the loop
+        rows = journal.query(
+            table, since=since, until=until, filters=filters, limit=EXPORT_LIMIT, newest_first=False
+        )
+        buffer = io.StringIO()
+        if rows:
+            writer = csv.DictWriter(buffer, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        return buffer.getvalue()
+
+    text = await asyncio.to_thread(build)
     filename = f"{table}-{time.strftime('%Y%m%d-%H%M%S')}.csv"
     return Response(
-        buffer.getvalue(),
+        text,
         media_type="text/csv",
         headers={"Content-Disposition": f'attachment; filename="{filename}"'},
     )
@@ -226,25 +229,36 @@ async def get_kpis(request: Request, since: Since = None, until: Until = None) -
         raise HTTPException(422, "since must be before until")
     journal = _journal(request)
 
-    def gather() -> dict[str, list[dict[str, Any]]]:
-        # Transitions from before the window matter for the interval that crosses its start.
-        rows = {
-            table: journal.query(table, until=end, limit=EXPORT_LIMIT, newest_first=False)
-            for table in ("transitions", "operations", "errors", "recoveries")
-        }
-        for row in rows["recoveries"]:
-            row["succeeded"] = bool(row["succeeded"])
-        return rows
+    state, since_state = worker.ctx.state.value, worker.ctx.since
+    settings = cell.settings
 
-    rows = await asyncio.to_thread(gather)
-    return compute_kpis(
-        Window(start, end),
-        rows["transitions"],
-        rows["operations"],
-        rows["errors"],
-        rows["recoveries"],
-        current_state=worker.ctx.state.value,
-        current_since=worker.ctx.since,
-        now=min(now, end),
-        design_cycle_time_s=cell.settings.design_cycle_time_s,
-    )
+    def compute() -> dict[str, Any]:
+        # Every transition that closes an interval overlapping the window (the first one
+        # after `end` closes the last); operations by when they ended (they start earlier).
+        transitions = journal.query(
+            "transitions", since=start, limit=EXPORT_LIMIT, newest_first=False
+        )
+        operations = journal.query(
+            "operations", since=start - 86_400, until=end, limit=EXPORT_LIMIT, newest_first=False
+        )
+        errors = journal.query(
+            "errors", since=start, until=end, limit=EXPORT_LIMIT, newest_first=False
+        )
+        recoveries = journal.query(
+            "recoveries", since=start, until=end, limit=EXPORT_LIMIT, newest_first=False
+        )
+        for row in recoveries:
+            row["succeeded"] = bool(row["succeeded"])
+        return compute_kpis(
+            Window(start, end),
+            transitions,
+            operations,
+            errors,
+            recoveries,
+            current_state=state,
+            current_since=since_state,
+            now=min(now, end),
+            design_cycle_time_s=settings.design_cycle_time_s,
+        )
+
+    return await asyncio.to_thread(compute)

@@ -45,9 +45,7 @@ async def list_workpieces(request: Request) -> WorkpieceList:
 @router.post("/workpieces", response_model=Workpiece, status_code=201)
 async def create_workpiece_from_outline(request: Request, body: WorkpieceIn) -> Workpiece:
     """Add a workpiece from a given outline (mm, table frame) and spray settings."""
-    library = _library(request)
-    workpiece_id = await asyncio.to_thread(library.new_id)
-    return await asyncio.to_thread(library.put, workpiece_id, body)
+    return await asyncio.to_thread(_library(request).create, body)
 
 
 @router.get("/workpieces/{workpiece_id}", response_model=Workpiece, responses=NOT_FOUND)

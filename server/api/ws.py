@@ -10,7 +10,7 @@ Close codes (also in docs/api.md):
   1013  too many clients (max_broadcast_clients); try again later
   4001  slow consumer: the client fell behind and was dropped
   4401  unauthorized: no valid one-shot ticket (POST /ws-ticket) or bearer token
-  1001  the server is shutting down
+  1012  the server is restarting or shutting down (sent by uvicorn)
 
 Client → server messages (JSON): `{"type": "subscribe", "types": [...]}`
 limits the message types sent from then on (null for all; `seq` then has gaps
@@ -42,7 +42,6 @@ SNAPSHOT_HISTORY = 20
 CLOSE_INVALID = 1003
 CLOSE_TOO_MANY = 1013
 CLOSE_SLOW = 4001
-CLOSE_GOING_AWAY = 1001
 CLOSE_UNAUTHORIZED = 4401
 
 

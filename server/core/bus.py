@@ -4,7 +4,8 @@ Every message gets a sequence number that rises by one, so a subscriber can
 tell whether it missed something. Publishing never waits: each subscriber has
 a bounded buffer, and a subscriber that lets it fill up is closed with the
 reason `slow consumer` instead of holding up the worker or anyone else. The
-WebSocket hub, the journal and the metrics are all just subscribers.
+WebSocket hub and the metrics are subscribers; the journal is not (it must
+never be dropped, so the worker hands it records directly).
 
 Publish from the event loop's thread only (other threads use
 `loop.call_soon_threadsafe`).

@@ -230,12 +230,12 @@ class Journal:
             with connection:
                 for records, _ in batch:
                     for record in records:
-                        connection.execute(record.sql, record.params)
+                        connection.execute(record.sql, tuple(_clean(p) for p in record.params))
             self.written += sum(len(records) for records, _ in batch)
-        except sqlite3.Error as exc:
+        except Exception as exc:  # never let the writer die: every waiting answer must come
             error = exc
             self.last_error = str(exc)
-            log.error("journal write failed: %s", exc)
+            log.critical("journal write failed: %s", exc)
         loop = self._loop
         if loop is None or loop.is_closed():
             return
@@ -447,6 +447,13 @@ class _Closing:
 
     def __exit__(self, *exc_info: object) -> None:
         self.connection.close()
+
+
+def _clean(value: Any) -> Any:
+    """Text as SQLite can store it: unpaired surrogates (e.g. from a device) replaced."""
+    if isinstance(value, str):
+        return value.encode("utf-8", "replace").decode("utf-8")
+    return value
 
 
 def _settle(future: asyncio.Future[None], error: Exception | None) -> None:

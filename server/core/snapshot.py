@@ -60,8 +60,10 @@ class SnapshotFile:
         self._thread.start()
 
     def save(self, snapshot: dict[str, Any]) -> None:
+        """Take a copy now (the caller goes on changing its dicts); written soon after."""
+        copy = json.loads(json.dumps(snapshot, default=str))
         with self._lock:
-            self._latest = snapshot
+            self._latest = copy
         self._dirty.set()
 
     def stop(self) -> None:
@@ -79,7 +81,7 @@ class SnapshotFile:
             if latest is not None:
                 try:
                     write_json_atomic(self.path, {**latest, "saved_at": time.time()})
-                except OSError as exc:
+                except Exception as exc:  # the writer must outlive any one bad write
                     log.error("could not write the state snapshot %s: %s", self.path, exc)
             if self._stopping:
                 return

@@ -124,6 +124,8 @@ _ROWS: Final[tuple[Transition, ...]] = (
     Transition(State.EXECUTING_TRAJECTORY, Event.PAUSE_REQUESTED, State.PAUSED),
     Transition(State.PAUSED, Event.RESUME_REQUESTED, State.EXECUTING_TRAJECTORY),
     Transition(State.PAUSED, Event.CANCEL_REQUESTED, State.IDLE),
+    # A pause that comes during the last segment: the run ends while held.
+    Transition(State.PAUSED, Event.OPERATION_COMPLETED, State.IDLE),
     # Calibrations and workpiece creation: finish or cancel.
     Transition(State.CALIBRATING_ROBOT, Event.OPERATION_COMPLETED, State.IDLE),
     Transition(State.CALIBRATING_ROBOT, Event.CANCEL_REQUESTED, State.IDLE),

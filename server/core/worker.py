@@ -61,6 +61,7 @@ log = logging.getLogger(__name__)
 
 COMPLETION_EVENTS = frozenset({Event.OPERATION_COMPLETED, Event.OPERATION_FAILED})
 JOURNAL_BACKLOG_LIMIT = 10_000
+OVERTAKEN = "overtaken by an emergency stop while it was being decided; nothing was changed"
 OPERATION_OUTCOME = {
     Event.OPERATION_COMPLETED: "completed",
     Event.CANCEL_REQUESTED: "cancelled",
@@ -123,6 +124,7 @@ class Worker:
         self._gate: PauseGate | None = None
         self._activity: asyncio.Task[None] | None = None  # start-up or homing
         self._error_timer: asyncio.Task[None] | None = None
+        self._estops = 0  # e-stops requested so far; see _overtaken
         self._records: list[Record] = []  # journal records of the event being handled
         # Called with (kind, outcome, seconds) when an operation ends, e.g. by metrics.
         self.operation_listeners: list[Callable[[str, str, float], None]] = []
@@ -194,6 +196,7 @@ class Worker:
         The valve-close and robot-stop commands leave before the event is even
         queued; the EMERGENCY_STOP event then overtakes everything waiting.
         """
+        self._estops += 1  # anything being decided now must not undo this stop
         halt = asyncio.ensure_future(self.devices.safe_halt(self.settings.emergency_stop_timeout))
         envelope = self.submit(
             Event.EMERGENCY_STOP,
@@ -203,7 +206,7 @@ class Worker:
             bounded=False,
         )
         assert envelope.future is not None
-        report = await halt
+        report = await asyncio.shield(halt)
         outcome: Outcome = await envelope.future
         if report.errors:
             detail = "; ".join(report.errors)
@@ -242,8 +245,13 @@ class Worker:
     # --- queries -----------------------------------------------------------
 
     def facts(self) -> Facts:
-        """Guard facts from what is known without asking the devices."""
-        return Facts(ready_devices=frozenset(self._ready))
+        """Guard facts from what is known without asking the devices (a reset probes them)."""
+        known = tuple(
+            f"{name}: not connected"
+            for name, device in self.devices.by_name().items()
+            if not device.health.connected
+        )
+        return Facts(ready_devices=frozenset(self._ready), active_faults=known)
 
     def snapshot(self) -> dict[str, Any]:
         """The state as GET /state and the WebSocket snapshot show it."""
@@ -323,8 +331,22 @@ class Worker:
         )
         return self.journal.append(records)
 
-    @staticmethod
-    def _answer(envelope: Envelope, outcome: Outcome, durable: asyncio.Future[None] | None) -> None:
+    def _journal_failed(self, problem: str) -> None:
+        """The record is not on disk: stop the cell, once, and say so."""
+        if self.ctx.stop_reason is not None and self.ctx.stop_reason.code == "JOURNAL_WRITE_FAILED":
+            return
+        self._post_fault(
+            DeviceFault(
+                "journal",
+                "JOURNAL_WRITE_FAILED",
+                f"the journal could not be written ({problem}); records may "
+                "be missing: check the disk under the data directory",
+            )
+        )
+
+    def _answer(
+        self, envelope: Envelope, outcome: Outcome, durable: asyncio.Future[None] | None
+    ) -> None:
         """Answer the sender once the event is on disk (at once without a journal)."""
         future = envelope.future
         if future is None or future.done():
@@ -339,6 +361,7 @@ class Worker:
             if written.cancelled() or written.exception() is not None:
                 problem = "cancelled" if written.cancelled() else written.exception()
                 log.critical("event %s decided but not journaled: %s", outcome.event_id, problem)
+                self._journal_failed(str(problem))
                 future.set_result(
                     Outcome(
                         outcome.accepted,
@@ -358,14 +381,18 @@ class Worker:
         if event in COMPLETION_EVENTS and not self._is_current_run(envelope):
             return self._refuse(envelope, f"{event.value} of a run that already ended; ignored")
         facts = self.facts()
+        estops = self._estops
         if event is Event.RESET_REQUESTED and state is State.ERROR:
             faults = await self.devices.probe_faults(self._device_timeouts())
             facts = Facts(ready_devices=facts.ready_devices, active_faults=tuple(faults))
+            if self._estops != estops:
+                return self._refuse(envelope, OVERTAKEN)
         try:
             decision = step(state, event, facts)
         except TransitionNotAllowed as refusal:
             return self._refuse(envelope, str(refusal))
-        await self._apply(decision, envelope)
+        if not await self._apply(decision, envelope, estops):
+            return self._refuse(envelope, OVERTAKEN)
         target = decision.target.value
         return Outcome(
             True,
@@ -391,7 +418,8 @@ class Worker:
 
     # --- acting on a decision ------------------------------------------------
 
-    async def _apply(self, decision: Decision, envelope: Envelope) -> None:
+    async def _apply(self, decision: Decision, envelope: Envelope, estops: int) -> bool:
+        """Act on a decision; False (nothing changed) if an e-stop came in meanwhile."""
         source, target, event = decision.source, decision.target, decision.event
         halted = False
 
@@ -400,17 +428,21 @@ class Worker:
             self._journal_operation_end(envelope)
             if target is State.ERROR:
                 await self._halt()  # valve first, before anything else
-                halted = True
             await self._cancel_operation()
-            if not halted:
-                await self._halt()
-                halted = True
+            # Again once the operation is gone: a valve command of its own may have
+            # been on the line behind the first close.
+            await self._halt()
+            halted = True
         if source is State.IDLE and target is not State.IDLE:
             await self._cancel_activity()
+        if target is not State.ERROR and self._estops != estops:
+            return False
         if event is Event.PAUSE_REQUESTED and self._gate is not None:
             self._gate.pause()
 
-        # 2. the state change
+        # 2. the state change (a fault is on record before anyone sees the new state)
+        if target is State.ERROR:
+            self._record_fault(envelope, target)
         if decision.changes_state:
             self._change_state(decision, envelope)
 
@@ -418,7 +450,6 @@ class Worker:
         if event in READINESS_EVENTS:
             self._note_ready(READINESS_EVENTS[event])
         if target is State.ERROR:
-            self._record_fault(envelope)
             if decision.changes_state and not halted:
                 await self._halt()
         elif target is State.IDLE and decision.changes_state:
@@ -427,6 +458,7 @@ class Worker:
             self._start_operation(target, envelope)
         if event is Event.RESUME_REQUESTED and self._gate is not None:
             self._gate.resume()
+        return True
 
     def _change_state(self, decision: Decision, envelope: Envelope) -> None:
         ctx = self.ctx
@@ -466,7 +498,7 @@ class Worker:
                 {"code": "HALT_INCOMPLETE", "message": error, "component": error.split(":", 1)[0]},
             )
 
-    def _record_fault(self, envelope: Envelope) -> None:
+    def _record_fault(self, envelope: Envelope, state: State) -> None:
         data = envelope.data
         if envelope.event is Event.EMERGENCY_STOP:
             code, message = "EMERGENCY_STOP", f"emergency stop by {envelope.source}"
@@ -496,11 +528,11 @@ class Worker:
                     component,
                     fault.classification,
                     envelope.event_id,
-                    self.ctx.state.value,
+                    state.value,
                 )
             )
         log.error("fault %s from %s (%s): %s", code, component, envelope.event_id, message)
-        self.bus.publish("error", {**fault.as_dict(), "state": self.ctx.state.value})
+        self.bus.publish("error", {**fault.as_dict(), "state": state.value})
 
     def _enter_idle(self, envelope: Envelope) -> None:
         ctx = self.ctx
@@ -509,6 +541,8 @@ class Worker:
         ctx.operation_data = {}
         if envelope.event is Event.RESET_REQUESTED:
             ctx.clear_error()
+        if self._activity is not None and not self._activity.done():
+            self._activity.cancel()  # e.g. a start-up still connecting after an early fault
         self._activity = asyncio.create_task(self._go_to_safe_position(), name="homing")
 
     def _note_ready(self, device: str) -> None:
@@ -638,16 +672,26 @@ class Worker:
         }
 
     async def _bring_up_devices(self) -> None:
-        timeouts = self._device_timeouts()
-        ready_event = {device: event for event, device in READINESS_EVENTS.items()}
+        """Connect every device, close the valve and stop the robot, then report.
 
-        async def bring_up(name: str) -> None:
-            try:
-                await self.devices.connect(name, timeouts[name])
-            except asyncio.CancelledError:
-                raise
-            except Exception as exc:
-                reason = "no answer" if isinstance(exc, TimeoutError) else str(exc)
+        The halt comes first on every start: whatever the last run left behind,
+        nothing sprays or moves until the machine says so. After an interruption
+        the fault is posted before any READY, so the cell cannot reach IDLE by itself.
+        """
+        timeouts = self._device_timeouts()
+        results = await asyncio.gather(
+            *(self.devices.connect(name, timeouts[name]) for name in timeouts),
+            return_exceptions=True,
+        )
+        await self._halt()
+        if self.interruption is not None:
+            self._post_fault(DeviceFault("system", "INTERRUPTED", self.interruption))
+        ready_event = {device: event for event, device in READINESS_EVENTS.items()}
+        for name, result in zip(timeouts, results, strict=True):
+            if isinstance(result, asyncio.CancelledError):
+                raise result
+            if isinstance(result, BaseException):
+                reason = "no answer" if isinstance(result, TimeoutError) else str(result)
                 self._post_fault(
                     DeviceFault(
                         name,
@@ -655,24 +699,8 @@ class Worker:
                         f"{name} did not come up within {timeouts[name]:g} s: {reason}",
                     )
                 )
-                return
-            self.submit(ready_event[name], source=name, bounded=False)
-
-        if self.interruption is None:
-            await asyncio.gather(*(bring_up(name) for name in timeouts))
-            return
-        # The last run stopped mid-operation: connect, then go to ERROR (which closes
-        # the valve) before any READY event could take the cell to IDLE by itself.
-        connected = await asyncio.gather(
-            *(self.devices.connect(name, timeouts[name]) for name in timeouts),
-            return_exceptions=True,
-        )
-        self._post_fault(DeviceFault("system", "INTERRUPTED", self.interruption))
-        for name, result in zip(timeouts, connected, strict=True):
-            if isinstance(result, BaseException):
-                self._post_fault(
-                    DeviceFault(name, "DEVICE_UNAVAILABLE", f"{name} did not come up: {result}")
-                )
+            else:
+                self.submit(ready_event[name], source=name, bounded=False)
 
     async def _go_to_safe_position(self) -> None:
         settings = self.settings

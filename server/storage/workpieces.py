@@ -76,7 +76,7 @@ class WorkpieceLibrary:
     def __init__(self, data_path: Path) -> None:
         self.directory = data_path / "workpieces"
         self.directory.mkdir(parents=True, exist_ok=True)
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # create() allocates an id and writes under one hold
 
     def _path(self, workpiece_id: str) -> Path:
         if not _ID.match(workpiece_id):
@@ -138,6 +138,13 @@ class WorkpieceLibrary:
             )
             write_json_atomic(path, workpiece.model_dump(mode="json"))
         return workpiece
+
+    def create(
+        self, data: WorkpieceIn, *, source: str = "api", thumbnail_png: bytes | None = None
+    ) -> Workpiece:
+        """Store under the next free wp-NNNN id; no two creations can get the same id."""
+        with self._lock:
+            return self.put(self.new_id(), data, source=source, thumbnail_png=thumbnail_png)
 
     def delete(self, workpiece_id: str) -> None:
         """Remove the entry and its thumbnail; KeyError if there is none."""

@@ -100,6 +100,7 @@ async def test_kpis_over_the_shift(api) -> None:
     assert kpis["oee"]["quality"] == 1.0
     assert kpis["error_recovery_success_rate"] == 0.0  # the calibration retry failed too
     assert (await api.get("/kpis", params={"since": 10, "until": 5})).status_code == 422
+    assert (await api.get("/kpis", params={"since": 0, "until": "inf"})).status_code == 422
 
 
 async def test_recovery_attempts_are_journaled(api) -> None:

@@ -133,3 +133,29 @@ async def test_a_command_answers_only_once_its_event_is_on_disk(tmp_path) -> Non
         ).fetchone()
     assert row == ("accepted", outcome.state.value)
     await cell.stop()
+
+
+async def test_error_is_latched_across_a_restart(tmp_path) -> None:
+    cell = await started(tmp_path)
+    await cell.command("estop", source="test", data={"reason": "guard door"})
+    await asyncio.sleep(0.1)  # the snapshot is written behind the state change
+    await cell.stop()
+    cell = await started(tmp_path)
+    assert cell.worker.ctx.state is State.ERROR
+    message = cell.worker.ctx.stop_reason.message
+    assert message.startswith("the cell was in ERROR when the server stopped")
+    assert "guard door" in message
+    await cell.stop()
+
+
+async def test_text_sqlite_cannot_store_does_not_stop_the_journal(tmp_path) -> None:
+    journal = Journal(tmp_path / "journal.db")
+    journal.open()
+    journal.start(asyncio.get_running_loop())
+    await journal.append(
+        [Journal.error(time.time(), "X", "bad \ud800 text", "robot", "critical", "e1", "ERROR")]
+    )
+    await journal.append([Journal.event("e2", time.time(), "X", "t", {}, "accepted", "", "IDLE")])
+    assert journal.query("errors")[0]["message"] == "bad ? text"
+    assert journal.query("events")[0]["id"] == "e2"
+    journal.stop()

@@ -251,3 +251,35 @@ async def test_stop_answers_every_waiting_sender(make_worker) -> None:
     await worker.stop()
     with pytest.raises(Exception, match="shutting down"):
         await waiting.future
+
+
+async def test_a_run_that_ends_while_paused_completes_to_idle(make_worker) -> None:
+    finish = asyncio.Event()
+
+    async def last_segment(ctx: OperationContext) -> dict[str, Any]:
+        await finish.wait()  # the pause arrives while the last move is under way
+        return {"done": True}
+
+    worker = await make_worker(operations={"trajectory": last_segment})
+    await worker.request(Event.START_REQUESTED, source="test", data=START)
+    assert (await worker.request(Event.PAUSE_REQUESTED, source="test")).state is State.PAUSED
+    finish.set()
+    await wait_for_state(worker, State.IDLE)
+    assert worker.ctx.history[-1].event == "OPERATION_COMPLETED"
+    assert worker.ctx.operation_result == {"done": True}
+
+
+async def test_an_estop_during_a_reset_probe_wins(make_worker) -> None:
+    robot = FakeRobot()
+    worker = await make_worker(robot=robot)
+    await worker.emergency_stop(source="test")
+    robot.probe_delay = 0.3  # the reset's live probe takes a while
+    reset = asyncio.create_task(worker.request(Event.RESET_REQUESTED, source="test"))
+    await asyncio.sleep(0.05)
+    moves_before = len(robot.moves)
+    stop = await worker.emergency_stop(source="test")
+    outcome = await reset
+    assert not outcome.accepted and "overtaken by an emergency stop" in outcome.message
+    assert stop.state is State.ERROR and worker.ctx.state is State.ERROR
+    await asyncio.sleep(0.1)
+    assert len(robot.moves) == moves_before  # no homing move after the stop

@@ -151,6 +151,9 @@ async def execute_trajectory(ctx: OperationContext) -> dict[str, Any]:
                 flow = waypoint.flow_rate_ml_min
                 await glue.set_flow_rate(flow)
             if waypoint.spray != valve_open:
+                # Counted open from the moment the command may be on the line, so a
+                # cancellation in flight still closes it in `finally`.
+                valve_open = valve_open or waypoint.spray
                 await glue.set_valve(waypoint.spray)
                 valve_open = waypoint.spray
             await ctx.robot.move_linear(

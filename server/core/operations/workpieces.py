@@ -74,16 +74,20 @@ async def create_workpiece(ctx: OperationContext) -> dict[str, Any]:
 
     outline_mm, thumbnail = await asyncio.to_thread(measure)
     library = ctx.stores.workpieces
-    workpiece_id = ctx.params.get("workpiece_id") or library.new_id()
     spray = SpraySettings.model_validate(ctx.params.get("spray") or {})
     entry = WorkpieceIn(
-        name=ctx.params.get("name") or workpiece_id,
+        name=ctx.params.get("name") or ctx.params.get("workpiece_id") or "part from camera",
         outline_mm=[(float(x), float(y)) for x, y in outline_mm],
         spray=spray,
     )
-    stored = await asyncio.to_thread(
-        library.put, workpiece_id, entry, source="camera", thumbnail_png=thumbnail
-    )
+    if ctx.params.get("workpiece_id"):
+        stored = await asyncio.to_thread(
+            library.put, ctx.params["workpiece_id"], entry, source="camera", thumbnail_png=thumbnail
+        )
+    else:
+        stored = await asyncio.to_thread(
+            library.create, entry, source="camera", thumbnail_png=thumbnail
+        )
     centroid = outline_mm.mean(axis=0)
     ctx.report({"step": "stored", "fraction": 1.0, "workpiece": stored.id})
     return {
@@ -109,7 +113,7 @@ class Target:
 async def locate_workpieces(ctx: OperationContext, only: str | None) -> list[Target]:
     """Find the parts on the table and match each to the library (or to `only`)."""
     homography = require_robot_calibration(ctx, "contour matching").homography
-    entries = ctx.stores.workpieces.list()
+    entries = await asyncio.to_thread(ctx.stores.workpieces.list)
     if only is not None:
         entries = [w for w in entries if w.id == only]
         if not entries:
