@@ -15,7 +15,7 @@ wrong, each carrying the server's own message:
     │   └── NotFound   404: e.g. an unknown operation name
     ├── Busy           503: the event queue is full (`.retry_after` seconds)
     ├── WaitTimeout    `wait_for_state` ran out of time (`.last_state`)
-    └── CellFaulted    the cell fell into ERROR while `wait_for_state` waited
+    └── CellFaulted    `wait_for_state` found the cell in ERROR instead
 
 `AsyncCellClient.messages()` follows `/ws` across reconnects: the server has no
 replay, so after a reconnect the stream yields the fresh snapshot marked
@@ -114,9 +114,7 @@ class CommandResult:
 class CellError(Exception):
     """Root of every error the clients raise; `str(error)` is the server's message."""
 
-    def __init__(
-        self, message: str, *, status_code: int | None = None, body: Any = None
-    ) -> None:
+    def __init__(self, message: str, *, status_code: int | None = None, body: Any = None) -> None:
         super().__init__(message)
         self.message = message
         self.status_code = status_code
@@ -206,7 +204,7 @@ class WaitTimeout(CellError):
 
 
 class CellFaulted(CellError):
-    """The cell fell into ERROR while `wait_for_state` waited for another state.
+    """`wait_for_state` found the cell in ERROR while it waited for another state.
 
     Waiting on would only run into the timeout: leaving ERROR takes a reset.
     """
@@ -362,15 +360,11 @@ def _json(response: httpx.Response) -> Any:
 
 
 def _command(path: str, body: dict[str, Any] | None = None) -> _Call[CommandResult]:
-    return _Call(
-        "POST", path, lambda r: _command_result(r, _body(r)), json=body, ok=(202,)
-    )
+    return _Call("POST", path, lambda r: _command_result(r, _body(r)), json=body, ok=(202,))
 
 
 def _start(workpiece_id: str | None, contour_matching: bool) -> _Call[CommandResult]:
-    return _command(
-        "/start", {"contour_matching": contour_matching, "workpiece_id": workpiece_id}
-    )
+    return _command("/start", {"contour_matching": contour_matching, "workpiece_id": workpiece_id})
 
 
 def _estop(reason: str | None) -> _Call[CommandResult]:
@@ -419,25 +413,23 @@ class _StateWait:
         self.timeout = timeout
         self.deadline = time.monotonic() + timeout
         self.fail_on = {normalize_state(s) for s in fail_on} - {self.target}
-        self.seen_healthy = False
         self.last: dict[str, Any] | None = None
 
     def reached(self, snapshot: dict[str, Any]) -> bool:
-        """True at the target; raises CellFaulted on a fall into a fail state."""
+        """True at the target; raises CellFaulted in a fail state.
+
+        A fail state counts whenever it is seen, even on the first poll: an
+        operation can fail within milliseconds of being accepted, before any
+        poll, and a script that started it must not wait for a reset instead.
+        """
         self.last = snapshot
         state = snapshot.get("state")
         if state == self.target:
             return True
         if state in self.fail_on:
-            # Already in ERROR when the wait began: someone may be about to reset; wait.
-            if self.seen_healthy:
-                fault = snapshot.get("error") or snapshot.get("stop_reason") or {}
-                why = f": {fault['message']}" if fault.get("message") else ""
-                raise CellFaulted(
-                    f"the cell entered {state} while waiting for {self.target}{why}", snapshot
-                )
-        else:
-            self.seen_healthy = True
+            fault = snapshot.get("error") or snapshot.get("stop_reason") or {}
+            why = f": {fault['message']}" if fault.get("message") else ""
+            raise CellFaulted(f"the cell is in {state}, waiting for {self.target}{why}", snapshot)
         return False
 
     def remaining(self) -> float:
@@ -472,9 +464,7 @@ class CellClient:
     ) -> None:
         self.base_url = normalize_url(base_url)
         self.timeout = timeout
-        self._http = httpx.Client(
-            base_url=self.base_url, headers=_headers(token), timeout=timeout
-        )
+        self._http = httpx.Client(base_url=self.base_url, headers=_headers(token), timeout=timeout)
 
     def __enter__(self) -> Self:
         return self
@@ -578,8 +568,10 @@ class CellClient:
         """Poll GET /state until the cell is in `state`; returns that snapshot.
 
         Raises WaitTimeout after `timeout` seconds, and CellFaulted as soon as the
-        cell enters a `fail_on` state it was not already in (pass `fail_on=()` to
-        wait regardless). Polling can miss a state shorter than `poll_interval`.
+        cell is seen in a `fail_on` state (ERROR: only a reset leaves it, so waiting
+        on would just run into the timeout); pass `fail_on=()` to wait through it,
+        e.g. for someone else's reset. Polling can miss a state shorter than
+        `poll_interval`.
         """
         wait = _StateWait(state, timeout, fail_on)
         while True:
@@ -727,7 +719,9 @@ class AsyncCellClient:
         base = httpx.URL(self.base_url)
         scheme = "wss" if base.scheme == "https" else "ws"
         path = base.path.rstrip("/") + "/ws"
-        return str(base.copy_with(scheme=scheme, path=path, query=urlencode({"ticket": ticket}).encode()))
+        return str(
+            base.copy_with(scheme=scheme, path=path, query=urlencode({"ticket": ticket}).encode())
+        )
 
     def messages(
         self,

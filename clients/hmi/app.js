@@ -33,6 +33,8 @@
     ERROR_OCCURRED: "stopped by a fault",
   };
 
+  const DONE_COLOUR = "#ff4fd8"; // the executed path: unlike anything on the camera frame
+
   const $ = (id) => document.getElementById(id);
 
   const hmi = {
@@ -526,26 +528,39 @@
   }
 
   function deviceCard(name, device) {
-    const rows = [["round trip", device.last_rtt_ms == null ? "—" : `${device.last_rtt_ms.toFixed(1)} ms`]];
-    if (name === "glue") {
+    const card = element("div", "device");
+    card.dataset.device = name;
+    card.dataset.connected = String(device.connected);
+    const state = element("span", "pill", device.connected ? "connected" : "disconnected");
+    state.dataset.kind = device.connected ? "ok" : "fault";
+    const head = element("div", "device-head");
+    head.append(element("span", "device-name", name), state);
+    card.append(head, facts(deviceFacts(name, device)));
+    if (device.last_error) card.append(element("div", "device-error", device.last_error));
+    return card;
+  }
+
+  function deviceFacts(name, device) {
+    const rtt = device.last_rtt_ms == null ? "—" : `${number(device.last_rtt_ms, 1)} ms`;
+    const rows = [["round trip", rtt]];
+    if (name === "robot") {
+      rows.push(
+        ["link losses", String(device.connection_losses ?? "—")],
+        ["reconnects", String(device.reconnects ?? "—")],
+      );
+    } else if (name === "glue") {
+      const alarms = (device.alarms || []).join(", ");
       rows.push(
         ["flow", `${number(device.flow_ml_min, 1)} ml/min`],
         ["pressure", `${number(device.pressure_psi, 1)} psi`],
         ["temperature", `${number(device.temperature_c, 1)} °C`],
-        ["valve", device.valve_open ? "OPEN" : "closed"],
-        ["alarms", (device.alarms || []).join(", ") || "none"],
+        ["valve", device.valve_open ? "OPEN" : "closed", device.valve_open ? "on" : ""],
+        ["alarms", alarms || "none", alarms ? "alarm" : ""],
       );
+    } else if (name === "camera") {
+      rows.push(["resolution", device.resolution || "—"], ["mode", device.mode || "—"]);
     }
-    if (name === "camera" && device.resolution) rows.push(["resolution", device.resolution]);
-    if (device.last_error) rows.push(["last error", device.last_error]);
-    const card = element("div", "device");
-    card.dataset.device = name;
-    card.dataset.connected = String(device.connected);
-    const head = element("div", "device-head");
-    head.append(element("span", "device-name", name), element("span", "pill", device.connected ? "connected" : "disconnected"));
-    head.lastChild.dataset.kind = device.connected ? "ok" : "fault";
-    card.append(head, definitionList(rows));
-    return card;
+    return rows;
   }
 
   function renderKpis(kpis) {
@@ -781,7 +796,7 @@
       ctx.lineTo(...points[i]);
       ctx.setLineDash(spray || done ? [] : [6, 6]);
       ctx.lineWidth = done ? 6 : spray ? 4 : 2;
-      ctx.strokeStyle = done ? "#39d98a" : spray ? "rgba(86,180,255,0.95)" : "rgba(200,210,220,0.7)";
+      ctx.strokeStyle = done ? DONE_COLOUR : spray ? "rgba(86,180,255,0.95)" : "rgba(200,210,220,0.7)";
       ctx.stroke();
     }
     ctx.setLineDash([]);
@@ -832,9 +847,13 @@
     return node;
   }
 
-  function definitionList(rows) {
+  function facts(rows) {
     const list = element("dl", "facts");
-    for (const [term, value] of rows) list.append(element("dt", "", term), element("dd", "", value));
+    for (const [term, value, mark] of rows) {
+      const item = element("div", `fact ${mark || ""}`.trim());
+      item.append(element("dt", "", term), element("dd", "", value));
+      list.append(item);
+    }
     return list;
   }
 

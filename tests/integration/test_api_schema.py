@@ -18,10 +18,10 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import httpx
 import pytest
@@ -44,7 +44,8 @@ from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, serve
 
 ROOT = Path(__file__).resolve().parents[2]
-MAX_EXAMPLES = 15  # per operation and mode, in the fuzzing phase (the coverage phase adds its own)
+# Hypothesis examples per operation and mode (the deterministic coverage phase adds its own).
+MAX_EXAMPLES = 25
 
 # An explicit configuration (no schemathesis.toml discovery): derandomized, no example database,
 # so a CI run makes the same requests as a local one.
@@ -79,8 +80,10 @@ _SPARED_TOKEN_IDS: set[str] = set()
 
 
 @schema.hook
-def filter_path_parameters(context: Any, path_parameters: dict[str, Any] | None) -> bool:
-    return not path_parameters or path_parameters.get("token_id") not in _SPARED_TOKEN_IDS
+def filter_case(context: schemathesis.HookContext, case: schemathesis.Case) -> bool:
+    """Applies to the coverage phase's cases too (filter_path_parameters would not)."""
+    token_id = (case.path_parameters or {}).get("token_id")
+    return not (isinstance(token_id, str) and token_id in _SPARED_TOKEN_IDS)
 
 
 @dataclass
@@ -104,8 +107,9 @@ class ServerThread(threading.Thread):
     def run(self) -> None:
         try:
             asyncio.run(self._serve())
-        except BaseException as exc:
-            self.error = exc
+        except BaseException as exc:  # uvicorn ends a failed startup with SystemExit
+            self.error = RuntimeError(f"the server under test failed: {exc!r}")
+            self.error.__cause__ = exc
         finally:
             self.ready.set()
 
@@ -147,12 +151,10 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Live]:
         admin = admin_headers(data)
         _SPARED_TOKEN_IDS.add(admin["Authorization"].split()[1].split("_")[1])
         with httpx.Client(base_url=server.url, headers=admin, timeout=10) as client:
-            for _ in range(1000):
-                if client.get("/state").json()["state"] == "IDLE":
-                    break
-                threading.Event().wait(0.01)
-            else:
-                pytest.fail("the cell did not reach IDLE")
+            deadline = time.monotonic() + 10
+            while client.get("/state").json()["state"] != "IDLE":
+                assert time.monotonic() < deadline, "the cell did not reach IDLE within 10 s"
+                time.sleep(0.01)
         yield Live(server.url, admin)
     finally:
         server.stop()
@@ -215,7 +217,7 @@ def served_only_to_principals(
 ) -> bool | None:
     """A route that needs a role never succeeds without credentials."""
     if _needs_role(case):
-        assert not 200 <= response.status_code < 400, (
+        assert not 200 <= response.status_code < 300, (
             f"{case.operation.label} needs a role but answered {response.status_code} "
             "without credentials"
         )
@@ -242,3 +244,55 @@ def test_with_the_admin_token(case: schemathesis.Case, live: Live, session) -> N
 @schema.parametrize()
 def test_without_credentials(case: schemathesis.Case, live: Live, session) -> None:
     case.call_and_validate(base_url=live.url, session=session, checks=ANONYMOUS_CHECKS)
+
+
+# --- numbers past 64 bits ------------------------------------------------------------------
+#
+# A bounded random run rarely draws 2**63 for an integer that has a minimum and no maximum, yet
+# that is where SQLite stops (OverflowError in the driver, a 500). Every numeric parameter the
+# document leaves unbounded above is sent its extremes once, deterministically, with the token.
+# The values are valid per the document, so the answer must be documented and not a 5xx.
+
+EXTREMES = {"integer": (2**63 - 1, 2**63, 2**64), "number": (1e308,)}
+
+
+def _numeric_types(parameter_schema: dict) -> set[str]:
+    options = parameter_schema.get("anyOf", [parameter_schema])
+    return {
+        option["type"]
+        for option in options
+        if option.get("type") in EXTREMES and "maximum" not in option
+    }
+
+
+def _a_valid_value(parameter_schema: dict) -> object:
+    """A value for a path parameter the probe does not vary (the enum's first, else "demo")."""
+    return parameter_schema.get("enum", ["demo"])[0]
+
+
+def _extremes() -> list[tuple[str, str, str, object]]:
+    probes = []
+    for path, methods in schema.raw_schema["paths"].items():
+        for method, definition in methods.items():
+            for parameter in definition.get("parameters", []):
+                if parameter["in"] != "query":
+                    continue
+                for kind in sorted(_numeric_types(parameter["schema"])):
+                    probes += [(method, path, parameter["name"], v) for v in EXTREMES[kind]]
+    return probes
+
+
+@pytest.mark.parametrize(("method", "path", "name", "value"), _extremes())
+def test_numbers_past_64_bits_are_answered_not_a_500(
+    live: Live, session, method: str, path: str, name: str, value: object
+) -> None:
+    operation = schema[path][method]
+    path_parameters = {
+        p["name"]: _a_valid_value(p["schema"])
+        for p in operation.definition.raw.get("parameters", [])
+        if p["in"] == "path"
+    }
+    case = operation.Case(query={name: value}, path_parameters=path_parameters)
+    case.call_and_validate(
+        base_url=live.url, session=session, headers=live.admin, checks=SCHEMA_CHECKS
+    )

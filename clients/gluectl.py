@@ -1,0 +1,738 @@
+"""gluectl: drive and watch the glue cell from a shell or a script.
+
+    gluectl state                        where the cell is, what it may do next
+    gluectl start --workpiece demo       spray (202 → exit 0; refused → exit 3)
+    gluectl wait IDLE --timeout 120      block until the cell is back in IDLE
+    gluectl watch                        live view: progress bar and state timeline
+    gluectl --json history --limit 5     anything as JSON (--json before or after the command)
+
+Global options go before the command: --url (env GLUE_CELL_URL, default
+http://127.0.0.1:8000), --token (env GLUE_CELL_TOKEN, else <data dir>/admin.token),
+--data-dir (env GLUE_APP_DATA_PATH, default ./data), --json.
+
+Exit codes, stable for scripts (the reason is printed on stderr):
+
+    0  accepted / ok
+    1  an unexpected answer (e.g. a 500), never a documented outcome
+    2  usage error: unknown option, bad argument (typer's)
+    3  refused (409): the command is not allowed in the current state;
+       `allowed` exits 3 when the answer is no
+    4  unauthorized or forbidden (401/403): no valid token, or the role is too low
+    5  unreachable: no connection, or no answer in time
+    6  invalid request (422), or not found (404)
+    7  busy (503): the event queue is full; nothing changed, retry shortly
+    8  timeout in `wait`
+    9  `wait`: the cell is in ERROR, which only a reset leaves (even if it was
+       already there); --no-fail-on-error waits through it for someone's reset
+
+With --json every command prints one JSON document on stdout, errors too
+(`{"error": "Refused", "status_code": 409, "message": ...}`); `watch --json`
+prints one message per line.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sys
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Annotated, Any, NoReturn, TypeVar
+
+import typer
+from rich.console import Console, Group, RenderableType
+from rich.live import Live
+from rich.panel import Panel
+from rich.progress_bar import ProgressBar
+from rich.table import Table
+from rich.text import Text
+
+from clients.client import (
+    DATA_DIR_ENV,
+    DEFAULT_URL,
+    TOKEN_ENV,
+    URL_ENV,
+    AsyncCellClient,
+    Busy,
+    CellClient,
+    CellError,
+    CellFaulted,
+    CommandResult,
+    Forbidden,
+    InvalidRequest,
+    Refused,
+    Unauthorized,
+    Unreachable,
+    WaitTimeout,
+    normalize_state,
+    resolve_token,
+)
+
+T = TypeVar("T")
+
+EXIT_OK = 0
+EXIT_ERROR = 1
+EXIT_USAGE = 2
+EXIT_REFUSED = 3
+EXIT_AUTH = 4
+EXIT_UNREACHABLE = 5
+EXIT_INVALID = 6
+EXIT_BUSY = 7
+EXIT_TIMEOUT = 8
+EXIT_FAULTED = 9
+
+EXIT_CODES_HELP = """\
+Exit codes (the reason goes to stderr):
+  0 ok · 1 unexpected answer · 2 usage error · 3 refused (409)
+  4 unauthorized or forbidden (401/403) · 5 unreachable
+  6 invalid request (422) or not found (404) · 7 busy (503)
+  8 timeout in `wait` · 9 `wait` found the cell in ERROR"""
+
+
+def exit_code(error: CellError) -> int:
+    """The documented exit code of each client error (see the module docstring)."""
+    codes: tuple[tuple[type[CellError], int], ...] = (
+        (Refused, EXIT_REFUSED),
+        (Unauthorized, EXIT_AUTH),
+        (Forbidden, EXIT_AUTH),
+        (Unreachable, EXIT_UNREACHABLE),
+        (InvalidRequest, EXIT_INVALID),
+        (Busy, EXIT_BUSY),
+        (WaitTimeout, EXIT_TIMEOUT),
+        (CellFaulted, EXIT_FAULTED),
+    )
+    for kind, code in codes:
+        if isinstance(error, kind):
+            return code
+    return EXIT_ERROR
+
+
+app = typer.Typer(
+    name="gluectl",
+    help="Drive and watch the glue cell over its HTTP and WebSocket API.",
+    epilog=EXIT_CODES_HELP,
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+
+@dataclass(frozen=True)
+class Options:
+    """The global options, resolved once in the callback."""
+
+    url: str
+    token: str | None
+    token_source: str
+    json: bool
+    timeout: float
+
+    def client(self) -> CellClient:
+        return CellClient(self.url, self.token, timeout=self.timeout)
+
+    def async_client(self) -> AsyncCellClient:
+        return AsyncCellClient(self.url, self.token, timeout=self.timeout)
+
+
+JsonFlag = Annotated[
+    bool, typer.Option("--json", help="Machine-readable output (same as the global --json).")
+]
+
+
+@app.callback()
+def main_options(
+    ctx: typer.Context,
+    url: Annotated[
+        str, typer.Option("--url", envvar=URL_ENV, help="The cell server's base URL.")
+    ] = DEFAULT_URL,
+    token: Annotated[
+        str | None,
+        typer.Option(
+            "--token",
+            envvar=TOKEN_ENV,
+            help="Bearer token; default: the data dir's admin.token.",
+            show_default=False,
+        ),
+    ] = None,
+    data_dir: Annotated[
+        Path | None,
+        typer.Option(
+            "--data-dir",
+            help=f"Where to find admin.token (default: ${DATA_DIR_ENV}, else ./data).",
+            show_default=False,
+        ),
+    ] = None,
+    json_output: Annotated[
+        bool, typer.Option("--json", help="Machine-readable output: one JSON document.")
+    ] = False,
+    timeout: Annotated[
+        float, typer.Option("--http-timeout", min=0.1, help="Seconds to wait for each answer.")
+    ] = 10.0,
+) -> None:
+    """Drive and watch the glue cell over its HTTP and WebSocket API."""
+    resolved = resolve_token(token, data_dir=data_dir)
+    if token:
+        source = "--token / $" + TOKEN_ENV
+    elif resolved:
+        source = "the admin.token file"
+    else:
+        where = data_dir or f"${DATA_DIR_ENV} or ./data"
+        source = f"none found (--token, ${TOKEN_ENV}, or admin.token in {where})"
+    ctx.obj = Options(url, resolved, source, json_output, timeout)
+
+
+# --- output ------------------------------------------------------------------------
+
+
+def _options(ctx: typer.Context, json_flag: bool) -> Options:
+    options: Options = ctx.obj
+    return replace(options, json=True) if json_flag else options
+
+
+def _stdout() -> Console:
+    return Console(highlight=False, soft_wrap=False)
+
+
+def _print_json(data: Any) -> None:
+    typer.echo(json.dumps(data, ensure_ascii=False, default=str))
+
+
+def _fail(options: Options, error: CellError) -> NoReturn:
+    """Report `error` (reason on stderr, JSON on stdout with --json) and exit with its code."""
+    code = exit_code(error)
+    if options.json:
+        _print_json(error.as_dict())
+    label = {
+        EXIT_REFUSED: "refused",
+        EXIT_AUTH: "unauthorized" if isinstance(error, Unauthorized) else "forbidden",
+        EXIT_UNREACHABLE: "unreachable",
+        EXIT_INVALID: "invalid request",
+        EXIT_BUSY: "busy",
+        EXIT_TIMEOUT: "timeout",
+        EXIT_FAULTED: "fault",
+    }.get(code, "error")
+    typer.echo(f"gluectl: {label}: {error}", err=True)
+    if isinstance(error, Unauthorized) and options.token is None:
+        typer.echo(f"gluectl: token: {options.token_source}", err=True)
+    if isinstance(error, Busy):
+        typer.echo(f"gluectl: retry after {error.retry_after:g} s", err=True)
+    raise typer.Exit(code)
+
+
+def _call(options: Options, action: Callable[[CellClient], T]) -> T:
+    try:
+        with options.client() as client:
+            return action(client)
+    except CellError as error:
+        _fail(options, error)
+
+
+def _command(
+    ctx: typer.Context, json_flag: bool, action: Callable[[CellClient], CommandResult]
+) -> None:
+    """Run a command; print the decision. Refusals and errors exit through `_fail`."""
+    options = _options(ctx, json_flag)
+    result = _call(options, action)
+    if options.json:
+        _print_json(result.as_dict())
+    else:
+        event = f"  (event {result.event_id})" if result.event_id else ""
+        typer.echo(f"{result.message}{event}")
+
+
+def _when(timestamp: Any) -> str:
+    if not isinstance(timestamp, int | float):
+        return "—"
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(timestamp))
+
+
+def _value(value: Any) -> str:
+    if value is None:
+        return "—"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:.3f}".rstrip("0").rstrip(".") if value == value else "nan"
+    if isinstance(value, dict | list):
+        return json.dumps(value, ensure_ascii=False)
+    return str(value)
+
+
+def _fault(fault: dict[str, Any] | None) -> str:
+    if not fault:
+        return "—"
+    return f"{fault.get('code')}: {fault.get('message')} ({fault.get('recommended_action', '')})"
+
+
+def _progress(progress: dict[str, Any] | None) -> str:
+    if not progress or not progress.get("of"):
+        return ""
+    fraction = progress.get("fraction") or 0.0
+    return f"waypoint {progress.get('waypoint')}/{progress['of']} ({fraction:.0%})"
+
+
+def _key_values(title: str, rows: list[tuple[str, str]]) -> Table:
+    table = Table(title=title, show_header=False, title_justify="left")
+    table.add_column(style="bold")
+    table.add_column(overflow="fold")
+    for key, value in rows:
+        table.add_row(Text(key), Text(value))
+    return table
+
+
+def state_table(state: dict[str, Any]) -> Table:
+    """GET /state as a key/value table."""
+    operation = state.get("operation")
+    running = "—"
+    if operation:
+        running = f"{operation.get('name')} (run {operation.get('run_id')})"
+        progress = _progress(operation.get("progress"))
+        running += f"  {progress}" if progress else ""
+    rows = [
+        ("state", str(state.get("state"))),
+        ("previous", _value(state.get("previous_state"))),
+        ("since", f"{_when(state.get('since'))}  ({_value(state.get('time_in_state'))} s)"),
+        ("operation", running),
+        ("error", _fault(state.get("error"))),
+        ("stop reason", _fault(state.get("stop_reason"))),
+        ("may do", ", ".join(state.get("available_commands") or []) or "—"),
+    ]
+    if state.get("operation_result"):
+        rows.append(("last result", _value(state["operation_result"])))
+    return _key_values("cell", rows)
+
+
+def history_table(rows: list[dict[str, Any]]) -> Table:
+    table = Table(title="transitions, newest first", title_justify="left")
+    for column in ("time", "from", "to", "event", "event id", "s in old state"):
+        table.add_column(column, justify="right" if column.startswith("s ") else "left")
+    for row in rows:
+        table.add_row(
+            *(
+                Text(v)
+                for v in (
+                    _when(row.get("time")),
+                    _value(row.get("old_state")),
+                    _value(row.get("new_state")),
+                    _value(row.get("event")),
+                    _value(row.get("event_id")),
+                    _value(row.get("time_in_old_state")),
+                )
+            )
+        )
+    return table
+
+
+def workpieces_table(rows: list[dict[str, Any]]) -> Table:
+    table = Table(title="workpiece library", title_justify="left")
+    for column in ("id", "name", "source", "outline points", "fill", "created"):
+        table.add_column(column)
+    for row in rows:
+        spray = row.get("spray") or {}
+        table.add_row(
+            *(
+                Text(v)
+                for v in (
+                    _value(row.get("id")),
+                    _value(row.get("name")),
+                    _value(row.get("source")),
+                    str(len(row.get("outline_mm") or [])),
+                    _value(spray.get("fill")),
+                    _when(row.get("created_at")),
+                )
+            )
+        )
+    return table
+
+
+def _flatten(data: dict[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
+    for key, value in data.items():
+        if isinstance(value, dict):
+            yield from _flatten(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value
+
+
+def kpis_table(kpis: dict[str, Any]) -> Table:
+    window = kpis.get("window") or {}
+    title = f"KPIs {_when(window.get('start'))} → {_when(window.get('end'))}"
+    rows = [(k, _value(v)) for k, v in _flatten(kpis) if not k.startswith("window.")]
+    return _key_values(title, rows)
+
+
+def health_table(health: dict[str, Any]) -> Table:
+    table = Table(
+        title=f"health: {health.get('status')} (state {health.get('state')})", title_justify="left"
+    )
+    for column in ("device", "connected", "last rtt ms", "last error"):
+        table.add_column(column)
+    for name, device in (health.get("devices") or {}).items():
+        table.add_row(
+            Text(name),
+            Text(_value(device.get("connected"))),
+            Text(_value(device.get("last_rtt_ms"))),
+            Text(_value(device.get("last_error"))),
+        )
+    return table
+
+
+def _show(options: Options, data: Any, render: Callable[[Any], RenderableType]) -> None:
+    if options.json:
+        _print_json(data)
+    else:
+        _stdout().print(render(data))
+
+
+# --- commands ----------------------------------------------------------------------
+
+
+@app.command()
+def state(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """Show the state, the running operation and its progress, the fault if any."""
+    options = _options(ctx, json_flag)
+    _show(options, _call(options, lambda c: c.state()), state_table)
+
+
+@app.command()
+def start(
+    ctx: typer.Context,
+    workpiece: Annotated[
+        str | None, typer.Option("--workpiece", help="Spray (or match only) this library id.")
+    ] = None,
+    contour_matching: Annotated[
+        bool,
+        typer.Option(
+            "--contour-matching/--no-contour-matching",
+            help="Find the part on the table and match it (default), or spray it as stored.",
+        ),
+    ] = True,
+    json_flag: JsonFlag = False,
+) -> None:
+    """Start spraying (IDLE → EXECUTING_TRAJECTORY)."""
+    _command(ctx, json_flag, lambda c: c.start(workpiece, contour_matching))
+
+
+@app.command()
+def pause(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """Hold the trajectory at its next waypoint, glue off."""
+    _command(ctx, json_flag, lambda c: c.pause())
+
+
+@app.command()
+def resume(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """Continue a paused trajectory from where it held."""
+    _command(ctx, json_flag, lambda c: c.resume())
+
+
+@app.command()
+def cancel(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """Stop the running operation at once, glue off, back to IDLE."""
+    _command(ctx, json_flag, lambda c: c.cancel())
+
+
+@app.command()
+def estop(
+    ctx: typer.Context,
+    reason: Annotated[
+        str | None, typer.Option("--reason", help="Why, for the record (≤ 200 characters).")
+    ] = None,
+    json_flag: JsonFlag = False,
+) -> None:
+    """Software stop: valve closed, robot stopped, then ERROR. Not a safety function."""
+    _command(ctx, json_flag, lambda c: c.estop(reason))
+
+
+@app.command()
+def reset(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """Leave ERROR for IDLE once every device answers (maintenance role)."""
+    _command(ctx, json_flag, lambda c: c.reset())
+
+
+@app.command("calibrate-robot")
+def calibrate_robot(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """Fit the image → robot map from ArUco markers 0-8 (maintenance role)."""
+    _command(ctx, json_flag, lambda c: c.calibrate_robot())
+
+
+@app.command("calibrate-camera")
+def calibrate_camera(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """Calibrate the camera's intrinsics from chessboard views (maintenance role)."""
+    _command(ctx, json_flag, lambda c: c.calibrate_camera())
+
+
+@app.command("create-workpiece")
+def create_workpiece(
+    ctx: typer.Context,
+    name: Annotated[str | None, typer.Option("--name", help="The workpiece's name.")] = None,
+    workpiece_id: Annotated[
+        str | None, typer.Option("--id", help="Store under this id (default: the next wp-NNNN).")
+    ] = None,
+    json_flag: JsonFlag = False,
+) -> None:
+    """Capture the largest part on the table into the library."""
+    _command(ctx, json_flag, lambda c: c.create_workpiece(name, workpiece_id))
+
+
+@app.command()
+def workpieces(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """List the workpiece library."""
+    options = _options(ctx, json_flag)
+    _show(options, _call(options, lambda c: c.workpieces()), workpieces_table)
+
+
+@app.command()
+def history(
+    ctx: typer.Context,
+    limit: Annotated[
+        int, typer.Option("--limit", min=1, max=10_000, help="How many transitions.")
+    ] = 20,
+    json_flag: JsonFlag = False,
+) -> None:
+    """The latest state transitions, newest first."""
+    options = _options(ctx, json_flag)
+    _show(options, _call(options, lambda c: c.history(limit)), history_table)
+
+
+@app.command()
+def kpis(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """The current shift's KPIs and OEE."""
+    options = _options(ctx, json_flag)
+    _show(options, _call(options, lambda c: c.kpis()), kpis_table)
+
+
+@app.command()
+def health(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """Each device's link, last round trip and last error (needs no token)."""
+    options = _options(ctx, json_flag)
+    _show(options, _call(options, lambda c: c.health()), health_table)
+
+
+@app.command()
+def allowed(
+    ctx: typer.Context,
+    command: Annotated[str, typer.Argument(help="A command name, e.g. start or calibrate-robot.")],
+    json_flag: JsonFlag = False,
+) -> None:
+    """Would COMMAND be accepted now? Exit 0 if yes, 3 if not; the reason either way."""
+    options = _options(ctx, json_flag)
+    answer = _call(options, lambda c: c.allowed(command))
+    if options.json:
+        _print_json(answer)
+    else:
+        typer.echo(answer.get("reason", ""))
+    if not answer.get("allowed"):
+        raise typer.Exit(EXIT_REFUSED)
+
+
+@app.command()
+def wait(
+    ctx: typer.Context,
+    state: Annotated[
+        str, typer.Argument(metavar="STATE", help="e.g. IDLE, PAUSED, ERROR (any case).")
+    ],
+    timeout: Annotated[
+        float, typer.Option("--timeout", min=0, help="Give up after this many seconds (exit 8).")
+    ] = 60.0,
+    interval: Annotated[
+        float, typer.Option("--interval", min=0.01, help="Seconds between polls of /state.")
+    ] = 0.1,
+    fail_on_error: Annotated[
+        bool,
+        typer.Option(
+            "--fail-on-error/--no-fail-on-error",
+            help="Stop at once (exit 9) when the cell is in ERROR (unless waiting for ERROR).",
+        ),
+    ] = True,
+    json_flag: JsonFlag = False,
+) -> None:
+    """Block until the cell is in STATE (polls GET /state); exit 8 on timeout, 9 in ERROR."""
+    options = _options(ctx, json_flag)
+    try:
+        wanted = normalize_state(state)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="STATE") from None
+    fail_on = ("ERROR",) if fail_on_error else ()
+    reached = _call(
+        options,
+        lambda c: c.wait_for_state(wanted, timeout, poll_interval=interval, fail_on=fail_on),
+    )
+    if options.json:
+        _print_json(reached)
+    else:
+        typer.echo(reached["state"])
+
+
+# --- watch -------------------------------------------------------------------------
+
+
+class WatchView:
+    """What `watch` shows, built from /ws messages: state, progress bar, timeline."""
+
+    def __init__(self, url: str, timeline: int = 12) -> None:
+        self.url = url
+        self.state = "?"
+        self.since: float | None = None
+        self.operation: dict[str, Any] | None = None
+        self.progress: dict[str, Any] | None = None
+        self.fault: dict[str, Any] | None = None
+        self.timeline: deque[dict[str, Any]] = deque(maxlen=timeline)
+        self.notes: deque[str] = deque(maxlen=3)
+        self.seq: int | None = None
+        self.received = 0
+
+    def update(self, message: dict[str, Any]) -> None:
+        self.received += 1
+        self.seq = message.get("seq", self.seq)
+        kind = message.get("type")
+        if kind == "snapshot":
+            self._take_snapshot(message)
+            self.timeline.clear()
+            self.timeline.extend(message.get("history") or [])
+            if message.get("resumed"):
+                restarted = " (the server restarted)" if message.get("restarted") else ""
+                self.notes.append(
+                    f"reconnected{restarted}: missed {message.get('missed')} message(s); resynced"
+                )
+        elif kind == "state_changed":
+            self.timeline.append(message)
+            self._take_snapshot(message.get("snapshot") or {"state": message.get("new_state")})
+        elif kind == "progress":
+            self.progress = message
+        elif kind == "error":
+            self.fault = message
+        elif kind == "alert":
+            self.notes.append(f"alert: {message.get('message', message)}")
+
+    def _take_snapshot(self, snapshot: dict[str, Any]) -> None:
+        self.state = str(snapshot.get("state", self.state))
+        self.since = snapshot.get("since", self.since)
+        self.operation = snapshot.get("operation")
+        progress = (self.operation or {}).get("progress")
+        self.progress = progress if self.operation else None
+        self.fault = snapshot.get("error")
+
+    def render(self) -> RenderableType:
+        header = Text.assemble(
+            ("state ", "dim"),
+            (self.state, "bold red" if self.state == "ERROR" else "bold green"),
+            (f"   since {_when(self.since)}   seq {_value(self.seq)}   {self.url}", "dim"),
+        )
+        parts: list[RenderableType] = [header]
+        if self.operation:
+            progress = self.progress or {}
+            total = float(progress.get("of") or 1)
+            done = float(progress.get("waypoint") or 0)
+            bar = Table.grid(padding=(0, 1))
+            bar.add_row(
+                Text(f"{self.operation.get('name')}"),
+                ProgressBar(total=total, completed=done, width=40),
+                Text(_progress(progress) or "starting"),
+            )
+            parts.append(bar)
+        if self.fault:
+            parts.append(Text(f"fault {_fault(self.fault)}", style="red"))
+        parts.extend(Text(note, style="yellow") for note in self.notes)
+        timeline = Table(title="timeline", title_justify="left", expand=False)
+        for column in ("time", "from", "to", "event"):
+            timeline.add_column(column)
+        for row in self.timeline:
+            timeline.add_row(
+                Text(_when(row.get("time"))),
+                Text(_value(row.get("old_state"))),
+                Text(_value(row.get("new_state"))),
+                Text(_value(row.get("event"))),
+            )
+        parts.append(timeline)
+        return Panel(Group(*parts), title="glue cell", subtitle="Ctrl-C to quit")
+
+
+def message_line(message: dict[str, Any]) -> str:
+    """One line per message, for `watch` when stdout is not a terminal."""
+    kind = message.get("type")
+    prefix = f"{_when(message.get('time'))}  seq {message.get('seq')}  {kind}"
+    if kind == "snapshot":
+        line = f"{prefix}  state {message.get('state')}"
+        if message.get("resumed"):
+            line += f"  (resumed, missed {message.get('missed')})"
+        return line
+    if kind == "state_changed":
+        return (
+            f"{prefix}  {message.get('old_state')} → {message.get('new_state')}"
+            f"  ({message.get('event')}, {message.get('event_id')})"
+        )
+    if kind == "progress":
+        return f"{prefix}  {message.get('operation')}  {_progress(message)}"
+    if kind == "error":
+        return f"{prefix}  {message.get('code')}: {message.get('message')}"
+    return f"{prefix}  {json.dumps(message, ensure_ascii=False)}"
+
+
+async def _watch(options: Options, count: int | None, types: list[str] | None) -> None:
+    console = _stdout()
+    live_view = not options.json and console.is_terminal
+    view = WatchView(options.url)
+    received = 0
+    async with options.async_client() as client:
+        stream = client.messages(types)
+        async with stream:
+            live = Live(view.render(), console=console, auto_refresh=False) if live_view else None
+            if live:
+                live.start()
+            try:
+                async for message in stream:
+                    received += 1
+                    if live:
+                        view.update(message)
+                        live.update(view.render(), refresh=True)
+                    elif options.json:
+                        _print_json(message)
+                    else:
+                        typer.echo(message_line(message))
+                    sys.stdout.flush()
+                    if count is not None and received >= count:
+                        break
+            finally:
+                if live:
+                    live.stop()
+
+
+@app.command()
+def watch(
+    ctx: typer.Context,
+    count: Annotated[
+        int | None,
+        typer.Option("--count", min=1, help="Exit after N messages (the snapshot counts)."),
+    ] = None,
+    types: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--type", help="Only these message types (repeatable): state_changed, progress, ..."
+        ),
+    ] = None,
+    json_flag: JsonFlag = False,
+) -> None:
+    """Live view over /ws: progress bar and state timeline; reconnects by itself.
+
+    On a terminal it redraws in place; piped, it prints one line per message
+    (with --json, one JSON message per line). Ctrl-C quits.
+    """
+    options = _options(ctx, json_flag)
+    try:
+        asyncio.run(_watch(options, count, types))
+    except CellError as error:
+        _fail(options, error)
+    except KeyboardInterrupt:
+        raise typer.Exit(EXIT_OK) from None
+
+
+def main() -> None:
+    """Console entry point (`gluectl`, `python -m clients.gluectl`)."""
+    app(prog_name="gluectl")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,334 @@
+"""The operator dashboard in a real browser: Debian's Chromium driven by Playwright,
+against the real server on loopback with the robot and glue simulators (tests/rig.py).
+
+Screenshots of each step go to test-artifacts/screenshots/. With UPDATE_SCREENSHOT=1
+the run also rewrites docs/dashboard.png (1920×1080, taken mid-run).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi import FastAPI
+from playwright.async_api import Browser, Page, async_playwright, expect
+
+from server.api import auth
+from server.api.dashboard import mount_dashboard
+from server.app import create_app
+from server.security.policy import POLICY
+from tests import serving
+from tests.rig import Rig, open_rig
+from tests.serving import admin_headers
+
+CHROMIUM = Path("/usr/bin/chromium")
+LAUNCH_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+ROOT = Path(__file__).resolve().parents[2]
+SHOTS = ROOT / "test-artifacts" / "screenshots"
+DOC_SHOT = ROOT / "docs" / "dashboard.png"
+PANEL = {"width": 1920, "height": 1080}
+TABLET = {"width": 1024, "height": 768}
+# Chromium logs every 4xx answer to the console; the tests expect some (401, 409).
+HTTP_STATUS_LOG = "Failed to load resource: the server responded with a status of"
+SLOW_SPRAY_MM_S = 30.0  # the demo part sprays in a few seconds: time to watch and to stop it
+COMMANDS = (
+    "start",
+    "pause",
+    "resume",
+    "cancel",
+    "calibrate-robot",
+    "calibrate-camera",
+    "create-workpiece",
+    "reset",
+)
+
+
+@dataclass
+class Dashboard:
+    rig: Rig
+    app: FastAPI
+    url: str
+    token: str
+    baseline_subscriptions: set[int]
+
+    def drop_websockets_server_side(self) -> int:
+        """Close every WebSocket client's bus subscription: the server closes them (4001)."""
+        bus = self.rig.cell.worker.bus
+        clients = [s for s in bus._subscribers if id(s) not in self.baseline_subscriptions]
+        for subscription in clients:
+            subscription.close("dropped by the test")
+        return len(clients)
+
+
+@pytest.fixture
+async def dashboard(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> AsyncIterator[Dashboard]:
+    """The rig's server with the dashboard mounted (a no-op if server/app.py mounts it)."""
+    apps: list[FastAPI] = []
+
+    def create_app_with_dashboard(*args: Any, **kwargs: Any) -> FastAPI:
+        app = create_app(*args, **kwargs)
+        mount_dashboard(app)
+        apps.append(app)
+        return app
+
+    monkeypatch.setattr(serving, "create_app", create_app_with_dashboard)
+    if (("GET", "/")) not in POLICY:  # until the policy opens the page (see server/api/dashboard.py)
+        declared = auth.required_role
+        monkeypatch.setattr(
+            auth,
+            "required_role",
+            lambda method, path: None if (method, path) == ("GET", "/") else declared(method, path),
+        )
+    data = tmp_path / "data"
+    async with open_rig(data) as rig:
+        demo = (await rig.api.get("/workpieces/demo")).json()
+        slow = {**demo["spray"], "speed_mm_s": SLOW_SPRAY_MM_S}
+        body = {"name": demo["name"], "outline_mm": demo["outline_mm"], "spray": slow}
+        assert (await rig.api.put("/workpieces/demo", json=body)).status_code == 200
+        token = admin_headers(data)["Authorization"].split()[1]
+        baseline = {id(s) for s in rig.cell.worker.bus._subscribers}
+        yield Dashboard(rig, apps[0], str(rig.api.base_url), token, baseline)
+
+
+@pytest.fixture
+async def browser() -> AsyncIterator[Browser]:
+    if not CHROMIUM.exists():
+        pytest.fail(
+            f"{CHROMIUM} is missing: the browser tests need Debian's chromium. "
+            "Run `make test`, which installs it (never `playwright install`).",
+            pytrace=False,
+        )
+    async with async_playwright() as playwright:
+        browser = await playwright.chromium.launch(
+            executable_path=str(CHROMIUM), args=LAUNCH_ARGS
+        )
+        try:
+            yield browser
+        finally:
+            await browser.close()
+
+
+async def open_page(browser: Browser, dashboard: Dashboard, viewport: dict[str, int]) -> Page:
+    context = await browser.new_context(viewport=viewport)
+    page = await context.new_page()
+    problems: list[str] = []
+    page.on("pageerror", lambda error: problems.append(f"page error: {error}"))
+    page.on(
+        "console",
+        lambda message: problems.append(f"console {message.type}: {message.text}")
+        if message.type == "error" and not message.text.startswith(HTTP_STATUS_LOG)
+        else None,
+    )
+    page.problems = problems  # type: ignore[attr-defined]
+    await page.goto(dashboard.url + "/")
+    return page
+
+
+async def log_in(page: Page, token: str) -> None:
+    await page.fill("#token-input", token)
+    await page.click("#login-button")
+    await expect(page.locator("#app")).to_be_visible()
+    await expect_live(page)
+
+
+async def expect_live(page: Page, timeout: float = 10_000) -> None:
+    await expect(page.locator("#link")).to_have_attribute("data-live", "true", timeout=timeout)
+    await expect(page.locator("#state")).to_have_attribute("data-stale", "false")
+    await expect(page.locator("#banner")).to_be_hidden()
+
+
+async def expect_state(page: Page, state: str, timeout: float = 15_000) -> None:
+    await expect(page.locator("#state")).to_have_attribute("data-state", state, timeout=timeout)
+
+
+async def expect_enabled(page: Page, enabled: set[str]) -> None:
+    """Exactly `enabled` command buttons are enabled; STOP always is."""
+    for name in COMMANDS:
+        button = page.locator(f'[data-command="{name}"]')
+        if name in enabled:
+            await expect(button, f"{name} should be enabled").to_be_enabled()
+        else:
+            await expect(button, f"{name} should be disabled").to_be_disabled()
+    await expect(page.locator("#estop")).to_be_visible()
+    await expect(page.locator("#estop")).to_be_enabled()
+
+
+async def shot(page: Page, name: str) -> None:
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    await page.screenshot(path=str(SHOTS / f"{name}.png"))
+
+
+async def progress(page: Page) -> tuple[int, int]:
+    bar = page.locator("#progress")
+    return int(await bar.get_attribute("data-waypoint") or 0), int(
+        await bar.get_attribute("data-of") or 0
+    )
+
+
+async def test_login_refuses_a_wrong_token_and_fits_a_tablet(
+    dashboard: Dashboard, browser: Browser
+) -> None:
+    page = await open_page(browser, dashboard, TABLET)
+    await expect(page.locator("#login")).to_be_visible()
+    await page.fill("#token-input", "gc_wrong_token")
+    await page.click("#login-button")
+    await expect(page.locator("#login-error")).to_have_text("401: the token is unknown or revoked")
+    await shot(page, "01-login-refused")
+
+    await log_in(page, dashboard.token)
+    await expect_state(page, "IDLE")
+    assert await page.evaluate("sessionStorage.length") == 1
+    # A tablet: no sideways scrolling, STOP on screen, touch-sized buttons.
+    assert await page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+    await expect(page.locator("#estop")).to_be_in_viewport()
+    box = await page.locator('[data-command="start"]').bounding_box()
+    assert box is not None and box["height"] >= 56
+    await shot(page, "02-tablet")
+    # The token survives a reload of the tab, and the page goes live again.
+    await page.reload()
+    await expect_live(page)
+    assert page.problems == []  # type: ignore[attr-defined]
+
+
+async def test_a_cycle_then_stop_mid_run_then_reset(dashboard: Dashboard, browser: Browser) -> None:
+    page = await open_page(browser, dashboard, PANEL)
+    await log_in(page, dashboard.token)
+    await expect_state(page, "IDLE")
+    await expect_enabled(page, {"start", "calibrate-robot", "calibrate-camera", "create-workpiece"})
+    await expect(page.locator(".workpiece[data-workpiece=demo] img")).to_be_visible()
+    await expect(page.locator("[data-device=glue]")).to_have_attribute("data-connected", "true")
+
+    # A whole run: EXECUTING_TRAJECTORY with the bar moving, then IDLE.
+    await page.click('[data-command="start"]')
+    await expect(page.locator("#message")).to_contain_text("202: start accepted")
+    await expect_state(page, "EXECUTING_TRAJECTORY")
+    await expect_enabled(page, {"pause", "cancel"})
+    seen: set[tuple[int, int]] = set()
+    async with asyncio.timeout(30):
+        while await page.locator("#state").get_attribute("data-state") != "IDLE":
+            waypoint, of = await progress(page)
+            if waypoint:
+                seen.add((waypoint, of))
+            await asyncio.sleep(0.05)
+    assert len(seen) >= 2, f"the progress bar did not move: {seen}"
+    of = max(total for _, total in seen)
+    await expect(page.locator("#progress")).to_have_attribute("data-waypoint", str(of))
+    await expect(page.locator("#progress")).to_have_attribute("aria-valuenow", "100")
+    await expect(page.locator("#progress-note")).to_have_text("last run completed")
+    await expect(page.locator("#progress-workpiece")).to_have_text("demo")
+    await expect_enabled(page, {"start", "calibrate-robot", "calibrate-camera", "create-workpiece"})
+    await shot(page, "03-run-completed")
+
+    # Again, and STOP mid-run: ERROR with the first-out reason and what to do.
+    await page.click('[data-command="start"]')
+    await expect_state(page, "EXECUTING_TRAJECTORY")
+    await page.wait_for_function(
+        "n => Number(document.querySelector('#progress').dataset.waypoint) >= n",
+        arg=of // 2,
+        timeout=15_000,
+    )
+    await shot(page, "04-running")
+    if os.environ.get("UPDATE_SCREENSHOT") == "1":
+        await page.screenshot(path=str(DOC_SHOT))
+    await page.click("#estop")
+    await expect_state(page, "ERROR")
+    await expect(page.locator("#fault")).to_be_visible()
+    await expect(page.locator("#fault-message")).to_contain_text("emergency stop")
+    await expect(page.locator("#fault-message")).to_contain_text("STOP pressed on the HMI")
+    await expect(page.locator("#fault-action")).not_to_be_empty()
+    await expect(page.locator("#progress-note")).to_have_text("last run stopped")
+    await expect_enabled(page, {"reset"})
+    assert not dashboard.rig.glue.valve_open
+    await shot(page, "05-stopped")
+
+    await page.click('[data-command="reset"]')
+    await expect(page.locator("#message")).to_contain_text("202: reset accepted")
+    await expect_state(page, "IDLE")
+    await expect(page.locator("#fault")).to_be_hidden()
+    await expect_enabled(page, {"start", "calibrate-robot", "calibrate-camera", "create-workpiece"})
+    # History and KPIs follow (refreshed on each change and every few seconds).
+    history = page.locator("#history tr")
+    await expect(history.first).to_contain_text("RESET_REQUESTED")
+    await expect(page.locator("#history")).to_contain_text("EMERGENCY_STOP")
+    await expect(page.locator('[data-kpi="workpieces"] .kpi-value')).to_have_text("1")
+    await shot(page, "06-reset")
+    assert page.problems == []  # type: ignore[attr-defined]
+
+
+async def test_commands_the_state_forbids_are_refused_with_the_servers_message(
+    dashboard: Dashboard, browser: Browser
+) -> None:
+    """The buttons follow available_commands; forcing one shows the 409 reason."""
+    page = await open_page(browser, dashboard, PANEL)
+    await log_in(page, dashboard.token)
+    await expect(page.locator('[data-command="resume"]')).to_be_disabled()
+    await page.evaluate(
+        """() => { const b = document.querySelector('[data-command="resume"]');
+                   b.disabled = false; b.click(); }"""
+    )
+    await expect(page.locator("#message")).to_have_text(
+        "409: resume is not allowed in IDLE", use_inner_text=True, timeout=5000
+    ) if False else await expect(page.locator("#message")).to_contain_text(
+        "409: resume is not allowed in IDLE"
+    )
+    await expect(page.locator('[data-command="resume"]')).to_be_disabled()
+
+
+async def test_connection_loss_shows_the_banner_marks_state_stale_and_reconnects(
+    dashboard: Dashboard, browser: Browser
+) -> None:
+    page = await open_page(browser, dashboard, PANEL)
+    await log_in(page, dashboard.token)
+    await expect_state(page, "IDLE")
+    hub = dashboard.app.state.ws_hub
+    connects = (await page.evaluate("window.hmi.status()"))["connects"]
+
+    # The server drops the socket and refuses new ones for a while.
+    hub.max_clients = 0
+    assert dashboard.drop_websockets_server_side() == 1
+    banner = page.locator("#banner")
+    await expect(banner).to_be_visible()
+    await expect(banner).to_contain_text("Connection lost — reconnecting")
+    await expect(page.locator("#state")).to_have_attribute("data-stale", "true")
+    await expect(page.locator("#stale-badge")).to_be_visible()
+    await expect(page.locator("#link-text")).to_have_text("connection lost")
+    await expect_enabled(page, set())  # nothing is offered on a state that is not live
+    # Meanwhile the cell stops: the page must not show the old state as live.
+    assert (await dashboard.rig.api.post("/estop")).status_code == 202
+    async with asyncio.timeout(10):
+        while (await page.evaluate("window.hmi.status()"))["attempts"] < 2:
+            await asyncio.sleep(0.05)
+    await expect(banner).to_contain_text("too many clients")
+    await expect_state(page, "IDLE")
+    await expect(page.locator("#state")).to_have_attribute("data-stale", "true")
+    await shot(page, "07-connection-lost")
+
+    # The server takes clients again: the page reconnects by itself, with the new state.
+    hub.max_clients = 100
+    await expect_live(page, timeout=15_000)
+    await expect_state(page, "ERROR")
+    await expect_enabled(page, {"reset"})
+    status = await page.evaluate("window.hmi.status()")
+    assert status["connects"] == connects + 1 and status["attempts"] == 0
+    await shot(page, "08-reconnected")
+
+    # The page's own hook: the socket closes, the banner shows, the page reconnects.
+    await page.evaluate("window.hmi.dropConnection()")
+    await expect(banner).to_be_visible()
+    await expect_live(page, timeout=10_000)
+    assert (await page.evaluate("window.hmi.status()"))["connects"] == connects + 2
+    assert page.problems == []  # type: ignore[attr-defined]
