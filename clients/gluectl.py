@@ -601,6 +601,11 @@ class WatchView:
             self.timeline.append(message)
             self._take_snapshot(message.get("snapshot") or {"state": message.get("new_state")})
         elif kind == "progress":
+            # The transition into an operation comes before the operation exists, so
+            # the first progress message is what names it.
+            operation = self.operation or {}
+            if operation.get("run_id") != message.get("run_id"):
+                self.operation = {"name": message.get("operation"), "run_id": message.get("run_id")}
             self.progress = message
         elif kind == "error":
             self.fault = message
@@ -641,7 +646,7 @@ class WatchView:
             timeline.add_column(column)
         for row in self.timeline:
             timeline.add_row(
-                Text(_when(row.get("time"))),
+                Text(_when(row.get("timestamp", row.get("time")))),
                 Text(_value(row.get("old_state"))),
                 Text(_value(row.get("new_state"))),
                 Text(_value(row.get("event"))),

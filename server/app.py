@@ -105,6 +105,22 @@ def _document_validation_errors(app: FastAPI) -> None:
                 },
             }
             schema["components"]["schemas"].pop("ValidationError", None)
+            # A body that is not even text (invalid UTF-8) is refused by the framework
+            # with 400 before validation; say so on every operation that takes a body.
+            for path in schema["paths"].values():
+                for operation in path.values():
+                    if "requestBody" in operation:
+                        operation["responses"].setdefault(
+                            "400",
+                            {
+                                "description": "the body could not be read (not UTF-8 JSON)",
+                                "content": {
+                                    "application/json": {
+                                        "schema": {"$ref": "#/components/schemas/ErrorView"}
+                                    }
+                                },
+                            },
+                        )
             app.openapi_schema = schema
         return app.openapi_schema
 

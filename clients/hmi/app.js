@@ -263,8 +263,8 @@
     if (snapshot.operation) startProgress(snapshot.operation.name, snapshot.operation.run_id);
     else if (hmi.progress && !hmi.progress.ended) hmi.progress.ended = "ended";
     if (progress) updateProgress(progress);
-    applyState(snapshot);
     setLive(true);
+    applyState(snapshot);
     refreshPanels();
     refreshTrajectory();
   }
@@ -286,6 +286,7 @@
     }
     applyState(message.snapshot);
     refreshPanels();
+    setTimeout(refreshPanels, 1000); // device figures settle a moment after a transition
     if (from === "CALIBRATING_ROBOT" || from === "CALIBRATING_CAMERA") refreshCalibration();
     if (from === "CREATING_WORKPIECE") refreshLibrary();
   }
@@ -385,9 +386,10 @@
     if (differs) $("fault-latest").textContent = `Latest fault: ${latest.code}: ${latest.message}`;
   }
 
+  /** The clock, and the time in state: frozen while not live, as the state itself is. */
   function tick() {
     $("clock").textContent = new Date().toLocaleTimeString([], { hour12: false });
-    if (!hmi.view) return;
+    if (!hmi.view || (!hmi.live && $("state-time").textContent !== "—")) return;
     const seconds = (performance.now() - hmi.enteredAtMs) / 1000;
     $("state-time").textContent = duration(seconds);
   }
@@ -475,7 +477,7 @@
     if (progress.waypoint) return `waypoint ${progress.waypoint} of ${progress.of} · ${percent}`;
     if (progress.views !== undefined) return `view ${progress.views} of ${progress.of} · ${percent}`;
     if (progress.step) return `${progress.step} · ${percent}`;
-    return `${progress.operation || "operation"} starting…`;
+    return "starting…";
   }
 
   // --- periodic panels ------------------------------------------------------
@@ -510,7 +512,7 @@
     try {
       render(await getJson(path));
       card.dataset.stale = "false";
-    } catch (error) {
+    } catch {
       card.dataset.stale = "true";
     }
   }
@@ -766,11 +768,14 @@
   function projection(ctx, path, width, height) {
     const toImage = tableToImage();
     const frame = hmi.frame;
+    if (frame && !path.length) {
+      drawContained(ctx, frame, width, height);
+      return null;
+    }
     if (frame && toImage) {
       const inImage = path.map((w) => toImage(w.pose));
-      const box = inImage.length
-        ? viewWindow(boundingBox(inImage), width / height, frame.naturalWidth, frame.naturalHeight)
-        : { x: 0, y: 0, w: frame.naturalWidth, h: frame.naturalHeight };
+      const { naturalWidth: imageW, naturalHeight: imageH } = frame;
+      const box = viewWindow(boundingBox(inImage), width / height, imageW, imageH);
       ctx.drawImage(frame, box.x, box.y, box.w, box.h, 0, 0, width, height);
       return (pose) => {
         const [u, v] = toImage(pose);
@@ -784,6 +789,13 @@
     const ox = (width - box.w * scale) / 2, oy = (height - box.h * scale) / 2;
     drawGrid(ctx, width, height);
     return ([x, y]) => [ox + (x - box.x) * scale, height - (oy + (y - box.y) * scale)];
+  }
+
+  /** The whole frame, letterboxed, undistorted in shape. */
+  function drawContained(ctx, image, width, height) {
+    const scale = Math.min(width / image.naturalWidth, height / image.naturalHeight);
+    const w = image.naturalWidth * scale, h = image.naturalHeight * scale;
+    ctx.drawImage(image, (width - w) / 2, (height - h) / 2, w, h);
   }
 
   function drawSegments(ctx, path, points, from, to, done) {

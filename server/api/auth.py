@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.requests import HTTPConnection
 
 from server.api.analytics import csv_export
+from server.api.schemas import ErrorView
 from server.config import Settings
 from server.core.journal import Journal
 from server.security.policy import WEBSOCKET_ROLE, required_role
@@ -188,7 +189,12 @@ async def create_token(request: Request, body: TokenRequest) -> dict[str, Any]:
     return {**entry.public(), "token": token}
 
 
-@router.delete("/tokens/{token_id}", status_code=204, response_class=Response)
+@router.delete(
+    "/tokens/{token_id}",
+    status_code=204,
+    response_class=Response,
+    responses={404: {"model": ErrorView, "description": "no such token"}},
+)
 async def revoke_token(request: Request, token_id: str) -> Response:
     """Revoke a token at once."""
     try:
@@ -212,13 +218,13 @@ def _audit_filters(
 @router.get("/audit")
 async def get_audit(
     request: Request,
-    since: float | None = Query(None, ge=0),
-    until: float | None = Query(None, ge=0),
+    since: float | None = Query(None, ge=0, le=1e11, allow_inf_nan=False),
+    until: float | None = Query(None, ge=0, le=1e11, allow_inf_nan=False),
     principal: AuditText = None,
     action: AuditText = None,
     outcome: AuditText = None,
     limit: int = Query(100, ge=1, le=10_000),
-    offset: int = Query(0, ge=0),
+    offset: int = Query(0, ge=0, le=10_000_000),
 ) -> dict[str, Any]:
     """Who did what, when, from where, with what outcome; newest first, filterable."""
     journal: Journal = request.app.state.cell.journal
@@ -241,8 +247,8 @@ async def get_audit(
 @router.get("/audit.csv", response_class=Response, responses={200: {"content": {"text/csv": {}}}})
 async def export_audit(
     request: Request,
-    since: float | None = Query(None, ge=0),
-    until: float | None = Query(None, ge=0),
+    since: float | None = Query(None, ge=0, le=1e11, allow_inf_nan=False),
+    until: float | None = Query(None, ge=0, le=1e11, allow_inf_nan=False),
     principal: AuditText = None,
     action: AuditText = None,
     outcome: AuditText = None,

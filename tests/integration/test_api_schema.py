@@ -6,6 +6,9 @@ positive and negative) against the real app under uvicorn on loopback, on
 in-process fake devices, twice: once with the admin bearer token and once
 without any credentials.
 
+A deterministic probe complements the random run: every numeric query parameter
+the document leaves unbounded above gets its 64-bit extremes once.
+
 The server runs in a thread with its own event loop: schemathesis' pytest
 integration is synchronous and its requests block, so the server cannot share
 the test's loop. One server serves the whole module; the generated commands
@@ -174,18 +177,34 @@ def session() -> Iterator[requests.Session]:
 # --- without credentials -------------------------------------------------------------------
 #
 # openapi.json documents what each operation answers to a client it lets in; it declares no
-# security scheme and no 401. Without credentials, the contract is the access policy
-# (server/security/policy.py): a route that needs a role answers 401 with
-# `WWW-Authenticate: Bearer` and a JSON `{"detail": "..."}`, and never serves anything; an open
-# route (/health) answers as documented. So an undocumented 401 is accepted there, and only
-# there: on a route that needs a role, with that exact shape. Everything else (a 422 for a body
-# that is not JSON, which is read before the token is checked, a 404 the route documents, ...)
-# goes through the same checks as with the token; a 401 that openapi.json does document is
-# checked against the document as usual.
+# security scheme and no 401 (when this was written). Without credentials, the contract is the
+# access policy (server/security/policy.py): a route that needs a role answers 401 with
+# `WWW-Authenticate: Bearer` and a JSON `{"detail": "..."}`, and never succeeds; an open route
+# (/health) answers as documented. So an undocumented 401 is accepted there, and only there: on
+# a route that needs a role, with that exact shape. No other undocumented status is accepted:
+# 403 cannot happen (no trusted_networks here), and whatever the app answers before it looks at
+# the token (a 422 or 400 for a body it cannot decode, a 404 the route documents, ...) goes
+# through the same checks as with the token. A 401 that openapi.json documents is checked
+# against the document as usual.
+
+
+# The operations of openapi.json that anyone may call (the policy's `None` entries), written out
+# here rather than read from the policy, so that a route opened there by mistake fails here.
+OPEN_OPERATIONS = {"GET /health"}
 
 
 def _needs_role(case: schemathesis.Case) -> bool:
-    return required_role(case.operation.method.upper(), case.operation.path) is not None
+    return case.operation.label not in OPEN_OPERATIONS
+
+
+def test_the_open_operations_are_the_policys() -> None:
+    in_policy = {
+        f"{method.upper()} {path}"
+        for path, methods in schema.raw_schema["paths"].items()
+        for method in methods
+        if required_role(method.upper(), path) is None
+    }
+    assert in_policy == OPEN_OPERATIONS
 
 
 def _undocumented_refusal(case: schemathesis.Case, response: schemathesis.Response) -> bool:
@@ -235,14 +254,18 @@ ANONYMOUS_CHECKS = [
 
 
 @schema.parametrize()
-def test_with_the_admin_token(case: schemathesis.Case, live: Live, session) -> None:
+def test_with_the_admin_token(
+    case: schemathesis.Case, live: Live, session: requests.Session
+) -> None:
     case.call_and_validate(
         base_url=live.url, session=session, headers=live.admin, checks=SCHEMA_CHECKS
     )
 
 
 @schema.parametrize()
-def test_without_credentials(case: schemathesis.Case, live: Live, session) -> None:
+def test_without_credentials(
+    case: schemathesis.Case, live: Live, session: requests.Session
+) -> None:
     case.call_and_validate(base_url=live.url, session=session, checks=ANONYMOUS_CHECKS)
 
 
@@ -261,7 +284,7 @@ def _numeric_types(parameter_schema: dict) -> set[str]:
     return {
         option["type"]
         for option in options
-        if option.get("type") in EXTREMES and "maximum" not in option
+        if option.get("type") in EXTREMES  # bounded or not: past the bound must be a 422
     }
 
 
@@ -284,7 +307,7 @@ def _extremes() -> list[tuple[str, str, str, object]]:
 
 @pytest.mark.parametrize(("method", "path", "name", "value"), _extremes())
 def test_numbers_past_64_bits_are_answered_not_a_500(
-    live: Live, session, method: str, path: str, name: str, value: object
+    live: Live, session: requests.Session, method: str, path: str, name: str, value: object
 ) -> None:
     operation = schema[path][method]
     path_parameters = {

@@ -184,14 +184,16 @@ async def test_the_other_commands(cli: Cli) -> None:
     created = await cli("create-workpiece", "--name", "bracket", "--id", "bracket")
     assert created.code == 0 and "CREATING_WORKPIECE" in created.stdout
     await settle(cli.client)
+    cli.cell.devices.robot.speed_factor = 0.5  # a run of several seconds: no race with the CLI
     await cli.client.start(workpiece_id="demo", contour_matching=False)
-    for command, state in (("pause", "PAUSED"), ("resume", "EXECUTING_TRAJECTORY")):
+    for command, state in (
+        ("pause", "PAUSED"),
+        ("resume", "EXECUTING_TRAJECTORY"),
+        ("cancel", "IDLE"),
+    ):
         ran = await cli(command)
-        assert ran.code == 0 and ran.stdout.endswith(
-            f"→ {state}  (event {ran.stdout.split()[-1]}\n"
-        )
-    assert (await cli("cancel")).code == 0
-    assert (await cli.client.state())["state"] == "IDLE"
+        assert ran.code == 0, ran.stderr
+        assert f"{command} accepted: " in ran.stdout and f"→ {state}  (event " in ran.stdout
 
 
 async def settle(client: AsyncCellClient) -> None:
@@ -312,66 +314,51 @@ async def test_watch_piped_prints_one_line_per_message(cli: Cli) -> None:
 
 
 def test_the_live_view_shows_progress_timeline_and_resyncs() -> None:
+    """The view as the server feeds it (shapes as on /ws), rendered off-terminal."""
     view = gluectl.WatchView("http://cell")
+    boot = {"timestamp": 1.0, "old_state": "INITIALIZING", "new_state": "IDLE"}
     view.update(
-        {
-            "type": "snapshot",
-            "seq": 3,
-            "state": "IDLE",
-            "since": 1.0,
-            "operation": None,
-            "error": None,
-            "history": [
-                {
-                    "time": 1.0,
-                    "old_state": "INITIALIZING",
-                    "new_state": "IDLE",
-                    "event": "SYSTEM_READY",
-                }
-            ],
-        }
+        {"type": "snapshot", "seq": 3, "state": "IDLE", "operation": None, "history": [boot]}
     )
-    running = {"state": "EXECUTING_TRAJECTORY", "operation": {"name": "trajectory", "run_id": "r1"}}
+    running = {"state": "EXECUTING_TRAJECTORY", "operation": None}  # as the transition has it
     view.update(
         {
             "type": "state_changed",
             "seq": 4,
-            "old_state": "IDLE",
-            "new_state": "EXECUTING_TRAJECTORY",
-            "event": "START_REQUESTED",
             "time": 2.0,
+            "old_state": "IDLE",
+            "event": "START_REQUESTED",
+            "new_state": "EXECUTING_TRAJECTORY",
             "snapshot": running,
         }
     )
-    view.update(
-        {
+
+    def progress(seq: int, waypoint: int) -> dict[str, object]:
+        return {
             "type": "progress",
-            "seq": 5,
+            "seq": seq,
             "operation": "trajectory",
-            "waypoint": 3,
+            "run_id": "r1",
+            "waypoint": waypoint,
             "of": 7,
-            "fraction": 3 / 7,
+            "fraction": waypoint / 7,
         }
-    )
+
+    def screen() -> str:
+        console = Console(record=True, width=120, force_terminal=False)
+        console.print(view.render())
+        return console.export_text()
+
+    view.update(progress(5, 3))
+    shown = screen()
+    assert "state EXECUTING_TRAJECTORY" in shown and "trajectory" in shown
+    assert "waypoint 3/7 (43%)" in shown and "START_REQUESTED" in shown and "INITIALIZING" in shown
     view.update(
         {"type": "snapshot", "seq": 12, "resumed": True, "missed": 6, **running, "history": []}
     )
-    console = Console(record=True, width=120, force_terminal=False)
-    console.print(view.render())
-    screen = console.export_text()
-    assert "EXECUTING_TRAJECTORY" in screen and "missed 6 message(s)" in screen
-    view.update(
-        {
-            "type": "progress",
-            "seq": 13,
-            "operation": "trajectory",
-            "waypoint": 5,
-            "of": 7,
-            "fraction": 5 / 7,
-        }
-    )
-    console.print(view.render())
-    assert "waypoint 5/7 (71%)" in console.export_text()
+    view.update(progress(13, 5))
+    shown = screen()
+    assert "reconnected: missed 6 message(s); resynced" in shown and "waypoint 5/7 (71%)" in shown
     assert view.received == 5 and view.seq == 13
 
 
