@@ -744,6 +744,16 @@ class AsyncCellClient:
         )
 
 
+def _refusal(code: int | None, reason: str) -> CellError:
+    """The typed error for a /ws close before the snapshot (close codes in docs/api.md)."""
+    message = f"/ws closed ({code}): {reason}"
+    if code == 4401:
+        return Unauthorized(message, status_code=code)
+    if code == 1013:  # too many clients
+        return Busy(message, retry_after=1.0, status_code=code)
+    return Unreachable(message, status_code=code)
+
+
 class MessageStream:
     """An async iterator over /ws messages that survives reconnects.
 
@@ -758,10 +768,12 @@ class MessageStream:
 
     `types` filters on this side, so `missed` stays exact; snapshots always pass.
     Errors while making the *first* connection are raised (Unreachable,
-    Unauthorized, ...); afterwards only Unauthorized and Forbidden are (a revoked
-    token will not come back), everything else is retried until the consumer
-    stops iterating. Stop with `break` (the socket is closed when the stream is
-    collected), or deterministically with `aclose()` / `async with stream:`.
+    Unauthorized, Busy for close 1013 "too many clients", ...); afterwards only
+    Unauthorized and Forbidden from the ticket request are (a revoked token will
+    not come back), everything else is retried until the consumer stops iterating.
+
+    Stop with `break` (the socket is closed when the stream is collected), or
+    deterministically with `aclose()` / `async with stream:`.
     """
 
     def __init__(
@@ -870,12 +882,15 @@ class MessageStream:
                 self.last_close = (websocket.close_code, websocket.close_reason or "")
             except ConnectionClosed as closed:
                 received = closed.rcvd
-                self.last_close = (
-                    received.code if received else None,
-                    received.reason if received else "connection lost",
-                )
+                code = received.code if received else None
+                reason = (received.reason if received else "") or "connection lost"
+                self.last_close = (code, reason)
+                if not connected_once:  # refused before the first snapshot: say why
+                    raise _refusal(code, reason) from closed
             except (OSError, TimeoutError, ValueError) as exc:
                 self.last_close = (None, f"{type(exc).__name__}: {exc}")
+                if not connected_once:
+                    raise Unreachable(f"/ws failed: {self.last_close[1]}") from exc
             if not self.reconnect:
                 return
             await self._pause(backoff)

@@ -658,11 +658,13 @@ class WatchView:
 def message_line(message: dict[str, Any]) -> str:
     """One line per message, for `watch` when stdout is not a terminal."""
     kind = message.get("type")
-    prefix = f"{_when(message.get('time'))}  seq {message.get('seq')}  {kind}"
+    when = message.get("time", time.time())  # a snapshot has no time of its own: now
+    prefix = f"{_when(when)}  seq {message.get('seq')}  {kind}"
     if kind == "snapshot":
         line = f"{prefix}  state {message.get('state')}"
         if message.get("resumed"):
-            line += f"  (resumed, missed {message.get('missed')})"
+            restarted = " after a server restart" if message.get("restarted") else ""
+            line += f"  (resumed{restarted}, missed {message.get('missed')})"
         return line
     if kind == "state_changed":
         return (
@@ -670,7 +672,7 @@ def message_line(message: dict[str, Any]) -> str:
             f"  ({message.get('event')}, {message.get('event_id')})"
         )
     if kind == "progress":
-        return f"{prefix}  {message.get('operation')}  {_progress(message)}"
+        return f"{prefix}  {message.get('operation')}  {_progress(message)}".rstrip()
     if kind == "error":
         return f"{prefix}  {message.get('code')}: {message.get('message')}"
     return f"{prefix}  {json.dumps(message, ensure_ascii=False)}"

@@ -16,6 +16,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 
 from server.api import analytics, auth, commands, metrics, queries, workpieces, ws
+from server.api.dashboard import mount_dashboard
 from server.api.limits import BodySizeLimit
 from server.cell import Cell
 from server.config import Settings
@@ -72,6 +73,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         )
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
     app.include_router(ws.router)
+    mount_dashboard(app)  # the operator dashboard at /, assets under /hmi/
     _install_error_handlers(app)
     _document_validation_errors(app)
     return app

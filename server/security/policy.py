@@ -19,6 +19,7 @@ POLICY: Final = MappingProxyType(
     {
         # open
         ("GET", "/health"): None,
+        ("GET", "/"): None,  # the operator dashboard's page (it asks for a token itself)
         ("GET", "/openapi.json"): None,
         ("GET", "/docs"): None,
         ("GET", "/docs/oauth2-redirect"): None,

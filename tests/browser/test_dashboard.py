@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import os
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -190,6 +190,20 @@ async def progress(page: Page) -> tuple[int, int]:
     )
 
 
+async def watch_progress(
+    page: Page, seen: set[tuple[int, int]], done: Callable[[int, str], bool]
+) -> None:
+    """Record each (waypoint, of) the bar shows until `done(waypoint, state)`."""
+    async with asyncio.timeout(30):
+        while True:
+            waypoint, of = await progress(page)
+            if waypoint:
+                seen.add((waypoint, of))
+            if done(waypoint, await page.locator("#state").get_attribute("data-state") or ""):
+                return
+            await asyncio.sleep(0.05)
+
+
 async def executed_pixels(page: Page) -> int:
     """Pixels of the trajectory canvas in the colour of the executed path (#ff4fd8)."""
     return await page.evaluate(
@@ -258,18 +272,21 @@ async def test_a_cycle_then_stop_mid_run_then_reset(dashboard: Dashboard, browse
     await expect(page.locator("[data-device=glue]")).to_have_attribute("data-connected", "true")
     assert await executed_pixels(page) == 0
 
-    # A whole run: EXECUTING_TRAJECTORY with the bar moving, then IDLE.
+    # A whole run, paused and resumed on the way: the bar moves, then IDLE.
     await page.click('[data-command="start"]')
     await expect(page.locator("#message")).to_contain_text("202: start accepted")
     await expect_state(page, "EXECUTING_TRAJECTORY")
     await expect_enabled(page, {"pause", "cancel"})
     seen: set[tuple[int, int]] = set()
-    async with asyncio.timeout(30):
-        while await page.locator("#state").get_attribute("data-state") != "IDLE":
-            waypoint, of = await progress(page)
-            if waypoint:
-                seen.add((waypoint, of))
-            await asyncio.sleep(0.05)
+    await watch_progress(page, seen, lambda waypoint, _: waypoint >= 3)
+    await page.click('[data-command="pause"]')
+    await expect_state(page, "PAUSED")
+    await expect(page.locator("#state")).to_have_attribute("data-tone", "hold")
+    await expect_enabled(page, {"resume", "cancel"})
+    await shot(page, "03-paused")
+    await page.click('[data-command="resume"]')
+    await expect_state(page, "EXECUTING_TRAJECTORY")
+    await watch_progress(page, seen, lambda _, state: state == "IDLE")
     assert len(seen) >= 2, f"the progress bar did not move: {seen}"
     of = max(total for _, total in seen)
     await expect(page.locator("#progress")).to_have_attribute("data-waypoint", str(of))
@@ -277,7 +294,7 @@ async def test_a_cycle_then_stop_mid_run_then_reset(dashboard: Dashboard, browse
     await expect(page.locator("#progress-note")).to_have_text("last run completed")
     await expect(page.locator("#progress-workpiece")).to_have_text("demo")
     await expect_enabled(page, {"start", "calibrate-robot", "calibrate-camera", "create-workpiece"})
-    await shot(page, "03-run-completed")
+    await shot(page, "04-run-completed")
 
     # Again, and STOP mid-run: ERROR with the first-out reason and what to do.
     await page.click('[data-command="start"]')
@@ -289,7 +306,7 @@ async def test_a_cycle_then_stop_mid_run_then_reset(dashboard: Dashboard, browse
     )
     await expect(page.locator("#trajectory-info")).to_contain_text(f"{of} waypoints")
     assert await executed_pixels(page) > 100, "the executed part of the path is not drawn"
-    await shot(page, "04-running")
+    await shot(page, "05-running")
     if os.environ.get("UPDATE_SCREENSHOT") == "1":
         await page.screenshot(path=str(DOC_SHOT))
     await page.click("#estop")
@@ -301,7 +318,7 @@ async def test_a_cycle_then_stop_mid_run_then_reset(dashboard: Dashboard, browse
     await expect(page.locator("#progress-note")).to_have_text("last run stopped")
     await expect_enabled(page, {"reset"})
     assert not dashboard.rig.glue.valve_open
-    await shot(page, "05-stopped")
+    await shot(page, "06-stopped")
 
     await page.click('[data-command="reset"]')
     await expect(page.locator("#message")).to_contain_text("202: reset accepted")
@@ -313,7 +330,7 @@ async def test_a_cycle_then_stop_mid_run_then_reset(dashboard: Dashboard, browse
     await expect(history.first).to_contain_text("RESET_REQUESTED")
     await expect(page.locator("#history")).to_contain_text("EMERGENCY_STOP")
     await expect(page.locator('[data-kpi="workpieces"] .kpi-value')).to_have_text("1")
-    await shot(page, "06-reset")
+    await shot(page, "07-reset")
     assert problems == []
 
 
@@ -347,6 +364,7 @@ async def test_connection_loss_shows_the_banner_marks_state_stale_and_reconnects
     await log_in(page, dashboard.token)
     await expect_state(page, "IDLE")
     hub = dashboard.app.state.ws_hub
+    limit = hub.max_clients
     connects = (await page.evaluate("window.hmi.status()"))["connects"]
 
     # The server drops the socket and refuses new ones for a while.
@@ -367,16 +385,16 @@ async def test_connection_loss_shows_the_banner_marks_state_stale_and_reconnects
     await expect(banner).to_contain_text("too many clients")
     await expect_state(page, "IDLE")
     await expect(page.locator("#state")).to_have_attribute("data-stale", "true")
-    await shot(page, "07-connection-lost")
+    await shot(page, "08-connection-lost")
 
     # The server takes clients again: the page reconnects by itself, with the new state.
-    hub.max_clients = 100
+    hub.max_clients = limit
     await expect_live(page, timeout=15_000)
     await expect_state(page, "ERROR")
     await expect_enabled(page, {"reset"})
     status = await page.evaluate("window.hmi.status()")
     assert status["connects"] == connects + 1 and status["attempts"] == 0
-    await shot(page, "08-reconnected")
+    await shot(page, "09-reconnected")
 
     # The page's own hook: the socket closes, the banner shows, the page reconnects.
     await page.evaluate("window.hmi.dropConnection()")

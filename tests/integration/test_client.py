@@ -46,6 +46,7 @@ from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, free_port, serve
 
 WS_BUFFER = 8  # the smallest ws_client_buffer the settings allow
+MAX_WS_CLIENTS = 2
 
 
 @dataclass
@@ -110,7 +111,9 @@ def served_in_thread(cell: Cell) -> Iterator[tuple[str, asyncio.AbstractEventLoo
 
 @pytest.fixture
 def served(fast_settings: Settings) -> Iterator[Served]:
-    settings = fast_settings.model_copy(update={"ws_client_buffer": WS_BUFFER})
+    settings = fast_settings.model_copy(
+        update={"ws_client_buffer": WS_BUFFER, "max_broadcast_clients": MAX_WS_CLIENTS}
+    )
     demo_stores(settings.data_path)
     cell = Cell(settings, devices=CellDevices(FakeRobot(speed_factor=5), FakeGlue(), FakeCamera()))
     with served_in_thread(cell) as (url, loop):
@@ -419,6 +422,15 @@ async def test_messages_without_a_valid_token_raise_unauthorized(served: Served)
             await next_message(anonymous.messages())
     async with AsyncCellClient(served.url, served.viewer) as viewer:
         assert (await next_message(viewer.messages()))["type"] == "snapshot"
+
+
+async def test_a_full_hub_at_the_first_connection_is_busy(aclient: AsyncCellClient) -> None:
+    async with aclient.messages() as one, aclient.messages() as two:
+        await next_message(one)
+        await next_message(two)
+        with pytest.raises(Busy) as busy:
+            await next_message(aclient.messages())
+    assert busy.value.status_code == 1013 and f"max {MAX_WS_CLIENTS}" in str(busy.value)
 
 
 async def test_messages_to_nowhere_raise_unreachable_at_first() -> None:
