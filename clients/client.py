@@ -343,9 +343,16 @@ def _error(response: httpx.Response) -> CellError:
 
 
 def _read(call: _Call[T], response: httpx.Response) -> T:
-    if response.status_code in call.ok:
+    if response.status_code not in call.ok:
+        raise _error(response)
+    try:
         return call.parse(response)
-    raise _error(response)
+    except (ValueError, KeyError, TypeError) as exc:  # e.g. a proxy's HTML page, not the API
+        raise ServerError(
+            f"unexpected answer to {call.method} {call.path}: {type(exc).__name__}: {exc}",
+            status_code=response.status_code,
+            body=_body(response),
+        ) from exc
 
 
 def _unreachable(base_url: str, exc: httpx.TransportError, timeout: float) -> Unreachable:

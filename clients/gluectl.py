@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import sys
 import time
 from collections import deque
@@ -42,6 +43,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Any, NoReturn, TypeVar
 
+import httpx
 import typer
 from rich.console import Console, Group, RenderableType
 from rich.live import Live
@@ -68,6 +70,7 @@ from clients.client import (
     Unreachable,
     WaitTimeout,
     normalize_state,
+    normalize_url,
     resolve_token,
 )
 
@@ -83,6 +86,8 @@ EXIT_INVALID = 6
 EXIT_BUSY = 7
 EXIT_TIMEOUT = 8
 EXIT_FAULTED = 9
+
+PIPED_WIDTH = 160
 
 EXIT_CODES_HELP = """\
 Exit codes (the reason goes to stderr):
@@ -174,13 +179,17 @@ def main_options(
     ] = 10.0,
 ) -> None:
     """Drive and watch the glue cell over its HTTP and WebSocket API."""
+    try:
+        url = str(httpx.URL(normalize_url(url)))
+    except httpx.InvalidURL as exc:
+        raise typer.BadParameter(str(exc), param_hint="--url") from None
     resolved = resolve_token(token, data_dir=data_dir)
+    where = data_dir or f"${DATA_DIR_ENV} or ./data"
     if token:
-        source = "--token / $" + TOKEN_ENV
+        source = f"from --token or ${TOKEN_ENV}"
     elif resolved:
-        source = "the admin.token file"
+        source = f"from admin.token in {where}"
     else:
-        where = data_dir or f"${DATA_DIR_ENV} or ./data"
         source = f"none found (--token, ${TOKEN_ENV}, or admin.token in {where})"
     ctx.obj = Options(url, resolved, source, json_output, timeout)
 
@@ -194,7 +203,11 @@ def _options(ctx: typer.Context, json_flag: bool) -> Options:
 
 
 def _stdout() -> Console:
-    return Console(highlight=False, soft_wrap=False)
+    """Rich output; piped (a file, grep, less) tables take their natural width, not 80."""
+    console = Console(highlight=False, soft_wrap=False)
+    if not console.is_terminal and "COLUMNS" not in os.environ:
+        console = Console(highlight=False, soft_wrap=False, width=PIPED_WIDTH)
+    return console
 
 
 def _print_json(data: Any) -> None:
@@ -216,7 +229,7 @@ def _fail(options: Options, error: CellError) -> NoReturn:
         EXIT_FAULTED: "fault",
     }.get(code, "error")
     typer.echo(f"gluectl: {label}: {error}", err=True)
-    if isinstance(error, Unauthorized) and options.token is None:
+    if isinstance(error, Unauthorized):  # which token was it, if any?
         typer.echo(f"gluectl: token: {options.token_source}", err=True)
     if isinstance(error, Busy):
         typer.echo(f"gluectl: retry after {error.retry_after:g} s", err=True)
@@ -244,10 +257,13 @@ def _command(
         typer.echo(f"{result.message}{event}")
 
 
-def _when(timestamp: Any) -> str:
+def _when(timestamp: Any, *, short: bool = False) -> str:
+    """Local time; `short` drops the year, for tables that must fit 80 columns."""
     if not isinstance(timestamp, int | float):
         return "—"
-    return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(timestamp))
+    return time.strftime(
+        "%m-%d %H:%M:%S" if short else "%Y-%m-%d %H:%M:%S", time.localtime(timestamp)
+    )
 
 
 def _value(value: Any) -> str:
@@ -308,14 +324,14 @@ def state_table(state: dict[str, Any]) -> Table:
 
 def history_table(rows: list[dict[str, Any]]) -> Table:
     table = Table(title="transitions, newest first", title_justify="left")
-    for column in ("time", "from", "to", "event", "event id", "s in old state"):
-        table.add_column(column, justify="right" if column.startswith("s ") else "left")
+    for column in ("time", "from", "to", "event", "event id", "in old (s)"):
+        table.add_column(column, justify="right" if "(s)" in column else "left", overflow="fold")
     for row in rows:
         table.add_row(
             *(
                 Text(v)
                 for v in (
-                    _when(row.get("time")),
+                    _when(row.get("time"), short=True),
                     _value(row.get("old_state")),
                     _value(row.get("new_state")),
                     _value(row.get("event")),
@@ -330,7 +346,7 @@ def history_table(rows: list[dict[str, Any]]) -> Table:
 def workpieces_table(rows: list[dict[str, Any]]) -> Table:
     table = Table(title="workpiece library", title_justify="left")
     for column in ("id", "name", "source", "outline points", "fill", "created"):
-        table.add_column(column)
+        table.add_column(column, overflow="fold")
     for row in rows:
         spray = row.get("spray") or {}
         table.add_row(
@@ -342,7 +358,7 @@ def workpieces_table(rows: list[dict[str, Any]]) -> Table:
                     _value(row.get("source")),
                     str(len(row.get("outline_mm") or [])),
                     _value(spray.get("fill")),
-                    _when(row.get("created_at")),
+                    _when(row.get("created_at"), short=True),
                 )
             )
         )

@@ -15,6 +15,7 @@ import socket
 import threading
 from collections.abc import Callable, Coroutine, Iterator
 from dataclasses import dataclass
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,7 @@ from clients.client import (
     MessageStream,
     NotFound,
     Refused,
+    ServerError,
     Unauthorized,
     Unreachable,
     WaitTimeout,
@@ -295,6 +297,37 @@ async def test_no_server_and_a_silent_server_are_unreachable() -> None:
                 Unreachable, match=r"no answer from http://127.0.0.1:\d+ within 0.3 s"
             ):
                 await mute.state()
+
+
+class NotTheCell(BaseHTTPRequestHandler):
+    """Something else on the port: a 500 for /state, an HTML page for everything else."""
+
+    def do_GET(self) -> None:
+        status, body = (
+            (500, b"Internal Server Error") if self.path == "/state" else (200, b"<html>")
+        )
+        self.send_response(status)
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def log_message(self, format: str, *args: Any) -> None:
+        pass
+
+
+def test_answers_the_api_does_not_document_are_server_errors() -> None:
+    with ThreadingHTTPServer(("127.0.0.1", 0), NotTheCell) as other:
+        threading.Thread(target=other.serve_forever, daemon=True).start()
+        try:
+            with CellClient(f"http://127.0.0.1:{other.server_address[1]}") as client:
+                with pytest.raises(ServerError) as crashed:
+                    client.state()
+                assert crashed.value.status_code == 500
+                assert str(crashed.value) == "Internal Server Error"
+                with pytest.raises(ServerError, match="unexpected answer to GET /kpis"):
+                    client.kpis()
+        finally:
+            other.shutdown()
 
 
 # --- waiting -----------------------------------------------------------------------------
