@@ -1,18 +1,31 @@
-"""Events per second through the pure engine alone, and through the worker.
+"""Events per second through the pure engine, two state-machine libraries, and the worker.
 
 The event sequence is a fixed cycle of the cell's own table (start, pause,
 resume, cancel, calibrate, cancel, estop, reset, ...), so every event is
-accepted and every one changes state. The worker figure includes the queue,
-the engine, the history, the bus publish to one subscriber and the future
-answered per event; devices are no-op fakes and operations return at once
-(entering a state starts a task that is cancelled on the next event).
+accepted and every one changes state. The same sequence, in the same run, goes
+through:
+
+- the engine: `step(state, event, facts)`, guards included;
+- `transitions` and `python-statemachine`, each given the cell's table
+  (built from `server.core.transitions`, guards as conditions that hold), with
+  no callbacks beyond the guards: their fastest honest configuration;
+- the worker: the queue, the engine, the history, the snapshot, the bus publish
+  to one subscriber and the future answered per event, with the cell's entry and
+  exit actions on no-op devices (entering an operational state starts an
+  operation task, which the next event cancels; every stop runs the safe halt;
+  a reset probes the devices; IDLE starts the homing move).
+
+`--profile` adds where the worker's time goes (cProfile, cumulative seconds of
+the worker's own functions over a shorter run).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import cProfile
 import logging
+import pstats
 import tempfile
 import time
 from pathlib import Path
@@ -23,7 +36,7 @@ from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
 from server.core.engine import Facts, step
-from server.core.transitions import Event, State
+from server.core.transitions import Event, Guard, State, transitions
 from server.core.worker import Worker
 from server.drivers.base import DeviceHealth, GlueStatus, Pose
 from server.storage import CellStores
@@ -51,6 +64,75 @@ def bench_engine(events: list[Event]) -> float:
     for event in events:
         state = step(state, event, facts).target
     return len(events) / (time.perf_counter() - started)
+
+
+GUARD_NAMES = {Guard.ALL_DEVICES_READY: "all_devices_ready", Guard.FAULTS_CLEARED: "faults_cleared"}
+
+
+class GuardsHold:
+    """The model the libraries consult for the table's guards; both always hold here."""
+
+    def all_devices_ready(self, *_: Any, **__: Any) -> bool:
+        return True
+
+    def faults_cleared(self, *_: Any, **__: Any) -> bool:
+        return True
+
+
+def bench_transitions(events: list[Event]) -> float:
+    """The `transitions` library's Machine over the cell's table."""
+    from transitions import Machine
+
+    spec = []
+    for row in transitions():
+        rule: dict[str, Any] = {
+            "trigger": row.event.value,
+            "source": row.source.value,
+            "dest": row.target.value,
+        }
+        if row.guard is not None:
+            rule["conditions"] = GUARD_NAMES[row.guard]
+        spec.append(rule)
+    model = GuardsHold()
+    Machine(
+        model=model,
+        states=[s.value for s in State],
+        transitions=spec,
+        initial=State.IDLE.value,
+        auto_transitions=False,
+    )
+    names = [e.value for e in events]
+    trigger = model.trigger  # type: ignore[attr-defined]
+    started = time.perf_counter()
+    for name in names:
+        trigger(name)
+    return len(names) / (time.perf_counter() - started)
+
+
+def bench_python_statemachine(events: list[Event]) -> float:
+    """`python-statemachine`: a StateMachine class generated from the cell's table."""
+    from statemachine import State as LibState
+    from statemachine import StateMachine
+
+    # The library insists every state be reachable from the initial one, so the
+    # machine starts in INITIALIZING and is brought to IDLE before timing.
+    states = {s: LibState(s.value, initial=s is State.INITIALIZING, value=s.value) for s in State}
+    namespace: dict[str, Any] = {s.value: lib_state for s, lib_state in states.items()}
+    for row in transitions():
+        guard = [GUARD_NAMES[row.guard]] if row.guard is not None else None
+        edge = states[row.source].to(states[row.target], cond=guard)
+        name = row.event.value
+        namespace[name] = namespace[name] | edge if name in namespace else edge
+    namespace.update(all_devices_ready=GuardsHold.all_devices_ready)
+    namespace.update(faults_cleared=GuardsHold.faults_cleared)
+    machine = type("CellTable", (StateMachine,), namespace)()
+    machine.send(Event.SYSTEM_READY.value)
+    names = [e.value for e in events]
+    send = machine.send
+    started = time.perf_counter()
+    for name in names:
+        send(name)
+    return len(names) / (time.perf_counter() - started)
 
 
 class NullDevice:
@@ -82,17 +164,21 @@ async def instant(ctx: Any) -> dict[str, Any]:
     return {}
 
 
-async def bench_worker(events: list[Event]) -> float:
-    settings = Settings(event_queue_size=len(events) + 10, history_size=1000)
+def new_worker(directory: Path, queue_size: int) -> Worker:
+    """A worker on no-op devices, with operations that run until the next event."""
+    settings = Settings(event_queue_size=queue_size, history_size=1000)
     devices = CellDevices(NullDevice("robot"), NullDevice("glue"), NullDevice("camera"))  # type: ignore[arg-type]
     operations = dict.fromkeys(
         ("trajectory", "calibrate_robot", "calibrate_camera", "create_workpiece"), instant
     )
     bus = Bus()
-    bus.subscribe(maxsize=len(events) * 3)
+    bus.subscribe(maxsize=queue_size * 3)
+    return Worker(settings, devices, operations, bus, CellStores.open(directory))
+
+
+async def bench_worker(events: list[Event]) -> float:
     with tempfile.TemporaryDirectory() as directory:
-        worker = Worker(settings, devices, operations, bus, CellStores.open(Path(directory)))
-        return await _drive(worker, events)
+        return await _drive(new_worker(Path(directory), len(events) + 10), events)
 
 
 async def _drive(worker: Worker, events: list[Event]) -> float:
@@ -109,25 +195,70 @@ async def _drive(worker: Worker, events: list[Event]) -> float:
     return len(events) / elapsed
 
 
+PROFILE_GROUPS = (
+    ("engine (server/core/engine.py)", "/server/core/engine.py"),
+    ("worker, bus, context (rest of server/core)", "/server/core/"),
+    ("asyncio loop, tasks, futures", "/asyncio/"),
+    ("benchmark's no-op devices and operations", "/bench/"),
+)
+
+
+def profile_worker(events: list[Event]) -> list[dict[str, Any]]:
+    """Where the worker's time goes: own time (cProfile tottime) summed by area."""
+    profiler = cProfile.Profile()
+    profiler.enable()
+    asyncio.run(bench_worker(events))
+    profiler.disable()
+    totals: dict[str, float] = {}
+    for (filename, _, _), (_, _, own, _, _) in pstats.Stats(profiler).stats.items():  # type: ignore[attr-defined]
+        area = next(
+            (name for name, part in PROFILE_GROUPS if part in filename),
+            "other (builtins, logging, dataclasses, ...)",
+        )
+        totals[area] = totals.get(area, 0.0) + own
+    whole = sum(totals.values())
+    return [
+        {
+            "area": area,
+            "us_per_event": round(seconds / len(events) * 1e6, 2),
+            "share": f"{seconds / whole:.0%}",
+        }
+        for area, seconds in sorted(totals.items(), key=lambda item: item[1], reverse=True)
+    ]
+
+
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--events", type=int, default=100_000)
+    parser.add_argument("--profile", action="store_true", help="profile the worker too")
     args = parser.parse_args(argv)
     logging.disable(logging.ERROR)  # every e-stop logs a fault; not what is measured
     events = event_sequence(args.events)
+    measured = {
+        "engine (pure step)": bench_engine(events),
+        "transitions (library)": bench_transitions(events),
+        "python-statemachine (library)": bench_python_statemachine(events),
+        "worker (queue+engine+actions+bus)": asyncio.run(bench_worker(events)),
+    }
+    fastest_library = max(
+        measured["transitions (library)"], measured["python-statemachine (library)"]
+    )
     rows = [
         {
-            "what": "engine (pure step)",
+            "what": what,
             "events": len(events),
-            "events_per_s": round(bench_engine(events)),
-        },
-        {
-            "what": "worker (queue+engine+bus)",
-            "events": len(events),
-            "events_per_s": round(asyncio.run(bench_worker(events))),
-        },
+            "events_per_s": round(rate),
+            "x_fastest_library": round(rate / fastest_library, 2),
+        }
+        for what, rate in measured.items()
     ]
-    emit("engine_throughput", rows)
+    extra: dict[str, Any] = {}
+    if args.profile:
+        extra["worker_profile"] = profile_worker(events[: max(len(events) // 5, len(CYCLE))])
+        emit("engine_throughput_worker_profile", extra["worker_profile"])
+    emit("engine_throughput", rows, extra)
     return rows
 
 

@@ -24,13 +24,14 @@ import asyncio
 import contextlib
 import json
 import logging
+from collections import OrderedDict
 from typing import Any
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from server.api.auth import authenticate_websocket
-from server.core.bus import SubscriptionClosed
+from server.core.bus import BusMessage, SubscriptionClosed
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -38,6 +39,7 @@ router = APIRouter()
 MESSAGE_TYPES = ("state_changed", "progress", "error", "alert")
 SEND_TIMEOUT = 5.0
 SNAPSHOT_HISTORY = 20
+ENCODED_CACHE = 64  # recent messages kept encoded; a client further behind re-encodes
 
 CLOSE_INVALID = 1003
 CLOSE_TOO_MANY = 1013
@@ -55,12 +57,23 @@ class ClientMessage(BaseModel):
 
 
 class WebSocketHub:
-    """Counts clients and enforces max_broadcast_clients."""
+    """Counts clients, enforces max_broadcast_clients, and encodes each message once."""
 
     def __init__(self, max_clients: int, buffer: int) -> None:
         self.max_clients = max_clients
         self.buffer = buffer
         self.client_count = 0
+        self._encoded: OrderedDict[int, str] = OrderedDict()
+
+    def encode(self, message: BusMessage) -> str:
+        """The message's JSON text, shared by every client (clients lag by a few at most)."""
+        text = self._encoded.get(message.seq)
+        if text is None:
+            text = json.dumps(message.as_dict())
+            self._encoded[message.seq] = text
+            if len(self._encoded) > ENCODED_CACHE:
+                self._encoded.popitem(last=False)
+        return text
 
 
 @router.websocket("/ws")
@@ -95,7 +108,7 @@ async def live(websocket: WebSocket) -> None:
             "history": [r.as_dict() for r in list(worker.ctx.history)[-SNAPSHOT_HISTORY:]],
         }
         await websocket.send_json(snapshot)
-        sender = asyncio.create_task(_send_loop(websocket, subscription))
+        sender = asyncio.create_task(_send_loop(websocket, subscription, hub))
         receiver = asyncio.create_task(_receive_loop(websocket, subscription))
         done, pending = await asyncio.wait({sender, receiver}, return_when=asyncio.FIRST_COMPLETED)
         for task in pending:
@@ -112,14 +125,17 @@ async def live(websocket: WebSocket) -> None:
         hub.client_count -= 1
 
 
-async def _send_loop(websocket: WebSocket, subscription: Any) -> tuple[int | None, str]:
+async def _send_loop(
+    websocket: WebSocket, subscription: Any, hub: WebSocketHub
+) -> tuple[int | None, str]:
     while True:
         try:
             message = await subscription.get()
         except SubscriptionClosed as closed:
             return CLOSE_SLOW, f"{closed.reason}: you fell behind; reconnect and resync"
         try:
-            await asyncio.wait_for(websocket.send_text(json.dumps(message.as_dict())), SEND_TIMEOUT)
+            async with asyncio.timeout(SEND_TIMEOUT):  # no extra task per send, unlike wait_for
+                await websocket.send_text(hub.encode(message))
         except TimeoutError:
             return CLOSE_SLOW, "slow consumer: a send did not complete in time"
         except (WebSocketDisconnect, RuntimeError, OSError):

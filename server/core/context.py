@@ -10,7 +10,7 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 from server.core.transitions import State
@@ -71,7 +71,17 @@ class FaultRecord:
     recommended_action: str = ""
 
     def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        # Spelled out: dataclasses.asdict deep-copies, and this runs on every
+        # state change while a fault is on record.
+        return {
+            "code": self.code,
+            "message": self.message,
+            "component": self.component,
+            "event_id": self.event_id,
+            "time": self.time,
+            "classification": self.classification,
+            "recommended_action": self.recommended_action,
+        }
 
 
 class ProcessingStats:

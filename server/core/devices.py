@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Awaitable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 from server.drivers.base import Camera, FaultListener, GlueDispenser, Robot
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 
 @dataclass
@@ -44,8 +46,8 @@ class CellDevices:
 
     async def safe_halt(self, timeout: float) -> HaltReport:
         """Close the glue valve and stop the robot now, valve first; never raises."""
-        valve = asyncio.ensure_future(asyncio.wait_for(self.glue.set_valve(False), timeout))
-        stop = asyncio.ensure_future(asyncio.wait_for(self.robot.stop(), timeout))
+        valve = asyncio.ensure_future(_within(self.glue.set_valve(False), timeout))
+        stop = asyncio.ensure_future(_within(self.robot.stop(), timeout))
         valve_result, stop_result = await asyncio.gather(valve, stop, return_exceptions=True)
         errors = [
             f"{name}: {_describe(result)}"
@@ -68,13 +70,13 @@ class CellDevices:
             timeout = timeouts[name]
             try:
                 if not device.health.connected:  # never came up, or the link was lost
-                    await asyncio.wait_for(device.connect(), timeout)
+                    await _within(device.connect(), timeout)
                 if name == "robot":
-                    await asyncio.wait_for(self.robot.get_position(), timeout)
+                    await _within(self.robot.get_position(), timeout)
                 elif name == "glue":
-                    return await asyncio.wait_for(self._probe_glue(), timeout)
+                    return await _within(self._probe_glue(), timeout)
                 else:
-                    await asyncio.wait_for(self.camera.capture(), timeout)
+                    await _within(self.camera.capture(), timeout)
             except asyncio.CancelledError:
                 raise
             except Exception as exc:
@@ -112,12 +114,22 @@ class CellDevices:
 
     async def connect(self, name: str, timeout: float) -> None:
         """Connect one device within `timeout` (TimeoutError or DeviceError otherwise)."""
-        await asyncio.wait_for(self.by_name()[name].connect(), timeout)
+        await _within(self.by_name()[name].connect(), timeout)
 
     async def close(self) -> None:
         await asyncio.gather(
             *(device.close() for device in self.by_name().values()), return_exceptions=True
         )
+
+
+async def _within(call: Awaitable[T], timeout: float) -> T:
+    """Await `call` for at most `timeout` s (TimeoutError after).
+
+    Unlike asyncio.wait_for on Python 3.11, this runs `call` in the caller's
+    task instead of a new one: one task fewer on the path of every stop.
+    """
+    async with asyncio.timeout(timeout):
+        return await call
 
 
 def _describe(exc: BaseException) -> str:

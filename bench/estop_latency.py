@@ -1,0 +1,244 @@
+"""Software-stop latency: POST /estop leaving the client → robot stopped AND valve closed.
+
+A trial sends POST /estop and ends when the robot simulator has received
+`stop` and the glue simulator has received the valve-close write (both stamp
+time.time() on arrival; the valve register is then checked to read closed).
+The latency is the later of the two stamps minus the moment just before the
+request left the client. Then the cell is reset to IDLE for the next trial.
+
+Who runs where: the server (the production app under uvicorn) in this
+process's main loop, so the benchmark can set each condition up directly; the
+robot and glue simulators and the HTTP client (kept alive, as an HMI holds
+its connection) in a process of their own (bench/stop_witness.py), as
+separate devices and HMIs are; and for the WebSocket condition, the 1000
+clients in another process (bench/ws_crowd.py). The simulated camera
+renders in the server, as in the default run.
+
+Conditions, each with --trials e-stops (default 500):
+- idle: the cell in IDLE, nothing running;
+- trajectory running: a spraying run started, the stop sent once it is on the spray path;
+- event queue full: the request lane filled to event_queue_size with requests
+  just before the stop is sent (the worker is still draining them);
+- 1000 WebSocket clients: 1000 live /ws clients reading every message, the cell IDLE;
+- vision operation running: a robot calibration started (capture, marker
+  detection on a 1920×1080 frame in a worker thread), the stop sent at a
+  random moment in its first 60 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import os
+import random
+import subprocess
+import sys
+import tempfile
+from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import uvicorn
+
+from bench.report import emit, percentiles_ms
+from server.app import create_app
+from server.cell import Cell
+from server.config import Settings
+from server.core.transitions import Event, State
+from server.core.worker import Worker
+from server.errors import EventQueueFull
+from tests.serving import free_port
+
+ROOT = Path(__file__).resolve().parents[1]
+SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
+CONDITIONS = (
+    "idle",
+    "trajectory running",
+    "event queue full",
+    "1000 WebSocket clients",
+    "vision operation running",
+)
+
+
+class StopWitness:
+    """The simulators' and the HMI's process (bench/stop_witness.py)."""
+
+    def __init__(self) -> None:
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "bench.stop_witness"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+        )
+        assert self.process.stdout is not None and self.process.stdin is not None
+        self.stdin, self.stdout = self.process.stdin, self.process.stdout
+        _, robot, _, glue = self.stdout.readline().split()
+        self.robot_port, self.glue_port = int(robot), int(glue)
+
+    def tell(self, line: str) -> list[str]:
+        self.stdin.write(line + "\n")
+        self.stdin.flush()
+        return self.stdout.readline().split()
+
+    def estop_once(self) -> float:
+        """POST /estop from the witness; the time until both simulators had the stop."""
+        answer = self.tell("fire")
+        if answer[0] != "stopped":
+            raise RuntimeError(f"the e-stop failed: {' '.join(answer)}")
+        assert answer[2] == "True", "the valve does not read closed after the stop"
+        return float(answer[1])
+
+    def close(self) -> None:
+        self.stdin.close()
+        self.process.wait(10)
+
+
+async def wait_state(worker: Worker, *states: State) -> None:
+    while worker.ctx.state not in states:
+        await asyncio.sleep(0.001)
+
+
+async def to_idle(worker: Worker) -> None:
+    await wait_state(worker, State.IDLE, State.ERROR)
+    while worker.ctx.state is State.ERROR:
+        await worker.request(Event.RESET_REQUESTED, source="bench")
+    await wait_state(worker, State.IDLE)
+
+
+async def start_spraying(worker: Worker) -> None:
+    outcome = await worker.request(Event.START_REQUESTED, source="bench", data=SPRAY_DEMO)
+    assert outcome.accepted, outcome.message
+    # Past the approach move: on the spray path, the valve open.
+    while (running := worker.ctx.operation) is None or running.progress.get("waypoint", 0) < 2:
+        await asyncio.sleep(0.001)
+
+
+async def fill_queue(worker: Worker) -> None:
+    """Requests the cell will refuse in IDLE, until the bounded lane refuses more."""
+    with contextlib.suppress(EventQueueFull):
+        while True:
+            worker.submit(Event.PAUSE_REQUESTED, source="bench")
+
+
+async def start_vision(worker: Worker, rng: random.Random) -> None:
+    outcome = await worker.request(Event.CALIBRATE_ROBOT_REQUESTED, source="bench")
+    assert outcome.accepted, outcome.message
+    await asyncio.sleep(rng.uniform(0.0, 0.06))
+
+
+@contextlib.asynccontextmanager
+async def ws_crowd(port: int, token: str, clients: int) -> AsyncIterator[None]:
+    """`clients` live /ws connections, in a process of their own."""
+    crowd = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "bench.ws_crowd",
+        "--url",
+        f"ws://127.0.0.1:{port}/ws",
+        "--clients",
+        str(clients),
+        stdin=asyncio.subprocess.PIPE,
+        stdout=asyncio.subprocess.PIPE,
+        env={**os.environ, "GLUE_BENCH_TOKEN": token},
+        cwd=ROOT,
+    )
+    assert crowd.stdout is not None and crowd.stdin is not None
+    line = (await crowd.stdout.readline()).decode()
+    if not line.startswith("connected"):
+        crowd.kill()
+        raise RuntimeError(f"the WebSocket crowd did not connect: {line!r}")
+    try:
+        yield
+    finally:
+        crowd.stdin.close()
+        await asyncio.wait_for(crowd.wait(), 60)
+
+
+async def trials_in(
+    condition: str,
+    trials: int,
+    worker: Worker,
+    witness: StopWitness,
+    rng: random.Random,
+) -> list[float]:
+    prepare: dict[str, Callable[[], Awaitable[None]]] = {
+        "trajectory running": lambda: start_spraying(worker),
+        "event queue full": lambda: fill_queue(worker),
+        "vision operation running": lambda: start_vision(worker, rng),
+    }
+    samples = []
+    for _ in range(trials):
+        await to_idle(worker)
+        if condition in prepare:
+            await prepare[condition]()
+        samples.append(await asyncio.to_thread(witness.estop_once))
+    await to_idle(worker)
+    return samples
+
+
+async def run(trials: int, queue_size: int, ws_clients: int) -> list[dict[str, Any]]:
+    witness = await asyncio.to_thread(StopWitness)
+    settings = Settings(
+        robot_ip="127.0.0.1",
+        robot_port=witness.robot_port,
+        glue_controller_port=f"tcp://127.0.0.1:{witness.glue_port}",
+        event_queue_size=queue_size,
+        max_broadcast_clients=ws_clients + 10,
+        emergency_stop_timeout=1.0,
+        data_path=Path(tempfile.mkdtemp(prefix="bench-cell-")),
+    )
+    cell = Cell(settings)
+    port = free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(
+            create_app(cell=cell),
+            host="127.0.0.1",
+            port=port,
+            log_level="error",
+            ws="websockets-sansio",
+        )
+    )
+    serving = asyncio.create_task(server.serve())
+    while not server.started:
+        await asyncio.sleep(0.01)
+    token = (settings.data_path / "admin.token").read_text().strip()
+    assert await asyncio.to_thread(witness.tell, f"server http://127.0.0.1:{port} {token}")
+    assert cell.worker is not None
+    await wait_state(cell.worker, State.IDLE)
+    rng = random.Random(20261122)
+    rows = []
+    for condition in CONDITIONS:
+        label = condition.replace("1000", str(ws_clients))
+        crowd = ws_crowd(port, token, ws_clients) if "WebSocket" in condition else None
+        async with crowd or contextlib.nullcontext():
+            samples = await trials_in(condition, trials, cell.worker, witness, rng)
+        rows.append({"condition": label, **percentiles_ms(samples), "target_p99_ms": 5.0})
+    server.should_exit = True
+    await serving
+    await asyncio.to_thread(witness.close)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--trials", type=int, default=500, help="e-stops per condition")
+    parser.add_argument("--queue-size", type=int, default=1000)
+    parser.add_argument("--ws-clients", type=int, default=1000)
+    args = parser.parse_args(argv)
+    logging.disable(logging.ERROR)  # every e-stop logs a fault; not what is measured
+    rows = asyncio.run(run(args.trials, args.queue_size, args.ws_clients))
+    emit(
+        "estop_latency",
+        rows,
+        {"trials": args.trials, "queue_size": args.queue_size, "ws_clients": args.ws_clients},
+    )
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,142 @@
+"""Resident memory of a running server: at start, after 1M events, after 10k operations.
+
+Every buffer in the server is meant to be bounded (the transition history, the
+processing-time window, each WebSocket client's mailbox, the journal's
+backlog, the metrics), so memory must level off however long the cell runs.
+
+The server is the production app with its full persistence (journal in
+SQLite, state snapshot file, KPIs, metrics) served by uvicorn in this process,
+with one WebSocket-like bus subscriber draining every message; the devices are
+no-op and each operation completes at once, so a million events take minutes
+rather than days. Events go straight to the worker in batches (each awaited
+until durable), not over HTTP: the HTTP layer holds nothing between requests.
+
+- start: after start-up and a warm-up of 10k events (first-use allocations,
+  caches, SQLite's page cache), with a full garbage collection;
+- after --events (default 1M) events of the cell's cycle (start, pause,
+  resume, cancel, calibrate, cancel, estop, reset);
+- after --operations (default 10k) operations run to completion
+  (start → OPERATION_COMPLETED → IDLE).
+Target: growth under 10 MB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import gc
+import logging
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import psutil
+
+from bench.engine_throughput import NullDevice, event_sequence
+from bench.report import emit
+from server.cell import Cell
+from server.config import Settings
+from server.core.bus import SubscriptionClosed
+from server.core.devices import CellDevices
+from server.core.transitions import Event, State
+from server.core.worker import Worker
+from tests.serving import serve
+
+BATCH = 500  # events in flight at once: below event_queue_size and the journal backlog limit
+
+
+async def done_at_once(ctx: Any) -> dict[str, Any]:
+    return {"done": True}
+
+
+def rss_mb() -> float:
+    gc.collect()
+    return psutil.Process().memory_info().rss / 2**20
+
+
+async def drive(worker: Worker, events: list[Event]) -> None:
+    for first in range(0, len(events), BATCH):
+        envelopes = [worker.submit(e, source="bench") for e in events[first : first + BATCH]]
+        await asyncio.gather(*(e.future for e in envelopes if e.future is not None))
+
+
+async def run_operations(worker: Worker, count: int) -> None:
+    for _ in range(count):
+        outcome = await worker.request(
+            Event.START_REQUESTED, source="bench", data={"workpiece_id": "demo"}
+        )
+        assert outcome.accepted, outcome.message
+        while worker.ctx.state is not State.IDLE:
+            await asyncio.sleep(0)
+
+
+async def measure(event_count: int, operation_count: int) -> list[dict[str, Any]]:
+    devices = CellDevices(NullDevice("robot"), NullDevice("glue"), NullDevice("camera"))  # type: ignore[arg-type]
+    operations = dict.fromkeys(
+        ("trajectory", "calibrate_robot", "calibrate_camera", "create_workpiece"), done_at_once
+    )
+    with tempfile.TemporaryDirectory() as directory:
+        settings = Settings(data_path=Path(directory), commission_simulated_cell=False)
+        cell = Cell(settings, devices=devices, operations=operations)
+        async with serve(cell):
+            worker = cell.worker
+            assert worker is not None
+            while worker.ctx.state is not State.IDLE:
+                await asyncio.sleep(0.01)
+            subscription = cell.bus.subscribe(maxsize=BATCH * 4)
+
+            async def drain() -> None:
+                try:
+                    while True:
+                        await subscription.get()
+                except SubscriptionClosed:
+                    pass
+
+            reader = asyncio.create_task(drain())
+            await drive(worker, event_sequence(10_000))
+            rows = [{"point": "start (after 10k warm-up events)", "rss_mb": rss_mb()}]
+            started = time.perf_counter()
+            await drive(worker, event_sequence(event_count))
+            rows.append(
+                {
+                    "point": f"after {event_count:,} events",
+                    "rss_mb": rss_mb(),
+                    "seconds": time.perf_counter() - started,
+                }
+            )
+            started = time.perf_counter()
+            await run_operations(worker, operation_count)
+            rows.append(
+                {
+                    "point": f"after {operation_count:,} operations",
+                    "rss_mb": rss_mb(),
+                    "seconds": time.perf_counter() - started,
+                }
+            )
+            assert subscription.closed_reason is None, "the draining subscriber fell behind"
+            reader.cancel()
+    base = rows[0]["rss_mb"]
+    for row in rows:
+        row["growth_mb"] = round(row["rss_mb"] - base, 2)
+        row["rss_mb"] = round(row["rss_mb"], 2)
+        if "seconds" in row:
+            row["seconds"] = round(row["seconds"], 1)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--events", type=int, default=1_000_000)
+    parser.add_argument("--operations", type=int, default=10_000)
+    args = parser.parse_args(argv)
+    logging.disable(logging.ERROR)
+    rows = asyncio.run(measure(args.events, args.operations))
+    emit("memory", rows, {"target_growth_mb": 10})
+    return rows
+
+
+if __name__ == "__main__":
+    main()

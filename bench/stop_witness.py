@@ -1,0 +1,80 @@
+"""The devices and the HMI of the stop benchmark, in a process of their own.
+
+`python -m bench.stop_witness` starts the robot and glue simulators on free
+loopback ports and prints "robot <port> glue <port>". It then reads commands
+on its standard input:
+
+- "server <base_url> <token>": the server to stop, once it is up;
+- "fire": clear the simulators' stop stamps, send POST /estop (on a kept-alive
+  connection, as an HMI holds one), and print "stopped <seconds> <valve_closed>":
+  from just before the request left to the later of the robot receiving `stop`
+  and the dispenser receiving the valve-close write (both stamped with
+  time.time() by the simulators on arrival).
+
+Being a separate process matters: simulators or a client inside the server's
+process would wait for its interpreter lock while it works, and that wait
+would be charged to the server's stop latency. Real devices and HMIs share no
+lock with the server. Here one event loop holds the client and both
+simulators, and it is idle while a stop is on its way.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+import time
+
+import httpx
+
+from server.config import Settings
+from server.drivers.sim.glue_sim import GlueSimulator
+from server.drivers.sim.robot_sim import RobotSimulator
+
+
+async def fire(client: httpx.AsyncClient, robot: RobotSimulator, glue: GlueSimulator) -> str:
+    robot.last_stop_at = None
+    glue.close_commanded_at = None
+    sent = time.time()
+    response = await client.post("/estop")
+    if response.status_code != 202:
+        return f"failed {response.status_code} {response.text[:200]!r}"
+    while not (robot.last_stop_at and glue.close_commanded_at):
+        await asyncio.sleep(0.0002)  # when we report, not what we report
+    latency = max(robot.last_stop_at, glue.close_commanded_at) - sent
+    return f"stopped {latency} {not glue.valve_open}"
+
+
+async def witness(speed_factor: float) -> None:
+    settings = Settings()
+    async with (
+        RobotSimulator(
+            "127.0.0.1",
+            0,
+            workspace_min=settings.workspace_min_mm,
+            workspace_max=settings.workspace_max_mm,
+            home=settings.safe_position,
+            speed_factor=speed_factor,
+        ) as robot,
+        GlueSimulator("127.0.0.1", 0, speed_factor=speed_factor) as glue,
+    ):
+        print(f"robot {robot.port} glue {glue.port}", flush=True)
+        loop = asyncio.get_running_loop()
+        client: httpx.AsyncClient | None = None
+        try:
+            while True:
+                words = (await loop.run_in_executor(None, sys.stdin.readline)).split()
+                if not words:
+                    return  # end of input: the benchmark is done
+                if words[0] == "server":
+                    headers = {"Authorization": f"Bearer {words[2]}"}
+                    client = httpx.AsyncClient(base_url=words[1], headers=headers, timeout=10)
+                    print("ready", flush=True)
+                elif words[0] == "fire" and client is not None:
+                    print(await fire(client, robot, glue), flush=True)
+        finally:
+            if client is not None:
+                await client.aclose()
+
+
+if __name__ == "__main__":
+    asyncio.run(witness(float(sys.argv[1]) if len(sys.argv) > 1 else 3.0))
