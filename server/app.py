@@ -18,6 +18,7 @@ from fastapi.responses import JSONResponse
 from server.api import analytics, auth, commands, metrics, queries, workpieces, ws
 from server.api.dashboard import mount_dashboard
 from server.api.limits import BodySizeLimit
+from server.api.observe import ResponseObservers
 from server.cell import Cell
 from server.config import Settings
 from server.errors import EventQueueFull, WorkerStopped
@@ -62,8 +63,13 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     ):
         app.include_router(router, dependencies=gate)
     app.state.metrics = metrics.Metrics(app)
-    app.middleware("http")(auth.audit_middleware(lambda request: request.app.state.cell.journal))
-    app.middleware("http")(app.state.metrics.middleware)
+    app.add_middleware(
+        ResponseObservers,
+        observers=[
+            auth.audit_observer(lambda scope: scope["app"].state.cell.journal),
+            app.state.metrics.observe_response,
+        ],
+    )
     if settings.cors_allowed_origins:
         app.add_middleware(
             CORSMiddleware,

@@ -13,14 +13,16 @@ import asyncio
 import ipaddress
 import logging
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response, WebSocket
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.requests import HTTPConnection
+from starlette.types import Scope
 
 from server.api.analytics import csv_export
+from server.api.observe import Observer
 from server.api.schemas import ErrorView
 from server.config import Settings
 from server.core.journal import Journal
@@ -119,35 +121,29 @@ def authenticate_websocket(websocket: WebSocket) -> Principal | None:
     return principal
 
 
-def audit_middleware(journal_of: Callable[[Request], Journal | None]):
+def audit_observer(journal_of: Callable[[Scope], Journal | None]) -> Observer:
     """Record commands, admin actions and refused attempts in the journal."""
 
-    async def middleware(
-        request: Request, call_next: Callable[[Request], Awaitable[Response]]
-    ) -> Response:
-        response = await call_next(request)
-        status = response.status_code
-        if request.method in ("GET", "HEAD", "OPTIONS") and status not in (401, 403):
-            return response
-        journal = journal_of(request)
+    def observe(scope: Scope, status: int, seconds: float) -> None:
+        method = scope["method"]
+        if method in ("GET", "HEAD", "OPTIONS") and status not in (401, 403):
+            return
+        journal = journal_of(scope)
         if journal is None:
-            return response
-        principal: Principal | None = getattr(request.state, "principal", None)
+            return
+        state = scope.get("state") or {}  # request.state, as the routes left it
+        principal: Principal | None = state.get("principal")
         who = principal.describe() if principal else "anonymous"
         outcome = "accepted" if status < 400 else f"refused ({status})"
-        detail = getattr(request.state, "audit_reason", "") or ""
-        host = request.client.host if request.client else "unknown"
+        detail = state.get("audit_reason", "") or ""
+        client = scope.get("client")
+        host = client[0] if client else "unknown"
         journal.append(
-            [
-                Journal.audit(
-                    time.time(), who, host, f"{request.method} {request.url.path}", outcome, detail
-                )
-            ],
+            [Journal.audit(time.time(), who, host, f"{method} {scope['path']}", outcome, detail)],
             durable=False,
         )
-        return response
 
-    return middleware
+    return observe
 
 
 # --- routes ------------------------------------------------------------------

@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Iterator
 
 from fastapi import APIRouter, FastAPI, Request, Response
 from prometheus_client import (
@@ -24,6 +23,7 @@ from prometheus_client import (
 )
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
+from starlette.types import Scope
 
 from server.cell import Cell
 from server.core.bus import SubscriptionClosed
@@ -136,18 +136,11 @@ class Metrics:
                 continue
             self.transitions.labels(message.data["old_state"], message.data["new_state"]).inc()
 
-    async def middleware(
-        self, request: Request, call_next: Callable[[Request], Awaitable[Response]]
-    ) -> Response:
-        started = time.perf_counter()
-        response = await call_next(request)
-        route = request.scope.get("route")
-        path = getattr(route, "path", "unmatched")
+    def observe_response(self, scope: Scope, status: int, seconds: float) -> None:
+        """Request duration by method, route template and status (an observer)."""
+        path = getattr(scope.get("route"), "path", "unmatched")
         with contextlib.suppress(Exception):
-            self.request_seconds.labels(request.method, path, str(response.status_code)).observe(
-                time.perf_counter() - started
-            )
-        return response
+            self.request_seconds.labels(scope["method"], path, str(status)).observe(seconds)
 
 
 @router.get("/metrics", response_class=Response, responses={200: {"content": {"text/plain": {}}}})

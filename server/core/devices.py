@@ -46,21 +46,18 @@ class CellDevices:
 
     async def safe_halt(self, timeout: float) -> HaltReport:
         """Close the glue valve and stop the robot now, valve first; never raises."""
+        return await self.start_halt(timeout)
+
+    def start_halt(self, timeout: float) -> asyncio.Future[HaltReport]:
+        """Put both halt commands on their way at once; the future reports how they went.
+
+        Not a coroutine, so the commands' tasks exist when this returns and run
+        on the loop's very next turn: a caller that had to be scheduled first
+        would cost the e-stop one more turn of a possibly busy loop.
+        """
         valve = asyncio.ensure_future(_within(self.glue.set_valve(False), timeout))
         stop = asyncio.ensure_future(_within(self.robot.stop(), timeout))
-        valve_result, stop_result = await asyncio.gather(valve, stop, return_exceptions=True)
-        errors = [
-            f"{name}: {_describe(result)}"
-            for name, result in (("glue valve close", valve_result), ("robot stop", stop_result))
-            if isinstance(result, BaseException)
-        ]
-        for error in errors:
-            log.error("safe halt: %s failed", error)
-        return HaltReport(
-            valve_closed=not isinstance(valve_result, BaseException),
-            robot_stopped=not isinstance(stop_result, BaseException),
-            errors=errors,
-        )
+        return asyncio.ensure_future(_halt_report(valve, stop))
 
     async def probe_faults(self, timeouts: dict[str, float]) -> list[str]:
         """Ask every device for a live answer, each within its own timeout; the faults left."""
@@ -120,6 +117,22 @@ class CellDevices:
         await asyncio.gather(
             *(device.close() for device in self.by_name().values()), return_exceptions=True
         )
+
+
+async def _halt_report(valve: asyncio.Future[None], stop: asyncio.Future[None]) -> HaltReport:
+    valve_result, stop_result = await asyncio.gather(valve, stop, return_exceptions=True)
+    errors = [
+        f"{name}: {_describe(result)}"
+        for name, result in (("glue valve close", valve_result), ("robot stop", stop_result))
+        if isinstance(result, BaseException)
+    ]
+    for error in errors:
+        log.error("safe halt: %s failed", error)
+    return HaltReport(
+        valve_closed=not isinstance(valve_result, BaseException),
+        robot_stopped=not isinstance(stop_result, BaseException),
+        errors=errors,
+    )
 
 
 async def _within(call: Awaitable[T], timeout: float) -> T:

@@ -197,7 +197,7 @@ class Worker:
         queued; the EMERGENCY_STOP event then overtakes everything waiting.
         """
         self._estops += 1  # anything being decided now must not undo this stop
-        halt = asyncio.ensure_future(self.devices.safe_halt(self.settings.emergency_stop_timeout))
+        halt = self.devices.start_halt(self.settings.emergency_stop_timeout)
         envelope = self.submit(
             Event.EMERGENCY_STOP,
             source=source,

@@ -1,0 +1,47 @@
+"""Watch every HTTP response go out, without a task per request.
+
+Starlette's function middlewares (`@app.middleware("http")`) run the rest of
+the app in a task group with memory streams: several extra task hops per
+request, paid by every command including the e-stop. This plain ASGI
+middleware passes the request straight through and only notes the status
+code on its way out; the observers (audit trail, metrics) run once the
+response has been sent.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+# (scope, status code, seconds from request to the end of the response)
+Observer = Callable[[Scope, int, float], None]
+
+
+class ResponseObservers:
+    """ASGI middleware: call each observer after every HTTP response."""
+
+    def __init__(self, app: ASGIApp, observers: list[Observer]) -> None:
+        self.app = app
+        self.observers = observers
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = time.perf_counter()
+        status = 500  # if the app fails before it starts a response
+
+        async def noting_status(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, noting_status)
+        finally:
+            seconds = time.perf_counter() - started
+            for observe in self.observers:
+                observe(scope, status, seconds)
