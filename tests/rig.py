@@ -1,13 +1,17 @@
 """Tier two with real protocols: the cell server in this test's loop, reaching the
 robot and glue simulators (also in this loop) through its production clients,
 and the simulated camera in-process, so tests can move parts on the table and
-inject faults."""
+inject faults.
+
+`DEVICE_FAULTS` names each fault the simulators can inject, with what the cell
+is expected to do about it, so the random-point fault test and the soak inject
+and judge faults the same way; `assert_safe` is the check every fault test shares."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -50,8 +54,115 @@ class Rig:
             while not self.glue.valve_open:
                 await asyncio.sleep(0.005)
 
+    async def begin(self, operation: str) -> None:
+        """Start `operation`: "spray" (returns once glue flows) or a command such as
+        "calibrate-camera" (returns once accepted)."""
+        if operation == "spray":
+            await self.start_spraying()
+            return
+        response = await self.api.post(f"/{operation}")
+        assert response.status_code == 202, response.json()
+
     async def reset(self) -> httpx.Response:
         return await self.api.post("/reset")
+
+
+async def assert_safe(rig: Rig, component: str) -> dict:
+    """ERROR, the fault named, the valve closed and the robot still."""
+    snapshot = await rig.wait_state("ERROR", timeout=TIMEOUT * 3 + 5)
+    assert snapshot["stop_reason"]["component"] == component, snapshot
+    async with asyncio.timeout(TIMEOUT * 3):
+        while rig.robot.is_moving:
+            await asyncio.sleep(0.01)
+    return snapshot
+
+
+@dataclass(frozen=True)
+class DeviceFaultKind:
+    """A fault the simulators inject, and what the cell must do about it."""
+
+    name: str
+    component: str  # the device the stop reason must name
+    codes: frozenset[str]  # the stop-reason codes it may cause (first fault out)
+    refusal: str  # what a reset refused while the fault lasts says
+    operation: str  # the operation it interrupts (see Rig.begin)
+    inject: Callable[[Rig], None]
+    clear: Callable[[Rig], None]
+    # The drivers notice it with nothing to do (a lost link, the dispenser monitor);
+    # otherwise it shows at the next use of the device.
+    noticed_when_idle: bool = True
+    # The dispenser still takes commands, so the halt closes the valve at once; a silent
+    # one cannot be told, and the valve is closed again by the reset.
+    valve_closes_at_once: bool = True
+    # The robot link is up, so the halt's stop reaches the controller.
+    stop_reaches_robot: bool = True
+
+
+DROP_REFUSAL_S = 3.0  # how long a dropped robot refuses reconnection (cleared earlier)
+
+DEVICE_FAULTS: dict[str, DeviceFaultKind] = {
+    kind.name: kind
+    for kind in (
+        DeviceFaultKind(
+            "robot-dropped",
+            "robot",
+            frozenset({"COMM_LOST"}),
+            "robot",
+            "spray",
+            lambda rig: rig.robot.inject_fault("drop", duration=DROP_REFUSAL_S),
+            lambda rig: rig.robot.clear_faults(),
+            stop_reaches_robot=False,
+        ),
+        DeviceFaultKind(
+            "robot-stalled",
+            "robot",
+            frozenset({"DEVICE_FAULT", "SAFE_POSITION_FAILED"}),
+            "robot: no answer in time",
+            "spray",
+            lambda rig: rig.robot.inject_fault("stall"),
+            lambda rig: rig.robot.clear_faults(),
+            noticed_when_idle=False,
+        ),
+        DeviceFaultKind(
+            "dispenser-silent",
+            "glue",
+            frozenset({"NO_REPLY", "DEVICE_FAULT"}),
+            "glue",
+            "spray",
+            lambda rig: rig.glue.inject_no_reply(),
+            lambda rig: rig.glue.clear_faults(),
+            valve_closes_at_once=False,
+        ),
+        DeviceFaultKind(
+            "dispenser-alarm",
+            "glue",
+            frozenset({"ALARM"}),
+            "glue: alarm NOZZLE_BLOCKED",
+            "spray",
+            lambda rig: rig.glue.set_alarm("NOZZLE_BLOCKED"),
+            lambda rig: rig.glue.clear_faults(),
+        ),
+        DeviceFaultKind(
+            "dispenser-pressure",
+            "glue",
+            frozenset({"PRESSURE_OUT_OF_RANGE"}),
+            "outside",
+            "spray",
+            lambda rig: rig.glue.force_pressure(180.0),
+            lambda rig: rig.glue.clear_faults(),
+        ),
+        DeviceFaultKind(
+            "camera-failed",
+            "camera",
+            frozenset({"CAPTURE_FAILED", "DEVICE_FAULT"}),
+            "camera",
+            "calibrate-camera",
+            lambda rig: rig.camera.inject_fault("fail"),
+            lambda rig: rig.camera.clear_faults(),
+            noticed_when_idle=False,
+        ),
+    )
+}
 
 
 @contextlib.asynccontextmanager

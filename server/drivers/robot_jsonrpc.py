@@ -141,11 +141,13 @@ class JsonRpcRobot:
         """Open the link and check the controller answers (getPosition).
 
         Raises DeviceDisconnected or DeviceTimeout; an initial failure does not
-        start background reconnection (the caller decides whether to retry).
+        start background reconnection (the caller decides whether to retry), and
+        a failure after a lost link leaves the background reconnection running.
         """
         if self._connected:
             return
         self._closing = False
+        retrying = self._reconnect_task is not None and not self._reconnect_task.done()
         await self._cancel_reconnect()  # one link at a time: take over from the retry loop
         try:
             await self._open()
@@ -156,6 +158,13 @@ class JsonRpcRobot:
             raise DeviceDisconnected(
                 DEVICE, f"cannot reach the robot controller at {self.host}:{self.port}: {exc}"
             ) from exc
+        finally:
+            # A failed attempt during an outage (e.g. a refused reset's probe) must not end
+            # the background reconnection it took over from.
+            if retrying and not self._connected and not self._closing:
+                self._reconnect_task = asyncio.get_running_loop().create_task(
+                    self._reconnect_loop(), name="robot-reconnect"
+                )
 
     async def close(self) -> None:
         """Close the link and stop reconnecting; not a fault, never raises."""

@@ -9,7 +9,7 @@ from collections.abc import AsyncIterator
 
 import pytest
 
-from tests.rig import TIMEOUT, Rig, open_rig
+from tests.rig import Rig, assert_safe, open_rig
 
 
 @pytest.fixture(scope="module")
@@ -22,16 +22,6 @@ def cell_data(tmp_path_factory: pytest.TempPathFactory):
 async def rig(cell_data) -> AsyncIterator[Rig]:
     async with open_rig(cell_data) as running:
         yield running
-
-
-async def assert_safe(rig: Rig, component: str) -> dict:
-    """ERROR, the fault named, the valve closed and the robot still."""
-    snapshot = await rig.wait_state("ERROR", timeout=TIMEOUT * 3 + 5)
-    assert snapshot["stop_reason"]["component"] == component, snapshot
-    async with asyncio.timeout(TIMEOUT * 3):
-        while rig.robot.is_moving:
-            await asyncio.sleep(0.01)
-    return snapshot
 
 
 async def test_robot_connection_dropped(rig: Rig) -> None:
