@@ -116,8 +116,12 @@ async def live(websocket: WebSocket) -> None:
         await asyncio.gather(*pending, return_exceptions=True)
         close_code, reason = next(iter(done)).result()
         if close_code is not None:
+            # Bounded: a client that stopped reading may never take the close frame,
+            # and must not hold its place among max_broadcast_clients (or a shutdown)
+            # until the keepalive notices; the keepalive still ends the connection.
             with contextlib.suppress(Exception):
-                await websocket.close(close_code, reason)
+                async with asyncio.timeout(SEND_TIMEOUT):
+                    await websocket.close(close_code, reason)
     except WebSocketDisconnect:
         pass
     finally:
