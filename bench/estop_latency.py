@@ -43,12 +43,14 @@ from typing import Any
 import uvicorn
 
 from bench.report import emit, percentiles_ms
+from server.__main__ import uvicorn_options
 from server.app import create_app
 from server.cell import Cell
 from server.config import Settings
 from server.core.transitions import Event, State
 from server.core.worker import Worker
 from server.errors import EventQueueFull
+from server.runtime import tune_garbage_collection
 from tests.serving import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -192,13 +194,15 @@ async def run(trials: int, queue_size: int, ws_clients: int) -> list[dict[str, A
     )
     cell = Cell(settings)
     port = free_port()
+    app = create_app(cell=cell)
+    tune_garbage_collection()  # as python -m server does
     server = uvicorn.Server(
         uvicorn.Config(
-            create_app(cell=cell),
+            app,
             host="127.0.0.1",
             port=port,
             log_level="error",
-            ws="websockets-sansio",
+            **uvicorn_options(settings),
         )
     )
     serving = asyncio.create_task(server.serve())

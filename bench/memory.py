@@ -41,6 +41,7 @@ from server.core.bus import SubscriptionClosed
 from server.core.devices import CellDevices
 from server.core.transitions import Event, State
 from server.core.worker import Worker
+from server.runtime import tune_garbage_collection
 from tests.serving import serve
 
 BATCH = 500  # events in flight at once: below event_queue_size and the journal backlog limit
@@ -79,6 +80,7 @@ async def measure(event_count: int, operation_count: int) -> list[dict[str, Any]
     with tempfile.TemporaryDirectory() as directory:
         settings = Settings(data_path=Path(directory), commission_simulated_cell=False)
         cell = Cell(settings, devices=devices, operations=operations)
+        tune_garbage_collection()  # as python -m server does
         async with serve(cell):
             worker = cell.worker
             assert worker is not None

@@ -1,4 +1,9 @@
-"""Shared output for benchmarks: a table on stdout and a JSON file under bench/results/."""
+"""Shared output for benchmarks: a table on stdout and a JSON file under bench/results/.
+
+The JSON goes elsewhere when `emit` is given `results_dir`, or when the
+environment sets BENCH_RESULTS_DIR: smoke tests run the benchmarks with tiny
+counts and must not overwrite the published figures.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS_ENV = "BENCH_RESULTS_DIR"
 
 
 def machine() -> dict[str, Any]:
@@ -36,8 +42,23 @@ def percentiles_ms(samples_s: list[float]) -> dict[str, float]:
     }
 
 
-def emit(name: str, rows: list[dict[str, Any]], extra: dict[str, Any] | None = None) -> Path:
-    """Print `rows` as a table and write them, with the machine, to results/<name>.json."""
+def results_path(filename: str, results_dir: Path | None = None) -> Path:
+    """Where a result file goes: `results_dir`, else $BENCH_RESULTS_DIR, else bench/results."""
+    directory = results_dir or Path(os.environ.get(RESULTS_ENV) or RESULTS)
+    directory.mkdir(parents=True, exist_ok=True)
+    return directory / filename
+
+
+def emit(
+    name: str,
+    rows: list[dict[str, Any]],
+    extra: dict[str, Any] | None = None,
+    results_dir: Path | None = None,
+) -> Path:
+    """Print `rows` as a table and write them, with the machine, to <results>/<name>.json.
+
+    <results> is `results_dir`, else $BENCH_RESULTS_DIR, else bench/results.
+    """
     columns = list(dict.fromkeys(key for row in rows for key in row))
     widths = {c: max(len(c), *(len(_fmt(row.get(c))) for row in rows)) for c in columns}
     print(f"\n{name}")
@@ -45,8 +66,7 @@ def emit(name: str, rows: list[dict[str, Any]], extra: dict[str, Any] | None = N
     print("  ".join("-" * widths[c] for c in columns))
     for row in rows:
         print("  ".join(_fmt(row.get(c)).ljust(widths[c]) for c in columns))
-    RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"{name}.json"
+    path = results_path(f"{name}.json", results_dir)
     document = {
         "benchmark": name,
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import uvicorn
 
+from server.__main__ import uvicorn_options
 from server.app import create_app
 from server.cell import Cell
 
@@ -35,9 +36,8 @@ async def serve(cell: Cell) -> AsyncIterator[str]:
         host="127.0.0.1",
         port=port,
         log_level="warning",
-        ws="websockets-sansio",
-        ws_max_size=64 * 1024,
         lifespan="on",
+        **uvicorn_options(cell.settings),
     )
     server = uvicorn.Server(config)
     server.install_signal_handlers = lambda: None  # type: ignore[method-assign]

@@ -86,7 +86,8 @@ async def authorize(request: Request) -> None:
     if not access.address_allowed(host):
         raise _refuse(request, 403, f"requests from {host} are not allowed (trusted_networks)")
     route = request.scope.get("route")
-    needed = required_role(request.method, getattr(route, "path", request.url.path))
+    # Not getattr(route, "path", request.url.path): that builds the URL on every request.
+    needed = required_role(request.method, route.path if route is not None else request.url.path)
     if needed is None:
         return
     token = _bearer(request)

@@ -1,0 +1,128 @@
+"""The WebSocket fan-out and REST throughput benchmarks run end to end.
+
+Tiny counts, real servers in their own processes, real sockets: this keeps
+the benchmarks working as the server changes, and checks that what they
+report is coherent (every client got every transition, no request failed,
+percentiles in order). No timing is asserted: that is what the benchmarks
+report, not what a test can promise. Results go to tmp_path, never over the
+published figures in bench/results.
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from bench import engine_throughput, estop_latency, memory, rest_throughput, scaling, ws_fanout
+from bench.report import RESULTS_ENV, emit
+
+LATENCY_KEYS = {"p50_ms", "p99_ms", "max_ms", "n"}
+
+
+@pytest.fixture(autouse=True)
+def results_in_tmp(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    monkeypatch.setenv(RESULTS_ENV, str(tmp_path))
+    return tmp_path
+
+
+@pytest.fixture(autouse=True)
+def restore_garbage_collection() -> Iterator[None]:
+    """Benchmarks that host the server tune the collector as `python -m server` does."""
+    thresholds = gc.get_threshold()
+    yield
+    gc.unfreeze()
+    gc.set_threshold(*thresholds)
+
+
+def assert_ordered_latencies(row: dict[str, Any]) -> None:
+    assert row.keys() >= LATENCY_KEYS
+    assert row["n"] > 0
+    assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
+
+
+def written_rows(directory: Path, name: str) -> list[dict[str, Any]]:
+    return json.loads((directory / f"{name}.json").read_text(encoding="utf-8"))["rows"]
+
+
+def test_emit_writes_to_the_given_directory(tmp_path: Path) -> None:
+    target = tmp_path / "elsewhere"
+    path = emit("probe", [{"measure": "x", "n": 1}], results_dir=target)
+    assert path == target / "probe.json"
+    assert written_rows(target, "probe") == [{"measure": "x", "n": 1}]
+
+
+def test_ws_fanout_every_client_gets_every_transition(results_in_tmp: Path) -> None:
+    transitions = 6
+    rows = ws_fanout.main(["--clients", "2,5", "--transitions", str(transitions)])
+    assert [row["clients"] for row in rows] == [2, 5]
+    for row in rows:
+        assert_ordered_latencies(row)
+        assert row["transitions"] == transitions
+        assert row["n"] == row["clients"] * transitions
+        assert row["everyone_p99_ms"] <= row["max_ms"]
+        assert (row["complete"], row["dropped_told"], row["missing"]) == (row["clients"], 0, 0)
+        assert row["server_cpu_s"] > 0
+    assert written_rows(results_in_tmp, "ws_fanout") == rows
+
+
+def test_rest_throughput_compares_state_with_a_bare_endpoint(results_in_tmp: Path) -> None:
+    argv = ["--concurrency", "4", "--duration", "0.5", "--warmup", "0.2", "--profile", "always"]
+    rows = rest_throughput.main(argv)
+    assert [row["target"] for row in rows] == ["cell GET /state", "bare FastAPI GET /state"]
+    for row in rows:
+        assert_ordered_latencies(row)
+        assert row["errors"] == 0
+        assert row["requests"] == row["n"]
+        assert row["req_per_s"] > 0
+    assert rows[0]["ratio_to_bare"] == pytest.approx(
+        rows[0]["req_per_s"] / rows[1]["req_per_s"], rel=0.01
+    )
+    document = json.loads((results_in_tmp / "rest_throughput.json").read_text(encoding="utf-8"))
+    assert document["rows"] == rows
+    assert document["state_body_bytes"] == document["bare_body_bytes"] > 100
+    profile = document["cell_profile"]
+    assert profile["requests_profiled"] > 0
+    assert "server/api/queries.py" in " ".join(profile["cell_code_cumulative_us_per_request"])
+
+
+def test_engine_throughput_compares_with_both_libraries(results_in_tmp: Path) -> None:
+    rows = engine_throughput.main(["--events", "800", "--profile"])
+    by_what = {row["what"].split(" ")[0]: row for row in rows}
+    assert by_what.keys() == {"engine", "transitions", "python-statemachine", "worker"}
+    assert all(row["events"] == 800 and row["events_per_s"] > 0 for row in rows)
+    profile = written_rows(results_in_tmp, "engine_throughput_worker_profile")
+    assert {row["area"] for row in profile} >= {"asyncio loop, tasks, futures"}
+
+
+def test_estop_latency_measures_every_condition(results_in_tmp: Path) -> None:
+    rows = estop_latency.main(["--trials", "3", "--ws-clients", "5", "--queue-size", "50"])
+    assert [row["condition"] for row in rows] == [
+        condition.replace("1000", "5") for condition in estop_latency.CONDITIONS
+    ]
+    for row in rows:
+        assert_ordered_latencies(row)
+        assert row["n"] == 3
+
+
+def test_memory_and_scaling_report_every_point(results_in_tmp: Path) -> None:
+    memory_rows = memory.main(["--events", "400", "--operations", "20"])
+    assert memory_rows[0]["growth_mb"] == 0
+    assert all(row["rss_mb"] > 0 for row in memory_rows)
+    sweeps = scaling.main(
+        [
+            "--depths", "0,20",
+            "--clients", "2",
+            "--journal-sizes", "0,500",
+            "--requests", "5",
+            "--transitions", "3",
+        ]
+    )  # fmt: skip
+    assert [row["queue_depth"] for row in sweeps["queue_depth"]] == [0, 20]
+    assert [row["journal_events"] for row in sweeps["journal_size"]] == [0, 500]
+    assert sweeps["ws_clients"][0]["ws_clients"] == 2
+    assert (results_in_tmp / "scaling.png").stat().st_size > 10_000
