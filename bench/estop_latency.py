@@ -14,6 +14,13 @@ separate devices and HMIs are; and for the WebSocket condition, the 1000
 clients in another process (bench/ws_crowd.py). The simulated camera
 renders in the server, as in the default run.
 
+Where the time goes, per trial (p50 and p99 columns): `to_server` from the
+request leaving the client to its arrival at the app's outermost layer (the
+client's send, the kernel, the server's loop getting to it); `in_server` from
+there to the halt commands being created (HTTP parsing, routing, the access
+gate, the handler); `to_devices` from there to the later of the two device
+stamps (the two protocol clients, the kernel, the simulators' parsing).
+
 Conditions, each with --trials e-stops (default 500):
 - idle: the cell in IDLE, nothing running;
 - trajectory running: a spraying run started, the stop sent once it is on the spray path;
@@ -36,17 +43,20 @@ import random
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 import uvicorn
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from bench.report import emit, percentiles_ms
 from server.__main__ import uvicorn_options
 from server.app import create_app
 from server.cell import Cell
 from server.config import Settings
+from server.core.devices import HaltReport
 from server.core.transitions import Event, State
 from server.core.worker import Worker
 from server.errors import EventQueueFull
@@ -85,17 +95,44 @@ class StopWitness:
         self.stdin.flush()
         return self.stdout.readline().split()
 
-    def estop_once(self) -> float:
-        """POST /estop from the witness; the time until both simulators had the stop."""
+    def estop_once(self) -> tuple[float, float]:
+        """POST /estop from the witness: (seconds until both devices had it, time sent)."""
         answer = self.tell("fire")
         if answer[0] != "stopped":
             raise RuntimeError(f"the e-stop failed: {' '.join(answer)}")
         assert answer[2] == "True", "the valve does not read closed after the stop"
-        return float(answer[1])
+        return float(answer[1]), float(answer[3])
 
     def close(self) -> None:
         self.stdin.close()
         self.process.wait(10)
+
+
+class StopStages:
+    """Where a stop's time goes inside the server: when its request reached the
+    app (outermost ASGI layer) and when the halt commands were created."""
+
+    def __init__(self, app: ASGIApp, cell: Cell) -> None:
+        self.app = app
+        self.cell = cell
+        self.arrived: float | None = None
+        self.halted: float | None = None
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http" and scope["path"] == "/estop":
+            self.arrived = time.time()
+        await self.app(scope, receive, send)
+
+    def watch_halts(self) -> None:
+        devices = self.cell.devices
+        start_halt = devices.start_halt
+
+        def stamped(timeout: float) -> asyncio.Future[HaltReport]:
+            if self.halted is None:
+                self.halted = time.time()
+            return start_halt(timeout)
+
+        devices.start_halt = stamped  # type: ignore[method-assign]
 
 
 async def wait_state(worker: Worker, *states: State) -> None:
@@ -164,19 +201,31 @@ async def trials_in(
     trials: int,
     worker: Worker,
     witness: StopWitness,
+    stages: StopStages,
     rng: random.Random,
-) -> list[float]:
+) -> dict[str, list[float]]:
     prepare: dict[str, Callable[[], Awaitable[None]]] = {
         "trajectory running": lambda: start_spraying(worker),
         "event queue full": lambda: fill_queue(worker),
         "vision operation running": lambda: start_vision(worker, rng),
     }
-    samples = []
+    samples: dict[str, list[float]] = {
+        "total": [],
+        "to_server": [],
+        "in_server": [],
+        "to_devices": [],
+    }
     for _ in range(trials):
         await to_idle(worker)
         if condition in prepare:
             await prepare[condition]()
-        samples.append(await asyncio.to_thread(witness.estop_once))
+        stages.arrived = stages.halted = None
+        total, sent = await asyncio.to_thread(witness.estop_once)
+        samples["total"].append(total)
+        if stages.arrived is not None and stages.halted is not None:
+            samples["to_server"].append(stages.arrived - sent)
+            samples["in_server"].append(stages.halted - stages.arrived)
+            samples["to_devices"].append(sent + total - stages.halted)
     await to_idle(worker)
     return samples
 
@@ -194,11 +243,11 @@ async def run(trials: int, queue_size: int, ws_clients: int) -> list[dict[str, A
     )
     cell = Cell(settings)
     port = free_port()
-    app = create_app(cell=cell)
+    stages = StopStages(create_app(cell=cell), cell)
     tune_garbage_collection()  # as python -m server does
     server = uvicorn.Server(
         uvicorn.Config(
-            app,
+            stages,
             host="127.0.0.1",
             port=port,
             log_level="error",
@@ -212,14 +261,25 @@ async def run(trials: int, queue_size: int, ws_clients: int) -> list[dict[str, A
     assert await asyncio.to_thread(witness.tell, f"server http://127.0.0.1:{port} {token}")
     assert cell.worker is not None
     await wait_state(cell.worker, State.IDLE)
+    stages.watch_halts()
     rng = random.Random(20261122)
     rows = []
     for condition in CONDITIONS:
         label = condition.replace("1000", str(ws_clients))
         crowd = ws_crowd(port, token, ws_clients) if "WebSocket" in condition else None
         async with crowd or contextlib.nullcontext():
-            samples = await trials_in(condition, trials, cell.worker, witness, rng)
-        rows.append({"condition": label, **percentiles_ms(samples), "target_p99_ms": 5.0})
+            samples = await trials_in(condition, trials, cell.worker, witness, stages, rng)
+        stage_p50 = {f"{k}_p50_ms": percentiles_ms(v)["p50_ms"] for k, v in samples.items()}
+        stage_p99 = {f"{k}_p99_ms": percentiles_ms(v)["p99_ms"] for k, v in samples.items()}
+        rows.append(
+            {
+                "condition": label,
+                **percentiles_ms(samples["total"]),
+                "target_p99_ms": 5.0,
+                **{k: v for k, v in stage_p50.items() if not k.startswith("total")},
+                **{k: v for k, v in stage_p99.items() if not k.startswith("total")},
+            }
+        )
     server.should_exit = True
     await serving
     await asyncio.to_thread(witness.close)

@@ -6,7 +6,8 @@ on its standard input:
 
 - "server <base_url> <token>": the server to stop, once it is up;
 - "fire": clear the simulators' stop stamps, send POST /estop (on a kept-alive
-  connection, as an HMI holds one), and print "stopped <seconds> <valve_closed>":
+  connection, as an HMI holds one), and print
+  "stopped <seconds> <valve_closed> <sent_at>":
   from just before the request left to the later of the robot receiving `stop`
   and the dispenser receiving the valve-close write (both stamped with
   time.time() by the simulators on arrival).
@@ -41,7 +42,7 @@ async def fire(client: httpx.AsyncClient, robot: RobotSimulator, glue: GlueSimul
     while not (robot.last_stop_at and glue.close_commanded_at):
         await asyncio.sleep(0.0002)  # when we report, not what we report
     latency = max(robot.last_stop_at, glue.close_commanded_at) - sent
-    return f"stopped {latency} {not glue.valve_open}"
+    return f"stopped {latency} {not glue.valve_open} {sent}"
 
 
 async def witness(speed_factor: float) -> None:

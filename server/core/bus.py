@@ -7,6 +7,13 @@ reason `slow consumer` instead of holding up the worker or anyone else. The
 WebSocket hub and the metrics are subscribers; the journal is not (it must
 never be dropped, so the worker hands it records directly).
 
+Waking subscribers is spread over turns of the event loop, WAKE_BATCH at a
+time: with a thousand WebSocket clients, waking them all at once would put a
+thousand sends in one turn (tens of milliseconds) ahead of anything that
+arrives meanwhile, such as an e-stop request. In batches, the loop checks its
+sockets between every WAKE_BATCH sends; the fan-out as a whole takes as long
+as before.
+
 Publish from the event loop's thread only (other threads use
 `loop.call_soon_threadsafe`).
 """
@@ -22,6 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 SLOW_CONSUMER = "slow consumer"
+WAKE_BATCH = 16  # subscribers woken per turn of the loop
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,15 +76,22 @@ class Subscription:
         """Change which message types this subscriber receives from now on."""
         self.types = frozenset(types) if types is not None else None
 
-    def offer(self, message: BusMessage) -> None:
-        """Queue a message, or close the subscription if its buffer is full."""
+    def offer(self, message: BusMessage) -> bool:
+        """Queue a message (True), or close the subscription if its buffer is full.
+
+        The consumer is not woken here: the bus wakes it (see `Bus.publish`).
+        """
         if self.closed_reason is not None or not self.wants(message.type):
-            return
+            return False
         if len(self._buffer) >= self._maxsize:
             self.close(SLOW_CONSUMER)
-            return
+            return False
         self._buffer.append(message)
-        self._ready.set()
+        return True
+
+    def wake(self) -> None:
+        if self._buffer:
+            self._ready.set()
 
     async def get(self) -> BusMessage:
         """The next message; raises SubscriptionClosed once closed (buffer discarded)."""
@@ -104,6 +119,8 @@ class Bus:
         self._subscribers: list[Subscription] = []
         self._seq = itertools.count(1)
         self.last_seq = 0
+        self._to_wake: dict[Subscription, None] = {}  # insertion-ordered set
+        self._waker: asyncio.Task[None] | None = None
 
     @property
     def subscriber_count(self) -> int:
@@ -118,11 +135,39 @@ class Bus:
     def unsubscribe(self, subscription: Subscription) -> None:
         if subscription in self._subscribers:
             self._subscribers.remove(subscription)
+        self._to_wake.pop(subscription, None)
 
     def publish(self, message_type: str, data: dict[str, Any]) -> BusMessage:
         """Number the record and hand it to every subscriber without waiting."""
         self.last_seq = next(self._seq)
         message = BusMessage(self.last_seq, message_type, time.time(), data)
         for subscription in tuple(self._subscribers):
-            subscription.offer(message)
+            if subscription.offer(message):
+                self._to_wake[subscription] = None
+        self._wake_first_batch()
         return message
+
+    def _wake_first_batch(self) -> None:
+        """Wake WAKE_BATCH subscribers now; a task wakes the rest, a batch per turn."""
+        self._wake_batch()
+        if not self._to_wake or (self._waker is not None and not self._waker.done()):
+            return
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:  # no loop (a synchronous caller): nobody to interleave with
+            while self._to_wake:
+                self._wake_batch()
+            return
+        self._waker = loop.create_task(self._wake_the_rest(), name="bus-waker")
+
+    async def _wake_the_rest(self) -> None:
+        # Runs a turn after the publish; each turn, the loop polls its sockets first.
+        while self._to_wake:
+            self._wake_batch()
+            await asyncio.sleep(0)
+
+    def _wake_batch(self) -> None:
+        for _ in range(min(WAKE_BATCH, len(self._to_wake))):
+            subscription = next(iter(self._to_wake))
+            del self._to_wake[subscription]
+            subscription.wake()

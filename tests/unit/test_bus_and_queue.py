@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import asyncio
+
 import pytest
 
-from server.core.bus import SLOW_CONSUMER, Bus, SubscriptionClosed
+from server.core.bus import SLOW_CONSUMER, WAKE_BATCH, Bus, SubscriptionClosed
 from server.core.event_queue import Envelope, EventQueue, Priority
 from server.core.transitions import Event
 from server.errors import EventQueueFull
@@ -44,6 +46,21 @@ async def test_a_subscription_can_filter_message_types() -> None:
 
 def envelope(event: Event, priority: Priority, n: int) -> Envelope:
     return Envelope(f"e{n}", event, "test", {}, priority)
+
+
+async def test_many_subscribers_are_woken_a_batch_per_loop_turn_and_all_receive() -> None:
+    bus = Bus()
+    subscribers = [bus.subscribe() for _ in range(WAKE_BATCH * 3 + 5)]
+    waiting = [asyncio.ensure_future(s.get()) for s in subscribers]
+    await asyncio.sleep(0)  # every consumer is now waiting
+    bus.publish("state_changed", {"n": 1})
+    woken_per_turn = []
+    while not all(w.done() for w in waiting):
+        await asyncio.sleep(0)
+        woken_per_turn.append(sum(w.done() for w in waiting))
+    assert woken_per_turn[0] == WAKE_BATCH  # the rest later: other work runs in between
+    assert len(woken_per_turn) == 4
+    assert all(w.result().seq == 1 for w in waiting)
 
 
 async def test_queue_drains_emergency_then_faults_then_requests_each_in_order() -> None:
