@@ -161,7 +161,14 @@ async def journal_size_sweep(sizes: list[int], requests: int) -> list[dict[str, 
 
 def websocket_sweep(counts: list[int], transitions: int) -> list[dict[str, Any]]:
     rows = ws_fanout.main(
-        ["--clients", ",".join(map(str, counts)), "--transitions", str(transitions)]
+        [
+            "--clients",
+            ",".join(map(str, counts)),
+            "--transitions",
+            str(transitions),
+            "--name",
+            "scaling_ws_fanout",
+        ]
     )
     return [
         {
@@ -222,11 +229,14 @@ def plot(
         axis.set_xscale("log")
         axis.set_xlabel(f"{x_label} (log scale; 0 drawn at 1)")
         axis.set_ylabel("latency (ms)")
+        axis.set_ylim(bottom=0)
         memory_key = "server_rss_mb" if x_key == "ws_clients" else "rss_mb"
         if all(row.get(memory_key) is not None for row in rows):
             twin = axis.twinx()
-            twin.plot(xs, [row[memory_key] for row in rows], "k--", marker="s", label="RSS")
+            memory = [row[memory_key] for row in rows]
+            twin.plot(xs, memory, "k--", marker="s", label="RSS")
             twin.set_ylabel("resident memory (MB)")
+            twin.set_ylim(0, max(memory) * 1.2)  # from zero: a small wobble is not growth
             twin.legend(loc="lower right", fontsize=8)
         axis.legend(loc="upper left", fontsize=8)
         axis.grid(True, alpha=0.3)

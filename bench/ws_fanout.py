@@ -12,7 +12,8 @@ How:
   other setting is the default, including INFO logging of each transition.
 - The clients are `websockets` connections in this process's loop (uvloop
   when installed), authenticated with the admin bearer token. Like browsers,
-  they offer permessage-deflate unless --no-compression. Each one subscribes to
+  they offer permessage-deflate unless --no-compression (the server declines
+  it: see server/__main__.py). Each one subscribes to
   `state_changed` only ({"type": "subscribe", "types": ["state_changed"]}) and
   waits for the server's acknowledgement before the run starts.
 - Transitions: POST /estop then POST /reset, alternating (IDLE → ERROR →
@@ -301,6 +302,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--clients", default="10,100,1000", help="client counts, comma-separated")
     parser.add_argument("--transitions", type=int, default=200, help="transitions per count")
     parser.add_argument("--no-compression", action="store_true", help="do not offer deflate")
+    parser.add_argument("--name", default="ws_fanout", help="results file name (without .json)")
     args = parser.parse_args(argv)
     counts = [int(c) for c in args.clients.split(",")]
     fd_limit = raise_fd_limit(FDS_PER_CLIENT * max(counts) + SPARE_FDS)
@@ -326,7 +328,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         "fd_limit": fd_limit,
         "target": "1000 clients: p99 < 50 ms, missing = 0",
     }
-    emit("ws_fanout", rows, extra)
+    emit(args.name, rows, extra)
     return rows
 
 
