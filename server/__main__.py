@@ -12,7 +12,7 @@ import uvicorn
 from server.app import create_app
 from server.config import Settings
 from server.logging_setup import configure as configure_logging
-from server.runtime import raise_open_file_limit, tune_garbage_collection
+from server.runtime import limit_malloc_arenas, raise_open_file_limit, tune_garbage_collection
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -31,6 +31,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> None:
+    limit_malloc_arenas()  # before any thread allocates
     args = parse_args(argv)
     overrides = {"data_path": args.data_dir} if args.data_dir else {}
     settings = Settings(**overrides)

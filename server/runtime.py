@@ -12,15 +12,36 @@
 - Open files: the soft limit is raised to the hard limit, because every
   WebSocket client is a socket and the usual soft limit (1024) is below what
   max_broadcast_clients allows.
+- Memory arenas (glibc): at most two. By default each thread that allocates
+  may get an arena of its own, and the vision threads' 6 MB frames, freed,
+  stay in them: a 3-minute soak grew 80 MB that way with no leak (2 MB with
+  two arenas). Elsewhere than glibc this does nothing.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import gc
 import logging
 import resource
 
 log = logging.getLogger(__name__)
+
+
+M_ARENA_MAX = -8  # glibc's mallopt parameter number
+MALLOC_ARENAS = 2
+
+
+def limit_malloc_arenas() -> bool:
+    """Cap glibc's malloc arenas (see the module docstring); False where not glibc."""
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name) if name else None
+        mallopt = libc.mallopt if libc is not None else None
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt is not None and mallopt(M_ARENA_MAX, MALLOC_ARENAS) == 1)
 
 
 def raise_open_file_limit() -> int:

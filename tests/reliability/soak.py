@@ -46,6 +46,7 @@ import httpx
 import psutil
 
 from server.core.transitions import OPERATIONAL_STATES
+from server.runtime import limit_malloc_arenas
 from tests.reliability._journal_checks import (
     invalid_transitions,
     journaled_transitions,
@@ -437,6 +438,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=None, help="data directory to keep")
     parser.add_argument("--log-level", default="CRITICAL", help="server log level on stderr")
     args = parser.parse_args(argv)
+    limit_malloc_arenas()  # as python -m server does, so memory growth means what it would there
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr)
     seed = args.seed if args.seed is not None else random.SystemRandom().randrange(2**32)
     print(f"soak: {args.duration:.0f} s, seed {seed}", flush=True)
