@@ -52,6 +52,7 @@ async def _page(
     **filters: str | None,
 ) -> dict[str, Any]:
     journal = _journal(request)
+    await journal.caught_up()
     wanted = {k: v for k, v in filters.items() if v is not None}
     rows, total = await asyncio.gather(
         asyncio.to_thread(
@@ -195,6 +196,7 @@ async def csv_export(
     filters: dict[str, str] | None = None,
 ) -> Response:
     """A journal table as a CSV download, oldest first."""
+    await journal.caught_up()
 
     def build() -> str:  # reading and formatting 100k rows is work for a thread, not the loop
         rows = journal.query(
@@ -228,6 +230,7 @@ async def get_kpis(request: Request, since: Since = None, until: Until = None) -
     if start >= end:
         raise HTTPException(422, "since must be before until")
     journal = _journal(request)
+    await journal.caught_up()
 
     state, since_state = worker.ctx.state.value, worker.ctx.since
     settings = cell.settings

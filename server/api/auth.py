@@ -225,6 +225,7 @@ async def get_audit(
 ) -> dict[str, Any]:
     """Who did what, when, from where, with what outcome; newest first, filterable."""
     journal: Journal = request.app.state.cell.journal
+    await journal.caught_up()
     filters = _audit_filters(principal, action, outcome)
     rows, total = await asyncio.gather(
         asyncio.to_thread(

@@ -21,6 +21,7 @@ then daily, so the database stays bounded.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import sqlite3
@@ -204,6 +205,19 @@ class Journal:
             self._queue.append((records, future))
             self._wake.notify()
         return future
+
+    async def caught_up(self) -> None:
+        """Wait until every record queued before this call is committed.
+
+        Why: the records of a transition are queued as the worker decides it, so a
+        client that has just seen ERROR on /state and then asks /history must find
+        that transition there. Queries call this first (read-your-writes). A failed
+        write is reported by the writer itself; the reader just reads what is there.
+        """
+        future = self.append([])
+        if future is not None:
+            with contextlib.suppress(Exception):
+                await future
 
     def _write_loop(self) -> None:
         connection = self._connect()
