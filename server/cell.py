@@ -74,6 +74,8 @@ class Cell:
                 factory = build_devices
             devices, self._release = await factory(self.settings)
         settings = self.settings
+        for note in settings.compatibility_notes():
+            log.warning("setting ignored: %s", note)
         self.stores = CellStores.open(settings.data_path)
         self.journal = Journal(
             settings.data_file(settings.analytics_database, "journal.db"),

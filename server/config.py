@@ -65,7 +65,9 @@ class Settings(BaseSettings):
     # Core state machine
     event_queue_size: int = Field(1000, ge=1, le=1_000_000)
     processing_timeout: float = Field(60.0, gt=0, description="seconds an operation may run")
-    max_concurrent_operations: int = Field(1, ge=1, le=1, description="the cell runs one at a time")
+    max_concurrent_operations: int = Field(
+        1, ge=1, le=64, description="accepted for compatibility; the cell runs one at a time"
+    )
     history_size: int = Field(1000, ge=10, le=1_000_000, description="transitions kept in memory")
 
     # Error handling
@@ -92,7 +94,7 @@ class Settings(BaseSettings):
     persistence_file: str | None = Field(None, description="default <data>/state.json")
     persistence_interval: float = Field(30.0, gt=0)
 
-    # Broadcasting
+    # Broadcasting (/ws is always served on the HTTP port: see `compatibility_notes`)
     broadcast_enabled: bool = True
     broadcast_port: int = Field(8000, ge=1, le=65535)
     max_broadcast_clients: int = Field(100, ge=1, le=100_000)
@@ -190,6 +192,45 @@ class Settings(BaseSettings):
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         return (init_settings, env_settings, JsonFileSource(settings_cls))
+
+    def compatibility_notes(self) -> list[str]:
+        """Specification keys that are accepted but cannot take effect here, and why.
+
+        Why accepted at all: a configuration written for the original application
+        (Appendix A) must load unchanged; refusing it would stop a cell at start-up
+        over a key that changes nothing safety-relevant. Why said out loud: a
+        technician who set one of them must not believe it is in force. The server
+        logs each note at start-up (docs/operations-guide.md lists them).
+        """
+        notes = []
+        if self.max_concurrent_operations != 1:
+            notes.append(
+                f"max_concurrent_operations={self.max_concurrent_operations} has no effect: "
+                "the cell has one robot and one operational state at a time"
+            )
+        if not self.broadcast_enabled:
+            notes.append(
+                "broadcast_enabled=false has no effect: /ws is part of the HTTP API "
+                "and needs a token like every other route (limit it with max_broadcast_clients)"
+            )
+        if "broadcast_port" in self.model_fields_set:
+            notes.append(
+                f"broadcast_port={self.broadcast_port} has no effect: /ws is served on the "
+                "HTTP port (--port)"
+            )
+        if not self.analytics_enabled:
+            notes.append(
+                "analytics_enabled=false has no effect: the journal is what makes an "
+                "acknowledged command durable, so it is always written"
+            )
+        if not self.performance_monitoring or "metrics_collection_interval" in (
+            self.model_fields_set
+        ):
+            notes.append(
+                "performance_monitoring and metrics_collection_interval have no effect: "
+                "metrics are kept continuously and read on demand at GET /metrics"
+            )
+        return notes
 
     @property
     def robot_simulated(self) -> bool:

@@ -53,6 +53,8 @@ def _answer(outcome: Outcome) -> JSONResponse:
 
 async def _run(request: Request, name: str, data: dict[str, Any] | None = None) -> JSONResponse:
     outcome = await _cell(request).command(name, source=_client(request), data=data)
+    # The audit row says why, and which event to look up in the journal and the logs.
+    request.state.audit_reason = f"event {outcome.event_id}: {outcome.message}"
     return _answer(outcome)
 
 

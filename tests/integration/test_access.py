@@ -178,7 +178,8 @@ async def test_the_audit_trail_records_commands_admin_actions_and_refusals(serve
     forbidden = by_action[("POST /calibrate-robot", "refused (403)")]
     assert forbidden["principal"].startswith("operator (operator")
     assert "needs the maintenance role" in forbidden["detail"]
-    assert ("POST /pause", "refused (409)") in by_action
+    paused = by_action[("POST /pause", "refused (409)")]
+    assert paused["detail"].startswith("event ") and "pause is not allowed in" in paused["detail"]
     change = by_action[("PATCH /settings", "accepted")]
     assert change["detail"] == "error_state_timeout: 300.0 -> 120.0"
     created = [r for r in rows if r["action"] == "POST /tokens"]

@@ -53,3 +53,54 @@ def test_a_missing_config_file_is_a_clear_error(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("GLUE_APP_CONFIG_PATH", str(tmp_path / "nope.json"))
     with pytest.raises(ValueError, match="does not exist"):
         Settings()
+
+
+SPECIFICATION_PRODUCTION_CONFIG = {  # Appendix A, as written
+    "event_queue_size": 1000,
+    "processing_timeout": 60,
+    "max_concurrent_operations": 5,
+    "error_recovery_attempts": 5,
+    "error_recovery_delay": 2.0,
+    "auto_recovery_enabled": True,
+    "performance_monitoring": True,
+    "metrics_collection_interval": 10,
+    "performance_history_size": 1000,
+    "logging_level": "INFO",
+    "log_file_path": "/var/log/glue_application/state_machine.log",
+    "log_rotation_size": "10MB",
+    "log_retention_days": 30,
+    "state_persistence": True,
+    "persistence_file": "/var/lib/glue_application/state_machine.json",
+    "persistence_interval": 30,
+    "broadcast_enabled": True,
+    "broadcast_port": 8080,
+    "max_broadcast_clients": 10,
+    "analytics_enabled": True,
+    "analytics_database": "/var/lib/glue_application/analytics.db",
+    "analytics_retention_days": 90,
+    "robot_communication_timeout": 10,
+    "vision_processing_timeout": 5,
+    "glue_system_timeout": 15,
+    "emergency_stop_timeout": 1,
+    "safe_position_timeout": 30,
+    "error_state_timeout": 300,
+}
+
+
+def test_the_specifications_production_config_loads_and_says_what_it_ignores(
+    tmp_path, monkeypatch
+) -> None:
+    config = tmp_path / "production.json"
+    config.write_text(json.dumps(SPECIFICATION_PRODUCTION_CONFIG))
+    monkeypatch.setenv("GLUE_APP_CONFIG_PATH", str(config))
+    settings = Settings()
+    assert settings.max_broadcast_clients == 10 and settings.error_recovery_attempts == 5
+    assert settings.data_file(settings.analytics_database, "journal.db").is_absolute()
+    notes = " | ".join(settings.compatibility_notes())
+    assert "max_concurrent_operations=5 has no effect" in notes
+    assert "broadcast_port=8080 has no effect" in notes
+    assert "metrics_collection_interval" in notes
+
+
+def test_defaults_carry_no_compatibility_notes() -> None:
+    assert Settings().compatibility_notes() == []
