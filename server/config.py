@@ -140,6 +140,11 @@ class Settings(BaseSettings):
         SIMULATED, validation_alias=AliasChoices("glue_controller_port", "GLUE_CONTROLLER_PORT")
     )
     glue_modbus_device_id: int = Field(1, ge=1, le=247)
+    glue_pressure_range_psi: tuple[float, float] = Field(
+        (0.0, 150.0),
+        description="measured glue pressure outside [low, high] PSI is a fault (the "
+        "dispenser's own alarms apply too); set it to the process window of a real cell",
+    )
 
     # Cell geometry and motion
     safe_position: tuple[float, float, float, float, float, float] = (
@@ -174,6 +179,14 @@ class Settings(BaseSettings):
     simulation_speed_factor: float = Field(
         1.0, gt=0, le=1000, description="simulated devices run this many times faster"
     )
+
+    @field_validator("glue_pressure_range_psi")
+    @classmethod
+    def _ordered_range(cls, value: tuple[float, float]) -> tuple[float, float]:
+        low, high = value
+        if not 0 <= low < high <= 150:
+            raise ValueError("glue_pressure_range_psi needs 0 <= low < high <= 150 PSI")
+        return value
 
     @field_validator("marker_positions_mm")
     @classmethod

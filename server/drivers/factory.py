@@ -65,6 +65,7 @@ async def build_devices(
             host.glue.port,
             device_id=settings.glue_modbus_device_id,
             timeout=settings.glue_system_timeout,
+            pressure_range_psi=settings.glue_pressure_range_psi,
         )
         log.info("glue: simulator on 127.0.0.1:%d (Modbus RTU over TCP)", host.glue.port)
     elif port.startswith("tcp://"):
@@ -72,10 +73,14 @@ async def build_devices(
             *parse_tcp_address(port),
             device_id=settings.glue_modbus_device_id,
             timeout=settings.glue_system_timeout,
+            pressure_range_psi=settings.glue_pressure_range_psi,
         )
     else:
         glue = ModbusGlueDispenser.serial(
-            port, device_id=settings.glue_modbus_device_id, timeout=settings.glue_system_timeout
+            port,
+            device_id=settings.glue_modbus_device_id,
+            timeout=settings.glue_system_timeout,
+            pressure_range_psi=settings.glue_pressure_range_psi,
         )
 
     camera_id = settings.vision_camera_id

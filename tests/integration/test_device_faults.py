@@ -100,6 +100,18 @@ async def test_dispenser_pressure_out_of_range(rig: Rig) -> None:
     assert (await rig.reset()).status_code == 202
 
 
+async def test_the_pressure_window_is_a_setting(cell_data) -> None:
+    async with open_rig(cell_data, glue_pressure_range_psi=(0.0, 100.0)) as rig:
+        await rig.start_spraying()
+        rig.glue.force_pressure(120.0)  # inside the register's range, outside this cell's window
+        snapshot = await assert_safe(rig, "glue")
+        assert "outside the allowed 0-100 PSI" in snapshot["stop_reason"]["message"]
+        rig.glue.clear_faults()
+        async with asyncio.timeout(10):
+            while (await rig.reset()).status_code != 202:
+                await asyncio.sleep(0.2)
+
+
 async def test_camera_failure_during_an_operation(rig: Rig) -> None:
     rig.camera.inject_fault("fail")
     assert (await rig.api.post("/calibrate-robot")).status_code == 202
