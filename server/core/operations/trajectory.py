@@ -123,7 +123,7 @@ async def resolve_targets(ctx: OperationContext) -> list[Target]:
 async def execute_trajectory(ctx: OperationContext) -> dict[str, Any]:
     """Plan, check and spray; report progress after every waypoint."""
     targets = await resolve_targets(ctx)
-    path = plan_path(targets, ctx.settings)
+    path = await asyncio.to_thread(plan_path, targets, ctx.settings)  # a fine fill costs ms
     check_workspace(path, ctx.settings)
     ctx.report(
         {
