@@ -173,6 +173,13 @@ class Settings(BaseSettings):
     chessboard_rows: int = Field(6, ge=3, le=40, description="inner corners per column")
     chessboard_square_mm: float = Field(30.0, gt=0, le=500)
     camera_calibration_views: int = Field(10, ge=5, le=100)
+    camera_calibration_view_interval_s: float | None = Field(
+        None,
+        ge=0,
+        le=60,
+        description="pause between chessboard captures, for a person to move the board; "
+        "default 2 s on a real camera, 0 on the simulator (it shows its own views)",
+    )
     commission_simulated_cell: bool = Field(
         True, description="calibrate a fresh simulated cell and put its demo part in the library"
     )

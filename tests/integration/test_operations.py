@@ -68,6 +68,18 @@ async def test_camera_calibration_recovers_the_focal_length(rig: Rig) -> None:
     assert snapshot["state"] == "ERROR" and snapshot["error"]["code"] == "CALIBRATION_STALE"
 
 
+async def test_camera_calibration_waits_between_views_for_the_board_to_move(tmp_path) -> None:
+    async with open_rig(tmp_path, camera_calibration_view_interval_s=0.05) as rig:
+        progress = rig.cell.bus.subscribe(maxsize=10_000, types=["progress"])
+        snapshot = await run(rig, "calibrate-camera")
+        assert snapshot["state"] == "IDLE", snapshot["error"]
+        steps = []
+        while progress.pending:
+            steps.append((await progress.get()).data.get("step"))
+        prompts = steps.count("move the chessboard to a new pose")
+        assert prompts >= rig.cell.settings.camera_calibration_views - 1, steps
+
+
 # Poses between the marker rows (the papers span y = ±22 and ±128..172 mm).
 @pytest.mark.parametrize(
     ("shape", "x", "y", "rotation", "move"),

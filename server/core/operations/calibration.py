@@ -75,6 +75,9 @@ async def calibrate_robot(ctx: OperationContext) -> dict[str, Any]:
     }
 
 
+REAL_CAMERA_VIEW_INTERVAL_S = 2.0  # time for a person to tilt and move the board
+
+
 async def calibrate_camera(ctx: OperationContext) -> dict[str, Any]:
     """Collect distinct chessboard views, solve the intrinsics, persist them.
 
@@ -87,12 +90,19 @@ async def calibrate_camera(ctx: OperationContext) -> dict[str, Any]:
     present = getattr(ctx.camera, "show_chessboard", None)
     if callable(present):
         present()
+    interval = settings.camera_calibration_view_interval_s
+    if interval is None:
+        interval = 0.0 if callable(present) else REAL_CAMERA_VIEW_INTERVAL_S
     corner_sets: list[np.ndarray] = []
     size = (0, 0)
     try:
-        for _attempt in range(wanted * 3):
+        for attempt in range(wanted * 3):
             if len(corner_sets) >= wanted:
                 break
+            if attempt and interval:
+                # A person moves the board between captures; the HMI shows this step.
+                ctx.report({"step": "move the chessboard to a new pose", "views": len(corner_sets)})
+                await asyncio.sleep(interval)
             frame = await capture(ctx, "camera calibration")
             size = (frame.shape[1], frame.shape[0])
             corners = await asyncio.to_thread(find_chessboard, frame, pattern)
