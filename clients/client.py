@@ -17,10 +17,12 @@ wrong, each carrying the server's own message:
     ├── WaitTimeout    `wait_for_state` ran out of time (`.last_state`)
     └── CellFaulted    `wait_for_state` found the cell in ERROR instead
 
-`AsyncCellClient.messages()` follows `/ws` across reconnects: the server has no
-replay, so after a reconnect the stream yields the fresh snapshot marked
-`resumed` with the number of sequence numbers it `missed`, and the consumer
-knows to resynchronise from that snapshot instead of silently losing events.
+`AsyncCellClient.messages()` follows `/ws` across reconnects: it reconnects
+with the last `seq` it saw and the server's `boot`, and the server replays what
+went by meanwhile from its ring of recent messages, so the consumer sees every
+message exactly once. When the gap is too old for the ring, or the server
+restarted, the fresh snapshot says how many sequence numbers were `missed`, and
+the consumer knows to resynchronise from it instead of silently losing events.
 
 The client deliberately does not import the server package: it is usable from a
 machine that only has httpx and websockets installed.
@@ -721,14 +723,21 @@ class AsyncCellClient:
         """A one-shot ticket for /ws (valid a few seconds, usable once)."""
         return await self._send(_ticket())
 
-    def ws_url(self, ticket: str) -> str:
-        """The /ws address for `ticket`, under the same base URL (keeps a path prefix)."""
+    def ws_url(self, ticket: str, *, after_seq: int | None = None, boot: str | None = None) -> str:
+        """The /ws address for `ticket`, under the same base URL (keeps a path prefix).
+
+        With `after_seq` and `boot` (the last seq received and the snapshot's boot;
+        one means nothing without the other) the server replays what came after.
+        """
+        if (after_seq is None) != (boot is None):
+            raise ValueError("after_seq and boot go together (both from the last snapshot)")
         base = httpx.URL(self.base_url)
         scheme = "wss" if base.scheme == "https" else "ws"
         path = base.path.rstrip("/") + "/ws"
-        return str(
-            base.copy_with(scheme=scheme, path=path, query=urlencode({"ticket": ticket}).encode())
-        )
+        query: dict[str, str | int] = {"ticket": ticket}
+        if after_seq is not None and boot is not None:
+            query |= {"after_seq": after_seq, "boot": boot}
+        return str(base.copy_with(scheme=scheme, path=path, query=urlencode(query).encode()))
 
     def messages(
         self,
@@ -768,12 +777,26 @@ class MessageStream:
     item is the server's snapshot, then every message in `seq` order. When the
     connection drops (slow consumer 4001, server restart, network) the stream
     waits (backoff doubling from `initial_backoff` to `max_backoff`, with jitter)
-    and reconnects; the server keeps no backlog, so the new snapshot is yielded as
-    `{"type": "snapshot", "resumed": True, "missed": N, ...}` where N is how many
-    seq numbers went by unseen (after a server restart, whose seq starts again at
-    1, N counts the new server's messages and `restarted` is True).
+    and reconnects with `after_seq` (the last seq seen) and `boot` (the server's
+    numbering), and yields the new snapshot as
+    `{"type": "snapshot", "resumed": True, "missed": N, ...}`:
 
-    `types` filters on this side, so `missed` stays exact; snapshots always pass.
+    - the server still held every message after the last one seen (its ring of
+      recent messages): N is 0, the snapshot has `"replayed": K`, and the K
+      messages that went by follow it, oldest first, then live ones. So every
+      message is yielded exactly once. The replayed ones are older than the
+      snapshot (their seq is at or below its seq): a consumer that applied them
+      all is where the snapshot is, and may ignore the snapshot;
+    - the gap is older than the ring: N seq numbers went by unseen and none
+      follow; resynchronise from the snapshot;
+    - the server restarted (another `boot`; seq starts again at 1): N counts the
+      new server's messages and `restarted` is True.
+
+    Against a server without replay (no `boot` in its snapshot) N is computed
+    here, as the difference of seq numbers.
+
+    `types` filters on this side, so `missed` stays exact and `replayed` counts
+    every type; snapshots always pass.
     Errors while making the *first* connection are raised (Unreachable,
     Unauthorized, Busy for close 1013 "too many clients", ...); afterwards only
     Unauthorized and Forbidden from the ticket request are (a revoked token will
@@ -798,6 +821,7 @@ class MessageStream:
         self.initial_backoff = initial_backoff
         self.max_backoff = max_backoff
         self.last_seq: int | None = None
+        self.boot: str | None = None  # the server's numbering that last_seq belongs to
         self.reconnects = 0
         self.last_close: tuple[int | None, str] | None = None  # (code, reason) of the last drop
         self._generator = self._run()
@@ -827,7 +851,11 @@ class MessageStream:
 
     async def _open(self) -> ClientConnection:
         ticket = await self._client.ws_ticket()
-        url = self._client.ws_url(ticket)
+        # Resume where we were: the server replays what came after last_seq, if it can.
+        if self.last_seq is not None and self.boot is not None:
+            url = self._client.ws_url(ticket, after_seq=self.last_seq, boot=self.boot)
+        else:
+            url = self._client.ws_url(ticket)
         try:
             return await connect(
                 url,
@@ -844,11 +872,17 @@ class MessageStream:
         seq = int(snapshot.get("seq", 0))
         assert self.last_seq is not None
         marks: dict[str, Any] = {"resumed": True}
-        if seq >= self.last_seq:
-            marks["missed"] = seq - self.last_seq
-        else:  # a new server process: its numbering started again
-            marks["missed"] = seq
+        boot = snapshot.get("boot")
+        other_boot = self.boot is not None and boot is not None and boot != self.boot
+        if other_boot or seq < self.last_seq:  # a new server process: numbering started again
+            marks["missed"] = int(snapshot.get("missed", seq))
             marks["restarted"] = True
+        elif "replayed" in snapshot:  # everything since last_seq follows this snapshot
+            marks["missed"] = 0
+        elif "missed" in snapshot:  # the server could not fill the gap
+            marks["missed"] = int(snapshot["missed"])
+        else:  # a server without replay
+            marks["missed"] = seq - self.last_seq
         return {**snapshot, **marks}
 
     async def _run(self) -> AsyncGenerator[dict[str, Any], None]:
@@ -875,7 +909,10 @@ class MessageStream:
                         snapshot = self._resumed(snapshot)
                     connected_once = True
                     backoff = self.initial_backoff
-                    self.last_seq = int(snapshot.get("seq", 0))
+                    if snapshot.get("missed") != 0 or "replayed" not in snapshot:
+                        self.last_seq = int(snapshot.get("seq", 0))
+                    # else last_seq stays: the replay that follows starts at last_seq + 1.
+                    self.boot = snapshot.get("boot")
                     yield snapshot
                     async for raw in websocket:
                         message = json.loads(raw)
@@ -894,6 +931,10 @@ class MessageStream:
                 self.last_close = (code, reason)
                 if not connected_once:  # refused before the first snapshot: say why
                     raise _refusal(code, reason) from closed
+                if code == 1003:
+                    # The resume request itself was refused (never expected): start
+                    # afresh next time rather than be refused on every attempt.
+                    self.boot = None
             except (OSError, TimeoutError, ValueError) as exc:
                 self.last_close = (None, f"{type(exc).__name__}: {exc}")
                 if not connected_once:

@@ -606,6 +606,13 @@ class WatchView:
         kind = message.get("type")
         if kind == "snapshot":
             self._take_snapshot(message)
+            if _replaying(message):
+                # The transitions that went by follow, and the timeline takes them as
+                # they come: the snapshot's history would show them twice.
+                self.notes.append(
+                    f"reconnected: {message.get('replayed')} message(s) replayed, none missed"
+                )
+                return
             self.timeline.clear()
             self.timeline.extend(message.get("history") or [])
             if message.get("resumed"):
@@ -671,6 +678,11 @@ class WatchView:
         return Panel(Group(*parts), title="glue cell", subtitle="Ctrl-C to quit")
 
 
+def _replaying(message: dict[str, Any]) -> bool:
+    """A resumed snapshot after which the server replays everything that went by."""
+    return bool(message.get("resumed")) and "replayed" in message and message.get("missed") == 0
+
+
 def message_line(message: dict[str, Any]) -> str:
     """One line per message, for `watch` when stdout is not a terminal."""
     kind = message.get("type")
@@ -678,7 +690,9 @@ def message_line(message: dict[str, Any]) -> str:
     prefix = f"{_when(when)}  seq {message.get('seq')}  {kind}"
     if kind == "snapshot":
         line = f"{prefix}  state {message.get('state')}"
-        if message.get("resumed"):
+        if _replaying(message):
+            line += f"  (resumed, {message.get('replayed')} replayed, missed 0)"
+        elif message.get("resumed"):
             restarted = " after a server restart" if message.get("restarted") else ""
             line += f"  (resumed{restarted}, missed {message.get('missed')})"
         return line

@@ -76,6 +76,9 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
             allow_origins=settings.cors_allowed_origins,
             allow_methods=["GET", "POST", "PUT", "PATCH", "DELETE"],
             allow_headers=["Authorization", "Content-Type"],
+            # What a dashboard on another origin needs to read: the camera frame's
+            # provenance and how long to wait after a 503.
+            expose_headers=["X-Frame-Time", "X-Frame-Source", "X-Frame-Run-Id", "Retry-After"],
         )
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
     app.include_router(ws.router)
@@ -86,7 +89,12 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
 
 
 def _document_validation_errors(app: FastAPI) -> None:
-    """Make the OpenAPI document describe the 422 body this app really sends."""
+    """Make the OpenAPI document describe the 422 body this app really sends, and the gate.
+
+    The gate (`auth.authorize`) is a router dependency without parameters, so FastAPI's
+    document knows nothing of it: `auth.document_access` adds the bearer scheme, each
+    operation's role and its 401/403 from the policy table.
+    """
     default_openapi = app.openapi
 
     def openapi() -> dict:
@@ -129,6 +137,7 @@ def _document_validation_errors(app: FastAPI) -> None:
                                 },
                             },
                         )
+            auth.document_access(schema)
             app.openapi_schema = schema
         return app.openapi_schema
 

@@ -50,7 +50,9 @@
     progress: null,        // {run_id, operation, waypoint, of, fraction, workpiece, ended}
     trajectory: null,
     calibration: null,
-    frame: null,           // the latest camera frame the server exposes (an Image)
+    frame: null,           // the latest camera frame an operation captured (an Image)
+    frameInfo: null,       // {time, source, run} of that frame (X-Frame-* headers)
+    calibrationImage: null, // the annotated frame of the last robot calibration: the fallback
     thumbnails: [],        // blob URLs to release
     pending: new Set(),    // commands whose request is in flight
     counters: { connects: 0, disconnects: 0, messages: 0, gaps: 0 },
@@ -156,6 +158,7 @@
     refreshPanels();
     refreshTrajectory();
     refreshCalibration();
+    refreshFrame();
     refreshLibrary();
     hmi.timers.push(setInterval(refreshPanels, REFRESH_MS));
     hmi.timers.push(setInterval(tick, 250));
@@ -288,6 +291,7 @@
     refreshPanels();
     setTimeout(refreshPanels, 1000); // device figures settle a moment after a transition
     if (from === "CALIBRATING_ROBOT" || from === "CALIBRATING_CAMERA") refreshCalibration();
+    if (isOperational(from) && !isOperational(to)) refreshFrame(); // it may have taken a picture
     if (from === "CREATING_WORKPIECE") refreshLibrary();
   }
 
@@ -642,31 +646,67 @@
   // --- trajectory -----------------------------------------------------------
 
   async function refreshTrajectory() {
+    const previousRun = hmi.trajectory?.run_id;
     try {
       const response = await api("GET", "/trajectory");
       hmi.trajectory = response.ok ? await response.json() : null;
-      const path = hmi.trajectory?.planned_path || [];
       const reached = hmi.trajectory?.waypoint;
       if (reached && hmi.progress && hmi.progress.run_id === hmi.trajectory.run_id) {
         hmi.progress.waypoint = Math.max(hmi.progress.waypoint || 0, reached);
       }
-      $("trajectory-info").textContent = hmi.trajectory
-        ? `run ${hmi.trajectory.run_id} · ${path.length} waypoints`
-        : "no trajectory planned yet";
     } catch {
       /* keep the last one */
     }
+    // A new plan: its run has just looked at the table (with contour matching).
+    if (hmi.trajectory && hmi.trajectory.run_id !== previousRun) refreshFrame();
+    renderTrajectoryInfo();
     drawTrajectory();
+  }
+
+  function renderTrajectoryInfo() {
+    const path = hmi.trajectory?.planned_path || [];
+    const plan = hmi.trajectory
+      ? `run ${hmi.trajectory.run_id} · ${path.length} waypoints`
+      : "no trajectory planned yet";
+    const info = hmi.frameInfo;
+    let over = "";
+    if (hmi.frame && info) over = ` · camera ${clockTime(info.time)} (${info.source.replace(/_/g, " ")})`;
+    else if (hmi.calibrationImage) over = " · calibration image";
+    $("trajectory-info").textContent = plan + over;
   }
 
   async function refreshCalibration() {
     try {
       hmi.calibration = await getJson("/calibration");
       const url = hmi.calibration?.robot?.has_image ? await blobUrl("/calibration/image") : null;
-      if (url) hmi.frame = await loadImage(url);
+      if (url) hmi.calibrationImage = await loadImage(url);
     } catch {
       /* the path is drawn without a background */
     }
+    renderTrajectoryInfo();
+    drawTrajectory();
+  }
+
+  /** The latest frame an operation captured (GET /camera/frame, 404 until one did). */
+  async function refreshFrame() {
+    try {
+      const response = await api("GET", "/camera/frame");
+      if (!response.ok) return; // none yet: the calibration image stands in
+      const info = {
+        time: Number(response.headers.get("X-Frame-Time")),
+        source: response.headers.get("X-Frame-Source") || "",
+        run: response.headers.get("X-Frame-Run-Id") || "",
+      };
+      const shown = hmi.frameInfo;
+      if (shown && info.time <= shown.time) return; // the same one, or an answer overtaken
+      const image = await loadImage(URL.createObjectURL(await response.blob()));
+      if (!image || (hmi.frameInfo && info.time <= hmi.frameInfo.time)) return;
+      hmi.frame = image;
+      hmi.frameInfo = info;
+    } catch {
+      return; /* keep the last one */
+    }
+    renderTrajectoryInfo();
     drawTrajectory();
   }
 
@@ -764,14 +804,19 @@
     return progress.waypoint || 0;
   }
 
-  /** mm → canvas: over the camera frame through the calibration, else by the path's own box. */
+  /** mm → canvas: over the camera frame through the calibration, else by the path's own box.
+   * The latest frame an operation captured, else the robot calibration's own image. */
   function projection(ctx, path, width, height) {
     const toImage = tableToImage();
-    const frame = hmi.frame;
+    const frame = hmi.frame || hmi.calibrationImage;
+    const canvas = $("trajectory-canvas");
+    canvas.dataset.background = "none";
+    if (frame) canvas.dataset.background = hmi.frame ? "camera" : "calibration";
     if (frame && !path.length) {
       drawContained(ctx, frame, width, height);
       return null;
     }
+    if (frame && !toImage) canvas.dataset.background = "none";
     if (frame && toImage) {
       const inImage = path.map((w) => toImage(w.pose));
       const { naturalWidth: imageW, naturalHeight: imageH } = frame;

@@ -5,6 +5,7 @@ server/security/policy.py says which role it needs); the WebSocket checks its
 ticket or bearer token in server/api/ws.py with `authenticate_websocket`.
 Every command, every admin action and every refused attempt is written to the
 journal's audit table by `audit_middleware`: who, from where, what, outcome.
+`document_access` describes the same gate in openapi.json, from the same table.
 """
 
 from __future__ import annotations
@@ -103,6 +104,74 @@ async def authorize(request: Request) -> None:
             403,
             f"this needs the {needed.label} role; {principal.name} has {principal.role.label}",
         )
+
+
+# --- the API description of the gate ----------------------------------------------
+
+BEARER_SCHEME = "bearer"  # the name of the security scheme in openapi.json
+_UNTRUSTED = "the client address is not in `trusted_networks`"
+_HTTP_METHODS = {"get", "put", "post", "delete", "options", "head", "patch", "trace"}
+
+
+def _refusal(description: str, **extra: Any) -> dict[str, Any]:
+    """A documented 401 or 403: the `{"detail": ...}` body of FastAPI's HTTPException handler."""
+    body = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorView"}}}
+    return {"description": description, **extra, "content": body}
+
+
+def document_access(schema: dict[str, Any]) -> None:
+    """Describe `authorize` in an OpenAPI document: the bearer scheme, who may call what, 401/403.
+
+    Derived from the policy table, as `authorize` is: an operation that needs a role gets the
+    security requirement, `x-required-role`, a sentence in its description and the 401 and 403
+    it can answer; an open one gets only the 403 of `trusted_networks`, which applies to all.
+    """
+    components = schema.setdefault("components", {})
+    components.setdefault("schemas", {}).setdefault("ErrorView", ErrorView.model_json_schema())
+    components["securitySchemes"] = {
+        BEARER_SCHEME: {
+            "type": "http",
+            "scheme": "bearer",
+            "bearerFormat": "gc_<id>_<secret>",
+            "description": "A token from `POST /tokens` or `<data>/admin.token`, sent as "
+            "`Authorization: Bearer <token>`; each operation's `x-required-role` is the "
+            "least role it needs (viewer < operator < maintenance < admin).",
+        }
+    }
+    for path, operations in schema.get("paths", {}).items():
+        for method, operation in operations.items():
+            if method not in _HTTP_METHODS:
+                continue
+            needed = required_role(method.upper(), path)
+            responses = operation.setdefault("responses", {})
+            if needed is None:
+                responses["403"] = _refusal(_UNTRUSTED)
+                continue
+            operation["security"] = [{BEARER_SCHEME: []}]
+            operation["x-required-role"] = needed.label
+            who = {
+                Role.VIEWER: "any valid bearer token (every role)",
+                Role.ADMIN: "a bearer token with the `admin` role",
+            }.get(needed, f"a bearer token with the `{needed.label}` role or higher")
+            operation["description"] = (
+                f"{operation.get('description', '').rstrip()}\n\nNeeds {who}.".lstrip()
+            )
+            responses["401"] = _refusal(
+                "no bearer token, or the token is unknown or revoked",
+                headers={
+                    "WWW-Authenticate": {
+                        "description": "the scheme to authenticate with",
+                        "required": True,
+                        "schema": {"type": "string", "enum": ["Bearer"]},
+                    }
+                },
+            )
+            responses["403"] = _refusal(
+                _UNTRUSTED
+                if needed == Role.VIEWER  # no role is below it
+                else f"the token's role is below `{needed.label}` (the detail names the role "
+                f"needed and the role held), or {_UNTRUSTED}"
+            )
 
 
 def authenticate_websocket(websocket: WebSocket) -> Principal | None:

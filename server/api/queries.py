@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, HTTPException, Request, Response
 from fastapi.responses import FileResponse
 
 from server.api.schemas import (
@@ -89,6 +90,56 @@ async def get_calibration_image(request: Request) -> FileResponse:
     if not path.exists():
         raise HTTPException(404, "no robot calibration yet: run calibrate-robot")
     return FileResponse(path, media_type="image/png")
+
+
+FRAME_HEADERS = {
+    "X-Frame-Time": {
+        "description": "when the camera delivered the frame (Unix seconds, UTC)",
+        "schema": {"type": "string", "example": "1718000000.123"},
+    },
+    "X-Frame-Source": {
+        "description": "the operation that captured it: trajectory, create_workpiece "
+        "or calibrate_robot",
+        "schema": {"type": "string", "example": "trajectory"},
+    },
+    "X-Frame-Run-Id": {
+        "description": "the run of that operation (as in /trajectory, /operations, the logs)",
+        "schema": {"type": "string"},
+    },
+}
+NO_FRAME = (
+    "no camera frame captured since the server started: start a run with contour matching, "
+    "create a workpiece or calibrate the robot (each captures one)"
+)
+
+
+@router.get(
+    "/camera/frame",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {"image/jpeg": {}},
+            "description": "the latest frame, undistorted, as JPEG",
+            "headers": FRAME_HEADERS,
+        },
+        404: {"model": ErrorView, "description": "no frame captured yet"},
+    },
+)
+async def get_camera_frame(request: Request) -> Response:
+    """The latest frame an operation captured (undistorted, as measured on), as JPEG."""
+    worker = _cell(request).worker
+    assert worker is not None
+    frame = worker.frames.latest
+    if frame is None:
+        raise HTTPException(404, NO_FRAME)
+    body = await asyncio.to_thread(worker.frames.jpeg, frame)
+    headers = {
+        "X-Frame-Time": f"{frame.taken_at:.3f}",
+        "X-Frame-Source": frame.source,
+        "X-Frame-Run-Id": frame.run_id,
+        "Cache-Control": "no-store",  # the next capture replaces it under the same URL
+    }
+    return Response(body, media_type="image/jpeg", headers=headers)
 
 
 @router.get("/trajectory", responses={404: {"model": ErrorView}})

@@ -109,6 +109,9 @@ class DeviceView(BaseModel):
     last_rtt_ms: float | None = None
     last_error: str | None = None
     last_ok_at: float | None = None
+    active_faults: list[str] = Field(
+        default_factory=list, description="conditions the device reports as persisting now"
+    )
 
 
 class PerformanceView(BaseModel):

@@ -4,8 +4,27 @@ Each client is one bus subscription with a bounded buffer. A client that falls
 behind (its buffer fills, or one send takes longer than SEND_TIMEOUT) is
 closed with code 4001 and never delays the worker or the other clients.
 
+Resuming: the snapshot carries `boot`, the id of this server's numbering (seq
+starts again at 1 in a new server process). A client that reconnects with
+`?after_seq=N&boot=B` (the last seq it received, and the boot it came from) is
+sent the messages it missed from the bus's ring of the last REPLAY_HISTORY
+messages: the snapshot, marked `"replayed": K`, then those K messages (seq > N,
+oldest first, all at or below the snapshot's seq), then live messages, with no
+gap and no duplicate. The subscription and the ring are read in the same turn
+of the loop, so they meet exactly at the snapshot's seq; the send loop also
+drops any live message at or below the last seq sent. When the ring no longer
+holds N + 1, or B is not this server's boot, the snapshot is marked
+`"missed": M` instead (seq numbers the client will never see; for another
+boot, every message this server published) and no replay follows: the
+snapshot is the truth from then on. A `types=a,b` query parameter filters
+from the start, replay included; a later subscribe message filters what is
+published from then on, as before.
+
 Close codes (also in docs/api.md):
-  1003  the client sent something that is not a valid JSON message
+  1003  the client sent something that is not a valid JSON message, or the
+        query is invalid (after_seq not a non-negative integer, after_seq
+        without boot or boot without after_seq, after_seq beyond this
+        server's last seq, unknown types)
   1009  the client sent a message over the size limit (enforced by the server)
   1013  too many clients (max_broadcast_clients); try again later
   4001  slow consumer: the client fell behind and was dropped
@@ -25,13 +44,16 @@ import contextlib
 import json
 import logging
 from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from starlette.datastructures import QueryParams
 
 from server.api.auth import authenticate_websocket
-from server.core.bus import BusMessage, SubscriptionClosed
+from server.core.bus import Bus, BusMessage, Subscription, SubscriptionClosed
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -40,11 +62,15 @@ MESSAGE_TYPES = ("state_changed", "progress", "error", "alert")
 SEND_TIMEOUT = 5.0
 SNAPSHOT_HISTORY = 20
 ENCODED_CACHE = 64  # recent messages kept encoded; a client further behind re-encodes
+MAX_SEQ_DIGITS = 18  # after_seq: any seq a server reaches, and still a 64-bit integer
+MAX_BOOT_LENGTH = 64
 
 CLOSE_INVALID = 1003
 CLOSE_TOO_MANY = 1013
 CLOSE_SLOW = 4001
 CLOSE_UNAUTHORIZED = 4401
+
+Close = tuple[int | None, str]  # (close code or None for "just end", reason)
 
 
 class ClientMessage(BaseModel):
@@ -56,6 +82,46 @@ class ClientMessage(BaseModel):
     types: list[str] | None = Field(None, max_length=len(MESSAGE_TYPES))
 
 
+class InvalidQuery(ValueError):
+    """The /ws query cannot be honoured; the message is the close reason."""
+
+
+@dataclass(frozen=True, slots=True)
+class Resume:
+    """What the client asked for in the query: where to resume, and which types."""
+
+    after_seq: int | None = None
+    boot: str | None = None
+    types: list[str] | None = None
+
+    @classmethod
+    def from_query(cls, params: QueryParams) -> Resume:
+        """Validate `after_seq`, `boot` and `types`; raises InvalidQuery saying what is wrong."""
+        for name in ("after_seq", "boot", "types"):
+            if len(params.getlist(name)) > 1:
+                raise InvalidQuery(f"give {name} once")
+        raw_seq, boot = params.get("after_seq"), params.get("boot")
+        after_seq = None
+        if raw_seq is not None:
+            # isascii: str.isdigit also accepts digits such as "²" that int() refuses.
+            if not (raw_seq.isascii() and raw_seq.isdigit()) or len(raw_seq) > MAX_SEQ_DIGITS:
+                raise InvalidQuery("after_seq must be a non-negative integer (the last seq seen)")
+            after_seq = int(raw_seq)
+        if boot is not None and not 0 < len(boot) <= MAX_BOOT_LENGTH:
+            raise InvalidQuery(f"boot must be 1 to {MAX_BOOT_LENGTH} characters")
+        # A seq means nothing without the numbering it came from: resuming on a bare
+        # seq could replay a restarted server's messages as if they were the old ones.
+        if (after_seq is None) != (boot is None):
+            raise InvalidQuery("after_seq and boot go together (both from the last snapshot)")
+        types = None
+        if (raw_types := params.get("types")) is not None:
+            types = [t for t in raw_types.split(",") if t]
+            unknown = set(types) - set(MESSAGE_TYPES)
+            if unknown:
+                raise InvalidQuery(f"unknown message types: {', '.join(sorted(unknown))}"[:120])
+        return cls(after_seq, boot, types)
+
+
 class WebSocketHub:
     """Counts clients, enforces max_broadcast_clients, and encodes each message once."""
 
@@ -64,16 +130,57 @@ class WebSocketHub:
         self.buffer = buffer
         self.client_count = 0
         self._encoded: OrderedDict[int, str] = OrderedDict()
+        self._newest = 0
 
     def encode(self, message: BusMessage) -> str:
         """The message's JSON text, shared by every client (clients lag by a few at most)."""
         text = self._encoded.get(message.seq)
         if text is None:
             text = json.dumps(message.as_dict())
+            if message.seq + ENCODED_CACHE <= self._newest:
+                return text  # replayed to one client: not worth evicting a live one
+            self._newest = max(self._newest, message.seq)
             self._encoded[message.seq] = text
             if len(self._encoded) > ENCODED_CACHE:
                 self._encoded.popitem(last=False)
         return text
+
+
+def _snapshot(worker: Any, bus: Bus) -> dict[str, Any]:
+    return {
+        "type": "snapshot",
+        "seq": bus.last_seq,
+        "boot": bus.boot,
+        **worker.snapshot(),
+        "context": {
+            "operation_data": worker.ctx.operation_data,
+            "error_message": worker.ctx.error_message,
+            "operation_result": worker.ctx.operation_result,
+        },
+        "history": [r.as_dict() for r in list(worker.ctx.history)[-SNAPSHOT_HISTORY:]],
+    }
+
+
+def _plan_replay(
+    bus: Bus, resume: Resume, subscription: Subscription
+) -> tuple[dict[str, int], list[BusMessage]]:
+    """The snapshot's marks ("replayed" or "missed") and the messages to replay.
+
+    Raises InvalidQuery for an after_seq this server never reached.
+    """
+    if resume.after_seq is None:
+        return {}, []
+    after_seq = resume.after_seq
+    if resume.boot != bus.boot:  # another server process: its seq are not ours
+        return {"missed": bus.last_seq}, []
+    if after_seq > bus.last_seq:
+        raise InvalidQuery(f"after_seq {after_seq} is beyond this server's last seq {bus.last_seq}")
+    kept = bus.since(after_seq)
+    if kept is None:  # older than the ring
+        return {"missed": bus.last_seq - after_seq}, []
+    # The filter given at connect time applies to the replay as to live messages.
+    replay = [message for message in kept if subscription.wants(message.type)]
+    return {"replayed": len(replay)}, replay
 
 
 @router.websocket("/ws")
@@ -81,6 +188,7 @@ async def live(websocket: WebSocket) -> None:
     app = websocket.app
     hub: WebSocketHub = app.state.ws_hub
     worker = app.state.cell.worker
+    bus: Bus = worker.bus
     principal = authenticate_websocket(websocket)
     await websocket.accept()
     if principal is None:
@@ -89,26 +197,30 @@ async def live(websocket: WebSocket) -> None:
             "unauthorized: open /ws with a ticket from POST /ws-ticket, or send a bearer token",
         )
         return
+    try:
+        resume = Resume.from_query(websocket.query_params)
+    except InvalidQuery as invalid:
+        await websocket.close(CLOSE_INVALID, str(invalid)[:120])
+        return
     if hub.client_count >= hub.max_clients:
         await websocket.close(CLOSE_TOO_MANY, f"too many clients (max {hub.max_clients})")
         return
     hub.client_count += 1
-    # Subscribe before taking the snapshot, so nothing falls between the two.
-    subscription = worker.bus.subscribe(hub.buffer)
+    # Subscribe, take the snapshot and read the ring in one turn of the loop (no
+    # await in between): the subscription receives every message after the
+    # snapshot's seq, the ring holds every one up to it, so nothing falls between.
+    subscription = bus.subscribe(hub.buffer, resume.types)
     try:
-        snapshot: dict[str, Any] = {
-            "type": "snapshot",
-            "seq": worker.bus.last_seq,
-            **worker.snapshot(),
-            "context": {
-                "operation_data": worker.ctx.operation_data,
-                "error_message": worker.ctx.error_message,
-                "operation_result": worker.ctx.operation_result,
-            },
-            "history": [r.as_dict() for r in list(worker.ctx.history)[-SNAPSHOT_HISTORY:]],
-        }
-        await websocket.send_json(snapshot)
-        sender = asyncio.create_task(_send_loop(websocket, subscription, hub))
+        snapshot = _snapshot(worker, bus)
+        try:
+            marks, replay = _plan_replay(bus, resume, subscription)
+        except InvalidQuery as invalid:
+            await websocket.close(CLOSE_INVALID, str(invalid)[:120])
+            return
+        await websocket.send_json({**snapshot, **marks})
+        sender = asyncio.create_task(
+            _send_loop(websocket, subscription, hub, replay, snapshot["seq"])
+        )
         receiver = asyncio.create_task(_receive_loop(websocket, subscription))
         done, pending = await asyncio.wait({sender, receiver}, return_when=asyncio.FIRST_COMPLETED)
         for task in pending:
@@ -129,24 +241,43 @@ async def live(websocket: WebSocket) -> None:
         hub.client_count -= 1
 
 
+async def _send(websocket: WebSocket, hub: WebSocketHub, message: BusMessage) -> Close | None:
+    """Send one message; a Close when the connection must end, else None."""
+    try:
+        async with asyncio.timeout(SEND_TIMEOUT):  # no extra task per send, unlike wait_for
+            await websocket.send_text(hub.encode(message))
+    except TimeoutError:
+        return CLOSE_SLOW, "slow consumer: a send did not complete in time"
+    except (WebSocketDisconnect, RuntimeError, OSError):
+        return None, ""
+    return None
+
+
 async def _send_loop(
-    websocket: WebSocket, subscription: Any, hub: WebSocketHub
-) -> tuple[int | None, str]:
+    websocket: WebSocket,
+    subscription: Subscription,
+    hub: WebSocketHub,
+    replay: Sequence[BusMessage],
+    snapshot_seq: int,
+) -> Close:
+    """The replay (all at or below the snapshot's seq), then live messages above it."""
+    for message in replay:
+        if subscription.closed_reason is not None:
+            break  # fell behind meanwhile: `get` below says so
+        if (close := await _send(websocket, hub, message)) is not None:
+            return close
     while True:
         try:
             message = await subscription.get()
         except SubscriptionClosed as closed:
             return CLOSE_SLOW, f"{closed.reason}: you fell behind; reconnect and resync"
-        try:
-            async with asyncio.timeout(SEND_TIMEOUT):  # no extra task per send, unlike wait_for
-                await websocket.send_text(hub.encode(message))
-        except TimeoutError:
-            return CLOSE_SLOW, "slow consumer: a send did not complete in time"
-        except (WebSocketDisconnect, RuntimeError, OSError):
-            return None, ""
+        if message.seq <= snapshot_seq:
+            continue  # sent from the ring already (never expected: see `live`)
+        if (close := await _send(websocket, hub, message)) is not None:
+            return close
 
 
-async def _receive_loop(websocket: WebSocket, subscription: Any) -> tuple[int | None, str]:
+async def _receive_loop(websocket: WebSocket, subscription: Subscription) -> Close:
     while True:
         try:
             raw = await websocket.receive_text()

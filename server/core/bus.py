@@ -14,6 +14,15 @@ arrives meanwhile, such as an e-stop request. In batches, the loop checks its
 sockets between every WAKE_BATCH sends; the fan-out as a whole takes as long
 as before.
 
+The bus also keeps the last REPLAY_HISTORY messages, so that a WebSocket
+client that lost its connection can be sent what it missed (`since`) instead of
+only being told how much that was. The ring is kept here, at publish, rather
+than by a subscriber: a subscriber's copy would lag the numbering by whatever
+sits in its buffer, and could itself be dropped as a slow consumer, leaving a
+hole between what it kept and what a new subscription receives. `boot` names
+this bus's numbering: seq starts again at 1 with every new bus (every server
+process), so a seq only means something together with its boot.
+
 Publish from the event loop's thread only (other threads use
 `loop.call_soon_threadsafe`).
 """
@@ -22,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import secrets
 import time
 from collections import deque
 from collections.abc import Iterable
@@ -30,6 +40,13 @@ from typing import Any
 
 SLOW_CONSUMER = "slow consumer"
 WAKE_BATCH = 16  # subscribers woken per turn of the loop
+# Messages kept for replay. Sized for a client's longest reconnect: the Python
+# client's backoff is capped at 5 s (+20 % jitter), and a run publishes a progress
+# message per waypoint (tens a second at most), so a few hundred cover it; four
+# times the default ws_client_buffer (256) also lets a client dropped as a slow
+# consumer catch up. Bounded by count, not time, so memory stays flat (each
+# message is a dict of a few hundred bytes to a few KiB: a few MiB at most).
+REPLAY_HISTORY = 1024
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,10 +132,14 @@ class Subscription:
 class Bus:
     """Fan-out of cell records to bounded subscribers, in publish order."""
 
-    def __init__(self) -> None:
+    def __init__(self, history: int = REPLAY_HISTORY) -> None:
         self._subscribers: list[Subscription] = []
         self._seq = itertools.count(1)
         self.last_seq = 0
+        # Identifies this numbering (see the module docstring); random, so a restarted
+        # server is never taken for the one a client was following.
+        self.boot = secrets.token_hex(8)
+        self._recent: deque[BusMessage] = deque(maxlen=history)
         self._to_wake: dict[Subscription, None] = {}  # insertion-ordered set
         self._waker: asyncio.Task[None] | None = None
 
@@ -141,11 +162,26 @@ class Bus:
         """Number the record and hand it to every subscriber without waiting."""
         self.last_seq = next(self._seq)
         message = BusMessage(self.last_seq, message_type, time.time(), data)
+        self._recent.append(message)
         for subscription in tuple(self._subscribers):
             if subscription.offer(message):
                 self._to_wake[subscription] = None
         self._wake_first_batch()
         return message
+
+    def since(self, seq: int) -> list[BusMessage] | None:
+        """Every message published after `seq`, in order; None if some are no longer kept.
+
+        The ring holds consecutive numbers (every publish appends), so it can fill
+        the gap exactly when it still holds `seq + 1`. A `seq` at or beyond
+        `last_seq` gives an empty list. Call it in the same turn of the loop as
+        `subscribe`, so the two meet without a gap or an overlap.
+        """
+        if seq >= self.last_seq:
+            return []
+        if not self._recent or self._recent[0].seq > seq + 1:
+            return None
+        return list(itertools.islice(self._recent, seq + 1 - self._recent[0].seq, None))
 
     def _wake_first_batch(self) -> None:
         """Wake WAKE_BATCH subscribers now; a task wakes the rest, a batch per turn."""

@@ -104,6 +104,7 @@ class CellDevices:
                 "last_rtt_ms": device.health.last_rtt_ms,
                 "last_error": device.health.last_error,
                 "last_ok_at": device.health.last_ok_at,
+                "active_faults": list(device.health.active_faults),
                 **device.health.details,
             }
             for name, device in self.by_name().items()

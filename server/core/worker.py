@@ -41,6 +41,7 @@ from server.core.devices import CellDevices
 from server.core.engine import REQUIRED_DEVICES, Decision, Facts, available_commands, step
 from server.core.event_queue import Envelope, EventQueue, Priority
 from server.core.faults import classify, recommended_action
+from server.core.frames import LatestFrame
 from server.core.journal import Journal, Record
 from server.core.operations.base import Operation, OperationContext, PauseGate
 from server.core.snapshot import SnapshotFile
@@ -61,6 +62,7 @@ log = logging.getLogger(__name__)
 
 COMPLETION_EVENTS = frozenset({Event.OPERATION_COMPLETED, Event.OPERATION_FAILED})
 JOURNAL_BACKLOG_LIMIT = 10_000
+SLOW_OPERATION_SHARE = 0.8  # of processing_timeout: a run this slow is warned of
 OVERTAKEN = "overtaken by an emergency stop while it was being decided; nothing was changed"
 OPERATION_OUTCOME = {
     Event.OPERATION_COMPLETED: "completed",
@@ -115,6 +117,7 @@ class Worker:
         self.queue = EventQueue(settings.event_queue_size)
         self.stats = ProcessingStats(settings.performance_history_size)
         self.trajectory: dict[str, Any] | None = None  # the plan of the current or last run
+        self.frames = LatestFrame()  # the last frame an operation measured on, for the HMI
         self._ready: set[str] = set()
         self._boot = secrets.token_hex(3)
         self._ids = itertools.count(1)
@@ -246,12 +249,11 @@ class Worker:
 
     def facts(self) -> Facts:
         """Guard facts from what is known without asking the devices (a reset probes them)."""
-        known = tuple(
-            f"{name}: not connected"
-            for name, device in self.devices.by_name().items()
-            if not device.health.connected
-        )
-        return Facts(ready_devices=frozenset(self._ready), active_faults=known)
+        known: list[str] = []
+        for name, device in self.devices.by_name().items():
+            health = device.health
+            known.extend(health.active_faults if health.connected else (f"{name}: not connected",))
+        return Facts(ready_devices=frozenset(self._ready), active_faults=tuple(known))
 
     def snapshot(self) -> dict[str, Any]:
         """The state as GET /state and the WebSocket snapshot show it."""
@@ -573,6 +575,8 @@ class Worker:
             report=lambda progress: self._on_progress(run_id, progress),
             gate=self._gate,
             run_id=run_id,
+            operation=name,
+            frames=self.frames,
         )
         self._op_task = asyncio.create_task(
             self._supervise(self.operations[name], op_ctx), name=f"operation-{name}"
@@ -734,6 +738,8 @@ class Worker:
         outcome = OPERATION_OUTCOME.get(envelope.event, "failed")
         for listener in self.operation_listeners:
             listener(running.name, outcome, time.time() - running.started_at)
+        if outcome == "completed":
+            self._warn_of_completed(running, envelope.data.get("result"))
         if self.journal is None:
             return
         error = None if outcome != "failed" else str(envelope.data.get("message", envelope.event))
@@ -777,27 +783,46 @@ class Worker:
         await asyncio.sleep(timeout)
         reason = self.ctx.stop_reason.message if self.ctx.stop_reason else "unknown"
         message = f"the cell has been in ERROR for {timeout:g} s (first fault: {reason})"
-        log.warning("alert: %s", message)
-        alert = {
-            "code": "ERROR_STATE_TIMEOUT",
-            "message": message,
-            "component": "system",
-            "classification": "warning",
-            "state": self.ctx.state.value,
-        }
-        self.bus.publish("alert", alert)
+        self._warn("ERROR_STATE_TIMEOUT", message, "system")
+
+    def _warn_of_completed(self, running: RunningOperation, result: Any) -> None:
+        """Warnings of a run that succeeded: it came close to its budget, or it said so.
+
+        Why: a cell whose operations creep towards processing_timeout, or whose
+        calibration error creeps towards its limit, is about to start failing;
+        the technician should hear it while production still runs.
+        """
+        budget = self.settings.processing_timeout
+        paused = self._gate.paused_seconds() if self._gate is not None else 0.0
+        took = time.time() - running.started_at - paused
+        if took > SLOW_OPERATION_SHARE * budget:
+            self._warn(
+                "SLOW_OPERATION",
+                f"{running.name} took {took:.1f} s of its {budget:g} s budget "
+                "(processing_timeout): check device speeds and lighting before runs time out",
+                running.name,
+            )
+        warnings = result.get("warnings", []) if isinstance(result, dict) else []
+        for warning in warnings:
+            self._warn(str(warning.get("code")), str(warning.get("message")), running.name)
+
+    def _warn(self, code: str, message: str, component: str) -> None:
+        """A warning-class condition: logged, journaled, pushed on /ws; the cell runs on."""
+        log.warning("warning %s from %s: %s", code, component, message)
+        state = self.ctx.state.value
+        self.bus.publish(
+            "alert",
+            {
+                "code": code,
+                "message": message,
+                "component": component,
+                "classification": "warning",
+                "state": state,
+            },
+        )
         if self.journal is not None:
+            event_id = current_event_id.get() or ""
             self.journal.append(
-                [
-                    Journal.error(
-                        time.time(),
-                        "ERROR_STATE_TIMEOUT",
-                        message,
-                        "system",
-                        "warning",
-                        "",
-                        State.ERROR.value,
-                    )
-                ],
+                [Journal.error(time.time(), code, message, component, "warning", event_id, state)],
                 durable=False,
             )

@@ -60,6 +60,10 @@ class DeviceHealth:
     last_error: str | None = None
     last_ok_at: float | None = None
     details: dict[str, Any] = field(default_factory=dict)
+    # Conditions the device's own monitoring sees persisting right now (an alarm
+    # bit, a pressure outside its window): what "is a reset allowed now?" can
+    # tell without a probe. A reset still probes live before it is accepted.
+    active_faults: tuple[str, ...] = ()
 
     def record_ok(self, rtt_s: float) -> None:
         """Note a successful exchange and its round-trip time."""

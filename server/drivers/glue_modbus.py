@@ -456,6 +456,10 @@ class ModbusGlueDispenser:
             margin_low = low + PRESSURE_HYSTERESIS_PSI if low > 0 else low
             if margin_low <= pressure <= high - PRESSURE_HYSTERESIS_PSI:
                 self._pressure_fault = False  # back inside with margin: the next excursion reports
+        faults = [f"glue: alarm {', '.join(status.alarms)}"] if status.alarms else []
+        if not low <= pressure <= high:
+            faults.append(f"glue: pressure {pressure:.1f} PSI outside {low:g}..{high:g} PSI")
+        self.health.active_faults = tuple(faults)
 
     async def _monitor_loop(self) -> None:
         """Poll the status in the background so alarms and silence surface without a command."""

@@ -36,6 +36,7 @@ POLICY: Final = MappingProxyType(
         ("GET", "/metrics"): VIEW,
         ("GET", "/calibration"): VIEW,
         ("GET", "/calibration/image"): VIEW,
+        ("GET", "/camera/frame"): VIEW,
         ("GET", "/trajectory"): VIEW,
         ("GET", "/workpieces"): VIEW,
         ("GET", "/workpieces/{workpiece_id}"): VIEW,

@@ -271,12 +271,19 @@ async def test_a_cycle_then_stop_mid_run_then_reset(dashboard: Dashboard, browse
     await expect(page.locator(".workpiece[data-workpiece=demo] img")).to_be_visible()
     await expect(page.locator("[data-device=glue]")).to_have_attribute("data-connected", "true")
     assert await executed_pixels(page) == 0
+    # No camera frame since the server started: the path goes over the calibration image.
+    canvas = page.locator("#trajectory-canvas")
+    await expect(canvas).to_have_attribute("data-background", "calibration")
 
     # A whole run, paused and resumed on the way: the bar moves, then IDLE.
     await page.click('[data-command="start"]')
     await expect(page.locator("#message")).to_contain_text("202: start accepted")
     await expect_state(page, "EXECUTING_TRAJECTORY")
     await expect_enabled(page, {"pause", "cancel"})
+    # The run looked at the table: its frame is now under the path (GET /camera/frame).
+    await expect(canvas).to_have_attribute("data-background", "camera")
+    await expect(page.locator("#trajectory-info")).to_contain_text("camera")
+    await expect(page.locator("#trajectory-info")).to_contain_text("(trajectory)")
     seen: set[tuple[int, int]] = set()
     await watch_progress(page, seen, lambda waypoint, _: waypoint >= 3)
     await page.click('[data-command="pause"]')

@@ -41,6 +41,7 @@ from clients.client import (
 )
 from server.cell import Cell
 from server.config import Settings
+from server.core.bus import REPLAY_HISTORY
 from server.core.devices import CellDevices
 from server.core.transitions import Event
 from tests.conftest import demo_stores
@@ -60,6 +61,7 @@ class Served:
     loop: asyncio.AbstractEventLoop
     admin: str
     viewer: str
+    baseline_subscriptions: frozenset[int]  # the bus's subscribers that are not /ws clients
 
     def call(self, function: Callable[[], Any]) -> Any:
         """Run `function` in the server's loop (atomically: nothing else runs meanwhile)."""
@@ -81,6 +83,21 @@ class Served:
         """Publish `count` progress messages in one go, from the server's loop."""
         bus = self.cell.bus
         self.call(lambda: [bus.publish("progress", {"waypoint": start + i}) for i in range(count)])
+
+    def drop_websockets(self, then_publish: int = 0) -> int:
+        """Close every /ws client's subscription (the server closes them with 4001),
+        then publish `then_publish` messages while they are away, all in one go."""
+        bus = self.cell.bus
+
+        def drop() -> int:
+            clients = [s for s in bus._subscribers if id(s) not in self.baseline_subscriptions]
+            for subscription in clients:
+                subscription.close("dropped by the test")
+            for index in range(then_publish):
+                bus.publish("progress", {"while_away": index})
+            return len(clients)
+
+        return self.call(drop)
 
 
 @contextlib.contextmanager
@@ -125,7 +142,11 @@ def served(fast_settings: Settings) -> Iterator[Served]:
             viewer.raise_for_status()
         with CellClient(url, admin) as client:
             client.wait_for_state("IDLE", 10)
-        yield Served(url, cell, loop, admin, viewer.json()["token"])
+        served = Served(url, cell, loop, admin, viewer.json()["token"], frozenset())
+        served.baseline_subscriptions = served.call(
+            lambda: frozenset(id(s) for s in cell.bus._subscribers)
+        )
+        yield served
 
 
 @pytest.fixture
@@ -422,18 +443,92 @@ async def test_messages_resume_after_the_server_drops_a_slow_consumer(
         last_seen = received[-1]["seq"]
 
         # More than the client's buffer in one go, before the server can send any:
-        # the hub drops the client (close 4001) and the burst is lost to it.
+        # the hub drops the client (close 4001); the stream reconnects from the last
+        # seq it saw and the server replays the burst from its ring.
         served.publish(WS_BUFFER + 12, start=100)
         resumed = await next_message(stream)
         assert resumed["type"] == "snapshot" and resumed["resumed"] is True
-        assert resumed["missed"] == resumed["seq"] - last_seen >= WS_BUFFER + 12
+        assert resumed["missed"] == 0
+        assert resumed["replayed"] == resumed["seq"] - last_seen >= WS_BUFFER + 12
         assert resumed["state"] == "IDLE" and "restarted" not in resumed
+        assert resumed["boot"] == stream.boot == served.cell.bus.boot
         assert stream.reconnects == 1 and stream.last_close
         assert stream.last_close[0] == 4001 and "fell behind" in stream.last_close[1]
+        replayed = [await next_message(stream) for _ in range(resumed["replayed"])]
+        assert [m["seq"] for m in replayed] == list(range(last_seen + 1, resumed["seq"] + 1))
+        assert [m["waypoint"] for m in replayed][-(WS_BUFFER + 12) :] == list(
+            range(100, 100 + WS_BUFFER + 12)
+        )
 
         served.publish(1, start=1000)
         after = await next_message(stream)
         assert after["seq"] == resumed["seq"] + 1 and after["waypoint"] == 1000
+
+
+async def test_messages_are_yielded_exactly_once_across_a_drop_during_a_run(
+    served: Served, aclient: AsyncCellClient
+) -> None:
+    """Dropped mid-run, the consumer still sees every transition and waypoint, once."""
+    # A longer first backoff than the default, so more of the run goes by unseen.
+    async with aclient.messages(initial_backoff=0.5) as stream:
+        snapshot = await next_message(stream)
+        await aclient.start(**START)
+        messages = []
+        while not any(m["type"] == "progress" and "waypoint" in m for m in messages):
+            messages.append(await next_message(stream))
+        # A message published while it is away makes sure there is something to replay.
+        assert served.drop_websockets(then_publish=1) == 1
+        resumed = None
+        while True:
+            message = await next_message(stream)
+            if message["type"] == "snapshot":
+                assert resumed is None, "one reconnect only"
+                resumed = message
+                continue
+            messages.append(message)
+            if message["type"] == "state_changed" and message["new_state"] == "IDLE":
+                break
+    assert resumed is not None and resumed["resumed"] is True and resumed["missed"] == 0
+    assert resumed["replayed"] >= 1 and stream.reconnects == 1
+    seqs = [m["seq"] for m in messages]
+    assert seqs == list(range(snapshot["seq"] + 1, snapshot["seq"] + 1 + len(messages)))
+    states = [m["new_state"] for m in messages if m["type"] == "state_changed"]
+    assert states == ["EXECUTING_TRAJECTORY", "IDLE"]
+    waypoints = [m["waypoint"] for m in messages if m["type"] == "progress" and "waypoint" in m]
+    assert waypoints == list(range(1, len(waypoints) + 1)) and len(waypoints) > 1
+    assert sum("while_away" in m for m in messages) == 1
+
+
+async def test_a_gap_older_than_the_servers_ring_is_reported_missed(
+    served: Served, aclient: AsyncCellClient
+) -> None:
+    async with aclient.messages() as stream:
+        await next_message(stream)
+        served.publish(1)
+        last_seen = (await next_message(stream))["seq"]
+        away = REPLAY_HISTORY + 10
+        assert served.drop_websockets(then_publish=away) == 1
+        resumed = await next_message(stream)
+        assert resumed["type"] == "snapshot" and resumed["resumed"] is True
+        assert resumed["missed"] == resumed["seq"] - last_seen >= away
+        assert "replayed" not in resumed and "restarted" not in resumed
+        assert stream.last_seq == resumed["seq"]
+        served.publish(1, start=1000)
+        after = await next_message(stream)  # no replay in between: straight to live
+        assert after["seq"] == resumed["seq"] + 1 and after["waypoint"] == 1000
+
+
+async def test_a_stream_resuming_from_another_boot_is_told_it_restarted(
+    served: Served, aclient: AsyncCellClient
+) -> None:
+    async with aclient.messages() as stream:
+        first = await next_message(stream)
+        stream.boot = "a server that is gone"  # as if this server had restarted meanwhile
+        served.drop_websockets(then_publish=2)
+        resumed = await next_message(stream)
+    assert resumed["resumed"] is True and resumed["restarted"] is True
+    assert resumed["missed"] == resumed["seq"] >= first["seq"] + 2
+    assert "replayed" not in resumed and stream.boot == first["boot"]
 
 
 async def test_a_stream_that_stops_closes_its_socket(served: Served, aclient) -> None:
@@ -475,9 +570,18 @@ async def test_messages_to_nowhere_raise_unreachable_at_first() -> None:
 def test_a_resumed_snapshot_after_a_server_restart_says_so() -> None:
     stream = AsyncCellClient("http://127.0.0.1:1").messages()
     stream.last_seq = 50
+    # A server without replay (no boot): the client counts the gap itself.
     assert stream._resumed({"type": "snapshot", "seq": 58})["missed"] == 8
     restarted = stream._resumed({"type": "snapshot", "seq": 3})
     assert restarted["missed"] == 3 and restarted["restarted"] is True
+    # A server with replay: its marks decide, and another boot is a restart whatever the seq.
+    stream.boot = "b1"
+    replayed = stream._resumed({"type": "snapshot", "seq": 58, "boot": "b1", "replayed": 8})
+    assert replayed["missed"] == 0 and "restarted" not in replayed
+    missed = stream._resumed({"type": "snapshot", "seq": 5000, "boot": "b1", "missed": 4950})
+    assert missed["missed"] == 4950 and "restarted" not in missed
+    other = stream._resumed({"type": "snapshot", "seq": 80, "boot": "b2", "missed": 80})
+    assert other["missed"] == 80 and other["restarted"] is True
 
 
 def test_the_ws_url_keeps_the_base_path_and_scheme() -> None:
@@ -486,6 +590,12 @@ def test_the_ws_url_keeps_the_base_path_and_scheme() -> None:
         == "wss://plant.example/cell/ws?ticket=abc"
     )
     assert AsyncCellClient("localhost:8000").ws_url("t") == "ws://localhost:8000/ws?ticket=t"
+    assert (
+        AsyncCellClient("localhost:8000").ws_url("t", after_seq=42, boot="b1")
+        == "ws://localhost:8000/ws?ticket=t&after_seq=42&boot=b1"
+    )
+    with pytest.raises(ValueError, match="go together"):
+        AsyncCellClient("localhost:8000").ws_url("t", after_seq=42)
 
 
 # --- token resolution ----------------------------------------------------------------------

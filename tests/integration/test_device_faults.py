@@ -81,10 +81,19 @@ async def test_dispenser_alarm(rig: Rig) -> None:
     snapshot = await assert_safe(rig, "glue")
     assert "NOZZLE_BLOCKED" in snapshot["stop_reason"]["message"]
     assert rig.glue.valve_open is False
+    # What the dispenser's monitoring already knows, the HMI's Reset button knows too.
+    allowed = (await rig.api.get("/operations/reset/allowed")).json()
+    assert not allowed["allowed"] and "glue: alarm NOZZLE_BLOCKED" in allowed["reason"]
+    assert "reset" not in (await rig.state())["available_commands"]
+    health = (await rig.api.get("/health")).json()["devices"]["glue"]
+    assert health["active_faults"] == ["glue: alarm NOZZLE_BLOCKED"]
     refused = await rig.reset()
     assert refused.status_code == 409
     assert "glue: alarm NOZZLE_BLOCKED" in refused.json()["message"]
     rig.glue.clear_faults()
+    async with asyncio.timeout(10):  # the monitor's next poll sees it cleared
+        while not (await rig.api.get("/operations/reset/allowed")).json()["allowed"]:
+            await asyncio.sleep(0.05)
     assert (await rig.reset()).status_code == 202
 
 

@@ -361,6 +361,28 @@ def test_the_live_view_shows_progress_timeline_and_resyncs() -> None:
     assert "reconnected: missed 6 message(s); resynced" in shown and "waypoint 5/7 (71%)" in shown
     assert view.received == 5 and view.seq == 13
 
+    # A resume the server fills: the replayed transition joins the timeline once.
+    history = [boot, {"timestamp": 3.0, "old_state": "EXECUTING_TRAJECTORY", "new_state": "IDLE"}]
+    resumed = {"type": "snapshot", "seq": 15, "resumed": True, "missed": 0, "replayed": 2}
+    view.update({**resumed, "state": "IDLE", "operation": None, "history": history})
+    view.update(progress(14, 7))
+    view.update(
+        {
+            "type": "state_changed",
+            "seq": 15,
+            "time": 3.0,
+            "old_state": "EXECUTING_TRAJECTORY",
+            "event": "OPERATION_COMPLETED",
+            "new_state": "IDLE",
+            "snapshot": {"state": "IDLE", "operation": None},
+        }
+    )
+    shown = screen()
+    assert "reconnected: 2 message(s) replayed, none missed" in shown and "state IDLE" in shown
+    assert shown.count("OPERATION_COMPLETED") == 1 and "INITIALIZING" not in shown
+    assert [row.get("event") for row in view.timeline] == ["OPERATION_COMPLETED"]
+    assert "(resumed, 2 replayed, missed 0)" in gluectl.message_line(resumed)
+
 
 # --- exit codes and help -------------------------------------------------------------------
 

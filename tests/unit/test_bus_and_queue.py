@@ -44,6 +44,18 @@ async def test_a_subscription_can_filter_message_types() -> None:
     assert message.type == "state_changed" and message.seq == 2
 
 
+def test_the_ring_gives_what_came_after_a_seq_while_it_still_holds_it() -> None:
+    bus = Bus(history=5)
+    assert bus.since(0) == [] and Bus().boot != bus.boot  # a numbering of its own
+    for index in range(8):
+        bus.publish("progress", {"waypoint": index})
+    assert [m.seq for m in bus.since(3) or []] == [4, 5, 6, 7, 8]  # 4 is the oldest kept
+    assert [m.seq for m in bus.since(6) or []] == [7, 8]
+    assert bus.since(8) == [] and bus.since(80) == []
+    assert bus.since(2) is None  # 3 is gone: the gap cannot be filled
+    assert bus.since(0) is None
+
+
 def envelope(event: Event, priority: Priority, n: int) -> Envelope:
     return Envelope(f"e{n}", event, "test", {}, priority)
 

@@ -92,3 +92,49 @@ async def test_leaving_error_in_time_raises_no_alert(make_worker, fast_settings)
     await worker.request(Event.RESET_REQUESTED, source="test")
     await asyncio.sleep(0.5)
     assert alerts.pending == 0
+
+
+async def test_a_run_close_to_its_budget_is_warned_of_and_the_cell_runs_on(
+    make_worker, fast_settings
+) -> None:
+    async def slow(ctx: OperationContext) -> dict[str, Any]:
+        await asyncio.sleep(1.7)  # 85 % of the budget below; warned of above 80 %
+        return {}
+
+    worker = await make_worker(
+        fast_settings.model_copy(update={"processing_timeout": 2.0}),
+        operations={"calibrate_robot": slow},
+    )
+    alerts = worker.bus.subscribe(16, types=["alert"])
+    await worker.request(Event.CALIBRATE_ROBOT_REQUESTED, source="test")
+    message = await asyncio.wait_for(alerts.get(), 5)
+    assert message.data["code"] == "SLOW_OPERATION"
+    assert message.data["classification"] == "warning"
+    assert "calibrate_robot took" in message.data["message"]
+    await wait_for_state(worker, State.IDLE)
+    assert worker.ctx.stop_reason is None  # a warning never stops the cell
+
+
+async def test_an_operation_can_report_warnings_with_its_result(make_worker) -> None:
+    async def degrading(ctx: OperationContext) -> dict[str, Any]:
+        return {"warnings": [{"code": "CALIBRATION_DEGRADING", "message": "creeping up"}]}
+
+    worker = await make_worker(operations={"calibrate_robot": degrading})
+    alerts = worker.bus.subscribe(16, types=["alert"])
+    await worker.request(Event.CALIBRATE_ROBOT_REQUESTED, source="test")
+    message = await asyncio.wait_for(alerts.get(), 5)
+    assert message.data["code"] == "CALIBRATION_DEGRADING"
+    assert message.data["component"] == "calibrate_robot"
+    await wait_for_state(worker, State.IDLE)
+
+
+async def test_a_quick_run_raises_no_warning(make_worker) -> None:
+    async def quick(ctx: OperationContext) -> dict[str, Any]:
+        return {"mean_error_mm": 0.01}
+
+    worker = await make_worker(operations={"calibrate_robot": quick})
+    alerts = worker.bus.subscribe(16, types=["alert"])
+    await worker.request(Event.CALIBRATE_ROBOT_REQUESTED, source="test")
+    await wait_for_state(worker, State.IDLE)
+    await asyncio.sleep(0.05)
+    assert alerts.pending == 0

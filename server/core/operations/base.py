@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from server.config import Settings
+from server.core.frames import LatestFrame
 from server.drivers.base import Camera, GlueDispenser, Robot
 from server.storage import CellStores
 
@@ -84,6 +85,9 @@ class OperationContext:
     report: ProgressReporter
     gate: PauseGate = field(default_factory=PauseGate)
     run_id: str = ""
+    operation: str = ""  # its name (trajectory, create_workpiece, ...), as the worker runs it
+    # Where the frames measured on are kept for the HMI (the worker's; a throwaway otherwise).
+    frames: LatestFrame = field(default_factory=LatestFrame)
 
 
 Operation = Callable[[OperationContext], Awaitable[dict[str, Any]]]

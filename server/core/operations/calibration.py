@@ -45,6 +45,9 @@ def _calibrate_from_frame(
     return calibration, annotate_markers(frame, detections, calibration.residuals_mm), detections
 
 
+DEGRADING_SHARE = 0.5  # of calibration_max_error_mm: accepted, but warned of
+
+
 async def calibrate_robot(ctx: OperationContext) -> dict[str, Any]:
     """Detect markers 0-8, fit the image → robot-plane map, check it, persist it."""
     frame = await capture_undistorted(ctx, "robot calibration")
@@ -68,11 +71,21 @@ async def calibrate_robot(ctx: OperationContext) -> dict[str, Any]:
     }
     await asyncio.to_thread(store.save_robot, calibration, image, meta)
     ctx.report({"step": "saved", "fraction": 1.0})
-    return {
+    result: dict[str, Any] = {
         "mean_error_mm": round(calibration.mean_error_mm, 4),
         "max_error_mm": round(calibration.max_error_mm, 4),
         "undistorted": store.camera is not None,
     }
+    if calibration.mean_error_mm > DEGRADING_SHARE * limit:
+        result["warnings"] = [
+            {
+                "code": "CALIBRATION_DEGRADING",
+                "message": f"robot calibration mean error {calibration.mean_error_mm:.2f} mm is "
+                f"over {DEGRADING_SHARE:.0%} of its {limit:g} mm limit: check that the markers "
+                "lie flat and clean, and the camera mount, before it fails",
+            }
+        ]
+    return result
 
 
 REAL_CAMERA_VIEW_INTERVAL_S = 2.0  # time for a person to tilt and move the board

@@ -1,9 +1,15 @@
 """Frames for the vision operations: captured in time, and undistorted when the
-camera is calibrated, so every measurement is taken on a true pinhole image."""
+camera is calibrated, so every measurement is taken on a true pinhole image.
+
+Each undistorted frame is also kept as the cell's latest frame (`ctx.frames`,
+GET /camera/frame), so the HMI shows what the operation measured on. The raw
+chessboard views of the camera calibration are not: they are distorted, and
+show the board, not the table the path is drawn on."""
 
 from __future__ import annotations
 
 import asyncio
+import time
 
 import numpy as np
 
@@ -34,8 +40,14 @@ async def capture(ctx: OperationContext, purpose: str) -> np.ndarray:
 
 
 async def capture_undistorted(ctx: OperationContext, purpose: str) -> np.ndarray:
+    """A frame as `capture`, undistorted; kept as the latest frame (read-only from here on)."""
     frame = await capture(ctx, purpose)
-    return await asyncio.to_thread(ctx.stores.calibration.undistort, frame)
+    taken_at = time.time()
+    undistorted = await asyncio.to_thread(ctx.stores.calibration.undistort, frame)
+    ctx.frames.keep(
+        undistorted, source=ctx.operation or purpose, run_id=ctx.run_id, taken_at=taken_at
+    )
+    return undistorted
 
 
 def require_robot_calibration(ctx: OperationContext, purpose: str) -> PlaneCalibration:
