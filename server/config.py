@@ -133,6 +133,13 @@ class Settings(BaseSettings):
     # Hardware addresses: "sim" starts the simulator on loopback.
     robot_ip: str = Field(SIMULATED, validation_alias=AliasChoices("robot_ip", "ROBOT_IP"))
     robot_port: int = Field(30003, ge=0, le=65535)
+    robot_heartbeat_interval: float = Field(
+        1.0,
+        gt=0,
+        le=60,
+        description="a robot link quiet this long is asked for the position; no answer "
+        "within robot_communication_timeout is a fault, in IDLE too",
+    )
     vision_camera_id: str = Field(
         SIMULATED, validation_alias=AliasChoices("vision_camera_id", "VISION_CAMERA_ID")
     )

@@ -116,12 +116,13 @@ DEVICE_FAULTS: dict[str, DeviceFaultKind] = {
         DeviceFaultKind(
             "robot-stalled",
             "robot",
-            frozenset({"DEVICE_FAULT", "SAFE_POSITION_FAILED"}),
-            "robot: no answer in time",
+            # The heartbeat notices it when idle (NO_ANSWER); a move running into it
+            # fails first (DEVICE_FAULT), or the homing move does.
+            frozenset({"DEVICE_FAULT", "SAFE_POSITION_FAILED", "NO_ANSWER"}),
+            "robot: no answer",
             "spray",
             lambda rig: rig.robot.inject_fault("stall"),
             lambda rig: rig.robot.clear_faults(),
-            noticed_when_idle=False,
         ),
         DeviceFaultKind(
             "dispenser-silent",

@@ -31,6 +31,7 @@ RECOMMENDED_ACTION = {
     "EMERGENCY_STOP": "make sure the cell is clear, then reset",
     "COMM_LOST": "check the robot controller is on and its network cable, then reset",
     "NO_REPLY": "check the dispenser's power and RS-485 cable, then reset",
+    "NO_ANSWER": "check the robot controller: power, fault or protective stop; then reset",
     "DEVICE_UNAVAILABLE": "check the named device is powered and connected, then reset",
     "ALARM": "clear the dispenser alarm at the dispenser, then reset",
     "PRESSURE_OUT_OF_RANGE": "check the glue supply pressure, then reset",

@@ -55,7 +55,11 @@ async def build_devices(
         log.info("robot: simulator on 127.0.0.1:%d", host.robot.port)
     else:
         robot_address = (settings.robot_ip, settings.robot_port)
-    robot = JsonRpcRobot(*robot_address, timeout=settings.robot_communication_timeout)
+    robot = JsonRpcRobot(
+        *robot_address,
+        timeout=settings.robot_communication_timeout,
+        heartbeat_interval=settings.robot_heartbeat_interval,
+    )
 
     port = settings.glue_controller_port
     if settings.glue_simulated:

@@ -12,6 +12,13 @@ background reconnection with exponential backoff. Calls made while the link is
 down fail fast instead of queueing: a queued move replayed seconds later on a
 reconnected arm would be dangerous.
 
+A quiet link is watched too: with `heartbeat_interval` set, a link that has
+carried no answer for that long is asked `getPosition`. A controller that stops
+answering while the cell is IDLE is then found within interval + timeout, not
+at the next move: one `NO_ANSWER` fault per onset, the condition listed in
+`health.active_faults` until an answer comes again. The last pose read is kept
+in `health.details["position"]` for the dashboard.
+
 Motion commands answer as soon as the motion starts, so `move_linear` and
 `move_joint` poll `isMoving` until it turns false, then check the arm really
 is at the target (another party may have stopped or replaced the move).
@@ -96,6 +103,7 @@ class JsonRpcRobot:
         reconnect_max_delay: float = 5.0,
         position_tolerance: float = 0.5,
         max_line_bytes: int = MAX_LINE_BYTES,
+        heartbeat_interval: float | None = None,
     ) -> None:
         if timeout <= 0:
             raise ValueError("timeout must be greater than 0")
@@ -107,6 +115,7 @@ class JsonRpcRobot:
         self.reconnect_max_delay = reconnect_max_delay
         self.position_tolerance = position_tolerance
         self.max_line_bytes = max_line_bytes
+        self.heartbeat_interval = heartbeat_interval
         self.health = DeviceHealth(name=DEVICE)
         self.health.details.update(
             address=f"{host}:{port}",
@@ -127,6 +136,9 @@ class JsonRpcRobot:
         self._generation = 0  # bumped per link, so stale signals from an old link are ignored
         self._connected = False
         self._closing = False
+        self._watch_task: asyncio.Task[None] | None = None
+        self._last_answer = 0.0  # monotonic time of the last answer on any link
+        self._silent = False  # a NO_ANSWER fault was reported and no answer came since
 
     # --- lifecycle -------------------------------------------------------------
 
@@ -170,6 +182,10 @@ class JsonRpcRobot:
         """Close the link and stop reconnecting; not a fault, never raises."""
         self._closing = True
         await self._cancel_reconnect()
+        watch, self._watch_task = self._watch_task, None
+        if watch is not None:
+            watch.cancel()
+            await asyncio.wait({watch})
         self._connected = False
         self.health.connected = False
         self._teardown("the robot link was closed")
@@ -208,6 +224,46 @@ class JsonRpcRobot:
         self._connected = True
         self.health.connected = True
         logger.info("robot: connected to %s:%d", self.host, self.port)
+        if self.heartbeat_interval and (self._watch_task is None or self._watch_task.done()):
+            self._watch_task = asyncio.create_task(self._watch_loop(), name="robot-heartbeat")
+
+    async def _watch_loop(self) -> None:
+        """Ask a quiet link for the position, so silence is found while the cell is idle."""
+        interval = self.heartbeat_interval
+        assert interval
+        while not self._closing:
+            await asyncio.sleep(interval)
+            if not self._connected or time.monotonic() - self._last_answer < interval:
+                continue  # down (reconnection reports itself), or a move's polling proves it
+            try:
+                pose = await self.get_position()
+            except asyncio.CancelledError:
+                raise
+            except DeviceTimeout as exc:
+                self._went_silent(str(exc))
+            except DeviceError:
+                pass  # a lost link reports itself (_link_lost); a bad answer fails the next call
+            except Exception:  # the watch must outlive anything odd the controller sends
+                logger.exception("robot: heartbeat failed")
+            else:
+                self.health.details["position"] = [round(v, 3) for v in pose]
+
+    def _went_silent(self, detail: str) -> None:
+        """Report a controller that stopped answering, once per onset."""
+        if self._silent:
+            return
+        self._silent = True
+        message = (
+            f"the robot controller at {self.host}:{self.port} stopped answering ({detail}); "
+            "check that it is powered and not in a fault or protective stop"
+        )
+        self.health.active_faults = (f"robot: no answer within {self.timeout:g} s",)
+        logger.error("robot: %s", message)
+        if self._listener is not None:
+            try:
+                self._listener(DeviceFault(DEVICE, "NO_ANSWER", message))
+            except Exception:
+                logger.exception("robot: fault listener failed")
 
     def _teardown(self, reason: str) -> None:
         """Invalidate the current link: fail pending calls, stop the reader, close the socket."""
@@ -364,8 +420,13 @@ class JsonRpcRobot:
             raise DeviceDisconnected(DEVICE, f"{method}: write failed: {exc}") from exc
         finally:
             self._pending.pop(request_id, None)
-        self.health.record_ok(time.monotonic() - started)
+        self._last_answer = time.monotonic()
+        self.health.record_ok(self._last_answer - started)
         self.health.connected = self._connected
+        if self._silent:  # answering again: the condition is gone (a reset may now pass)
+            self._silent = False
+            self.health.active_faults = ()
+            logger.warning("robot: the controller answers again")
         error = response.get("error")
         if error is not None:
             code = error.get("code", 0) if isinstance(error, dict) else 0

@@ -51,6 +51,26 @@ async def test_robot_stalled(rig: Rig) -> None:
     assert (await rig.reset()).status_code == 202
 
 
+async def test_robot_silent_while_idle_is_found_by_the_heartbeat(cell_data) -> None:
+    async with open_rig(cell_data, robot_heartbeat_interval=0.1) as rig:
+        async with asyncio.timeout(10):  # the homing move done: nothing is asked of the robot
+            while rig.robot.is_moving:
+                await asyncio.sleep(0.05)
+        await asyncio.sleep(0.3)
+        rig.robot.inject_fault("stall")
+        snapshot = await assert_safe(rig, "robot")
+        assert snapshot["stop_reason"]["code"] == "NO_ANSWER"
+        assert "check the robot controller" in snapshot["stop_reason"]["recommended_action"]
+        allowed = (await rig.api.get("/operations/reset/allowed")).json()
+        assert not allowed["allowed"] and "robot: no answer" in allowed["reason"]
+        assert (await rig.reset()).status_code == 409
+        rig.robot.clear_faults()
+        async with asyncio.timeout(10):  # the next heartbeat is answered
+            while (await rig.reset()).status_code != 202:
+                await asyncio.sleep(0.1)
+        await rig.wait_state("IDLE")
+
+
 async def test_robot_refuses_the_next_command(rig: Rig) -> None:
     await rig.start_spraying()
     rig.robot.inject_fault("fail_next")

@@ -307,6 +307,37 @@ async def test_stall_gives_device_timeout(sim: RobotSimulator) -> None:
         await robot.close()
 
 
+async def test_the_heartbeat_finds_a_controller_that_stops_answering_while_idle(
+    sim: RobotSimulator,
+) -> None:
+    robot = JsonRpcRobot("127.0.0.1", sim.port, timeout=0.3, heartbeat_interval=0.05)
+    faults: list[DeviceFault] = []
+    robot.set_fault_listener(faults.append)
+    await robot.connect()
+    try:
+        await wait_until(lambda: "position" in robot.health.details, what="a heartbeat")
+        assert robot.health.details["position"] == list(HOME)
+        sim.inject_fault("stall")  # nothing else is asked of the robot meanwhile
+        await wait_until(lambda: bool(faults), what="the silence reported")
+        assert [f.code for f in faults] == ["NO_ANSWER"]
+        assert "stopped answering" in faults[0].message
+        assert robot.health.active_faults == ("robot: no answer within 0.3 s",)
+        assert robot.health.connected  # silent, not disconnected: no reconnection storm
+        await asyncio.sleep(0.8)  # silent for several more heartbeats: reported once
+        assert len(faults) == 1
+        sim.clear_faults()
+        await wait_until(lambda: robot.health.active_faults == (), what="the fault cleared")
+        assert robot.health.connected and len(faults) == 1
+    finally:
+        await robot.close()
+
+
+async def test_no_heartbeat_unless_asked(robot: JsonRpcRobot, sim: RobotSimulator) -> None:
+    before = (await robot.call("sim.stats"))["methods"].get("getPosition", 0)
+    await asyncio.sleep(0.2)
+    assert (await robot.call("sim.stats"))["methods"].get("getPosition", 0) == before
+
+
 async def test_stall_with_duration_ends_by_itself(robot: JsonRpcRobot, sim: RobotSimulator) -> None:
     await robot.call("sim.injectFault", {"kind": "stall", "duration": 0.2})
     assert sim.stalled
