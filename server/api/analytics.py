@@ -2,7 +2,8 @@
 
 Every table takes the same paging and time filters (`since`, `until` as Unix
 seconds, `limit`, `offset`) plus equality filters on its own columns; the
-journal is read off the event loop.
+journal is read off the event loop. A CSV export takes the same filters and
+streams every matching row, page by page (`csv_export`).
 """
 
 from __future__ import annotations
@@ -12,14 +13,16 @@ import csv
 import io
 import json
 import time
-from typing import Annotated, Any, Literal
+from collections.abc import Iterator
+from typing import Annotated, Any, Literal, get_args
 
 from fastapi import APIRouter, HTTPException, Query, Request
-from fastapi.responses import Response
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import Response, StreamingResponse
 
 from server.api.schemas import ErrorView
 from server.cell import Cell
-from server.core.journal import Journal
+from server.core.journal import FILTERS, TABLES, Cursor, Journal
 from server.core.kpis import Window, compute_kpis
 
 router = APIRouter(tags=["analytics"])
@@ -32,8 +35,15 @@ Until = Annotated[
 ]
 Limit = Annotated[int, Query(ge=1, le=10_000)]
 Offset = Annotated[int, Query(ge=0, le=10_000_000)]
-Text = Annotated[str | None, Query(max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")]
-EXPORT_LIMIT = 100_000
+TEXT_MAX_LENGTH = 64
+TEXT_PATTERN = r"^[A-Za-z0-9_.:-]+$"
+Text = Annotated[str | None, Query(max_length=TEXT_MAX_LENGTH, pattern=TEXT_PATTERN)]
+ExportTable = Literal["events", "transitions", "operations", "errors", "recoveries"]
+EXPORT_TABLES: tuple[str, ...] = get_args(ExportTable)
+# Rows read, formatted and sent at a time: what bounds an export's memory, never its length.
+EXPORT_PAGE_ROWS = 5_000
+# The KPI window reads at most this many rows of each table.
+KPI_ROW_LIMIT = 100_000
 
 
 def _journal(request: Request) -> Journal:
@@ -173,6 +183,18 @@ async def get_events(
     )
 
 
+def _export_filter(column: str) -> Any:
+    """An export's equality filter: validated as `Text` on the JSON routes, documented
+    with the tables it applies to (from FILTERS, which the journal enforces too)."""
+    tables = ", ".join(t for t in EXPORT_TABLES if column in FILTERS[t])
+    return Query(
+        None,
+        max_length=TEXT_MAX_LENGTH,
+        pattern=TEXT_PATTERN,
+        description=f"equality filter, for {tables}",
+    )
+
+
 @router.get(
     "/export/{table}.csv",
     response_class=Response,
@@ -180,12 +202,64 @@ async def get_events(
 )
 async def export_csv(
     request: Request,
-    table: Literal["events", "transitions", "operations", "errors", "recoveries"],
+    table: ExportTable,
     since: Since = None,
     until: Until = None,
+    type: str | None = _export_filter("type"),
+    source: str | None = _export_filter("source"),
+    outcome: str | None = _export_filter("outcome"),
+    state: str | None = _export_filter("state"),
+    old_state: str | None = _export_filter("old_state"),
+    new_state: str | None = _export_filter("new_state"),
+    event: str | None = _export_filter("event"),
+    event_id: str | None = _export_filter("event_id"),
+    kind: str | None = _export_filter("kind"),
+    code: str | None = _export_filter("code"),
+    component: str | None = _export_filter("component"),
+    classification: str | None = _export_filter("classification"),
+    run_id: str | None = _export_filter("run_id"),
+    error_code: str | None = _export_filter("error_code"),
 ) -> Response:
-    """A table as CSV (oldest first, at most 100 000 rows), for spreadsheets and reports."""
-    return await csv_export(_journal(request), table, since, until)
+    """A whole table as CSV, oldest first, for spreadsheets and reports.
+
+    Every matching row, with no row limit: streamed page by page, so a long table is
+    never cut short (docs/api.md says what the file holds). Takes the equality
+    filters of that table's JSON route; each parameter names its tables. A filter on
+    another table's column is a 422 naming it: ignored, it would give a file holding
+    more than was asked for.
+    """
+    given = {
+        "type": type,
+        "source": source,
+        "outcome": outcome,
+        "state": state,
+        "old_state": old_state,
+        "new_state": new_state,
+        "event": event,
+        "event_id": event_id,
+        "kind": kind,
+        "code": code,
+        "component": component,
+        "classification": classification,
+        "run_id": run_id,
+        "error_code": error_code,
+    }
+    filters = {column: value for column, value in given.items() if value is not None}
+    misplaced = [column for column in filters if column not in FILTERS[table]]
+    if misplaced:
+        raise RequestValidationError(
+            [
+                {
+                    "type": "value_error",
+                    "loc": ("query", column),
+                    "msg": f"{table} cannot be filtered by {column} "
+                    f"(its filters: {', '.join(FILTERS[table])})",
+                    "input": filters[column],
+                }
+                for column in misplaced
+            ]
+        )
+    return await csv_export(_journal(request), table, since, until, filters)
 
 
 async def csv_export(
@@ -194,28 +268,67 @@ async def csv_export(
     since: float | None,
     until: float | None,
     filters: dict[str, str] | None = None,
-) -> Response:
-    """A journal table as a CSV download, oldest first."""
+) -> StreamingResponse:
+    """A journal table as a CSV download: every matching row, oldest first, streamed.
+
+    Why streamed in pages: a plant's tables outgrow any row cap, and an export that
+    stops at one drops the newest rows without a word. Read EXPORT_PAGE_ROWS at a
+    time (keyset pages, `Journal.page_after`) and sent as each is formatted, an
+    export of any length holds one page in memory.
+
+    What the file holds: the header (from TABLES, so an empty table still has it),
+    then every matching row committed before the export started (after
+    `caught_up`: read-your-writes), each once. Rows written while it streams are
+    left out by the rowid bound read at the start (`Journal.last_rowid`); an
+    operation updated meanwhile shows its values as its page was read, and rows
+    that retention deletes meanwhile may be missing. If reading fails midway the
+    connection is closed before the end of the body, so the client sees an
+    incomplete download, never a short file that looks whole.
+    """
     await journal.caught_up()
+    bound = await asyncio.to_thread(journal.last_rowid, table)
+    columns = TABLES[table][1]
+    page_rows = EXPORT_PAGE_ROWS
 
-    def build() -> str:  # reading and formatting 100k rows is work for a thread, not the loop
-        rows = journal.query(
-            table, since=since, until=until, filters=filters, limit=EXPORT_LIMIT, newest_first=False
-        )
+    def pages() -> Iterator[str]:
+        # A plain generator on purpose: StreamingResponse runs each step of a sync
+        # iterator in the thread pool (Starlette's iterate_in_threadpool), so the
+        # SQLite reads and the formatting of every page stay off the event loop.
         buffer = io.StringIO()
-        if rows:
-            writer = csv.DictWriter(buffer, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-        return buffer.getvalue()
+        writer = csv.writer(buffer)
+        writer.writerow(columns)
+        yield _drain(buffer)
+        after: Cursor | None = None
+        while True:
+            rows, after = journal.page_after(
+                table,
+                since=since,
+                until=until,
+                filters=filters,
+                after=after,
+                bound=bound,
+                limit=page_rows,
+            )
+            if rows:
+                writer.writerows(rows)
+                yield _drain(buffer)
+            if len(rows) < page_rows:
+                return
 
-    text = await asyncio.to_thread(build)
     filename = f"{table}-{time.strftime('%Y%m%d-%H%M%S')}.csv"
-    return Response(
-        text,
+    return StreamingResponse(
+        pages(),
         media_type="text/csv",
         headers={"Content-Disposition": f'attachment; filename="{filename}"'},
     )
+
+
+def _drain(buffer: io.StringIO) -> str:
+    """What was written to `buffer` since the last drain; the buffer is emptied."""
+    text = buffer.getvalue()
+    buffer.seek(0)
+    buffer.truncate()
+    return text
 
 
 @router.get("/kpis")
@@ -239,16 +352,16 @@ async def get_kpis(request: Request, since: Since = None, until: Until = None) -
         # Every transition that closes an interval overlapping the window (the first one
         # after `end` closes the last); operations by when they ended (they start earlier).
         transitions = journal.query(
-            "transitions", since=start, limit=EXPORT_LIMIT, newest_first=False
+            "transitions", since=start, limit=KPI_ROW_LIMIT, newest_first=False
         )
         operations = journal.query(
-            "operations", since=start - 86_400, until=end, limit=EXPORT_LIMIT, newest_first=False
+            "operations", since=start - 86_400, until=end, limit=KPI_ROW_LIMIT, newest_first=False
         )
         errors = journal.query(
-            "errors", since=start, until=end, limit=EXPORT_LIMIT, newest_first=False
+            "errors", since=start, until=end, limit=KPI_ROW_LIMIT, newest_first=False
         )
         recoveries = journal.query(
-            "recoveries", since=start, until=end, limit=EXPORT_LIMIT, newest_first=False
+            "recoveries", since=start, until=end, limit=KPI_ROW_LIMIT, newest_first=False
         )
         for row in recoveries:
             row["succeeded"] = bool(row["succeeded"])

@@ -68,6 +68,7 @@ CREATE INDEX IF NOT EXISTS events_time ON events(time);
 CREATE INDEX IF NOT EXISTS transitions_time ON transitions(time);
 CREATE INDEX IF NOT EXISTS operations_started ON operations(started_at);
 CREATE INDEX IF NOT EXISTS errors_time ON errors(time);
+CREATE INDEX IF NOT EXISTS recoveries_time ON recoveries(time);
 """
 
 TABLES = {
@@ -108,6 +109,8 @@ FILTERS = {  # which columns a query may filter on by equality, per table
 }
 BACKLOG_LIMIT = 20_000
 DAY_S = 86_400.0
+# Where an export page ends: the time column's value and the rowid of its last row.
+Cursor = tuple[float, int]
 
 
 @dataclass(frozen=True, slots=True)
@@ -400,6 +403,63 @@ class Journal:
             return int(
                 connection.execute(f"SELECT COUNT(*) FROM {table}{where}", params).fetchone()[0]
             )
+
+    def last_rowid(self, table: str) -> int:
+        """The largest rowid in `table` now (0 when empty): the snapshot bound of an export.
+
+        Why the rowid: every table here is a rowid table, and a row inserted later gets
+        a larger rowid (the AUTOINCREMENT tables never reuse one; `events` and
+        `operations` take the largest + 1). So `rowid <= bound` keeps every row
+        committed before the bound was read and leaves out the rows added while a long
+        export streams, which would otherwise chase a table that keeps growing.
+        """
+        if table not in TABLES:  # only known tables are ever named in SQL
+            raise ValueError(f"no table {table!r}")
+        with self._reader() as connection:
+            return int(connection.execute(f"SELECT MAX(rowid) FROM {table}").fetchone()[0] or 0)
+
+    def page_after(
+        self,
+        table: str,
+        *,
+        since: float | None = None,
+        until: float | None = None,
+        filters: dict[str, str] | None = None,
+        after: Cursor | None = None,
+        bound: int,
+        limit: int,
+    ) -> tuple[list[tuple[Any, ...]], Cursor | None]:
+        """One page of an export: rows oldest first, strictly after `after`, rowid <= `bound`.
+
+        Keyset pagination on (time column, rowid): a page starts right after the last
+        row of the previous one, so rows with equal times are neither repeated nor
+        skipped, and every page costs the same however deep into the table it is
+        (OFFSET would read and drop every earlier row, and shift when retention deletes
+        old rows meanwhile). The time index holds that order already: SQLite keeps the
+        rowid in each index entry. A fresh connection per page means no read
+        transaction stays open while a slow client downloads, which would stop the WAL
+        from being checkpointed.
+
+        Returns the rows (the table's columns, in the order of TABLES) and the cursor
+        to pass as `after` for the next page (None when the page is empty).
+        """
+        time_column, columns = TABLES[table]
+        where, params = self._where(table, time_column, since, until, filters)
+        clauses = [where or " WHERE 1", "rowid <= ?"]
+        params = (*params, bound)
+        if after is not None:
+            clauses.append(f"({time_column}, rowid) > (?, ?)")
+            params = (*params, *after)
+        sql = (
+            f"SELECT {', '.join(columns)}, {time_column}, rowid FROM {table}"
+            f"{' AND '.join(clauses)} ORDER BY {time_column}, rowid LIMIT ?"
+        )
+        with self._reader() as connection:
+            rows = connection.execute(sql, (*params, limit)).fetchall()
+        if not rows:
+            return [], None
+        last = rows[-1]
+        return [row[:-2] for row in rows], (last[-2], last[-1])
 
     def unfinished_operations(self) -> list[dict[str, Any]]:
         """Operations that started and never ended: the server stopped during them."""
