@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import Depends, FastAPI, Request
+from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
@@ -47,22 +47,29 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         version="0.1.0",
         summary="One state machine drives a glue-spraying robot cell.",
         lifespan=lifespan,
+        # No interactive /docs or /redoc: they load their scripts from a CDN, which a
+        # plant network may not reach, and they would be open routes. The description
+        # is /openapi.json (viewer) and, for integrators, openapi.json in the repository.
+        docs_url=None,
+        redoc_url=None,
     )
     app.state.cell = cell
     app.state.settings = settings
     app.state.ws_hub = ws.WebSocketHub(settings.max_broadcast_clients, settings.ws_client_buffer)
     app.state.access = auth.Access(settings)
-    gate = [Depends(auth.authorize)]  # every HTTP route: the policy in server/security/policy.py
+    # The most polled route's router first: the router tries routes in order.
     for router in (
-        commands.router,
         queries.router,
+        commands.router,
         workpieces.router,
         analytics.router,
         metrics.router,
         auth.router,
     ):
-        app.include_router(router, dependencies=gate)
+        app.include_router(router)
     app.state.metrics = metrics.Metrics(app)
+    # Every HTTP request, before routing: the policy in server/security/policy.py.
+    app.add_middleware(auth.AccessGate, access=app.state.access)
     app.add_middleware(
         ResponseObservers,
         observers=[
@@ -91,8 +98,8 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
 def _document_validation_errors(app: FastAPI) -> None:
     """Make the OpenAPI document describe the 422 body this app really sends, and the gate.
 
-    The gate (`auth.authorize`) is a router dependency without parameters, so FastAPI's
-    document knows nothing of it: `auth.document_access` adds the bearer scheme, each
+    The gate (`auth.AccessGate`) is a middleware, so FastAPI's document knows nothing
+    of it: `auth.document_access` adds the bearer scheme, each
     operation's role and its 401/403 from the policy table.
     """
     default_openapi = app.openapi

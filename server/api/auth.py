@@ -1,6 +1,6 @@
 """Authentication, authorisation and the audit trail, checked in one place.
 
-Every HTTP route goes through `authorize` (the policy table in
+Every HTTP request goes through `AccessGate` (the policy table in
 server/security/policy.py says which role it needs); the WebSocket checks its
 ticket or bearer token in server/api/ws.py with `authenticate_websocket`.
 Every command, every admin action and every refused attempt is written to the
@@ -18,16 +18,17 @@ from collections.abc import Callable
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response, WebSocket
+from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.requests import HTTPConnection
-from starlette.types import Scope
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from server.api.analytics import csv_export
 from server.api.observe import Observer
 from server.api.schemas import ErrorView
 from server.config import Settings
 from server.core.journal import Journal
-from server.security.policy import WEBSOCKET_ROLE, required_role
+from server.security.policy import WEBSOCKET_ROLE, required_role, role_for_request
 from server.security.tickets import TicketBook
 from server.security.tokens import Principal, Role, TokenStore
 
@@ -74,36 +75,70 @@ def _bearer(connection: HTTPConnection) -> str | None:
     return token.strip() if scheme.lower() == "bearer" and token.strip() else None
 
 
-def _refuse(request: Request, status: int, reason: str) -> HTTPException:
-    request.state.audit_reason = reason
-    headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
-    return HTTPException(status, reason, headers=headers)
+def _bearer_in(scope: Scope) -> str | None:
+    """The bearer token of a request's Authorization header, read from the raw scope."""
+    for name, value in scope.get("headers") or ():
+        if name == b"authorization":
+            scheme, _, token = value.decode("latin-1").partition(" ")
+            token = token.strip()
+            return token if scheme.lower() == "bearer" and token else None
+    return None
 
 
-async def authorize(request: Request) -> None:
-    """The one gate of every HTTP route: network, token, role."""
-    access = _access(request)
-    host = request.client.host if request.client else None
-    if not access.address_allowed(host):
-        raise _refuse(request, 403, f"requests from {host} are not allowed (trusted_networks)")
-    route = request.scope.get("route")
-    # Not getattr(route, "path", request.url.path): that builds the URL on every request.
-    needed = required_role(request.method, route.path if route is not None else request.url.path)
-    if needed is None:
-        return
-    token = _bearer(request)
-    if token is None:
-        raise _refuse(request, 401, "authentication required: send Authorization: Bearer <token>")
-    principal = access.tokens.verify(token)
-    if principal is None:
-        raise _refuse(request, 401, "the token is unknown or revoked")
-    request.state.principal = principal
-    if principal.role < needed:
-        raise _refuse(
-            request,
-            403,
-            f"this needs the {needed.label} role; {principal.name} has {principal.role.label}",
-        )
+class AccessGate:
+    """ASGI middleware: the one gate of every HTTP request (network, token, role).
+
+    It runs before routing and matches the request's own path against the
+    policy table (`role_for_request`): a path no entry matches needs ADMIN, so
+    a new route stays closed until the table names it. Why not a FastAPI
+    dependency: resolving one per request was a fifth of a GET /state
+    (docs/benchmarks.md), and a refused request should cost no routing at all.
+
+    It leaves `principal` (and, when it refuses, `audit_reason`) in the
+    request's state for the routes and the audit trail. WebSockets prove who
+    they are in server/api/ws.py (`authenticate_websocket`).
+    """
+
+    def __init__(self, app: ASGIApp, access: Access) -> None:
+        self.app = app
+        self.access = access
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        refusal = self._check(scope)
+        if refusal is None:
+            await self.app(scope, receive, send)
+            return
+        status, reason = refusal
+        scope.setdefault("state", {})["audit_reason"] = reason
+        headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
+        await JSONResponse({"detail": reason}, status, headers=headers)(scope, receive, send)
+
+    def _check(self, scope: Scope) -> tuple[int, str] | None:
+        """None if the request may pass, else the status and the reason."""
+        access = self.access
+        client = scope.get("client")
+        host = client[0] if client else None
+        if not access.address_allowed(host):
+            return 403, f"requests from {host} are not allowed (trusted_networks)"
+        needed = role_for_request(scope["method"], scope["path"])
+        if needed is None:
+            return None
+        token = _bearer_in(scope)
+        if token is None:
+            return 401, "authentication required: send Authorization: Bearer <token>"
+        principal = access.tokens.verify(token)
+        if principal is None:
+            return 401, "the token is unknown or revoked"
+        scope.setdefault("state", {})["principal"] = principal
+        if principal.role < needed:
+            return (
+                403,
+                f"this needs the {needed.label} role; {principal.name} has {principal.role.label}",
+            )
+        return None
 
 
 # --- the API description of the gate ----------------------------------------------
@@ -120,9 +155,9 @@ def _refusal(description: str, **extra: Any) -> dict[str, Any]:
 
 
 def document_access(schema: dict[str, Any]) -> None:
-    """Describe `authorize` in an OpenAPI document: the bearer scheme, who may call what, 401/403.
+    """Describe `AccessGate` in an OpenAPI document: the bearer scheme, who may call what, 401/403.
 
-    Derived from the policy table, as `authorize` is: an operation that needs a role gets the
+    Derived from the policy table, as `AccessGate` is: an operation that needs a role gets the
     security requirement, `x-required-role`, a sentence in its description and the 401 and 403
     it can answer; an open one gets only the 403 of `trusted_networks`, which applies to all.
     """

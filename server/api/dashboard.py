@@ -3,8 +3,9 @@
 `GET /` is the page (`index.html`); its script and style sheet are under
 `/hmi/...`. Nothing here is secret: the page asks for a token and sends it as
 `Authorization: Bearer` on every API call, like any other client. The page
-route goes through the same gate as every route (policy entry `("GET", "/")`:
-open); the asset mount honours `trusted_networks` too. The page may only talk
+and its assets go through the same gate as every request (`auth.AccessGate`:
+policy entry `("GET", "/")` and the open prefix `/hmi/`, after the
+`trusted_networks` check). The page may only talk
 to its own origin (Content-Security-Policy), so it fetches nothing from
 elsewhere and cannot be framed by another site.
 """
@@ -13,12 +14,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fastapi import Depends, FastAPI
-from fastapi.responses import FileResponse, PlainTextResponse
+from fastapi import FastAPI
+from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.types import Receive, Scope, Send
-
-from server.api import auth
 
 HMI_DIR = Path(__file__).resolve().parents[2] / "clients" / "hmi"
 PAGE_PATH = "/"
@@ -39,16 +38,9 @@ SECURITY_HEADERS = {
 
 
 class DashboardAssets(StaticFiles):
-    """StaticFiles for the dashboard's assets, behind the trusted_networks allowlist."""
+    """StaticFiles for the dashboard's assets, with the page's security headers."""
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        access: auth.Access | None = getattr(scope["app"].state, "access", None)
-        client = scope.get("client")
-        if access is not None and not access.address_allowed(client[0] if client else None):
-            response = PlainTextResponse("not allowed from this address", status_code=403)
-            await response(scope, receive, send)
-            return
-
         async def send_with_headers(message: dict) -> None:
             if message["type"] == "http.response.start":
                 headers = list(message.get("headers", []))
@@ -72,7 +64,6 @@ def mount_dashboard(app: FastAPI, directory: Path = HMI_DIR) -> None:
         name=ROUTE_NAME,
         include_in_schema=False,
         response_class=FileResponse,
-        dependencies=[Depends(auth.authorize)],
     )
     async def dashboard_page() -> FileResponse:
         """The operator dashboard (it asks for a token itself)."""

@@ -1,6 +1,7 @@
 """The access policy: which role each route needs, declared once.
 
-`None` means open to anyone (the health check and the API description).
+`None` means open to anyone: the health check and the dashboard's page (its
+assets under OPEN_PREFIXES); nothing else.
 A route missing from the table needs ADMIN: new routes are closed until
 someone decides otherwise. The software stop is open to every authenticated
 principal, whatever its role: nobody must be unable to stop the cell.
@@ -8,6 +9,7 @@ principal, whatever its role: nobody must be unable to stop the cell.
 
 from __future__ import annotations
 
+import re
 from types import MappingProxyType
 from typing import Final
 
@@ -20,11 +22,8 @@ POLICY: Final = MappingProxyType(
         # open
         ("GET", "/health"): None,
         ("GET", "/"): None,  # the operator dashboard's page (it asks for a token itself)
-        ("GET", "/openapi.json"): None,
-        ("GET", "/docs"): None,
-        ("GET", "/docs/oauth2-redirect"): None,
-        ("GET", "/redoc"): None,
         # viewer: look, and stop
+        ("GET", "/openapi.json"): VIEW,  # also in the repository, for integrators
         ("GET", "/state"): VIEW,
         ("GET", "/operations/{name}/allowed"): VIEW,
         ("GET", "/history"): VIEW,
@@ -69,7 +68,48 @@ POLICY: Final = MappingProxyType(
 WEBSOCKET_ROLE: Final = VIEW
 
 
+# The dashboard's static assets (its page, GET /, is in the table): plain files, open.
+OPEN_PREFIXES: Final = ("/hmi/",)
+
+
 def required_role(method: str, path: str) -> Role | None:
-    """The role a route needs (None: open); unknown routes need ADMIN."""
+    """The role a route needs (None: open), by its path template; unknown routes need ADMIN."""
     method = "GET" if method == "HEAD" else method
     return POLICY.get((method, path), Role.ADMIN)
+
+
+def _template_pattern(template: str) -> re.Pattern[str]:
+    """A path template's regex: each `{name}` one path segment, as the router matches it."""
+    parts = re.split(r"(\{[^}]+\})", template)
+    return re.compile(
+        "".join("[^/]+" if part.startswith("{") else re.escape(part) for part in parts)
+    )
+
+
+_UNMATCHED: Final = object()
+_EXACT: Final = {key: role for key, role in POLICY.items() if "{" not in key[1]}
+_TEMPLATED: Final = tuple(
+    (method, _template_pattern(template), role)
+    for (method, template), role in POLICY.items()
+    if "{" in template
+)
+
+
+def role_for_request(method: str, path: str) -> Role | None:
+    """The role a request needs, from its concrete path (None: open).
+
+    The gate checks before routing, so it matches the path itself: exact paths
+    by lookup, templated ones by their regex. A path no entry matches needs
+    ADMIN (the app then answers 404 or 405): new routes stay closed until the
+    table names them.
+    """
+    method = "GET" if method == "HEAD" else method
+    role = _EXACT.get((method, path), _UNMATCHED)
+    if role is not _UNMATCHED:
+        return role  # type: ignore[return-value]
+    for entry_method, pattern, templated_role in _TEMPLATED:
+        if entry_method == method and pattern.fullmatch(path):
+            return templated_role
+    if method == "GET" and path.startswith(OPEN_PREFIXES):
+        return None
+    return Role.ADMIN
