@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Iterator
+from typing import Any
 
 from fastapi import APIRouter, FastAPI, Request, Response
 from prometheus_client import (
@@ -94,6 +95,7 @@ class Metrics:
             buckets=LATENCY_BUCKETS,
             registry=self.registry,
         )
+        self._request_children: dict[tuple[str, str, int], Any] = {}
         self.operation_seconds = Histogram(
             "glue_cell_operation_duration_seconds",
             "operation run time",
@@ -139,8 +141,14 @@ class Metrics:
     def observe_response(self, scope: Scope, status: int, seconds: float) -> None:
         """Request duration by method, route template and status (an observer)."""
         path = getattr(scope.get("route"), "path", "unmatched")
+        key = (scope["method"], path, status)  # bounded: route templates, not raw paths
         with contextlib.suppress(Exception):
-            self.request_seconds.labels(scope["method"], path, str(status)).observe(seconds)
+            child = self._request_children.get(key)
+            if child is None:  # labels() resolves the child by name: once per key, not per call
+                child = self._request_children[key] = self.request_seconds.labels(
+                    key[0], path, str(status)
+                )
+            child.observe(seconds)
 
 
 @router.get("/metrics", response_class=Response, responses={200: {"content": {"text/plain": {}}}})

@@ -8,6 +8,7 @@ worker acts on a decision.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 from server.core.transitions import (
@@ -112,10 +113,15 @@ def check(state: State, event: Event, facts: Facts | None = None) -> tuple[bool,
 
 def available_commands(state: State, facts: Facts | None = None) -> list[str]:
     """The operator commands accepted in `state` right now (guards included)."""
+    return list(_available(state, facts or Facts()))
+
+
+@functools.lru_cache(maxsize=256)
+def _available(state: State, facts: Facts) -> tuple[str, ...]:
+    # Every GET /state and WebSocket snapshot asks; the answer depends on nothing else.
     rows = TRANSITIONS[state]
-    facts = facts or Facts()
-    return [
+    return tuple(
         name
         for name, event in COMMANDS.items()
         if (row := rows.get(event)) is not None and _guard_failure(row.guard, facts) is None
-    ]
+    )
