@@ -67,6 +67,16 @@ class Rig:
         return await self.api.post("/reset")
 
 
+async def run(rig: Rig, command: str, body: dict | None = None) -> dict:
+    """Send a command, wait for the operation to end; the final state snapshot."""
+    response = await rig.api.post(f"/{command}", json=body)
+    assert response.status_code == 202, response.text
+    async with asyncio.timeout(60):
+        while (snapshot := await rig.state())["state"] not in ("IDLE", "ERROR"):
+            await asyncio.sleep(0.02)
+    return snapshot
+
+
 async def assert_safe(rig: Rig, component: str) -> dict:
     """ERROR, the fault named, the valve closed and the robot still."""
     snapshot = await rig.wait_state("ERROR", timeout=TIMEOUT * 3 + 5)

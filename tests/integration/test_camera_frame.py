@@ -17,13 +17,8 @@ from server.vision.outlines import outline_to_mm
 from tests.rig import SPRAY_DEMO, Rig, open_rig
 
 
-async def run(rig: Rig, command: str, body: dict | None = None) -> dict:
-    """Send a command, wait for the operation to end; the final state snapshot."""
-    response = await rig.api.post(f"/{command}", json=body)
-    assert response.status_code == 202, response.text
-    async with asyncio.timeout(60):
-        while (snapshot := await rig.state())["state"] not in ("IDLE", "ERROR"):
-            await asyncio.sleep(0.02)
+async def run_to_idle(rig: Rig, command: str, body: dict | None = None) -> dict:
+    snapshot = await run_to_idle(rig, command, body)
     assert snapshot["state"] == "IDLE", snapshot["error"]
     return snapshot
 
@@ -59,7 +54,7 @@ async def test_the_latest_frame_follows_the_operations_that_capture(tmp_path) ->
 
         # A run with contour matching captures the table: that frame, with its run.
         before = time.time()
-        await run(rig, "start")
+        await run_to_idle(rig, "start")
         trajectory = (await rig.api.get("/trajectory")).json()
         response = await rig.api.get("/camera/frame")
         image = decode(response)
@@ -78,13 +73,13 @@ async def test_the_latest_frame_follows_the_operations_that_capture(tmp_path) ->
         assert np.linalg.norm(outline.mean(axis=0) - placed) < 2.0
 
         # A run without contour matching takes no picture: the frame stays.
-        await run(rig, "start", SPRAY_DEMO)
+        await run_to_idle(rig, "start", SPRAY_DEMO)
         same = await rig.api.get("/camera/frame")
         assert same.headers["x-frame-run-id"] == trajectory["run_id"]
         assert same.content == response.content  # encoded once, served again
 
         # Workpiece creation captures a new one, which replaces it.
-        await run(rig, "create-workpiece", {"name": "again", "workpiece_id": "again"})
+        await run_to_idle(rig, "create-workpiece", {"name": "again", "workpiece_id": "again"})
         created = await rig.api.get("/camera/frame")
         assert decode(created).shape[:2] == size
         assert created.headers["x-frame-source"] == "create_workpiece"

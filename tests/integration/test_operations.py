@@ -5,7 +5,6 @@ one, and a part outside the workspace refused before any motion."""
 
 from __future__ import annotations
 
-import asyncio
 import math
 from collections.abc import AsyncIterator
 
@@ -14,23 +13,13 @@ import numpy as np
 import pytest
 
 from server.vision.homography import pixels_to_robot
-from tests.rig import Rig, open_rig
+from tests.rig import Rig, open_rig, run
 
 
 @pytest.fixture
 async def rig(tmp_path) -> AsyncIterator[Rig]:
     async with open_rig(tmp_path) as running:
         yield running
-
-
-async def run(rig: Rig, command: str, body: dict | None = None) -> dict:
-    """Send a command, wait for the operation to end; the final state snapshot."""
-    response = await rig.api.post(f"/{command}", json=body)
-    assert response.status_code == 202, response.text
-    async with asyncio.timeout(60):
-        while (snapshot := await rig.state())["state"] not in ("IDLE", "ERROR"):
-            await asyncio.sleep(0.02)
-    return snapshot
 
 
 async def test_robot_calibration_maps_every_marker_within_half_a_millimetre(rig: Rig) -> None:
