@@ -14,11 +14,11 @@ import numpy as np
 
 from server.core.operations.workpieces import _outlines_px
 from server.vision.outlines import outline_to_mm
-from tests.rig import SPRAY_DEMO, Rig, open_rig
+from tests.rig import SPRAY_DEMO, Rig, open_rig, run
 
 
 async def run_to_idle(rig: Rig, command: str, body: dict | None = None) -> dict:
-    snapshot = await run_to_idle(rig, command, body)
+    snapshot = await run(rig, command, body)
     assert snapshot["state"] == "IDLE", snapshot["error"]
     return snapshot
 
