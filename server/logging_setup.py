@@ -1,6 +1,9 @@
 """Logging as the specification writes it (section 8.3), to the console and a rotating file.
 
-    2025-08-21 14:30:25.123 [ERROR] server.core.worker: fault ... (event 3f2a1c-000042)
+    2025-08-21 14:30:25.123 [ERROR] server.core.worker: fault NO_ANSWER from robot in
+        EXECUTING_TRAJECTORY state (3f2a1c-000042)          [one line in the file]
+      Error: the robot controller at 10.0.0.5:30003 stopped answering (...)
+      Context: {'operation': 'trajectory', 'run_id': '3f2a1c-000040', ...}
 
 Every line logged while the worker handles an event, or by the operation that
 event started, carries the event id, so a technician can go from a log line to
@@ -56,6 +59,25 @@ class EventIdFilter(logging.Filter):
         return True
 
 
+class SpecFormatter(logging.Formatter):
+    """One timestamped line, then the specification's `Error:` and `Context:` lines.
+
+    A record logged with `extra={"error": ..., "context": {...}}` (the worker's
+    fault records) gets them indented below it, so the first line stays the
+    one to grep for and every following line is visibly part of it.
+    """
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        error = getattr(record, "error", None)
+        context = getattr(record, "context", None)
+        if error is not None:
+            text += f"\n  Error: {error}"
+        if context:
+            text += f"\n  Context: {context!r}"
+        return text
+
+
 class RetainingFileHandler(logging.handlers.RotatingFileHandler):
     """Size-based rotation that also deletes rotated files older than the retention."""
 
@@ -80,7 +102,7 @@ class RetainingFileHandler(logging.handlers.RotatingFileHandler):
 def configure(settings: Settings) -> Path:
     """Console and file logging at the configured level; the log file's path."""
     path = settings.data_file(settings.log_file_path, "logs/glue_cell.log")
-    formatter = logging.Formatter(FORMAT, DATE_FORMAT)
+    formatter = SpecFormatter(FORMAT, DATE_FORMAT)
     event_filter = EventIdFilter()
     console = logging.StreamHandler()
     file = RetainingFileHandler(

@@ -533,8 +533,27 @@ class Worker:
                     state.value,
                 )
             )
-        log.error("fault %s from %s (%s): %s", code, component, envelope.event_id, message)
+        log.error(
+            "fault %s from %s in %s state (%s)",
+            code,
+            component,
+            self.ctx.state.value,
+            envelope.event_id,
+            extra={"error": message, "context": self._fault_context()},
+        )
         self.bus.publish("error", {**fault.as_dict(), "state": state.value})
+
+    def _fault_context(self) -> dict[str, Any]:
+        """What was going on when a fault came: the operation, its run and its parameters."""
+        running = self.ctx.operation
+        if running is None:
+            return {"operation": None}
+        context: dict[str, Any] = {"operation": running.name, "run_id": running.run_id}
+        context.update(running.params)
+        progress = running.progress
+        if "waypoint" in progress:
+            context["waypoint"] = f"{progress['waypoint']} of {progress.get('of', '?')}"
+        return context
 
     def _enter_idle(self, envelope: Envelope) -> None:
         ctx = self.ctx

@@ -217,3 +217,7 @@ def test_the_server_log_is_readable(cell) -> None:
         entry for entry in lines if "[ERROR] server.core.worker: fault EMERGENCY_STOP" in entry
     ]
     assert faults and all(re.search(r"\(\w{6}-\d{6}\)", entry) for entry in faults)
+    # The specification's Error: and Context: lines, indented under the fault's line.
+    first = lines.index(faults[0])
+    assert lines[first + 1].startswith("  Error: emergency stop by ")
+    assert lines[first + 2].startswith("  Context: {'operation': ")
