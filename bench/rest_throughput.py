@@ -19,6 +19,9 @@ How:
   access log line of each request goes to the console and the log file in
   both) on the same host. The two run one after the other, one process each;
   the bare server gets the same Authorization header, which it ignores.
+- Turns: both servers run side by side and are loaded one at a time, cell then
+  bare, `--rounds` times; each row is that target's median round, and the JSON
+  keeps every round.
 - The load: this process, apart from the server, runs `--concurrency`
   keep-alive HTTP/1.1 connections over raw asyncio streams (uvloop when
   installed), each sending its next request when the previous answer is in.
@@ -228,22 +231,50 @@ def bare_command(body: dict[str, Any], data_dir: Path) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """The cell, then the bare app with the body the cell answered."""
+    """The cell and the bare app (with the body the cell answered), measured in turns.
+
+    Both servers are up for the whole comparison and are loaded one at a time,
+    cell then bare, `--rounds` times; each target's row is its median round.
+    Why turns: on a small shared machine the rate drifts by more than the gap
+    being measured from one minute to the next, so one run of each, one after
+    the other, compared the machine's moods as much as the two servers.
+    """
     with tempfile.TemporaryDirectory(prefix="bench-rest-") as tmp:
         cell_dir, bare_dir = Path(tmp, "cell"), Path(tmp, "bare")
         cell_dir.mkdir()
         bare_dir.mkdir()
-        port = free_port()
-        with spawned(CELL_COMMAND, port, cell_dir, "/health") as process:
+        cell_port, bare_port = free_port(), free_port()
+        with spawned(CELL_COMMAND, cell_port, cell_dir, "/health") as cell_process:
             headers = admin_headers(cell_dir)
-            first = settled_state(port, headers)
-            cell = measure("cell GET /state", port, process.pid, headers, args)
-        port = free_port()
-        with spawned(bare_command(first.json(), bare_dir), port, bare_dir, "/state") as process:
-            bare_size = len(httpx.get(f"http://127.0.0.1:{port}/state", headers=headers).content)
-            bare = measure("bare FastAPI GET /state", port, process.pid, headers, args)
-    sizes = {"state_body_bytes": len(first.content), "bare_body_bytes": bare_size}
-    return [cell, bare], sizes
+            first = settled_state(cell_port, headers)
+            bare_command_line = bare_command(first.json(), bare_dir)
+            with spawned(bare_command_line, bare_port, bare_dir, "/state") as bare_process:
+                bare_url = f"http://127.0.0.1:{bare_port}/state"
+                bare_size = len(httpx.get(bare_url, headers=headers).content)
+                cells, bares = [], []
+                for _ in range(args.rounds):
+                    cells.append(
+                        measure("cell GET /state", cell_port, cell_process.pid, headers, args)
+                    )
+                    bares.append(
+                        measure(
+                            "bare FastAPI GET /state", bare_port, bare_process.pid, headers, args
+                        )
+                    )
+    sizes = {
+        "state_body_bytes": len(first.content),
+        "bare_body_bytes": bare_size,
+        "rounds": [
+            {"cell_req_per_s": c["req_per_s"], "bare_req_per_s": b["req_per_s"]}
+            for c, b in zip(cells, bares, strict=True)
+        ],
+    }
+    return [_median_round(cells), _median_round(bares)], sizes
+
+
+def _median_round(rounds: list[dict[str, Any]]) -> dict[str, Any]:
+    ordered = sorted(rounds, key=lambda row: row["req_per_s"])
+    return {**ordered[len(ordered) // 2], "rounds": len(rounds)}
 
 
 def profile_cell(args: argparse.Namespace, top: int = 15) -> dict[str, Any]:
@@ -292,6 +323,9 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--concurrency", type=int, default=32, help="keep-alive connections")
     parser.add_argument("--duration", type=float, default=5.0, help="measured seconds per target")
     parser.add_argument("--warmup", type=float, default=1.0, help="unmeasured seconds first")
+    parser.add_argument(
+        "--rounds", type=int, default=5, help="turns of cell then bare; rows are the medians"
+    )
     parser.add_argument(
         "--profile",
         choices=("auto", "always", "never"),

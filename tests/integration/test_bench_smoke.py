@@ -72,7 +72,7 @@ def test_ws_fanout_every_client_gets_every_transition(results_in_tmp: Path) -> N
 
 def test_rest_throughput_compares_state_with_a_bare_endpoint(results_in_tmp: Path) -> None:
     argv = ["--concurrency", "4", "--duration", "0.5", "--warmup", "0.2", "--profile", "always"]
-    rows = rest_throughput.main(argv)
+    rows = rest_throughput.main([*argv, "--rounds", "3"])
     assert [row["target"] for row in rows] == ["cell GET /state", "bare FastAPI GET /state"]
     for row in rows:
         assert_ordered_latencies(row)
@@ -85,6 +85,11 @@ def test_rest_throughput_compares_state_with_a_bare_endpoint(results_in_tmp: Pat
     document = json.loads((results_in_tmp / "rest_throughput.json").read_text(encoding="utf-8"))
     assert document["rows"] == rows
     assert document["state_body_bytes"] == document["bare_body_bytes"] > 100
+    rounds = document["rounds"]
+    assert len(rounds) == 3 and all(row["rounds"] == 3 for row in rows)
+    # each row is its target's median round
+    assert rows[0]["req_per_s"] == sorted(r["cell_req_per_s"] for r in rounds)[1]
+    assert rows[1]["req_per_s"] == sorted(r["bare_req_per_s"] for r in rounds)[1]
     profile = document["cell_profile"]
     assert profile["requests_profiled"] > 0
     assert "server/api/queries.py" in " ".join(profile["cell_code_cumulative_us_per_request"])
