@@ -69,14 +69,8 @@ def _access(connection: HTTPConnection) -> Access:
     return connection.app.state.access
 
 
-def _bearer(connection: HTTPConnection) -> str | None:
-    header = connection.headers.get("authorization", "")
-    scheme, _, token = header.partition(" ")
-    return token.strip() if scheme.lower() == "bearer" and token.strip() else None
-
-
 def _bearer_in(scope: Scope) -> str | None:
-    """The bearer token of a request's Authorization header, read from the raw scope."""
+    """The bearer token of an HTTP or WebSocket Authorization header, from the raw scope."""
     for name, value in scope.get("headers") or ():
         if name == b"authorization":
             scheme, _, token = value.decode("latin-1").partition(" ")
@@ -215,7 +209,7 @@ def authenticate_websocket(websocket: WebSocket) -> Principal | None:
     if not access.address_allowed(websocket.client.host if websocket.client else None):
         return None
     ticket = websocket.query_params.get("ticket")
-    token = _bearer(websocket)
+    token = _bearer_in(websocket.scope)
     principal = (
         access.tickets.redeem(ticket)
         if ticket

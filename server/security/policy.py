@@ -9,9 +9,10 @@ principal, whatever its role: nobody must be unable to stop the cell.
 
 from __future__ import annotations
 
-import re
 from types import MappingProxyType
 from typing import Final
+
+from starlette.routing import compile_path
 
 from server.security.tokens import Role
 
@@ -78,18 +79,10 @@ def required_role(method: str, path: str) -> Role | None:
     return POLICY.get((method, path), Role.ADMIN)
 
 
-def _template_pattern(template: str) -> re.Pattern[str]:
-    """A path template's regex: each `{name}` one path segment, as the router matches it."""
-    parts = re.split(r"(\{[^}]+\})", template)
-    return re.compile(
-        "".join("[^/]+" if part.startswith("{") else re.escape(part) for part in parts)
-    )
-
-
-_UNMATCHED: Final = object()
+# Templated paths matched by the router's own compiler, so gate and router agree.
 _EXACT: Final = {key: role for key, role in POLICY.items() if "{" not in key[1]}
 _TEMPLATED: Final = tuple(
-    (method, _template_pattern(template), role)
+    (method, compile_path(template)[0], role)
     for (method, template), role in POLICY.items()
     if "{" in template
 )
@@ -104,11 +97,10 @@ def role_for_request(method: str, path: str) -> Role | None:
     table names them.
     """
     method = "GET" if method == "HEAD" else method
-    role = _EXACT.get((method, path), _UNMATCHED)
-    if role is not _UNMATCHED:
-        return role  # type: ignore[return-value]
+    if (method, path) in _EXACT:
+        return _EXACT[(method, path)]
     for entry_method, pattern, templated_role in _TEMPLATED:
-        if entry_method == method and pattern.fullmatch(path):
+        if entry_method == method and pattern.match(path):
             return templated_role
     if method == "GET" and path.startswith(OPEN_PREFIXES):
         return None
