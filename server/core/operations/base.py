@@ -24,6 +24,22 @@ from server.storage import CellStores
 ProgressReporter = Callable[[dict[str, Any]], None]
 
 
+@dataclass(frozen=True, slots=True)
+class OperationWarning:
+    """A condition the technician should hear of although the operation succeeded."""
+
+    code: str
+    message: str
+
+
+@dataclass(frozen=True, slots=True)
+class OperationResult:
+    """What a successful operation hands back: its JSON-able result and its warnings."""
+
+    data: dict[str, Any] = field(default_factory=dict)
+    warnings: tuple[OperationWarning, ...] = ()
+
+
 class PauseGate:
     """Lets a running operation hold at a safe point while the cell is PAUSED.
 
