@@ -159,6 +159,19 @@ class NullDevice:
         return None
 
 
+class NullJournal:
+    """Takes every record and writes none: the worker's own cost, without the disk's.
+
+    Why: the worker benchmark measures deciding and acting; the journal's cost
+    is measured apart, level by level, in bench/journal.py.
+    """
+
+    backlog = 0
+
+    def append(self, records: list[Any], *, durable: bool = True) -> None:
+        return None
+
+
 async def instant(ctx: Any) -> dict[str, Any]:
     await asyncio.sleep(3600)  # never completes on its own; the next event ends it
     return {}
@@ -173,7 +186,8 @@ def new_worker(directory: Path, queue_size: int) -> Worker:
     )
     bus = Bus()
     bus.subscribe(maxsize=queue_size * 3)
-    return Worker(settings, devices, operations, bus, CellStores.open(directory))
+    stores = CellStores.open(directory)
+    return Worker(settings, devices, operations, bus, stores, journal=NullJournal())  # type: ignore[arg-type]
 
 
 async def bench_worker(events: list[Event]) -> float:

@@ -57,6 +57,7 @@ from server.app import create_app
 from server.cell import Cell
 from server.config import Settings
 from server.core.devices import HaltReport
+from server.core.events import StartPayload
 from server.core.transitions import Event, State
 from server.core.worker import Worker
 from server.errors import EventQueueFull
@@ -64,7 +65,7 @@ from server.runtime import tune_garbage_collection
 from tests.serving import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
-SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
+SPRAY_DEMO = StartPayload(contour_matching=False, workpiece_id="demo")
 CONDITIONS = (
     "idle",
     "trajectory running",
@@ -148,7 +149,7 @@ async def to_idle(worker: Worker) -> None:
 
 
 async def start_spraying(worker: Worker) -> None:
-    outcome = await worker.request(Event.START_REQUESTED, source="bench", data=SPRAY_DEMO)
+    outcome = await worker.request(Event.START_REQUESTED, source="bench", payload=SPRAY_DEMO)
     assert outcome.accepted, outcome.message
     # Past the approach move: on the spray path, the valve open.
     while (running := worker.ctx.operation) is None or running.progress.get("waypoint", 0) < 2:

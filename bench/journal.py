@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench.engine_throughput import NullDevice
+from bench.engine_throughput import NullDevice, NullJournal
 from bench.report import emit, percentiles_ms
 from server.config import Settings
 from server.core.bus import Bus
@@ -55,7 +55,7 @@ async def throughput(level: str, count: int, directory: Path) -> float:
 
 
 async def command_latency(level: str | None, trials: int, directory: Path) -> list[float]:
-    journal = None
+    journal: Journal | NullJournal = NullJournal()
     if level is not None:
         journal = Journal(directory / f"latency-{level}.db", synchronous=level)
         journal.open()
@@ -67,7 +67,7 @@ async def command_latency(level: str | None, trials: int, directory: Path) -> li
         default_operations(),
         Bus(),
         CellStores.open(directory / "stores"),
-        journal=journal,
+        journal=journal,  # type: ignore[arg-type]
     )
     await worker.start()
     while worker.ctx.state is not State.IDLE:
@@ -78,7 +78,7 @@ async def command_latency(level: str | None, trials: int, directory: Path) -> li
         await worker.request(Event.RESUME_REQUESTED, source="bench")
         samples.append(time.perf_counter() - started)
     await worker.stop()
-    if journal is not None:
+    if isinstance(journal, Journal):
         journal.stop()
     return samples
 

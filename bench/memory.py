@@ -39,6 +39,7 @@ from server.cell import Cell
 from server.config import Settings
 from server.core.bus import SubscriptionClosed
 from server.core.devices import CellDevices
+from server.core.events import StartPayload
 from server.core.transitions import Event, State
 from server.core.worker import Worker
 from server.runtime import tune_garbage_collection
@@ -65,7 +66,7 @@ async def drive(worker: Worker, events: list[Event]) -> None:
 async def run_operations(worker: Worker, count: int) -> None:
     for _ in range(count):
         outcome = await worker.request(
-            Event.START_REQUESTED, source="bench", data={"workpiece_id": "demo"}
+            Event.START_REQUESTED, source="bench", payload=StartPayload(workpiece_id="demo")
         )
         assert outcome.accepted, outcome.message
         while worker.ctx.state is not State.IDLE:

@@ -153,8 +153,8 @@ def _document_validation_errors(app: FastAPI) -> None:
 
 def _install_error_handlers(app: FastAPI) -> None:
     def current_state(request: Request) -> str:
-        worker = request.app.state.cell.worker
-        return worker.ctx.state.value if worker else "INITIALIZING"
+        cell = request.app.state.cell
+        return cell.view.state.value if cell.started else "INITIALIZING"
 
     async def try_again_later(request: Request, exc: Exception) -> JSONResponse:
         """503 for a full event queue or a worker shutting down: nothing was changed."""

@@ -16,6 +16,7 @@ from typing import Any
 from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
+from server.core.events import Outcome, Payload, StopPayload
 from server.core.journal import Journal
 from server.core.operations import Operation, default_operations
 from server.core.snapshot import SnapshotFile
@@ -23,11 +24,12 @@ from server.core.transitions import (
     COMMANDS,
     OPERATION_OF_STATE,
     OPERATIONAL_STATES,
+    Command,
     Event,
     State,
-    normalize_command,
 )
-from server.core.worker import Outcome, Worker
+from server.core.view import CellView
+from server.core.worker import Worker
 from server.storage import CellStores
 
 log = logging.getLogger(__name__)
@@ -63,6 +65,16 @@ class Cell:
     def devices(self) -> CellDevices:
         assert self.worker is not None, "the cell is not started"
         return self.worker.devices
+
+    @property
+    def view(self) -> CellView:
+        """The one read interface to the running cell (see server/core/view.py)."""
+        assert self.worker is not None, "the cell is not started"
+        return self.worker.view
+
+    @property
+    def started(self) -> bool:
+        return self.worker is not None
 
     async def start(self) -> None:
         devices = self._devices
@@ -130,17 +142,15 @@ class Cell:
             self._release = None
 
     async def command(
-        self, name: str, *, source: str, data: dict[str, Any] | None = None
+        self, command: Command, *, source: str, payload: Payload | None = None
     ) -> Outcome:
-        """Run an operator command by name (start, pause, estop, ...)."""
+        """Run an operator command (start, pause, estop, ...) with its typed payload."""
         assert self.worker is not None, "the cell is not started"
-        canonical = normalize_command(name)
-        if canonical is None:
-            raise KeyError(name)
-        event = COMMANDS[canonical]
+        event = COMMANDS[command]
         if event is Event.EMERGENCY_STOP:
-            return await self.worker.emergency_stop(source=source, data=data)
-        return await self.worker.request(event, source=source, data=data)
+            stop = payload if isinstance(payload, StopPayload) else StopPayload()
+            return await self.worker.emergency_stop(source=source, payload=stop)
+        return await self.worker.request(event, source=source, payload=payload)
 
 
 def find_interruption(journal: Journal, previous: dict[str, Any] | None) -> str | None:

@@ -29,9 +29,10 @@ import numpy as np
 from server.cell import Cell
 from server.config import Settings
 from server.core.devices import CellDevices
-from server.core.engine import check
-from server.core.operations import Operation, OperationContext
-from server.core.transitions import COMMANDS, State, normalize_command
+from server.core.events import Payload, StartPayload, StopPayload
+from server.core.operations import Operation, OperationContext, OperationResult
+from server.core.supervision import as_result
+from server.core.transitions import Command, State, normalize_command
 
 T = TypeVar("T")
 
@@ -46,9 +47,8 @@ def blocking_operation(function: Callable[[], Any]) -> Operation:
     it must not command the devices itself after they were halted.
     """
 
-    async def operation(ctx: OperationContext) -> dict[str, Any]:
-        value = await asyncio.to_thread(function)
-        return value if isinstance(value, dict) else {"value": value}
+    async def operation(ctx: OperationContext) -> OperationResult:
+        return as_result(await asyncio.to_thread(function))
 
     return operation
 
@@ -100,12 +100,11 @@ class EmbeddedCell:
         self, contourMatching: bool = True, workpiece_id: str | None = None
     ) -> tuple[bool, str]:
         """Begin trajectory execution; returns at once with (accepted, message)."""
-        data = {"contour_matching": contourMatching, "workpiece_id": workpiece_id}
-        return self._command("start", data)
+        return self._command(Command.START, StartPayload(contourMatching, workpiece_id))
 
     def calibrateRobot(self, timeout: float = 120.0) -> tuple[bool, str, np.ndarray | None]:
         """Run robot calibration to its end; (success, message, annotated image or None)."""
-        ok, message, _ = self._run_to_end("calibrate-robot", State.CALIBRATING_ROBOT, timeout)
+        ok, message, _ = self._run_to_end(Command.CALIBRATE_ROBOT, State.CALIBRATING_ROBOT, timeout)
         stores = self.cell.stores
         if not ok or stores is None or not stores.calibration.robot_image_path.exists():
             return ok, message, None
@@ -113,55 +112,55 @@ class EmbeddedCell:
 
     def calibrateCamera(self, timeout: float = 120.0) -> tuple[bool, str]:
         """Run camera calibration to its end; (success, message)."""
-        ok, message, _ = self._run_to_end("calibrate-camera", State.CALIBRATING_CAMERA, timeout)
+        ok, message, _ = self._run_to_end(
+            Command.CALIBRATE_CAMERA, State.CALIBRATING_CAMERA, timeout
+        )
         return ok, message
 
     def createWorkpiece(self, timeout: float = 120.0) -> tuple[bool, Any]:
         """Create a workpiece from the camera; (success, result data or message)."""
         ok, message, result = self._run_to_end(
-            "create-workpiece", State.CREATING_WORKPIECE, timeout
+            Command.CREATE_WORKPIECE, State.CREATING_WORKPIECE, timeout
         )
         return ok, result if ok else message
 
     def emergency_stop(self) -> tuple[bool, str]:
         """Stop at once: valve closed, robot stopped, cell in ERROR."""
-        return self._command("estop", {"reason": "embedded emergency_stop()"})
+        return self._command(Command.ESTOP, StopPayload("embedded emergency_stop()"))
 
     def reset(self) -> tuple[bool, str]:
         """Leave ERROR for IDLE once every fault has cleared."""
-        return self._command("reset")
+        return self._command(Command.RESET)
 
     def pause(self) -> tuple[bool, str]:
-        return self._command("pause")
+        return self._command(Command.PAUSE)
 
     def resume(self) -> tuple[bool, str]:
-        return self._command("resume")
+        return self._command(Command.RESUME)
 
     def cancel(self) -> tuple[bool, str]:
-        return self._command("cancel")
+        return self._command(Command.CANCEL)
 
     def get_current_state(self) -> State:
-        worker = self.cell.worker
-        return worker.ctx.state if worker else State.INITIALIZING
+        return self.cell.view.state if self.cell.started else State.INITIALIZING
 
     def can_execute_operation(self, operation: str) -> bool:
         """Whether the named command would be accepted now (unknown names: False)."""
         canonical = normalize_command(operation)
-        worker = self.cell.worker
-        if canonical is None or worker is None:
+        if canonical is None or not self.cell.started:
             return False
-        return check(worker.ctx.state, COMMANDS[canonical], worker.facts())[0]
+        return self.cell.view.allowed(canonical)[0]
 
     # --- plumbing ------------------------------------------------------------
 
     def _call(self, coroutine: Coroutine[Any, Any, T], timeout: float = 60.0) -> T:
         return asyncio.run_coroutine_threadsafe(coroutine, self._loop).result(timeout)
 
-    def _command(self, name: str, data: dict[str, Any] | None = None) -> tuple[bool, str]:
-        outcome = self._call(self.cell.command(name, source="embedded", data=data))
+    def _command(self, command: Command, payload: Payload | None = None) -> tuple[bool, str]:
+        outcome = self._call(self.cell.command(command, source="embedded", payload=payload))
         return outcome.accepted, outcome.message
 
-    def _run_to_end(self, name: str, state: State, timeout: float) -> tuple[bool, str, Any]:
+    def _run_to_end(self, name: Command, state: State, timeout: float) -> tuple[bool, str, Any]:
         accepted, message = self._command(name)
         if not accepted:
             return False, message, None
@@ -170,8 +169,7 @@ class EmbeddedCell:
             if time.monotonic() > deadline:
                 return False, f"{name} still running after {timeout:g} s", None
             time.sleep(0.01)
-        worker = self.cell.worker
-        assert worker is not None
-        if worker.ctx.state is State.ERROR:
-            return False, worker.ctx.error_message or f"{name} failed", None
-        return True, f"{name} completed", worker.ctx.operation_result
+        view = self.cell.view
+        if view.state is State.ERROR:
+            return False, view.error_message or f"{name} failed", None
+        return True, f"{name} completed", view.operation_result

@@ -10,16 +10,19 @@ import pytest
 from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
+from server.core.events import StartPayload
+from server.core.journal import Journal
 from server.core.operations import Operation, default_operations
 from server.core.transitions import State
 from server.core.worker import Worker
 from server.storage import CellStores
 from server.storage.workpieces import WorkpieceIn
-from tests.fakes import FakeCamera, FakeGlue, FakeRobot
+from tests.fakes import FakeCamera, FakeClock, FakeGlue, FakeRobot
 
 # A 120 × 80 mm rectangle in the library as "demo"; start it without the camera.
 DEMO_OUTLINE_MM = [(340.0, -40.0), (460.0, -40.0), (460.0, 40.0), (340.0, 40.0)]
-START = {"contour_matching": False, "workpiece_id": "demo"}
+START = {"contour_matching": False, "workpiece_id": "demo"}  # the body of POST /start
+START_PAYLOAD = StartPayload(contour_matching=False, workpiece_id="demo")  # the event it posts
 
 
 def demo_stores(path) -> CellStores:
@@ -34,6 +37,14 @@ async def wait_for_state(worker: Worker, state: State, timeout: float = 10.0) ->
     async with asyncio.timeout(timeout):
         while worker.ctx.state is not state:
             await asyncio.sleep(0.002)
+
+
+async def open_journal(path) -> Journal:
+    """A real journal in a temporary file, writing on the running loop (the worker needs one)."""
+    journal = Journal(path)
+    journal.open()
+    journal.start(asyncio.get_running_loop())
+    return journal
 
 
 @pytest.fixture
@@ -55,6 +66,7 @@ WorkerFactory = Callable[..., Awaitable[Worker]]
 async def make_worker(fast_settings: Settings, tmp_path) -> AsyncIterator[WorkerFactory]:
     """Build a started worker on fakes; waits for IDLE unless told not to."""
     workers: list[Worker] = []
+    journals: list[Journal] = []
 
     async def factory(
         settings: Settings | None = None,
@@ -63,13 +75,22 @@ async def make_worker(fast_settings: Settings, tmp_path) -> AsyncIterator[Worker
         robot: FakeRobot | None = None,
         glue: FakeGlue | None = None,
         camera: FakeCamera | None = None,
+        clock: FakeClock | None = None,
         wait_idle: bool = True,
     ) -> Worker:
         ops = default_operations()
         ops.update(operations or {})
         devices = CellDevices(robot or FakeRobot(), glue or FakeGlue(), camera or FakeCamera())
+        journal = await open_journal(tmp_path / f"journal-{len(workers)}.db")
+        journals.append(journal)
         worker = Worker(
-            settings or fast_settings, devices, ops, Bus(), demo_stores(tmp_path / "worker")
+            settings or fast_settings,
+            devices,
+            ops,
+            Bus(),
+            demo_stores(tmp_path / "worker"),
+            journal=journal,
+            **({"clock": clock} if clock is not None else {}),
         )
         await worker.start()
         workers.append(worker)
@@ -80,3 +101,5 @@ async def make_worker(fast_settings: Settings, tmp_path) -> AsyncIterator[Worker
     yield factory
     for worker in workers:
         await worker.stop()
+    for journal in journals:
+        journal.stop()

@@ -170,3 +170,44 @@ class FakeCamera:
         if self.broken:
             raise DeviceDisconnected("camera", "no frame")
         return np.zeros((1080, 1920, 3), np.uint8)
+
+
+class FakeClock:
+    """Virtual time for unit tests: nothing waits until the test advances the clock.
+
+    `sleep` parks the caller until `advance` moves time past its deadline, so a
+    30 s budget or a 5 s alert is tested in milliseconds and never races a
+    loaded machine.
+    """
+
+    def __init__(self, wall_start: float = 1_700_000_000.0) -> None:
+        self._now = 0.0
+        self._wall_start = wall_start
+        self._sleepers: list[tuple[float, asyncio.Future[None]]] = []
+
+    def time(self) -> float:
+        return self._wall_start + self._now
+
+    def monotonic(self) -> float:
+        return self._now
+
+    async def sleep(self, seconds: float) -> None:
+        future = asyncio.get_running_loop().create_future()
+        self._sleepers.append((self._now + max(seconds, 0.0), future))
+        await future
+
+    async def advance(self, seconds: float) -> None:
+        """Let pending work reach its sleeps, move time on, and wake whoever is due."""
+        await _settle()
+        self._now += seconds
+        due = [(at, f) for at, f in self._sleepers if at <= self._now]
+        self._sleepers = [(at, f) for at, f in self._sleepers if at > self._now]
+        for _, future in due:
+            if not future.done():
+                future.set_result(None)
+        await _settle()
+
+
+async def _settle(turns: int = 20) -> None:
+    for _ in range(turns):
+        await asyncio.sleep(0)

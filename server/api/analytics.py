@@ -335,8 +335,6 @@ def _drain(buffer: io.StringIO) -> str:
 async def get_kpis(request: Request, since: Since = None, until: Until = None) -> dict[str, Any]:
     """KPIs and OEE over a window (default: the current shift, the last shift_hours)."""
     cell: Cell = request.app.state.cell
-    worker = cell.worker
-    assert worker is not None
     now = time.time()
     end = until if until is not None else now
     start = since if since is not None else end - cell.settings.shift_hours * 3600
@@ -345,7 +343,7 @@ async def get_kpis(request: Request, since: Since = None, until: Until = None) -
     journal = _journal(request)
     await journal.caught_up()
 
-    state, since_state = worker.ctx.state.value, worker.ctx.since
+    state, since_state = cell.view.state.value, cell.view.since
     settings = cell.settings
 
     def compute() -> dict[str, Any]:

@@ -21,7 +21,14 @@ from server.api.schemas import (
     StartRequest,
 )
 from server.cell import Cell
-from server.core.worker import Outcome
+from server.core.events import (
+    CreateWorkpiecePayload,
+    Outcome,
+    Payload,
+    StartPayload,
+    StopPayload,
+)
+from server.core.transitions import Command
 
 router = APIRouter(tags=["commands"])
 
@@ -51,8 +58,8 @@ def _answer(outcome: Outcome) -> JSONResponse:
     return JSONResponse(body.model_dump(), status_code=202 if outcome.accepted else 409)
 
 
-async def _run(request: Request, name: str, data: dict[str, Any] | None = None) -> JSONResponse:
-    outcome = await _cell(request).command(name, source=_client(request), data=data)
+async def _run(request: Request, command: Command, payload: Payload | None = None) -> JSONResponse:
+    outcome = await _cell(request).command(command, source=_client(request), payload=payload)
     # The audit row says why, and which event to look up in the journal and the logs.
     request.state.audit_reason = f"event {outcome.event_id}: {outcome.message}"
     return _answer(outcome)
@@ -63,13 +70,16 @@ async def start(
     request: Request, body: Annotated[StartRequest | None, Body()] = None
 ) -> JSONResponse:
     """Start spraying (IDLE → EXECUTING_TRAJECTORY)."""
-    return await _run(request, "start", (body or StartRequest()).model_dump())
+    body = body or StartRequest()
+    return await _run(
+        request, Command.START, StartPayload(body.contour_matching, body.workpiece_id)
+    )
 
 
 @router.post("/calibrate-robot", status_code=202, responses=RESPONSES, response_model=CommandResult)
 async def calibrate_robot(request: Request) -> JSONResponse:
     """Calibrate camera → robot coordinates from the ArUco markers (IDLE → CALIBRATING_ROBOT)."""
-    return await _run(request, "calibrate-robot")
+    return await _run(request, Command.CALIBRATE_ROBOT)
 
 
 @router.post(
@@ -77,7 +87,7 @@ async def calibrate_robot(request: Request) -> JSONResponse:
 )
 async def calibrate_camera(request: Request) -> JSONResponse:
     """Calibrate the camera's intrinsics (IDLE → CALIBRATING_CAMERA)."""
-    return await _run(request, "calibrate-camera")
+    return await _run(request, Command.CALIBRATE_CAMERA)
 
 
 @router.post(
@@ -87,26 +97,28 @@ async def create_workpiece(
     request: Request, body: Annotated[CreateWorkpieceRequest | None, Body()] = None
 ) -> JSONResponse:
     """Capture the part on the table into the library (IDLE → CREATING_WORKPIECE)."""
-    data = (body or CreateWorkpieceRequest()).model_dump(exclude_none=True)
-    return await _run(request, "create-workpiece", data)
+    body = body or CreateWorkpieceRequest()
+    spray = body.spray.model_dump(exclude_none=True) if body.spray is not None else None
+    payload = CreateWorkpiecePayload(body.name, body.workpiece_id, spray)
+    return await _run(request, Command.CREATE_WORKPIECE, payload)
 
 
 @router.post("/pause", status_code=202, responses=RESPONSES, response_model=CommandResult)
 async def pause(request: Request) -> JSONResponse:
     """Hold the trajectory at its next waypoint with the glue off."""
-    return await _run(request, "pause")
+    return await _run(request, Command.PAUSE)
 
 
 @router.post("/resume", status_code=202, responses=RESPONSES, response_model=CommandResult)
 async def resume(request: Request) -> JSONResponse:
     """Continue a paused trajectory from where it held."""
-    return await _run(request, "resume")
+    return await _run(request, Command.RESUME)
 
 
 @router.post("/cancel", status_code=202, responses=RESPONSES, response_model=CommandResult)
 async def cancel(request: Request) -> JSONResponse:
     """Stop the running operation at once, glue off, and return to IDLE."""
-    return await _run(request, "cancel")
+    return await _run(request, Command.CANCEL)
 
 
 @router.post("/estop", status_code=202, responses=RESPONSES, response_model=CommandResult)
@@ -118,11 +130,10 @@ async def estop(
     A supervisory stop, not a safety function: the hard-wired e-stop circuit
     remains the cell's safety stop.
     """
-    data = {"reason": body.reason} if body and body.reason else {}
-    return await _run(request, "estop", data)
+    return await _run(request, Command.ESTOP, StopPayload(body.reason if body else None))
 
 
 @router.post("/reset", status_code=202, responses=RESPONSES, response_model=CommandResult)
 async def reset(request: Request) -> JSONResponse:
     """Leave ERROR for IDLE, once every device answers again; never restarts an operation."""
-    return await _run(request, "reset")
+    return await _run(request, Command.RESET)

@@ -43,21 +43,22 @@ class CellCollector(Collector):
 
     def collect(self) -> Iterator[GaugeMetricFamily | CounterMetricFamily]:
         cell: Cell = self.app.state.cell
-        worker = cell.worker
-        if worker is None:
+        if not cell.started:
             return
+        view = cell.view
         state = GaugeMetricFamily("glue_cell_state", "1 for the current state", labels=["state"])
         for candidate in State:
-            state.add_metric([candidate.value], 1.0 if worker.ctx.state is candidate else 0.0)
+            state.add_metric([candidate.value], 1.0 if view.state is candidate else 0.0)
         yield state
+        performance = view.performance()
         processed = CounterMetricFamily("glue_cell_events_processed", "events decided")
-        processed.add_metric([], worker.stats.processed)
+        processed.add_metric([], performance["events_processed"])
         yield processed
         refused = CounterMetricFamily("glue_cell_events_refused", "events refused")
-        refused.add_metric([], worker.stats.refused)
+        refused.add_metric([], performance["events_refused"])
         yield refused
         depth = GaugeMetricFamily("glue_cell_event_queue_depth", "events waiting")
-        depth.add_metric([], len(worker.queue))
+        depth.add_metric([], performance["queue_size"])
         yield depth
         clients = GaugeMetricFamily("glue_cell_websocket_clients", "connected /ws clients")
         clients.add_metric([], self.app.state.ws_hub.client_count)
@@ -68,7 +69,7 @@ class CellCollector(Collector):
         rtt = GaugeMetricFamily(
             "glue_cell_device_rtt_seconds", "last round trip", labels=["device"]
         )
-        for name, health in worker.devices.health().items():
+        for name, health in cell.devices.health().items():
             connected.add_metric([name], 1.0 if health["connected"] else 0.0)
             if health["last_rtt_ms"] is not None:
                 rtt.add_metric([name], health["last_rtt_ms"] / 1000.0)
@@ -113,10 +114,9 @@ class Metrics:
 
     def attach(self, cell: Cell) -> None:
         """Hook into the running cell (after it started)."""
-        worker = cell.worker
-        assert worker is not None
-        worker.stats.listeners.append(self.event_seconds.observe)
-        worker.operation_listeners.append(
+        view = cell.view
+        view.on_event_decided(self.event_seconds.observe)
+        view.on_run_ended(
             lambda kind, outcome, seconds: self.operation_seconds.labels(kind, outcome).observe(
                 seconds
             )

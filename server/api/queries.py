@@ -15,8 +15,8 @@ from server.api.schemas import (
     StateView,
 )
 from server.cell import Cell
-from server.core.engine import check
-from server.core.transitions import COMMANDS, normalize_command
+from server.core.transitions import Command, normalize_command
+from server.core.view import CellView
 
 router = APIRouter(tags=["queries"])
 
@@ -25,12 +25,14 @@ def _cell(request: Request) -> Cell:
     return request.app.state.cell
 
 
+def _view(request: Request) -> CellView:
+    return request.app.state.cell.view
+
+
 @router.get("/state", response_model=StateView)
 async def get_state(request: Request) -> dict:
     """The current state, the running operation and its progress, the fault if any."""
-    worker = _cell(request).worker
-    assert worker is not None
-    return worker.snapshot()
+    return _view(request).snapshot()
 
 
 @router.get(
@@ -42,31 +44,17 @@ async def is_allowed(request: Request, name: str) -> AllowedView:
     """Whether a command would be accepted in the current state, and why not."""
     canonical = normalize_command(name)
     if canonical is None:
-        known = ", ".join(COMMANDS)
+        known = ", ".join(Command)
         raise HTTPException(404, f"unknown operation {name!r}; known operations: {known}")
-    worker = _cell(request).worker
-    assert worker is not None
-    allowed, reason = check(worker.ctx.state, COMMANDS[canonical], worker.facts())
-    return AllowedView(
-        operation=canonical, allowed=allowed, state=worker.ctx.state.value, reason=reason
-    )
+    view = _view(request)
+    allowed, reason = view.allowed(canonical)
+    return AllowedView(operation=canonical, allowed=allowed, state=view.state.value, reason=reason)
 
 
 @router.get("/health", response_model=HealthView)
 async def get_health(request: Request) -> dict:
-    """Each device's link, last round-trip and last error; the worker's figures."""
-    cell = _cell(request)
-    worker = cell.worker
-    assert worker is not None
-    devices = worker.devices.health()
-    status = "ok" if all(d["connected"] for d in devices.values()) else "degraded"
-    return {
-        "status": status,
-        "state": worker.ctx.state.value,
-        "devices": devices,
-        "worker": worker.performance(),
-        "websocket_clients": request.app.state.ws_hub.client_count,
-    }
+    """Each device's link, last round-trip and last error; the worker's and journal's figures."""
+    return {**_view(request).health(), "websocket_clients": request.app.state.ws_hub.client_count}
 
 
 @router.get("/calibration")
@@ -127,12 +115,11 @@ NO_FRAME = (
 )
 async def get_camera_frame(request: Request) -> Response:
     """The latest frame an operation captured (undistorted, as measured on), as JPEG."""
-    worker = _cell(request).worker
-    assert worker is not None
-    frame = worker.frames.latest
+    view = _view(request)
+    frame = view.latest_frame()
     if frame is None:
         raise HTTPException(404, NO_FRAME)
-    body = await asyncio.to_thread(worker.frames.jpeg, frame)
+    body = await asyncio.to_thread(view.frame_jpeg, frame)
     headers = {
         "X-Frame-Time": f"{frame.taken_at:.3f}",
         "X-Frame-Source": frame.source,
@@ -145,16 +132,7 @@ async def get_camera_frame(request: Request) -> Response:
 @router.get("/trajectory", responses={404: {"model": ErrorView}})
 async def get_trajectory(request: Request) -> dict[str, Any]:
     """The planned path of the current or last run, with the waypoint reached."""
-    worker = _cell(request).worker
-    assert worker is not None
-    if worker.trajectory is None:
+    trajectory = _view(request).trajectory()
+    if trajectory is None:
         raise HTTPException(404, "no trajectory planned since the server started")
-    running = worker.ctx.operation
-    reached = None
-    if running is not None and running.run_id == worker.trajectory["run_id"]:
-        reached = running.progress.get("waypoint")
-    return {
-        **worker.trajectory,
-        "running": reached is not None or running is not None,
-        "waypoint": reached,
-    }
+    return trajectory

@@ -122,6 +122,16 @@ class PerformanceView(BaseModel):
     queue_size: int
 
 
+class JournalHealthView(BaseModel):
+    """The journal's write side: what waits for the disk and the last write that failed."""
+
+    backlog: int = Field(description="records queued for the disk")
+    last_error: str | None = Field(
+        None, description="the last write failure, None once a later write succeeded"
+    )
+    last_error_at: float | None = Field(None, description="when it failed (Unix time)")
+
+
 class HealthView(BaseModel):
     """GET /health: ok when every device answers, degraded otherwise."""
 
@@ -129,6 +139,7 @@ class HealthView(BaseModel):
     state: str
     devices: dict[str, DeviceView]
     worker: PerformanceView
+    journal: JournalHealthView
     websocket_clients: int
 
 

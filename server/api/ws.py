@@ -54,13 +54,13 @@ from starlette.datastructures import QueryParams
 
 from server.api.auth import authenticate_websocket
 from server.core.bus import Bus, BusMessage, Subscription, SubscriptionClosed
+from server.core.view import CellView
 
 log = logging.getLogger(__name__)
 router = APIRouter()
 
 MESSAGE_TYPES = ("state_changed", "progress", "error", "alert")
 SEND_TIMEOUT = 5.0
-SNAPSHOT_HISTORY = 20
 ENCODED_CACHE = 64  # recent messages kept encoded; a client further behind re-encodes
 MAX_SEQ_DIGITS = 18  # after_seq: any seq a server reaches, and still a 64-bit integer
 MAX_BOOT_LENGTH = 64
@@ -146,19 +146,8 @@ class WebSocketHub:
         return text
 
 
-def _snapshot(worker: Any, bus: Bus) -> dict[str, Any]:
-    return {
-        "type": "snapshot",
-        "seq": bus.last_seq,
-        "boot": bus.boot,
-        **worker.snapshot(),
-        "context": {
-            "operation_data": worker.ctx.operation_data,
-            "error_message": worker.ctx.error_message,
-            "operation_result": worker.ctx.operation_result,
-        },
-        "history": [r.as_dict() for r in list(worker.ctx.history)[-SNAPSHOT_HISTORY:]],
-    }
+def _snapshot(view: CellView, bus: Bus) -> dict[str, Any]:
+    return {"type": "snapshot", "seq": bus.last_seq, "boot": bus.boot, **view.live_snapshot()}
 
 
 def _plan_replay(
@@ -187,8 +176,8 @@ def _plan_replay(
 async def live(websocket: WebSocket) -> None:
     app = websocket.app
     hub: WebSocketHub = app.state.ws_hub
-    worker = app.state.cell.worker
-    bus: Bus = worker.bus
+    cell = app.state.cell
+    bus: Bus = cell.bus
     principal = authenticate_websocket(websocket)
     await websocket.accept()
     if principal is None:
@@ -211,7 +200,7 @@ async def live(websocket: WebSocket) -> None:
     # snapshot's seq, the ring holds every one up to it, so nothing falls between.
     subscription = bus.subscribe(hub.buffer, resume.types)
     try:
-        snapshot = _snapshot(worker, bus)
+        snapshot = _snapshot(cell.view, bus)
         try:
             marks, replay = _plan_replay(bus, resume, subscription)
         except InvalidQuery as invalid:

@@ -11,9 +11,13 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from server.core.faults import classify, recommended_action
 from server.core.transitions import State
+
+if TYPE_CHECKING:
+    from server.core.events import Payload
 
 
 @dataclass(slots=True)
@@ -57,6 +61,14 @@ class RunningOperation:
             "progress": self.progress or None,
         }
 
+    def fault_context(self) -> dict[str, Any]:
+        """What was going on when a fault came: the operation, its run, its parameters."""
+        context: dict[str, Any] = {"operation": self.name, "run_id": self.run_id}
+        context.update(self.params)
+        if "waypoint" in self.progress:
+            context["waypoint"] = f"{self.progress['waypoint']} of {self.progress.get('of', '?')}"
+        return context
+
 
 @dataclass(slots=True)
 class FaultRecord:
@@ -69,6 +81,19 @@ class FaultRecord:
     time: float
     classification: str = "critical"
     recommended_action: str = ""
+
+    @classmethod
+    def of(cls, payload: Payload, source: str, event_id: str, at: float) -> FaultRecord:
+        """The fault an event into ERROR reports: an e-stop, a device fault or a failed run."""
+        reason = getattr(payload, "reason", None)
+        code = getattr(payload, "code", None)
+        if code is None:  # the e-stop: who pressed it and why
+            code, message, component = "EMERGENCY_STOP", f"emergency stop by {source}", source
+            if reason:
+                message += f": {reason}"
+        else:
+            message, component = payload.message, payload.component  # type: ignore[union-attr]
+        return cls(code, message, component, event_id, at, classify(code), recommended_action(code))
 
     def as_dict(self) -> dict[str, Any]:
         # Spelled out: dataclasses.asdict deep-copies, and this runs on every
@@ -139,6 +164,20 @@ class MachineContext:
     @property
     def error_message(self) -> str | None:
         return self.error.message if self.error else None
+
+    def enter(self, state: State, event: str, event_id: str, now: float) -> TransitionRecord:
+        """Change to `state` on `event`; the transition goes into the bounded history."""
+        record = TransitionRecord(
+            timestamp=now,
+            old_state=self.state.value,
+            new_state=state.value,
+            event=event,
+            event_id=event_id,
+            time_in_old_state=round(now - self.since, 6),
+        )
+        self.history.append(record)
+        self.previous_state, self.state, self.since = self.state, state, now
+        return record
 
     def record_error(self, error: FaultRecord) -> None:
         """Note a fault; the first since the last reset stays the stop reason."""

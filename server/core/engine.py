@@ -11,9 +11,9 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass, field
 
+from server.core.actions import Action, actions_of
 from server.core.transitions import (
     COMMANDS,
-    OPERATION_OF_STATE,
     TRANSITIONS,
     Event,
     Guard,
@@ -36,10 +36,11 @@ class Facts:
 
 @dataclass(frozen=True, slots=True)
 class Decision:
-    """The outcome of one accepted event."""
+    """The outcome of one accepted event: the row it matched and what to do, in order."""
 
     event: Event
     transition: Transition
+    actions: tuple[Action, ...]
 
     @property
     def source(self) -> State:
@@ -52,20 +53,6 @@ class Decision:
     @property
     def changes_state(self) -> bool:
         return self.source is not self.target
-
-    @property
-    def ends_operation(self) -> bool:
-        """The running operation (if any) stops with this transition."""
-        return _run_of(self.source) is not None and _run_of(self.source) != _run_of(self.target)
-
-    @property
-    def starts_operation(self) -> bool:
-        """A new operation starts with this transition."""
-        return _run_of(self.target) is not None and _run_of(self.source) != _run_of(self.target)
-
-
-def _run_of(state: State) -> str | None:
-    return OPERATION_OF_STATE.get(state)
 
 
 def _guard_failure(guard: Guard | None, facts: Facts) -> str | None:
@@ -99,7 +86,7 @@ def step(state: State, event: Event, facts: Facts | None = None) -> Decision:
         raise GuardRefused(
             event.value, state.value, f"{event_label(event)} is refused in {state.value}: {failure}"
         )
-    return Decision(event=event, transition=row)
+    return Decision(event=event, transition=row, actions=actions_of(row))
 
 
 def check(state: State, event: Event, facts: Facts | None = None) -> tuple[bool, str]:

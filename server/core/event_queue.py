@@ -17,10 +17,13 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from server.core.transitions import Event
 from server.errors import EventQueueFull
+
+if TYPE_CHECKING:
+    from server.core.events import Payload
 
 
 class Priority(IntEnum):
@@ -38,7 +41,7 @@ class Envelope:
     event_id: str
     event: Event
     source: str
-    data: dict[str, Any]
+    payload: Payload
     priority: Priority
     enqueued_at: float = field(default_factory=time.perf_counter)
     timestamp: float = field(default_factory=time.time)
@@ -55,10 +58,6 @@ class EventQueue:
 
     def __len__(self) -> int:
         return sum(len(lane) for lane in self._lanes.values())
-
-    @property
-    def request_depth(self) -> int:
-        return len(self._lanes[Priority.REQUEST])
 
     def put(self, envelope: Envelope, *, bounded: bool = True) -> None:
         """Queue an envelope; a full request lane raises EventQueueFull when `bounded`."""

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from server.config import Settings
 from server.core.faults import classify
-from server.core.operations.base import Operation, OperationContext
+from server.core.operations.base import Operation, OperationContext, OperationResult
 from server.errors import DeviceError, OperationError
 
 log = logging.getLogger(__name__)
@@ -32,7 +31,7 @@ RetryReporter = Callable[[int, str, bool], None]  # attempt, error code, succeed
 class RunOutcome:
     """How an operation ended: its result, or the fault that ended it."""
 
-    result: dict[str, Any] | None = None
+    result: OperationResult | None = None
     code: str = ""
     message: str = ""
     component: str = "operation"
@@ -47,17 +46,18 @@ class OperationTimeout(Exception):
     """The operation ran past processing_timeout."""
 
 
-async def _run_once(operation: Operation, op_ctx: OperationContext, budget: float) -> dict:
+async def _run_once(operation: Operation, op_ctx: OperationContext, budget: float) -> Any:
+    clock = op_ctx.clock
     task = asyncio.ensure_future(operation(op_ctx))
-    started = time.monotonic()
+    started = clock.monotonic()
     try:
         while not task.done():
-            remaining = budget - (time.monotonic() - started - op_ctx.gate.paused_seconds())
+            remaining = budget - (clock.monotonic() - started - op_ctx.gate.paused_seconds())
             if remaining <= 0 and not op_ctx.gate.paused:
                 task.cancel()
                 await asyncio.gather(task, return_exceptions=True)
                 raise OperationTimeout(f"operation exceeded processing_timeout ({budget:g} s)")
-            await asyncio.wait({task}, timeout=max(remaining, 0.05))
+            await _first_of(task, clock.sleep(max(remaining, 0.05)))
         return task.result()
     except asyncio.CancelledError:
         task.cancel()
@@ -88,7 +88,7 @@ async def supervise(
             return outcome
         delay = settings.error_recovery_delay * attempt
         log.warning("%s (attempt %d); retrying in %.1f s", outcome.message, attempt, delay)
-        await asyncio.sleep(delay)
+        await op_ctx.clock.sleep(delay)
         attempt, cause = attempt + 1, outcome.code
 
 
@@ -110,6 +110,24 @@ async def _attempt(
     except Exception as exc:
         log.exception("operation %s crashed", op_ctx.run_id)
         return RunOutcome(code="INTERNAL", message=f"{type(exc).__name__}: {exc}", attempts=attempt)
-    return RunOutcome(
-        result=result if isinstance(result, dict) else {"value": result}, attempts=attempt
-    )
+    return RunOutcome(result=as_result(result), attempts=attempt)
+
+
+def as_result(value: Any) -> OperationResult:
+    """An operation's return as an OperationResult.
+
+    Why accept more: an integrator's operation (or `blocking_operation` around
+    a legacy method) may return a plain dict or value; it is kept as the data.
+    """
+    if isinstance(value, OperationResult):
+        return value
+    return OperationResult(value if isinstance(value, dict) else {"value": value})
+
+
+async def _first_of(task: asyncio.Future[Any], timer: Any) -> None:
+    """Wait until `task` is done or `timer` (a clock's sleep) has run out."""
+    sleeper = asyncio.ensure_future(timer)
+    try:
+        await asyncio.wait({task, sleeper}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        sleeper.cancel()

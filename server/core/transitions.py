@@ -157,29 +157,50 @@ TRANSITIONS: Final = MappingProxyType(
     {state: MappingProxyType(rows) for state, rows in _build_table().items()}
 )
 
-# The operator's command names and the events they post.
+
+class Command(StrEnum):
+    """The operator's names for the request events: what HTTP, the CLI and the façade speak."""
+
+    START = "start"
+    CALIBRATE_ROBOT = "calibrate-robot"
+    CALIBRATE_CAMERA = "calibrate-camera"
+    CREATE_WORKPIECE = "create-workpiece"
+    PAUSE = "pause"
+    RESUME = "resume"
+    CANCEL = "cancel"
+    ESTOP = "estop"
+    RESET = "reset"
+
+
+# The event each command posts.
 COMMANDS: Final = MappingProxyType(
     {
-        "start": Event.START_REQUESTED,
-        "calibrate-robot": Event.CALIBRATE_ROBOT_REQUESTED,
-        "calibrate-camera": Event.CALIBRATE_CAMERA_REQUESTED,
-        "create-workpiece": Event.CREATE_WORKPIECE_REQUESTED,
-        "pause": Event.PAUSE_REQUESTED,
-        "resume": Event.RESUME_REQUESTED,
-        "cancel": Event.CANCEL_REQUESTED,
-        "estop": Event.EMERGENCY_STOP,
-        "reset": Event.RESET_REQUESTED,
+        Command.START: Event.START_REQUESTED,
+        Command.CALIBRATE_ROBOT: Event.CALIBRATE_ROBOT_REQUESTED,
+        Command.CALIBRATE_CAMERA: Event.CALIBRATE_CAMERA_REQUESTED,
+        Command.CREATE_WORKPIECE: Event.CREATE_WORKPIECE_REQUESTED,
+        Command.PAUSE: Event.PAUSE_REQUESTED,
+        Command.RESUME: Event.RESUME_REQUESTED,
+        Command.CANCEL: Event.CANCEL_REQUESTED,
+        Command.ESTOP: Event.EMERGENCY_STOP,
+        Command.RESET: Event.RESET_REQUESTED,
     }
 )
 COMMAND_OF_EVENT: Final = MappingProxyType({event: name for name, event in COMMANDS.items()})
+_ALIASES: Final = MappingProxyType(
+    {"emergency-stop": Command.ESTOP, "calibrate": Command.CALIBRATE_ROBOT}
+)
 
 
-def normalize_command(name: str) -> str | None:
-    """The canonical command name for `name` (case and `_`/`-` forgiven), or None."""
+def normalize_command(name: str) -> Command | None:
+    """The command `name` means (case and `_`/`-` forgiven, a few aliases), or None."""
     canonical = name.strip().lower().replace("_", "-")
-    aliases = {"emergency-stop": "estop", "calibrate": "calibrate-robot"}
-    canonical = aliases.get(canonical, canonical)
-    return canonical if canonical in COMMANDS else None
+    if canonical in _ALIASES:
+        return _ALIASES[canonical]
+    try:
+        return Command(canonical)
+    except ValueError:
+        return None
 
 
 def transitions() -> list[Transition]:
@@ -189,4 +210,5 @@ def transitions() -> list[Transition]:
 
 def event_label(event: Event) -> str:
     """How an event reads in messages: the command name where it has one."""
-    return COMMAND_OF_EVENT.get(event, event.value)
+    command = COMMAND_OF_EVENT.get(event)
+    return command.value if command is not None else event.value

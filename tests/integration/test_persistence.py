@@ -12,9 +12,10 @@ from pathlib import Path
 from server.cell import Cell
 from server.config import Settings
 from server.core.devices import CellDevices
+from server.core.events import StopPayload
 from server.core.journal import Journal
-from server.core.transitions import State
-from tests.conftest import START, demo_stores, wait_for_state
+from server.core.transitions import Command, State
+from tests.conftest import START_PAYLOAD, demo_stores, wait_for_state
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
 
@@ -38,7 +39,7 @@ async def started(data: Path, glue: FakeGlue | None = None, **overrides) -> Cell
 
 async def test_a_clean_restart_comes_up_idle_with_the_journal_kept(tmp_path) -> None:
     cell = await started(tmp_path)
-    outcome = await cell.command("start", source="test", data=START)
+    outcome = await cell.command(Command.START, source="test", payload=START_PAYLOAD)
     await wait_for_state(cell.worker, State.IDLE)
     await cell.stop()
     cell = await started(tmp_path)
@@ -52,7 +53,7 @@ async def test_stopping_mid_operation_restarts_in_error_with_the_waypoint(tmp_pa
     glue = FakeGlue()
     cell = await started(tmp_path, glue=glue)
     cell.worker.devices.robot.speed_factor = 1  # slow enough to stop it mid-path
-    await cell.command("start", source="test", data=START)
+    await cell.command(Command.START, source="test", payload=START_PAYLOAD)
     async with asyncio.timeout(10):
         while not (
             cell.worker.ctx.operation and cell.worker.ctx.operation.progress.get("waypoint")
@@ -73,7 +74,7 @@ async def test_stopping_mid_operation_restarts_in_error_with_the_waypoint(tmp_pa
     assert worker.ctx.operation is None  # nothing resumed
     operations = cell.journal.query("operations")
     assert operations[0]["outcome"] == "interrupted"
-    assert (await cell.command("reset", source="test")).state is State.IDLE
+    assert (await cell.command(Command.RESET, source="test")).state is State.IDLE
     await cell.stop()
 
 
@@ -98,7 +99,7 @@ async def test_a_corrupt_journal_is_kept_aside_and_a_new_one_started(tmp_path) -
     cell = await started(tmp_path)
     assert cell.worker.ctx.state is State.IDLE
     assert list(tmp_path.glob("journal.db.corrupt-*"))
-    outcome = await cell.command("start", source="test", data=START)
+    outcome = await cell.command(Command.START, source="test", payload=START_PAYLOAD)
     assert cell.journal.query("events", filters={"type": "START_REQUESTED"})[0]["id"] == (
         outcome.event_id
     )
@@ -125,7 +126,7 @@ async def test_retention_prunes_old_rows(tmp_path) -> None:
 
 async def test_a_command_answers_only_once_its_event_is_on_disk(tmp_path) -> None:
     cell = await started(tmp_path, journal_synchronous="FULL")
-    outcome = await cell.command("calibrate-robot", source="test")
+    outcome = await cell.command(Command.CALIBRATE_ROBOT, source="test")
     # Read with a separate connection, right after the answer: the row is there.
     with sqlite3.connect(tmp_path / "journal.db") as connection:
         row = connection.execute(
@@ -137,7 +138,7 @@ async def test_a_command_answers_only_once_its_event_is_on_disk(tmp_path) -> Non
 
 async def test_error_is_latched_across_a_restart(tmp_path) -> None:
     cell = await started(tmp_path)
-    await cell.command("estop", source="test", data={"reason": "guard door"})
+    await cell.command(Command.ESTOP, source="test", payload=StopPayload("guard door"))
     await asyncio.sleep(0.1)  # the snapshot is written behind the state change
     await cell.stop()
     cell = await started(tmp_path)

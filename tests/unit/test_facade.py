@@ -50,4 +50,4 @@ def test_an_existing_application_method_serves_as_an_operation(tmp_path) -> None
     with EmbeddedCell(Settings(data_path=tmp_path), devices=devices, operations=operations) as cell:
         assert cell.calibrateCamera() == (True, "calibrate-camera completed")
         assert calls == ["called"]
-        assert cell.cell.worker.ctx.operation_result == {"reprojection_error_px": 0.12}
+        assert cell.cell.view.operation_result == {"reprojection_error_px": 0.12}

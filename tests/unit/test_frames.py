@@ -38,7 +38,6 @@ async def test_undistorted_captures_are_kept_with_their_operation_and_raw_ones_n
         settings=Settings(data_path=tmp_path),
         stores=CellStores.open(tmp_path),
         params={},
-        report=lambda _progress: None,
         run_id="run-1",
         operation="create_workpiece",
     )

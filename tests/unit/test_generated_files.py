@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[2]
 @pytest.mark.parametrize("name", TARGET_FILES)
 def test_state_diagram_copy_matches_the_table(name: str) -> None:
     text = (ROOT / name).read_text(encoding="utf-8")
-    assert diagram_block() in text, f"{name} is stale: run `make diagram`"
+    assert diagram_block(name) in text, f"{name} is stale: run `make diagram`"
 
 
 def test_openapi_json_matches_the_app() -> None:

@@ -20,13 +20,28 @@ from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
 from server.core.event_queue import Priority
+from server.core.events import (
+    CreateWorkpiecePayload,
+    FaultPayload,
+    Payload,
+    RunCompletedPayload,
+    RunFailedPayload,
+)
+from server.core.journal import Journal
 from server.core.operations import default_operations
 from server.core.transitions import TRANSITIONS, Event, State
 from server.core.worker import Worker
-from tests.conftest import START, demo_stores
+from tests.conftest import START_PAYLOAD, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
 EXTERNAL_EVENTS = [e for e in Event if e is not Event.EMERGENCY_STOP]
+INJECTED: dict[Event, Payload] = {
+    Event.START_REQUESTED: START_PAYLOAD,
+    Event.CREATE_WORKPIECE_REQUESTED: CreateWorkpiecePayload(),
+    Event.ERROR_OCCURRED: FaultPayload("TEST", "injected", "test"),
+    Event.OPERATION_COMPLETED: RunCompletedPayload("any"),
+    Event.OPERATION_FAILED: RunFailedPayload("any", "TEST", "injected", "test"),
+}
 
 
 class CellMachine(RuleBasedStateMachine):
@@ -39,12 +54,18 @@ class CellMachine(RuleBasedStateMachine):
         devices = CellDevices(self.robot, self.glue, FakeCamera())
         self.directory = tempfile.TemporaryDirectory()
         stores = demo_stores(Path(self.directory.name))
-        self.worker = Worker(config, devices, default_operations(), Bus(), stores)
+        self.journal = Journal(Path(self.directory.name) / "journal.db")
+        self.journal.open()
+        self.journal.start(self.loop)
+        self.worker = Worker(
+            config, devices, default_operations(), Bus(), stores, journal=self.journal
+        )
         self.loop.run_until_complete(self.worker.start())
         self.checked = 0
 
     def teardown(self) -> None:
         self.loop.run_until_complete(self.worker.stop())
+        self.journal.stop()
         self.loop.close()
         self.directory.cleanup()
 
@@ -57,13 +78,7 @@ class CellMachine(RuleBasedStateMachine):
             event,
             source="property",
             priority=Priority.REQUEST,
-            data={
-                "code": "TEST",
-                "message": "injected",
-                "component": "test",
-                "run_id": "any",
-                **START,
-            },
+            payload=INJECTED.get(event),
         )
         self.loop.run_until_complete(envelope.future)
         self._settle(wait)

@@ -6,10 +6,11 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
-from server.core.operations import OperationContext
+from server.core.operations import OperationContext, OperationResult, OperationWarning
 from server.core.transitions import Event, State
 from server.errors import OperationError
 from tests.conftest import wait_for_state
+from tests.fakes import FakeClock
 
 
 def failing(code: str, calls: list[int], *, succeed_on: int | None = None):
@@ -77,20 +78,27 @@ async def test_without_auto_recovery_nothing_is_retried(make_worker, fast_settin
 
 
 async def test_a_cell_left_in_error_raises_an_alert(make_worker, fast_settings) -> None:
-    worker = await make_worker(fast_settings.model_copy(update={"error_state_timeout": 0.2}))
+    clock = FakeClock()
+    settings = fast_settings.model_copy(update={"error_state_timeout": 300})
+    worker = await make_worker(settings, clock=clock)
     alerts = worker.bus.subscribe(16, types=["alert"])
     await worker.emergency_stop(source="test")
+    await clock.advance(299)
+    assert alerts.pending == 0
+    await clock.advance(1)
     message = await asyncio.wait_for(alerts.get(), 5)
     assert message.data["code"] == "ERROR_STATE_TIMEOUT"
     assert "emergency stop" in message.data["message"]
 
 
 async def test_leaving_error_in_time_raises_no_alert(make_worker, fast_settings) -> None:
-    worker = await make_worker(fast_settings.model_copy(update={"error_state_timeout": 0.3}))
+    clock = FakeClock()
+    settings = fast_settings.model_copy(update={"error_state_timeout": 300})
+    worker = await make_worker(settings, clock=clock)
     alerts = worker.bus.subscribe(16, types=["alert"])
     await worker.emergency_stop(source="test")
     await worker.request(Event.RESET_REQUESTED, source="test")
-    await asyncio.sleep(0.5)
+    await clock.advance(600)
     assert alerts.pending == 0
 
 
@@ -98,15 +106,18 @@ async def test_a_run_close_to_its_budget_is_warned_of_and_the_cell_runs_on(
     make_worker, fast_settings
 ) -> None:
     async def slow(ctx: OperationContext) -> dict[str, Any]:
-        await asyncio.sleep(1.7)  # 85 % of the budget below; warned of above 80 %
+        await ctx.clock.sleep(170)  # 85 % of the budget below; warned of above 80 %
         return {}
 
+    clock = FakeClock()
     worker = await make_worker(
-        fast_settings.model_copy(update={"processing_timeout": 2.0}),
+        fast_settings.model_copy(update={"processing_timeout": 200}),
         operations={"calibrate_robot": slow},
+        clock=clock,
     )
     alerts = worker.bus.subscribe(16, types=["alert"])
     await worker.request(Event.CALIBRATE_ROBOT_REQUESTED, source="test")
+    await clock.advance(170)
     message = await asyncio.wait_for(alerts.get(), 5)
     assert message.data["code"] == "SLOW_OPERATION"
     assert message.data["classification"] == "warning"
@@ -116,8 +127,8 @@ async def test_a_run_close_to_its_budget_is_warned_of_and_the_cell_runs_on(
 
 
 async def test_an_operation_can_report_warnings_with_its_result(make_worker) -> None:
-    async def degrading(ctx: OperationContext) -> dict[str, Any]:
-        return {"warnings": [{"code": "CALIBRATION_DEGRADING", "message": "creeping up"}]}
+    async def degrading(ctx: OperationContext) -> OperationResult:
+        return OperationResult({}, (OperationWarning("CALIBRATION_DEGRADING", "creeping up"),))
 
     worker = await make_worker(operations={"calibrate_robot": degrading})
     alerts = worker.bus.subscribe(16, types=["alert"])

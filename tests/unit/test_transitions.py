@@ -6,6 +6,7 @@ import itertools
 
 import pytest
 
+from server.core.actions import Action as A
 from server.core.engine import Facts, available_commands, check, step
 from server.core.transitions import COMMANDS, TRANSITIONS, Event, State, normalize_command
 from server.errors import GuardRefused, TransitionNotAllowed
@@ -85,15 +86,16 @@ def test_reset_is_refused_while_a_fault_is_active_and_says_which() -> None:
     assert step(S.ERROR, E.RESET_REQUESTED, Facts()).target is S.IDLE
 
 
-def test_operation_lifecycle_flags() -> None:
+def test_operation_lifecycle_actions() -> None:
     start = step(S.IDLE, E.START_REQUESTED)
-    assert start.starts_operation and not start.ends_operation
+    assert A.START_RUN in start.actions and A.CANCEL_RUN not in start.actions
     pause = step(S.EXECUTING_TRAJECTORY, E.PAUSE_REQUESTED)
     resume = step(S.PAUSED, E.RESUME_REQUESTED)
     for decision in (pause, resume):  # one run spans EXECUTING and PAUSED
-        assert not decision.starts_operation and not decision.ends_operation
+        assert A.START_RUN not in decision.actions and A.CANCEL_RUN not in decision.actions
+    assert A.CLOSE_GATE in pause.actions and A.OPEN_GATE in resume.actions
     for state in OPERATIONAL:
-        assert step(state, E.EMERGENCY_STOP).ends_operation
+        assert A.CANCEL_RUN in step(state, E.EMERGENCY_STOP).actions
     assert not step(S.ERROR, E.ERROR_OCCURRED).changes_state
 
 

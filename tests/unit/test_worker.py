@@ -8,11 +8,12 @@ from typing import Any
 import pytest
 
 from server.core.event_queue import Priority
+from server.core.events import FaultPayload, RunCompletedPayload, StopPayload
 from server.core.operations import OperationContext
 from server.core.transitions import Event, State
 from server.errors import EventQueueFull, OperationError
-from tests.conftest import START, wait_for_state
-from tests.fakes import FakeGlue, FakeRobot
+from tests.conftest import START_PAYLOAD, wait_for_state
+from tests.fakes import FakeClock, FakeGlue, FakeRobot
 
 
 def blocking_operation(started: asyncio.Event, cancelled: asyncio.Event):
@@ -57,7 +58,12 @@ async def test_events_are_handled_one_at_a_time_in_arrival_order(make_worker) ->
         Event.RESUME_REQUESTED,
         Event.CANCEL_REQUESTED,
     ]
-    envelopes = [worker.submit(event, source="test", data=START) for event in sequence]
+    envelopes = [
+        worker.submit(
+            event, source="test", payload=START_PAYLOAD if event is Event.START_REQUESTED else None
+        )
+        for event in sequence
+    ]
     outcomes = [await envelope.future for envelope in envelopes]
     assert [o.accepted for o in outcomes] == [True, False, True, True, True, True, True]
     assert [o.state for o in outcomes] == [
@@ -126,11 +132,11 @@ async def test_leaving_an_operational_state_cancels_its_operation(make_worker) -
 async def test_estop_mid_run_closes_the_valve_and_stops_the_robot(make_worker) -> None:
     glue, robot = FakeGlue(), FakeRobot(speed_factor=2)
     worker = await make_worker(glue=glue, robot=robot)
-    await worker.request(Event.START_REQUESTED, source="test", data=START)
+    await worker.request(Event.START_REQUESTED, source="test", payload=START_PAYLOAD)
     async with asyncio.timeout(10):
         while not glue.valve_open:
             await asyncio.sleep(0.002)
-    outcome = await worker.emergency_stop(source="test", data={"reason": "hand in cell"})
+    outcome = await worker.emergency_stop(source="test", payload=StopPayload("hand in cell"))
     assert outcome.state is State.ERROR
     assert glue.valve_open is False and not robot.moving and robot.stops >= 1
     assert worker.ctx.stop_reason.code == "EMERGENCY_STOP"
@@ -143,13 +149,13 @@ async def test_pause_holds_at_the_next_waypoint_and_resume_finishes_the_same_run
 ) -> None:
     glue, robot = FakeGlue(), FakeRobot(speed_factor=5)
     worker = await make_worker(glue=glue, robot=robot)
-    started = await worker.request(Event.START_REQUESTED, source="test", data=START)
+    started = await worker.request(Event.START_REQUESTED, source="test", payload=START_PAYLOAD)
     async with asyncio.timeout(10):
         while not worker.ctx.operation.progress.get("waypoint"):
             await asyncio.sleep(0.002)
     await worker.request(Event.PAUSE_REQUESTED, source="test")
     async with asyncio.timeout(10):
-        while not worker._gate.holding:
+        while not worker.runs._gate.holding:
             await asyncio.sleep(0.002)
     held_at = worker.ctx.operation.progress["waypoint"]
     moves_at_hold = len(robot.moves)
@@ -161,7 +167,7 @@ async def test_pause_holds_at_the_next_waypoint_and_resume_finishes_the_same_run
     assert worker.ctx.history[-1].event == "OPERATION_COMPLETED"
     assert worker.ctx.operation_result == {"workpieces": ["demo"], "waypoints": 7}
     # One run: the robot visited each planned waypoint exactly once, in order.
-    planned = [tuple(w["pose"]) for w in worker.trajectory["planned_path"]]
+    planned = [tuple(w["pose"]) for w in worker.runs.trajectory["planned_path"]]
     assert [tuple(m) for m in robot.moves if tuple(m) in planned] == planned
     assert started.event_id == worker.ctx.history[-4].event_id
 
@@ -177,34 +183,53 @@ async def test_a_failing_operation_ends_in_error_with_its_reason(make_worker) ->
     assert worker.ctx.error.message == "marker 4 not found: check lighting"
 
 
-async def test_processing_timeout_fails_the_operation(make_worker, fast_settings) -> None:
-    worker = await make_worker(
-        fast_settings.model_copy(update={"processing_timeout": 0.2}),
-        operations={"create_workpiece": blocking_operation(asyncio.Event(), asyncio.Event())},
-    )
-    await worker.request(Event.CREATE_WORKPIECE_REQUESTED, source="test")
-    await wait_for_state(worker, State.ERROR)
-    assert worker.ctx.error.code == "OPERATION_TIMEOUT"
-    assert "processing_timeout (0.2 s)" in worker.ctx.error.message
-
-
 async def test_paused_time_does_not_count_against_processing_timeout(make_worker, fast_settings):
-    robot = FakeRobot(speed_factor=5)
+    clock = FakeClock()
+    finish = asyncio.Event()
+
+    async def held_run(ctx: OperationContext) -> dict[str, Any]:
+        await ctx.gate.checkpoint()
+        await finish.wait()
+        return {}
+
     worker = await make_worker(
-        fast_settings.model_copy(update={"processing_timeout": 1.5}), robot=robot
+        fast_settings.model_copy(update={"processing_timeout": 1.5}),
+        operations={"trajectory": held_run},
+        clock=clock,
     )
-    await worker.request(Event.START_REQUESTED, source="test", data=START)
+    await worker.request(Event.START_REQUESTED, source="test", payload=START_PAYLOAD)
     await worker.request(Event.PAUSE_REQUESTED, source="test")
-    await asyncio.sleep(2.0)
+    await clock.advance(2.0)  # longer than the budget, all of it paused
     assert worker.ctx.state is State.PAUSED
     await worker.request(Event.RESUME_REQUESTED, source="test")
+    await clock.advance(1.0)  # 1 s of running time: inside the budget
+    assert worker.ctx.state is State.EXECUTING_TRAJECTORY
+    finish.set()
     await wait_for_state(worker, State.IDLE)
     assert worker.ctx.history[-1].event == "OPERATION_COMPLETED"
 
 
+async def test_a_run_past_its_budget_fails_with_operation_timeout(make_worker, fast_settings):
+    clock = FakeClock()
+    worker = await make_worker(
+        fast_settings.model_copy(update={"processing_timeout": 1.5}),
+        operations={"trajectory": blocking_operation(asyncio.Event(), asyncio.Event())},
+        clock=clock,
+    )
+    await worker.request(Event.START_REQUESTED, source="test", payload=START_PAYLOAD)
+    await clock.advance(1.4)
+    assert worker.ctx.state is State.EXECUTING_TRAJECTORY
+    await clock.advance(0.2)
+    await wait_for_state(worker, State.ERROR)
+    assert worker.ctx.error.code == "OPERATION_TIMEOUT"
+    assert "processing_timeout (1.5 s)" in worker.ctx.error.message
+
+
 async def test_a_completion_from_an_ended_run_is_ignored(make_worker) -> None:
     worker = await make_worker()
-    envelope = worker.submit(Event.OPERATION_COMPLETED, source="test", data={"run_id": "old"})
+    envelope = worker.submit(
+        Event.OPERATION_COMPLETED, source="test", payload=RunCompletedPayload("old")
+    )
     outcome = await envelope.future
     assert not outcome.accepted and "already ended" in outcome.message
 
@@ -212,7 +237,7 @@ async def test_a_completion_from_an_ended_run_is_ignored(make_worker) -> None:
 async def test_device_fault_mid_run_ends_in_error_and_reset_waits_for_recovery(make_worker):
     glue, robot = FakeGlue(), FakeRobot(speed_factor=2)
     worker = await make_worker(glue=glue, robot=robot)
-    await worker.request(Event.START_REQUESTED, source="test", data=START)
+    await worker.request(Event.START_REQUESTED, source="test", payload=START_PAYLOAD)
     async with asyncio.timeout(10):
         while not glue.valve_open:
             await asyncio.sleep(0.002)
@@ -236,7 +261,7 @@ async def test_a_second_fault_keeps_the_first_out_stop_reason(make_worker) -> No
             Event.ERROR_OCCURRED,
             source="test",
             priority=Priority.FAULT,
-            data={"code": code, "message": code.lower(), "component": "test"},
+            payload=FaultPayload(code, code.lower(), "test"),
         )
     await wait_for_state(worker, State.ERROR)
     await asyncio.sleep(0.05)
@@ -261,7 +286,7 @@ async def test_a_run_that_ends_while_paused_completes_to_idle(make_worker) -> No
         return {"done": True}
 
     worker = await make_worker(operations={"trajectory": last_segment})
-    await worker.request(Event.START_REQUESTED, source="test", data=START)
+    await worker.request(Event.START_REQUESTED, source="test", payload=START_PAYLOAD)
     assert (await worker.request(Event.PAUSE_REQUESTED, source="test")).state is State.PAUSED
     finish.set()
     await wait_for_state(worker, State.IDLE)

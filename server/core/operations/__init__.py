@@ -2,12 +2,25 @@
 
 from __future__ import annotations
 
-from server.core.operations.base import Operation, OperationContext, PauseGate
+from server.core.operations.base import (
+    Operation,
+    OperationContext,
+    OperationResult,
+    OperationWarning,
+    PauseGate,
+)
 from server.core.operations.calibration import calibrate_camera, calibrate_robot
 from server.core.operations.trajectory import execute_trajectory
 from server.core.operations.workpieces import create_workpiece
 
-__all__ = ["Operation", "OperationContext", "PauseGate", "default_operations"]
+__all__ = [
+    "Operation",
+    "OperationContext",
+    "OperationResult",
+    "OperationWarning",
+    "PauseGate",
+    "default_operations",
+]
 
 
 def default_operations() -> dict[str, Operation]:

@@ -1,27 +1,29 @@
 """What an operation is: a plain async function of an OperationContext.
 
 An operation does the work of one operational state (spray a path, calibrate,
-create a workpiece) and returns a small JSON-able result, or raises. It never
+create a workpiece) and returns an `OperationResult`, or raises. It never
 touches the state machine: the worker turns its return into
 OPERATION_COMPLETED and its exception into OPERATION_FAILED. That is what
 makes operations replaceable: an integrator can hand in the methods of an
 existing application as operations without touching the core.
+
+An operation speaks to the rest of the cell only through its context: its
+progress (`ctx.report`), the path it planned (`ctx.publish_plan`) and where it
+may hold for a pause (`ctx.gate.checkpoint`).
 """
 
 from __future__ import annotations
 
 import asyncio
-import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from server.config import Settings
+from server.core.clock import SYSTEM_CLOCK, Clock
 from server.core.frames import LatestFrame
 from server.drivers.base import Camera, GlueDispenser, Robot
 from server.storage import CellStores
-
-ProgressReporter = Callable[[dict[str, Any]], None]
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,6 +41,39 @@ class OperationResult:
     data: dict[str, Any] = field(default_factory=dict)
     warnings: tuple[OperationWarning, ...] = ()
 
+    def as_dict(self) -> dict[str, Any]:
+        """The result as /state and the journal show it (warnings beside the data)."""
+        if not self.warnings:
+            return dict(self.data)
+        warnings = [{"code": w.code, "message": w.message} for w in self.warnings]
+        return {**self.data, "warnings": warnings}
+
+
+@dataclass(frozen=True, slots=True)
+class PlannedPath:
+    """The path a run will follow, as the HMI draws it: waypoints and the parts they spray."""
+
+    waypoints: list[dict[str, Any]]
+    workpieces: list[dict[str, Any]]
+
+
+class RunListener(Protocol):
+    """Who hears a running operation: the worker's run supervisor, or nobody."""
+
+    def on_progress(self, progress: dict[str, Any]) -> None: ...
+
+    def on_plan(self, plan: PlannedPath) -> None: ...
+
+
+class QuietListener:
+    """For operations run outside the machine (commissioning, tests): hears nothing."""
+
+    def on_progress(self, progress: dict[str, Any]) -> None:
+        pass
+
+    def on_plan(self, plan: PlannedPath) -> None:
+        pass
+
 
 class PauseGate:
     """Lets a running operation hold at a safe point while the cell is PAUSED.
@@ -47,7 +82,8 @@ class PauseGate:
     calls `checkpoint()` where stopping is safe (between waypoints).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Clock = SYSTEM_CLOCK) -> None:
+        self._clock = clock
         self._open = asyncio.Event()
         self._open.set()
         self.holding = False  # the operation is waiting at a checkpoint
@@ -60,18 +96,19 @@ class PauseGate:
 
     def pause(self) -> None:
         if self._paused_at is None:
-            self._paused_at = time.monotonic()
+            self._paused_at = self._clock.monotonic()
         self._open.clear()
 
     def resume(self) -> None:
         if self._paused_at is not None:
-            self._paused_total += time.monotonic() - self._paused_at
+            self._paused_total += self._clock.monotonic() - self._paused_at
             self._paused_at = None
         self._open.set()
 
     def paused_seconds(self) -> float:
         """Time spent paused so far; processing_timeout does not count it."""
-        current = time.monotonic() - self._paused_at if self._paused_at is not None else 0.0
+        now = self._clock.monotonic()
+        current = now - self._paused_at if self._paused_at is not None else 0.0
         return self._paused_total + current
 
     async def checkpoint(self, on_hold: Callable[[], Awaitable[None]] | None = None) -> bool:
@@ -97,13 +134,24 @@ class OperationContext:
     camera: Camera
     settings: Settings
     stores: CellStores
-    params: dict[str, Any]
-    report: ProgressReporter
+    params: dict[str, Any]  # the request's parameters (the event's payload as a dict)
+    listener: RunListener = field(default_factory=QuietListener)
     gate: PauseGate = field(default_factory=PauseGate)
     run_id: str = ""
     operation: str = ""  # its name (trajectory, create_workpiece, ...), as the worker runs it
     # Where the frames measured on are kept for the HMI (the worker's; a throwaway otherwise).
     frames: LatestFrame = field(default_factory=LatestFrame)
+    clock: Clock = SYSTEM_CLOCK
+
+    def report(self, progress: dict[str, Any]) -> None:
+        """Progress for the HMI and the journal (step, fraction, waypoint ...)."""
+        self.listener.on_progress(progress)
+
+    def publish_plan(
+        self, waypoints: list[dict[str, Any]], workpieces: list[dict[str, Any]]
+    ) -> None:
+        """The path this run will follow, before the robot moves (GET /trajectory)."""
+        self.listener.on_plan(PlannedPath(waypoints, workpieces))
 
 
-Operation = Callable[[OperationContext], Awaitable[dict[str, Any]]]
+Operation = Callable[[OperationContext], Awaitable[OperationResult]]

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from server.core.operations.base import OperationContext
+from server.core.operations.base import OperationContext, OperationResult, OperationWarning
 from server.core.operations.camera_frames import capture, capture_undistorted
 from server.errors import OperationError
 from server.vision.homography import PlaneCalibration, annotate_markers, fit_plane_calibration
@@ -48,7 +48,7 @@ def _calibrate_from_frame(
 DEGRADING_SHARE = 0.5  # of calibration_max_error_mm: accepted, but warned of
 
 
-async def calibrate_robot(ctx: OperationContext) -> dict[str, Any]:
+async def calibrate_robot(ctx: OperationContext) -> OperationResult:
     """Detect markers 0-8, fit the image → robot-plane map, check it, persist it."""
     frame = await capture_undistorted(ctx, "robot calibration")
     ctx.report({"step": "detecting markers", "fraction": 0.3})
@@ -76,22 +76,23 @@ async def calibrate_robot(ctx: OperationContext) -> dict[str, Any]:
         "max_error_mm": round(calibration.max_error_mm, 4),
         "undistorted": store.camera is not None,
     }
+    warnings: tuple[OperationWarning, ...] = ()
     if calibration.mean_error_mm > DEGRADING_SHARE * limit:
-        result["warnings"] = [
-            {
-                "code": "CALIBRATION_DEGRADING",
-                "message": f"robot calibration mean error {calibration.mean_error_mm:.2f} mm is "
+        warnings = (
+            OperationWarning(
+                "CALIBRATION_DEGRADING",
+                f"robot calibration mean error {calibration.mean_error_mm:.2f} mm is "
                 f"over {DEGRADING_SHARE:.0%} of its {limit:g} mm limit: check that the markers "
                 "lie flat and clean, and the camera mount, before it fails",
-            }
-        ]
-    return result
+            ),
+        )
+    return OperationResult(result, warnings)
 
 
 REAL_CAMERA_VIEW_INTERVAL_S = 2.0  # time for a person to tilt and move the board
 
 
-async def calibrate_camera(ctx: OperationContext) -> dict[str, Any]:
+async def calibrate_camera(ctx: OperationContext) -> OperationResult:
     """Collect distinct chessboard views, solve the intrinsics, persist them.
 
     A simulated camera is asked to show its chessboard views (the simulated
@@ -152,13 +153,15 @@ async def calibrate_camera(ctx: OperationContext) -> dict[str, Any]:
         {"pattern": list(pattern), "square_mm": settings.chessboard_square_mm},
     )
     matrix = np.asarray(intrinsics.camera_matrix)
-    return {
-        "reprojection_error_px": round(float(intrinsics.rms_px), 4),
-        "fx": round(float(matrix[0, 0]), 2),
-        "fy": round(float(matrix[1, 1]), 2),
-        "views": intrinsics.views,
-        "note": "the robot calibration must be redone after a camera calibration",
-    }
+    return OperationResult(
+        {
+            "reprojection_error_px": round(float(intrinsics.rms_px), 4),
+            "fx": round(float(matrix[0, 0]), 2),
+            "fy": round(float(matrix[1, 1]), 2),
+            "views": intrinsics.views,
+            "note": "the robot calibration must be redone after a camera calibration",
+        }
+    )
 
 
 def _shift(corners: np.ndarray, previous: np.ndarray) -> float:

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from server.config import Settings
-from server.core.operations.base import OperationContext
+from server.core.operations.base import OperationContext, OperationResult
 from server.core.operations.workpieces import Target, locate_workpieces
 from server.drivers.base import Pose
 from server.errors import OperationError
@@ -120,18 +120,14 @@ async def resolve_targets(ctx: OperationContext) -> list[Target]:
     return [Target(entry.id, entry.name, np.asarray(entry.outline_mm), entry.spray)]
 
 
-async def execute_trajectory(ctx: OperationContext) -> dict[str, Any]:
+async def execute_trajectory(ctx: OperationContext) -> OperationResult:
     """Plan, check and spray; report progress after every waypoint."""
     targets = await resolve_targets(ctx)
     path = await asyncio.to_thread(plan_path, targets, ctx.settings)  # a fine fill costs ms
     check_workspace(path, ctx.settings)
-    ctx.report(
-        {
-            "planned_path": [w.as_dict() for w in path],
-            "workpieces": [
-                {"workpiece_id": t.workpiece_id, "name": t.name, "match": t.match} for t in targets
-            ],
-        }
+    ctx.publish_plan(
+        [w.as_dict() for w in path],
+        [{"workpiece_id": t.workpiece_id, "name": t.name, "match": t.match} for t in targets],
     )
     glue = ctx.glue
     await glue.set_pressure(ctx.settings.default_pressure_psi)
@@ -172,7 +168,9 @@ async def execute_trajectory(ctx: OperationContext) -> dict[str, Any]:
         # However the run ends (cancel, fault, e-stop), the valve must not stay open.
         if valve_open:
             await asyncio.shield(_close_quietly(ctx))
-    return {"workpieces": [t.workpiece_id for t in targets], "waypoints": len(path)}
+    return OperationResult(
+        {"workpieces": [t.workpiece_id for t in targets], "waypoints": len(path)}
+    )
 
 
 async def _close_quietly(ctx: OperationContext) -> None:

@@ -15,7 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from server.core.operations.base import OperationContext
+from server.core.operations.base import OperationContext, OperationResult
 from server.core.operations.camera_frames import capture_undistorted, require_robot_calibration
 from server.errors import OperationError
 from server.storage.workpieces import SpraySettings, WorkpieceIn
@@ -60,7 +60,7 @@ def _not_found(what: str) -> OperationError:
     )
 
 
-async def create_workpiece(ctx: OperationContext) -> dict[str, Any]:
+async def create_workpiece(ctx: OperationContext) -> OperationResult:
     """Capture the part on the table and store its outline (mm) in the library."""
     homography = require_robot_calibration(ctx, "workpiece creation").homography
     frame = await capture_undistorted(ctx, "workpiece creation")
@@ -90,13 +90,15 @@ async def create_workpiece(ctx: OperationContext) -> dict[str, Any]:
         )
     centroid = outline_mm.mean(axis=0)
     ctx.report({"step": "stored", "fraction": 1.0, "workpiece": stored.id})
-    return {
-        "workpiece_id": stored.id,
-        "name": stored.name,
-        "points": len(outline_mm),
-        "area_mm2": round(float(cv2.contourArea(outline_mm.astype(np.float32))), 1),
-        "centre_mm": [round(float(c), 2) for c in centroid],
-    }
+    return OperationResult(
+        {
+            "workpiece_id": stored.id,
+            "name": stored.name,
+            "points": len(outline_mm),
+            "area_mm2": round(float(cv2.contourArea(outline_mm.astype(np.float32))), 1),
+            "centre_mm": [round(float(c), 2) for c in centroid],
+        }
+    )
 
 
 @dataclass(frozen=True)

@@ -61,10 +61,9 @@ async def commission_simulated_cell(
             settings=settings,
             stores=stores,
             params=params,
-            report=lambda _progress: None,
         )
         result = await operation(context)
-        line = f"simulated cell commissioned: {name}: {result}"
+        line = f"simulated cell commissioned: {name}: {result.as_dict()}"
         log.info(line)
         done.append(line)
     return done

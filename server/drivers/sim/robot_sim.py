@@ -83,7 +83,6 @@ from server.drivers.jsonlines import (
 logger = logging.getLogger(__name__)
 
 FAULT_KINDS = ("drop", "stall", "fail_next")
-MOTION_METHODS = ("moveL", "moveJ")
 
 
 def motion_duration(start: Sequence[float], target: Sequence[float], speed: float) -> float:

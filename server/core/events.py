@@ -1,0 +1,162 @@
+"""What each event carries: one frozen dataclass payload per kind of event.
+
+An event's payload is typed, so the worker, the operations and the journal
+agree on its fields by construction rather than by agreed dict keys.
+`as_dict()` is the payload as the journal stores it (the `data` column of
+`events`) and as an operation sees its parameters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, Final
+
+from server.core.operations.base import OperationResult
+from server.core.transitions import Event, State
+
+
+@dataclass(frozen=True, slots=True)
+class Outcome:
+    """The worker's answer to one event: what the sender of a command is told."""
+
+    accepted: bool
+    event_id: str
+    event: Event
+    state: State
+    message: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "accepted": self.accepted,
+            "event_id": self.event_id,
+            "event": self.event.value,
+            "state": self.state.value,
+            "message": self.message,
+        }
+
+    def with_note(self, note: str) -> Outcome:
+        """The same answer with `note` added to its message."""
+        return Outcome(
+            self.accepted, self.event_id, self.event, self.state, f"{self.message}{note}"
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class NoPayload:
+    """Events that carry nothing: readiness, pause, resume, cancel, reset."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {}
+
+
+@dataclass(frozen=True, slots=True)
+class StartPayload:
+    """START_REQUESTED: find the part on the table, or spray a named library part."""
+
+    contour_matching: bool = True
+    workpiece_id: str | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"contour_matching": self.contour_matching, "workpiece_id": self.workpiece_id}
+
+
+@dataclass(frozen=True, slots=True)
+class CreateWorkpiecePayload:
+    """CREATE_WORKPIECE_REQUESTED: the name, id and spray settings of the new part."""
+
+    name: str | None = None
+    workpiece_id: str | None = None
+    spray: dict[str, Any] | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        fields = {"name": self.name, "workpiece_id": self.workpiece_id, "spray": self.spray}
+        return {key: value for key, value in fields.items() if value is not None}
+
+
+@dataclass(frozen=True, slots=True)
+class StopPayload:
+    """EMERGENCY_STOP: why the stop was pressed, for the record."""
+
+    reason: str | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"reason": self.reason} if self.reason else {}
+
+
+@dataclass(frozen=True, slots=True)
+class FaultPayload:
+    """ERROR_OCCURRED: a device (or the system) reports a fault."""
+
+    code: str
+    message: str
+    component: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"code": self.code, "message": self.message, "component": self.component}
+
+
+@dataclass(frozen=True, slots=True)
+class RunCompletedPayload:
+    """OPERATION_COMPLETED: the run that ended and what it returned."""
+
+    run_id: str
+    result: OperationResult = field(default_factory=OperationResult)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"run_id": self.run_id, "result": self.result.as_dict()}
+
+
+@dataclass(frozen=True, slots=True)
+class RunFailedPayload:
+    """OPERATION_FAILED: the run that failed, and the fault that ended it."""
+
+    run_id: str
+    code: str
+    message: str
+    component: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "run_id": self.run_id,
+            "code": self.code,
+            "message": self.message,
+            "component": self.component,
+        }
+
+
+Payload = (
+    NoPayload
+    | StartPayload
+    | CreateWorkpiecePayload
+    | StopPayload
+    | FaultPayload
+    | RunCompletedPayload
+    | RunFailedPayload
+)
+
+PAYLOAD_OF_EVENT: Final = MappingProxyType(
+    {
+        **{event: NoPayload for event in Event},
+        Event.START_REQUESTED: StartPayload,
+        Event.CREATE_WORKPIECE_REQUESTED: CreateWorkpiecePayload,
+        Event.EMERGENCY_STOP: StopPayload,
+        Event.ERROR_OCCURRED: FaultPayload,
+        Event.OPERATION_COMPLETED: RunCompletedPayload,
+        Event.OPERATION_FAILED: RunFailedPayload,
+    }
+)
+
+
+def payload_of(event: Event, payload: Payload | None) -> Payload:
+    """`payload`, or the event's default one; refuses a payload of the wrong kind.
+
+    A wrong kind is a programming error, not bad input: HTTP input is
+    validated into its payload before it gets here.
+    """
+    expected = PAYLOAD_OF_EVENT[event]
+    if payload is None:
+        return expected()  # type: ignore[call-arg]  # a TypeError names what is missing
+    if type(payload) is not expected:
+        raise TypeError(f"{event.value} carries {expected.__name__}, not {type(payload).__name__}")
+    return payload

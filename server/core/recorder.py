@@ -1,0 +1,163 @@
+"""The worker's record keeping: what one event caused goes to the journal in one commit.
+
+(And the state snapshot a restart reads, `snapshot.py`, saved on each change.)
+
+Why a separate piece: the worker decides, the recorder remembers. Each record
+the handling of an event produces (the transition, the fault, a run started
+or ended) is collected while the event is handled and committed together with
+the event's own row; the sender is answered only once that commit is durable,
+so an acknowledged command is never lost to a crash. Progress, retries and
+warnings are written without waiting: they are not acknowledgements.
+
+The recorder speaks in the cell's terms (a transition, a fault, a run); the
+SQL behind each record lives in storage (`server.storage.journal`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from server.core.clock import SYSTEM_CLOCK, Clock
+from server.core.context import FaultRecord, RunningOperation, TransitionRecord
+from server.core.event_queue import Envelope
+from server.core.events import Outcome
+from server.core.journal import Journal, Record
+from server.core.snapshot import SnapshotFile
+
+log = logging.getLogger(__name__)
+
+BACKLOG_LIMIT = 10_000  # records waiting for the disk; beyond it new requests are refused
+
+
+class Recorder:
+    """Collects the records of the event being handled and commits them with it."""
+
+    def __init__(
+        self,
+        journal: Journal,
+        on_write_failure: Callable[[str], None],
+        snapshot_file: SnapshotFile | None = None,
+        clock: Clock = SYSTEM_CLOCK,
+    ) -> None:
+        self.journal = journal
+        self.snapshot_file = snapshot_file  # the state to show after a restart, if kept
+        self._on_write_failure = on_write_failure  # e.g. fault the cell: records are missing
+        self._clock = clock
+        self._pending: list[Record] = []
+
+    @property
+    def behind(self) -> bool:
+        """The disk is too far behind to take more requests (refuse, never drop)."""
+        return self.journal.backlog > BACKLOG_LIMIT
+
+    def journal_health(self) -> dict[str, Any]:
+        """The write side's figures for /health: the backlog and the last write failure."""
+        failure = getattr(self.journal, "last_error", None)
+        return {
+            "backlog": self.journal.backlog,
+            "last_error": failure.message if failure else None,
+            "last_error_at": failure.at if failure else None,
+        }
+
+    # --- records committed with the event ----------------------------------
+
+    def transition(self, record: TransitionRecord) -> None:
+        self._pending.append(Journal.transition(record.as_dict()))
+
+    def fault(self, fault: FaultRecord, state: str) -> None:
+        self._pending.append(
+            Journal.error(
+                fault.time,
+                fault.code,
+                fault.message,
+                fault.component,
+                fault.classification,
+                fault.event_id,
+                state,
+            )
+        )
+
+    def run_started(self, run: RunningOperation) -> None:
+        self._pending.append(
+            Journal.operation_started(run.run_id, run.name, run.started_at, dict(run.params))
+        )
+
+    def run_ended(
+        self,
+        run_id: str,
+        outcome: str,
+        result: dict[str, Any] | None,
+        error: str | None,
+        parts: int,
+    ) -> None:
+        self._pending.append(
+            Journal.operation_ended(run_id, self._clock.time(), outcome, result, error, parts)
+        )
+
+    def save_snapshot(self, snapshot: dict[str, Any], running: RunningOperation | None) -> None:
+        """The state after a change, for the next start to see where the cell was."""
+        if self.snapshot_file is None:
+            return
+        operation = running.as_dict() if running is not None else None
+        self.snapshot_file.save(
+            {**snapshot, "operation": operation, "saved_at": self._clock.time()}
+        )
+
+    # --- records written at once, not waited on ------------------------------
+
+    def progress(self, run_id: str, progress: dict[str, Any]) -> None:
+        self.journal.append([Journal.operation_progress(run_id, progress)], durable=False)
+
+    def recovery(self, run_id: str, code: str, attempt: int, succeeded: bool) -> None:
+        record = Journal.recovery(self._clock.time(), run_id, code, attempt, succeeded)
+        self.journal.append([record], durable=False)
+
+    def warning(self, code: str, message: str, component: str, event_id: str, state: str) -> None:
+        record = Journal.error(
+            self._clock.time(), code, message, component, "warning", event_id, state
+        )
+        self.journal.append([record], durable=False)
+
+    # --- the event itself, and its answer ----------------------------------
+
+    def commit(self, envelope: Envelope, outcome: Outcome) -> asyncio.Future[None] | None:
+        """The event's row and everything it caused, in one write; the future marks it durable."""
+        records, self._pending = self._pending, []
+        event = Journal.event(
+            envelope.event_id,
+            envelope.timestamp,
+            envelope.event.value,
+            envelope.source,
+            envelope.payload.as_dict(),
+            "accepted" if outcome.accepted else "refused",
+            outcome.message,
+            outcome.state.value,
+        )
+        return self.journal.append([event, *records])
+
+    def answer_when_durable(
+        self, envelope: Envelope, outcome: Outcome, durable: asyncio.Future[None] | None
+    ) -> None:
+        """Answer the sender once the event is on disk; say so when it could not be written."""
+        future = envelope.future
+        if future is None or future.done():
+            return
+        if durable is None:
+            future.set_result(outcome)
+            return
+
+        def settle(written: asyncio.Future[None]) -> None:
+            if future.done():
+                return
+            if written.cancelled() or written.exception() is not None:
+                problem = "cancelled" if written.cancelled() else written.exception()
+                log.critical("event %s decided but not journaled: %s", outcome.event_id, problem)
+                self._on_write_failure(str(problem))
+                future.set_result(outcome.with_note(f" (journal write failed: {problem})"))
+            else:
+                future.set_result(outcome)
+
+        durable.add_done_callback(settle)

@@ -1,0 +1,227 @@
+"""Running operations: start one for an operational state, hear its progress, end it.
+
+One run at a time. A run starts with the transition into an operational state
+(START_RUN), lives across EXECUTING_TRAJECTORY and PAUSED (its pause gate is
+closed and opened by CLOSE_GATE / OPEN_GATE), and ends with the transition out
+(RECORD_RUN_END, CANCEL_RUN). Its outcome reaches the machine only as an
+OPERATION_COMPLETED or OPERATION_FAILED event posted back to the worker, so
+every change of state stays in the worker's loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from server.config import Settings
+from server.core.alerts import Alerts
+from server.core.bus import Bus
+from server.core.clock import Clock
+from server.core.context import MachineContext, RunningOperation
+from server.core.devices import CellDevices
+from server.core.events import (
+    Payload,
+    RunCompletedPayload,
+    RunFailedPayload,
+)
+from server.core.frames import LatestFrame
+from server.core.operations.base import Operation, OperationContext, PauseGate, PlannedPath
+from server.core.recorder import Recorder
+from server.core.supervision import RunOutcome, supervise
+from server.core.transitions import Event
+from server.storage import CellStores
+
+log = logging.getLogger(__name__)
+
+# How a run ended, by the event that ended it (anything else: it failed).
+RUN_OUTCOME = {Event.OPERATION_COMPLETED: "completed", Event.CANCEL_REQUESTED: "cancelled"}
+PostOutcome = Callable[[Event, Payload], None]
+
+
+class Runs:
+    """Starts, supervises, holds and cancels the cell's one running operation."""
+
+    def __init__(
+        self,
+        *,
+        settings: Settings,
+        devices: CellDevices,
+        operations: dict[str, Operation],
+        stores: CellStores,
+        ctx: MachineContext,
+        bus: Bus,
+        recorder: Recorder,
+        alerts: Alerts,
+        clock: Clock,
+        post_outcome: PostOutcome,
+    ) -> None:
+        self.settings = settings
+        self.devices = devices
+        self.operations = operations
+        self.stores = stores
+        self.ctx = ctx
+        self.bus = bus
+        self.recorder = recorder
+        self.alerts = alerts
+        self.clock = clock
+        self._post_outcome = post_outcome  # hands the run's outcome to the worker's queue
+        self.trajectory: dict[str, Any] | None = None  # the plan of the current or last run
+        self.frames = LatestFrame()  # the last frame an operation measured on, for the HMI
+        self._task: asyncio.Task[None] | None = None
+        self._gate: PauseGate | None = None
+        # Called with (kind, outcome, seconds) when an operation ends, e.g. by metrics.
+        self.listeners: list[Callable[[str, str, float], None]] = []
+
+    def is_current(self, run_id: str) -> bool:
+        running = self.ctx.operation
+        return running is not None and running.run_id == run_id
+
+    # --- start -------------------------------------------------------------
+
+    def start(self, name: str, run_id: str, params: dict[str, Any]) -> None:
+        """Start operation `name` as run `run_id` with the request's parameters."""
+        self._gate = PauseGate(self.clock)
+        running = RunningOperation(name, run_id, self.clock.time(), dict(params))
+        self.ctx.operation = running
+        self.ctx.operation_data = dict(params)
+        self.ctx.operation_result = None
+        self.recorder.run_started(running)
+        op_ctx = OperationContext(
+            robot=self.devices.robot,
+            glue=self.devices.glue,
+            camera=self.devices.camera,
+            settings=self.settings,
+            stores=self.stores,
+            params=dict(params),
+            listener=_RunListener(self, run_id),
+            gate=self._gate,
+            run_id=run_id,
+            operation=name,
+            frames=self.frames,
+            clock=self.clock,
+        )
+        self._task = asyncio.create_task(
+            self._supervise(self.operations[name], op_ctx), name=f"operation-{name}"
+        )
+
+    async def _supervise(self, operation: Operation, op_ctx: OperationContext) -> None:
+        """Run one operation (budget and retries in supervision.py); post its outcome."""
+        run_id = op_ctx.run_id
+
+        def on_retry(attempt: int, code: str, succeeded: bool) -> None:
+            self.recorder.recovery(run_id, code, attempt, succeeded)
+            running = self.ctx.operation
+            self.bus.publish(
+                "progress",
+                {
+                    "operation": running.name if running else "",
+                    "run_id": run_id,
+                    "recovery_attempt": attempt,
+                    "recovered": succeeded,
+                    "cause": code,
+                },
+            )
+
+        outcome: RunOutcome = await supervise(operation, op_ctx, self.settings, on_retry)
+        if outcome.result is not None:
+            self._post_outcome(
+                Event.OPERATION_COMPLETED, RunCompletedPayload(run_id, outcome.result)
+            )
+        else:
+            failure = RunFailedPayload(run_id, outcome.code, outcome.message, outcome.component)
+            self._post_outcome(Event.OPERATION_FAILED, failure)
+
+    # --- while it runs -------------------------------------------------------
+
+    def on_plan(self, run_id: str, plan: PlannedPath) -> None:
+        if self.is_current(run_id):
+            self.trajectory = {
+                "run_id": run_id,
+                "planned_path": plan.waypoints,
+                "workpieces": plan.workpieces,
+            }
+
+    def on_progress(self, run_id: str, progress: dict[str, Any]) -> None:
+        running = self.ctx.operation
+        if running is None or running.run_id != run_id:
+            return
+        running.progress.update(progress)
+        self.recorder.progress(run_id, running.progress)
+        self.bus.publish(
+            "progress",
+            {
+                "operation": running.name,
+                "run_id": run_id,
+                "state": self.ctx.state.value,
+                **running.progress,
+            },
+        )
+
+    def hold(self) -> None:
+        """Close the gate: the operation holds at its next checkpoint."""
+        if self._gate is not None:
+            self._gate.pause()
+
+    def release(self) -> None:
+        """Open the gate: a held operation continues."""
+        if self._gate is not None:
+            self._gate.resume()
+
+    # --- end -----------------------------------------------------------------
+
+    def record_end(self, event: Event, payload: Payload) -> None:
+        """The run's outcome on record and its listeners told, before it is cancelled."""
+        running = self.ctx.operation
+        if running is None:
+            return
+        outcome = RUN_OUTCOME.get(event, "failed")
+        took = self.clock.time() - running.started_at
+        for listener in self.listeners:
+            listener(running.name, outcome, took)
+        result = payload.result if isinstance(payload, RunCompletedPayload) else None
+        if result is not None:
+            paused = self._gate.paused_seconds() if self._gate is not None else 0.0
+            self.alerts.of_completed_run(running.name, took - paused, result.warnings)
+        error = None
+        if outcome == "failed":
+            error = payload.message if isinstance(payload, RunFailedPayload) else event.value
+        parts = 0
+        plan = self.trajectory
+        if running.name == "trajectory" and plan is not None and plan["run_id"] == running.run_id:
+            parts = len(plan["workpieces"])
+        self.recorder.run_ended(
+            running.run_id, outcome, result.as_dict() if result else None, error, parts
+        )
+
+    async def cancel(self) -> None:
+        """Cancel the running operation and wait (bounded) until it has stopped."""
+        task, self._task = self._task, None
+        if self._gate is not None:
+            self._gate.resume()  # a held operation must see the cancellation, not the gate
+        self._gate = None
+        self.ctx.operation = None
+        if task is not None and not task.done():
+            task.cancel()
+            await asyncio.wait({task}, timeout=self.settings.emergency_stop_timeout)
+
+    async def stop(self) -> None:
+        """At shutdown: the task goes, whatever it was doing."""
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+
+
+class _RunListener:
+    """What one run's context reports to; a run that has ended is no longer heard."""
+
+    def __init__(self, runs: Runs, run_id: str) -> None:
+        self._runs = runs
+        self._run_id = run_id
+
+    def on_progress(self, progress: dict[str, Any]) -> None:
+        self._runs.on_progress(self._run_id, progress)
+
+    def on_plan(self, plan: PlannedPath) -> None:
+        self._runs.on_plan(self._run_id, plan)

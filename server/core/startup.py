@@ -1,0 +1,130 @@
+"""Start-up and homing: the robot's moves and device links the cell makes by itself.
+
+Bringing the devices up happens once, as the worker starts; the move to the
+safe position happens on entering IDLE. Both run as one background *activity*
+at a time, cancelled when the cell leaves IDLE (CANCEL_HOMING) so a move can
+never outlive the state that started it. Faults found here are posted like
+any device fault and decided by the worker.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable, Callable, Coroutine
+from typing import Any
+
+from server.config import Settings
+from server.core.devices import CellDevices
+from server.core.transitions import READINESS_EVENTS, Event
+from server.drivers.base import DeviceFault, Pose
+
+PostReady = Callable[[Event, str], None]
+PostFault = Callable[[DeviceFault], None]
+
+
+class Activities:
+    """Device start-up and the move to the safe position; one at a time."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        devices: CellDevices,
+        halt: Callable[[], Awaitable[None]],
+        post_ready: PostReady,
+        post_fault: PostFault,
+    ) -> None:
+        self.settings = settings
+        self.devices = devices
+        self._halt = halt
+        self._post_ready = post_ready
+        self._post_fault = post_fault
+        self._task: asyncio.Task[None] | None = None
+
+    def device_timeouts(self) -> dict[str, float]:
+        return {
+            "robot": self.settings.robot_communication_timeout,
+            "glue": self.settings.glue_system_timeout,
+            "camera": self.settings.vision_processing_timeout,
+        }
+
+    def bring_up(self, interruption: str | None) -> None:
+        """Connect, halt and report every device (in the background)."""
+        self._replace(self._bring_up_devices(interruption), "device-start-up")
+
+    def go_home(self) -> None:
+        """Send the robot to its safe position (in the background)."""
+        self._replace(self._go_to_safe_position(), "homing")
+
+    async def cancel(self) -> None:
+        """Stop the activity and wait (bounded) for the robot's stop to be answered.
+
+        Why wait: an unanswered stop could otherwise stop the next move.
+        """
+        task, self._task = self._task, None
+        if task is not None and not task.done():
+            task.cancel()
+            await asyncio.wait({task}, timeout=self.settings.emergency_stop_timeout)
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+
+    def _replace(self, activity: Coroutine[Any, Any, None], name: str) -> None:
+        if self._task is not None and not self._task.done():
+            self._task.cancel()  # e.g. a start-up still connecting after an early fault
+        self._task = asyncio.create_task(activity, name=name)
+
+    async def _bring_up_devices(self, interruption: str | None) -> None:
+        """Connect every device, close the valve and stop the robot, then report.
+
+        The halt comes first on every start: whatever the last run left behind,
+        nothing sprays or moves until the machine says so. After an interruption
+        the fault is posted before any READY, so the cell cannot reach IDLE by itself.
+        """
+        timeouts = self.device_timeouts()
+        results = await asyncio.gather(
+            *(self.devices.connect(name, timeouts[name]) for name in timeouts),
+            return_exceptions=True,
+        )
+        await self._halt()
+        if interruption is not None:
+            self._post_fault(DeviceFault("system", "INTERRUPTED", interruption))
+        ready_event = {device: event for event, device in READINESS_EVENTS.items()}
+        for name, result in zip(timeouts, results, strict=True):
+            if isinstance(result, asyncio.CancelledError):
+                raise result
+            if isinstance(result, BaseException):
+                reason = "no answer" if isinstance(result, TimeoutError) else str(result)
+                self._post_fault(
+                    DeviceFault(
+                        name,
+                        "DEVICE_UNAVAILABLE",
+                        f"{name} did not come up within {timeouts[name]:g} s: {reason}",
+                    )
+                )
+            else:
+                self._post_ready(ready_event[name], name)
+
+    async def _go_to_safe_position(self) -> None:
+        settings = self.settings
+        try:
+            await asyncio.wait_for(
+                self.devices.robot.move_linear(
+                    Pose.from_sequence(settings.safe_position),
+                    settings.travel_speed_mm_s,
+                    settings.acceleration_mm_s2,
+                ),
+                settings.safe_position_timeout,
+            )
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:
+            reason = "no answer in time" if isinstance(exc, TimeoutError) else str(exc)
+            self._post_fault(
+                DeviceFault(
+                    "robot",
+                    "SAFE_POSITION_FAILED",
+                    f"robot could not reach its safe position: {reason}",
+                )
+            )

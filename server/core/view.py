@@ -1,0 +1,131 @@
+"""CellView: the one read interface to the running cell.
+
+The API's queries, the WebSocket hub, the metrics and the in-process façade
+read the cell through this view, never through the worker's attributes, so
+the worker can change its insides without touching them (as httpx's Client
+never shows its connection pool). Everything here reads; nothing changes the
+machine.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from server.core.engine import available_commands, check
+from server.core.frames import Frame
+from server.core.transitions import COMMANDS, Command, State
+
+if TYPE_CHECKING:
+    from server.core.worker import Worker
+
+SNAPSHOT_HISTORY = 20  # transitions in a WebSocket snapshot
+
+
+class CellView:
+    """Read-only views of the machine, its run, its devices and its figures."""
+
+    def __init__(self, worker: Worker) -> None:
+        self._worker = worker
+        self._ctx = worker.ctx
+
+    @property
+    def state(self) -> State:
+        return self._ctx.state
+
+    @property
+    def since(self) -> float:
+        """When the current state was entered (Unix time)."""
+        return self._ctx.since
+
+    def snapshot(self) -> dict[str, Any]:
+        """The state as GET /state and the WebSocket snapshot show it."""
+        ctx = self._ctx
+        now = self._worker.clock.time()
+        operation = None
+        if ctx.operation is not None:
+            operation = {
+                "name": ctx.operation.name,
+                "run_id": ctx.operation.run_id,
+                "progress": ctx.operation.progress or None,
+            }
+        return {
+            "state": ctx.state.value,
+            "previous_state": ctx.previous_state.value if ctx.previous_state else None,
+            "since": ctx.since,
+            "time_in_state": round(now - ctx.since, 3),
+            "operation": operation,
+            "error": ctx.error.as_dict() if ctx.error else None,
+            "stop_reason": ctx.stop_reason.as_dict() if ctx.stop_reason else None,
+            "available_commands": available_commands(ctx.state, self._worker.facts()),
+            "operation_result": ctx.operation_result,
+        }
+
+    def live_snapshot(self) -> dict[str, Any]:
+        """The snapshot a WebSocket client gets first: the state, its context, recent history."""
+        ctx = self._ctx
+        return {
+            **self.snapshot(),
+            "context": {
+                "operation_data": ctx.operation_data,
+                "error_message": ctx.error_message,
+                "operation_result": ctx.operation_result,
+            },
+            "history": [r.as_dict() for r in list(ctx.history)[-SNAPSHOT_HISTORY:]],
+        }
+
+    def allowed(self, command: Command) -> tuple[bool, str]:
+        """Whether `command` would be accepted now, with the reason when it would not."""
+        return check(self._ctx.state, COMMANDS[command], self._worker.facts())
+
+    @property
+    def error_message(self) -> str | None:
+        return self._ctx.error_message
+
+    @property
+    def operation_result(self) -> dict[str, Any] | None:
+        """What the last operation that completed returned."""
+        return self._ctx.operation_result
+
+    def health(self) -> dict[str, Any]:
+        """Each device's link, last round-trip and last error; the worker's figures."""
+        worker = self._worker
+        devices = worker.devices.health()
+        return {
+            "status": "ok" if all(d["connected"] for d in devices.values()) else "degraded",
+            "state": self._ctx.state.value,
+            "devices": devices,
+            "worker": self.performance(),
+            "journal": worker.recorder.journal_health(),
+        }
+
+    def performance(self) -> dict[str, Any]:
+        """Events processed and refused, processing times, queue depth."""
+        return self._worker.stats.snapshot(len(self._worker.queue))
+
+    def trajectory(self) -> dict[str, Any] | None:
+        """The planned path of the current or last run, with the waypoint reached."""
+        plan = self._worker.runs.trajectory
+        if plan is None:
+            return None
+        running = self._ctx.operation
+        reached = None
+        if running is not None and running.run_id == plan["run_id"]:
+            reached = running.progress.get("waypoint")
+        return {**plan, "running": reached is not None or running is not None, "waypoint": reached}
+
+    def latest_frame(self) -> Frame | None:
+        """The last frame an operation measured on."""
+        return self._worker.runs.frames.latest
+
+    def frame_jpeg(self, frame: Frame) -> bytes:
+        """`frame` as JPEG (made once per frame; call off the event loop)."""
+        return self._worker.runs.frames.jpeg(frame)
+
+    def on_event_decided(self, listener: Callable[[float], None]) -> None:
+        """Call `listener(seconds)` after each event is decided (e.g. a histogram)."""
+        self._worker.stats.listeners.append(listener)
+
+    def on_run_ended(self, listener: Callable[[str, str, float], None]) -> None:
+        """Call `listener(kind, outcome, seconds)` when an operation ends."""
+        self._worker.runs.listeners.append(listener)

@@ -1,0 +1,92 @@
+"""The safety order as a property of the table: every (state, event) pair, no event loop.
+
+What a transition does is derived from its row (server/core/actions.py), so
+these checks cover every path the machine can take, not the few a scenario
+test happens to drive.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+
+from server.core.actions import EXIT_ACTIONS, Action, actions_of, ends_operation
+from server.core.engine import REQUIRED_DEVICES, Facts, step
+from server.core.transitions import OPERATIONAL_STATES, Event, State, transitions
+from server.errors import TransitionNotAllowed
+
+ALL_READY = Facts(ready_devices=REQUIRED_DEVICES)
+PAIRS = list(itertools.product(State, Event))
+
+
+def _decided(state: State, event: Event):
+    try:
+        return step(state, event, ALL_READY)
+    except TransitionNotAllowed:
+        return None
+
+
+@pytest.mark.parametrize(("state", "event"), PAIRS)
+def test_the_valve_closes_before_anything_else_into_error_or_out_of_an_operation(state, event):
+    decision = _decided(state, event)
+    if decision is None:
+        return  # refused: the state is unchanged and nothing is done
+    actions = decision.actions
+    into_error = decision.target is State.ERROR and decision.changes_state
+    if into_error or ends_operation(decision.transition):
+        assert actions[0] is Action.HALT, f"{state} on {event}: {actions}"
+
+
+@pytest.mark.parametrize(("state", "event"), PAIRS)
+def test_a_cancelled_run_is_halted_again_once_it_has_stopped(state, event):
+    decision = _decided(state, event)
+    if decision is None or Action.CANCEL_RUN not in decision.actions:
+        return
+    actions = list(decision.actions)
+    cancelled = actions.index(Action.CANCEL_RUN)
+    if event is not Event.OPERATION_COMPLETED:  # a run that ended by itself has nothing in flight
+        assert Action.HALT in actions[cancelled:], f"{state} on {event}: {actions}"
+    assert actions.index(Action.RECORD_RUN_END) < cancelled  # its outcome before it is gone
+
+
+@pytest.mark.parametrize(("state", "event"), PAIRS)
+def test_exit_actions_come_before_the_change_and_the_fault_before_the_state(state, event):
+    decision = _decided(state, event)
+    if decision is None:
+        return
+    actions = list(decision.actions)
+    kinds = [action in EXIT_ACTIONS for action in actions]
+    assert kinds == sorted(kinds, reverse=True), f"exit actions not first: {actions}"
+    if Action.RECORD_FAULT in actions and Action.CHANGE_STATE in actions:
+        assert actions.index(Action.RECORD_FAULT) < actions.index(Action.CHANGE_STATE)
+    for entry in (Action.START_RUN, Action.START_HOMING, Action.ENTER_IDLE):
+        if entry in actions:
+            assert actions.index(Action.CHANGE_STATE) < actions.index(entry)
+
+
+@pytest.mark.parametrize(("state", "event"), PAIRS)
+def test_nothing_moves_or_sprays_on_the_way_into_error(state, event):
+    decision = _decided(state, event)
+    if decision is None or decision.target is not State.ERROR:
+        return
+    assert not {Action.START_RUN, Action.START_HOMING, Action.OPEN_GATE} & set(decision.actions)
+
+
+def test_a_run_is_started_exactly_when_an_operational_state_is_entered_from_outside() -> None:
+    for state, event in PAIRS:
+        decision = _decided(state, event)
+        if decision is None:
+            continue
+        entering = decision.target in OPERATIONAL_STATES and decision.source not in {
+            State.EXECUTING_TRAJECTORY,
+            State.PAUSED,
+        }
+        assert (Action.START_RUN in decision.actions) == entering, (state, event)
+
+
+def test_every_row_has_its_actions_and_refusals_have_none() -> None:
+    accepted = [pair for pair in PAIRS if _decided(*pair) is not None]
+    assert len(accepted) == len(transitions())  # each row decides, and nothing else does
+    for state, event in accepted:
+        assert _decided(state, event).actions == actions_of(_decided(state, event).transition)
