@@ -15,7 +15,18 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 
-from server.api import analytics, auth, commands, metrics, queries, workpieces, ws
+from server.api import (
+    access,
+    admin,
+    analytics,
+    audit,
+    commands,
+    metrics,
+    openapi_doc,
+    queries,
+    workpieces,
+    ws,
+)
 from server.api.dashboard import mount_dashboard
 from server.api.limits import BodySizeLimit
 from server.api.observe import ResponseObservers
@@ -56,7 +67,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     app.state.cell = cell
     app.state.settings = settings
     app.state.ws_hub = ws.WebSocketHub(settings.max_broadcast_clients, settings.ws_client_buffer)
-    app.state.access = auth.Access(settings)
+    app.state.access = access.Access(settings)
     # The most polled route's router first: the router tries routes in order.
     for router in (
         queries.router,
@@ -64,16 +75,16 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         workpieces.router,
         analytics.router,
         metrics.router,
-        auth.router,
+        admin.router,
     ):
         app.include_router(router)
     app.state.metrics = metrics.Metrics(app)
     # Every HTTP request, before routing: the policy in server/security/policy.py.
-    app.add_middleware(auth.AccessGate, access=app.state.access)
+    app.add_middleware(access.AccessGate, access=app.state.access)
     app.add_middleware(
         ResponseObservers,
         observers=[
-            auth.audit_observer(lambda scope: scope["app"].state.cell.journal),
+            audit.audit_observer(lambda scope: scope["app"].state.cell.journal),
             app.state.metrics.observe_response,
         ],
     )
@@ -91,64 +102,9 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     app.include_router(ws.router)
     mount_dashboard(app)  # the operator dashboard at /, assets under /hmi/
     _install_error_handlers(app)
-    _document_validation_errors(app)
+    # The document says what the app really does: its 422 body and the gate's roles.
+    openapi_doc.install(app)
     return app
-
-
-def _document_validation_errors(app: FastAPI) -> None:
-    """Make the OpenAPI document describe the 422 body this app really sends, and the gate.
-
-    The gate (`auth.AccessGate`) is a middleware, so FastAPI's document knows nothing
-    of it: `auth.document_access` adds the bearer scheme, each
-    operation's role and its 401/403 from the policy table.
-    """
-    default_openapi = app.openapi
-
-    def openapi() -> dict:
-        if app.openapi_schema is None:
-            schema = default_openapi()
-            schema["components"]["schemas"]["HTTPValidationError"] = {
-                "title": "HTTPValidationError",
-                "type": "object",
-                "required": ["detail"],
-                "properties": {
-                    "detail": {"type": "string", "description": "every problem, one line"},
-                    "errors": {
-                        "type": "array",
-                        "items": {
-                            "type": "object",
-                            "required": ["field", "message", "type"],
-                            "properties": {
-                                "field": {"type": "string"},
-                                "message": {"type": "string"},
-                                "type": {"type": "string"},
-                            },
-                        },
-                    },
-                },
-            }
-            schema["components"]["schemas"].pop("ValidationError", None)
-            # A body that is not even text (invalid UTF-8) is refused by the framework
-            # with 400 before validation; say so on every operation that takes a body.
-            for path in schema["paths"].values():
-                for operation in path.values():
-                    if "requestBody" in operation:
-                        operation["responses"].setdefault(
-                            "400",
-                            {
-                                "description": "the body could not be read (not UTF-8 JSON)",
-                                "content": {
-                                    "application/json": {
-                                        "schema": {"$ref": "#/components/schemas/ErrorView"}
-                                    }
-                                },
-                            },
-                        )
-            auth.document_access(schema)
-            app.openapi_schema = schema
-        return app.openapi_schema
-
-    app.openapi = openapi  # type: ignore[method-assign]
 
 
 def _install_error_handlers(app: FastAPI) -> None:

@@ -81,7 +81,7 @@ class Cell:
         if devices is None:
             factory = self._device_factory
             if factory is None:
-                from server.drivers.factory import build_devices
+                from server.bootstrap.devices import build_devices
 
                 factory = build_devices
             devices, self._release = await factory(self.settings)
@@ -113,7 +113,7 @@ class Cell:
                 interruption,
             )
         if settings.camera_simulated and settings.commission_simulated_cell:
-            from server.drivers.sim.commissioning import commission_simulated_cell
+            from server.bootstrap.commissioning import commission_simulated_cell
 
             await commission_simulated_cell(devices, self.stores, settings)
         self.worker = Worker(

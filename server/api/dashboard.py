@@ -3,7 +3,7 @@
 `GET /` is the page (`index.html`); its script and style sheet are under
 `/hmi/...`. Nothing here is secret: the page asks for a token and sends it as
 `Authorization: Bearer` on every API call, like any other client. The page
-and its assets go through the same gate as every request (`auth.AccessGate`:
+and its assets go through the same gate as every request (`access.AccessGate`:
 policy entry `("GET", "/")` and the open prefix `/hmi/`, after the
 `trusted_networks` check). The page may only talk
 to its own origin (Content-Security-Policy), so it fetches nothing from

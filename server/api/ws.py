@@ -52,7 +52,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.datastructures import QueryParams
 
-from server.api.auth import authenticate_websocket
+from server.api.access import authenticate_websocket
 from server.core.bus import Bus, BusMessage, Subscription, SubscriptionClosed
 from server.core.view import CellView
 

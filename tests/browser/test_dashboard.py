@@ -19,7 +19,7 @@ import pytest
 from fastapi import FastAPI
 from playwright.async_api import Browser, ConsoleMessage, Page, async_playwright, expect
 
-from server.api import auth
+from server.api import openapi_doc
 from server.api.dashboard import mount_dashboard
 from server.app import create_app
 from server.security.policy import POLICY
@@ -88,9 +88,9 @@ async def dashboard(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> AsyncIte
 
     monkeypatch.setattr(serving, "create_app", create_app_with_dashboard)
     if ("GET", "/") not in POLICY:  # until the policy opens the page: server/api/dashboard.py
-        declared = auth.required_role
+        declared = openapi_doc.required_role
         monkeypatch.setattr(
-            auth,
+            openapi_doc,
             "required_role",
             lambda method, path: None if (method, path) == ("GET", "/") else declared(method, path),
         )

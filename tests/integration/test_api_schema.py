@@ -178,7 +178,7 @@ def session() -> Iterator[requests.Session]:
 # --- without credentials -------------------------------------------------------------------
 #
 # openapi.json documents the access policy (server/security/policy.py, described by
-# `server.api.auth.document_access`): every operation that needs a role declares the bearer
+# `server.api.openapi_doc.document_access`): every operation that needs a role declares the bearer
 # scheme and its 401 (JSON `{"detail": "..."}` with `WWW-Authenticate: Bearer`) and 403, so the
 # schema checks validate a refusal like any other answer; no status is tolerated beyond the
 # document. What the document cannot say is that a refused client gets nothing else: a route that

@@ -11,8 +11,8 @@ from pathlib import Path
 import yaml
 
 from server.__main__ import parse_args
+from server.bootstrap.devices import parse_tcp_address
 from server.config import Settings
-from server.drivers.factory import parse_tcp_address
 from tests.processes import simulator
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,0 +1,131 @@
+"""Who may do what, checked in one place: the HTTP gate and the WebSocket's handshake.
+
+Every HTTP request goes through `AccessGate` (the policy table in
+server/security/policy.py says which role it needs); the WebSocket checks its
+ticket or bearer token in server/api/ws.py with `authenticate_websocket`. Both
+read the token with the same parser (`bearer_token`), so the two doors cannot
+drift apart. The refusals they leave in the request's state are written to the
+audit trail by server/api/audit.py; server/api/openapi_doc.py describes the
+same gate in openapi.json, from the same table.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+
+from fastapi import WebSocket
+from fastapi.responses import JSONResponse
+from starlette.requests import HTTPConnection
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from server.config import Settings
+from server.security.policy import WEBSOCKET_ROLE, role_for_request
+from server.security.tickets import TicketBook
+from server.security.tokens import Principal, TokenStore
+
+
+class Access:
+    """The app's token store, tickets and network allowlist."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.tokens = TokenStore(settings.data_path)
+        self.tickets = TicketBook()
+        self.networks = [ipaddress.ip_network(n, strict=False) for n in settings.trusted_networks]
+
+    def address_allowed(self, host: str | None) -> bool:
+        if not self.networks:
+            return True
+        try:
+            address = ipaddress.ip_address(host or "")
+        except ValueError:
+            return False
+        return any(address in network for network in self.networks)
+
+
+def access_of(connection: HTTPConnection) -> Access:
+    """The app's `Access` (`app.state.access`), from a request or a WebSocket."""
+    return connection.app.state.access
+
+
+def bearer_token(scope: Scope) -> str | None:
+    """The bearer token of an HTTP or WebSocket Authorization header, from the raw scope."""
+    for name, value in scope.get("headers") or ():
+        if name == b"authorization":
+            scheme, _, token = value.decode("latin-1").partition(" ")
+            token = token.strip()
+            return token if scheme.lower() == "bearer" and token else None
+    return None
+
+
+class AccessGate:
+    """ASGI middleware: the one gate of every HTTP request (network, token, role).
+
+    It runs before routing and matches the request's own path against the
+    policy table (`role_for_request`): a path no entry matches needs ADMIN, so
+    a new route stays closed until the table names it. Why not a FastAPI
+    dependency: resolving one per request was a fifth of a GET /state
+    (docs/benchmarks.md), and a refused request should cost no routing at all.
+
+    It leaves `principal` (and, when it refuses, `audit_reason`) in the
+    request's state for the routes and the audit trail. WebSockets prove who
+    they are in server/api/ws.py (`authenticate_websocket`).
+    """
+
+    def __init__(self, app: ASGIApp, access: Access) -> None:
+        self.app = app
+        self.access = access
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        refusal = self._check(scope)
+        if refusal is None:
+            await self.app(scope, receive, send)
+            return
+        status, reason = refusal
+        scope.setdefault("state", {})["audit_reason"] = reason
+        headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
+        await JSONResponse({"detail": reason}, status, headers=headers)(scope, receive, send)
+
+    def _check(self, scope: Scope) -> tuple[int, str] | None:
+        """None if the request may pass, else the status and the reason."""
+        access = self.access
+        client = scope.get("client")
+        host = client[0] if client else None
+        if not access.address_allowed(host):
+            return 403, f"requests from {host} are not allowed (trusted_networks)"
+        needed = role_for_request(scope["method"], scope["path"])
+        if needed is None:
+            return None
+        token = bearer_token(scope)
+        if token is None:
+            return 401, "authentication required: send Authorization: Bearer <token>"
+        principal = access.tokens.verify(token)
+        if principal is None:
+            return 401, "the token is unknown or revoked"
+        scope.setdefault("state", {})["principal"] = principal
+        if principal.role < needed:
+            return (
+                403,
+                f"this needs the {needed.label} role; {principal.name} has {principal.role.label}",
+            )
+        return None
+
+
+def authenticate_websocket(websocket: WebSocket) -> Principal | None:
+    """A WebSocket's principal from its one-shot ticket or bearer token, if allowed."""
+    access = access_of(websocket)
+    if not access.address_allowed(websocket.client.host if websocket.client else None):
+        return None
+    ticket = websocket.query_params.get("ticket")
+    token = bearer_token(websocket.scope)
+    principal = (
+        access.tickets.redeem(ticket)
+        if ticket
+        else (access.tokens.verify(token) if token else None)
+    )
+    if principal is None or principal.role < WEBSOCKET_ROLE:
+        return None
+    return principal

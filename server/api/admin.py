@@ -1,0 +1,186 @@
+"""The administration routes: tokens, WebSocket tickets, the audit trail, the settings.
+
+Who may call them is not decided here: the gate (server/api/access.py) has
+already checked every request against the policy table
+(server/security/policy.py) and left its `principal` in the request's state.
+A route that changes something says what in `request.state.audit_reason`, and
+the audit observer (server/api/audit.py) writes it with the outcome.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, HTTPException, Query, Request, Response
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from server.api.access import access_of
+from server.api.analytics import csv_export
+from server.api.schemas import ErrorView
+from server.config import Settings
+from server.core.journal import Journal
+from server.security.tokens import Role
+
+router = APIRouter(tags=["access"])
+RUNTIME_SETTINGS = (
+    "error_state_timeout",
+    "auto_recovery_enabled",
+    "error_recovery_attempts",
+    "error_recovery_delay",
+    "calibration_max_error_mm",
+    "design_cycle_time_s",
+    "shift_hours",
+    "processing_timeout",
+    "logging_level",
+)
+
+
+class TicketView(BaseModel):
+    ticket: str
+    expires_in_s: float
+
+
+class TokenRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=100)
+    role: Literal["viewer", "operator", "maintenance", "admin"]
+
+
+@router.post("/ws-ticket", response_model=TicketView)
+async def issue_ticket(request: Request) -> TicketView:
+    """A one-shot ticket for `/ws?ticket=...`, valid a few seconds."""
+    try:
+        ticket, ttl = access_of(request).tickets.issue(request.state.principal)
+    except OverflowError as exc:
+        raise HTTPException(503, str(exc)) from exc
+    return TicketView(ticket=ticket, expires_in_s=ttl)
+
+
+@router.get("/tokens")
+async def list_tokens(request: Request) -> dict[str, Any]:
+    """Every token, without secrets."""
+    return {"tokens": access_of(request).tokens.list()}
+
+
+@router.post("/tokens", status_code=201)
+async def create_token(request: Request, body: TokenRequest) -> dict[str, Any]:
+    """A new token; its secret is shown once, in this answer only."""
+    entry, token = access_of(request).tokens.create(body.name, Role.parse(body.role))
+    request.state.audit_reason = f"created token {entry.id} ({body.name}, {body.role})"
+    return {**entry.public(), "token": token}
+
+
+@router.delete(
+    "/tokens/{token_id}",
+    status_code=204,
+    response_class=Response,
+    responses={404: {"model": ErrorView, "description": "no such token"}},
+)
+async def revoke_token(request: Request, token_id: str) -> Response:
+    """Revoke a token at once."""
+    try:
+        entry = access_of(request).tokens.revoke(token_id)
+    except KeyError:
+        raise HTTPException(404, f"no token {token_id!r}") from None
+    request.state.audit_reason = f"revoked token {entry.id} ({entry.name})"
+    return Response(status_code=204)
+
+
+AuditText = Annotated[str | None, Query(max_length=120)]
+
+
+def _audit_filters(
+    principal: str | None, action: str | None, outcome: str | None
+) -> dict[str, str]:
+    given = {"principal": principal, "action": action, "outcome": outcome}
+    return {k: v for k, v in given.items() if v}
+
+
+@router.get("/audit")
+async def get_audit(
+    request: Request,
+    since: float | None = Query(None, ge=0, le=1e11, allow_inf_nan=False),
+    until: float | None = Query(None, ge=0, le=1e11, allow_inf_nan=False),
+    principal: AuditText = None,
+    action: AuditText = None,
+    outcome: AuditText = None,
+    limit: int = Query(100, ge=1, le=10_000),
+    offset: int = Query(0, ge=0, le=10_000_000),
+) -> dict[str, Any]:
+    """Who did what, when, from where, with what outcome; newest first, filterable."""
+    journal: Journal = request.app.state.cell.journal
+    await journal.caught_up()
+    filters = _audit_filters(principal, action, outcome)
+    rows, total = await asyncio.gather(
+        asyncio.to_thread(
+            journal.query,
+            "audit",
+            since=since,
+            until=until,
+            filters=filters,
+            limit=limit,
+            offset=offset,
+        ),
+        asyncio.to_thread(journal.count, "audit", since=since, until=until, filters=filters),
+    )
+    return {"audit": rows, "total": total, "limit": limit, "offset": offset}
+
+
+@router.get("/audit.csv", response_class=Response, responses={200: {"content": {"text/csv": {}}}})
+async def export_audit(
+    request: Request,
+    since: float | None = Query(None, ge=0, le=1e11, allow_inf_nan=False),
+    until: float | None = Query(None, ge=0, le=1e11, allow_inf_nan=False),
+    principal: AuditText = None,
+    action: AuditText = None,
+    outcome: AuditText = None,
+) -> Response:
+    """The audit trail as CSV, oldest first."""
+    return await csv_export(
+        request.app.state.cell.journal,
+        "audit",
+        since,
+        until,
+        _audit_filters(principal, action, outcome),
+    )
+
+
+@router.get("/settings")
+async def get_settings(request: Request) -> dict[str, Any]:
+    """The settings in force (nothing secret is kept in settings)."""
+    return request.app.state.settings.model_dump(mode="json")
+
+
+@router.patch("/settings")
+async def patch_settings(request: Request, body: dict[str, Any]) -> dict[str, Any]:
+    """Change settings that apply at once (RUNTIME_SETTINGS); audited with old and new values."""
+    settings: Settings = request.app.state.settings
+    unknown = sorted(set(body) - set(RUNTIME_SETTINGS))
+    if unknown:
+        raise HTTPException(
+            422,
+            f"not changeable at run time: {', '.join(unknown)}; "
+            f"changeable: {', '.join(RUNTIME_SETTINGS)}",
+        )
+    try:
+        merged = Settings.model_validate({**settings.model_dump(), **body})
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise HTTPException(422, f"invalid setting {where}: {first['msg']}") from None
+    changes = {
+        k: (getattr(settings, k), getattr(merged, k))
+        for k in body
+        if getattr(settings, k) != getattr(merged, k)
+    }
+    for key, (_, new) in changes.items():
+        setattr(settings, key, new)
+    if "logging_level" in changes:
+        logging.getLogger().setLevel(settings.logging_level)
+    request.state.audit_reason = "; ".join(
+        f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items()
+    )
+    return {"changed": {k: {"old": old, "new": new} for k, (old, new) in changes.items()}}
