@@ -27,10 +27,10 @@ from server.api.analytics import csv_export
 from server.api.observe import Observer
 from server.api.schemas import ErrorView
 from server.config import Settings
-from server.core.journal import Journal
 from server.security.policy import WEBSOCKET_ROLE, required_role, role_for_request
 from server.security.tickets import TicketBook
 from server.security.tokens import Principal, Role, TokenStore
+from server.storage.journal import Journal, records
 
 router = APIRouter(tags=["access"])
 RUNTIME_SETTINGS = (
@@ -238,7 +238,7 @@ def audit_observer(journal_of: Callable[[Scope], Journal | None]) -> Observer:
         client = scope.get("client")
         host = client[0] if client else "unknown"
         journal.append(
-            [Journal.audit(time.time(), who, host, f"{method} {scope['path']}", outcome, detail)],
+            [records.audit(time.time(), who, host, f"{method} {scope['path']}", outcome, detail)],
             durable=False,
         )
 
