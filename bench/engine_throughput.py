@@ -167,6 +167,7 @@ class NullJournal:
     """
 
     backlog = 0
+    last_error = None
 
     def append(self, records: list[Any], *, durable: bool = True) -> None:
         return None

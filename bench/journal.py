@@ -24,11 +24,11 @@ from bench.report import emit, percentiles_ms
 from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
-from server.core.journal import Journal
 from server.core.operations import default_operations
 from server.core.transitions import Event, State
 from server.core.worker import Worker
 from server.storage import CellStores
+from server.storage.journal import Journal, records
 
 LEVELS = ("OFF", "NORMAL", "FULL")
 
@@ -41,7 +41,7 @@ async def throughput(level: str, count: int, directory: Path) -> float:
     futures = [
         journal.append(
             [
-                Journal.event(
+                records.event(
                     f"e{i}", time.time(), "PAUSE_REQUESTED", "bench", {}, "refused", "bench", "IDLE"
                 )
             ]

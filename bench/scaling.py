@@ -35,9 +35,9 @@ from bench.report import emit, percentiles_ms, results_path
 from server.cell import Cell
 from server.config import Settings
 from server.core.devices import CellDevices
-from server.core.journal import Journal
 from server.core.transitions import Event, State
 from server.core.worker import Worker
+from server.storage.journal import Journal, records
 
 REPEATS = 20  # per point of the queue-depth sweep
 PREFILL_BATCH = 5000
@@ -107,8 +107,8 @@ def prefill(path: Path, count: int) -> None:
     journal.start(loop)
     now = time.time()
     for first in range(0, count, PREFILL_BATCH):
-        records = [
-            Journal.event(
+        batch = [
+            records.event(
                 f"prefill-{i:08d}",
                 now,
                 Event.RESUME_REQUESTED.value,
@@ -120,7 +120,7 @@ def prefill(path: Path, count: int) -> None:
             )
             for i in range(first, min(count, first + PREFILL_BATCH))
         ]
-        future = journal.append(records)
+        future = journal.append(batch)
         assert future is not None
         loop.run_until_complete(future)
     journal.stop()

@@ -17,7 +17,6 @@ from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
 from server.core.events import Outcome, Payload, StopPayload
-from server.core.journal import Journal
 from server.core.operations import Operation, default_operations
 from server.core.snapshot import SnapshotFile
 from server.core.transitions import (
@@ -31,6 +30,7 @@ from server.core.transitions import (
 from server.core.view import CellView
 from server.core.worker import Worker
 from server.storage import CellStores
+from server.storage.journal import Journal
 
 log = logging.getLogger(__name__)
 

@@ -11,11 +11,11 @@ from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
 from server.core.events import StartPayload
-from server.core.journal import Journal
 from server.core.operations import Operation, default_operations
 from server.core.transitions import State
 from server.core.worker import Worker
 from server.storage import CellStores
+from server.storage.journal import Journal
 from server.storage.workpieces import WorkpieceIn
 from tests.fakes import FakeCamera, FakeClock, FakeGlue, FakeRobot
 

@@ -20,8 +20,8 @@ from server.api.access import access_of
 from server.api.analytics import csv_export
 from server.api.schemas import ErrorView
 from server.config import Settings
-from server.core.journal import Journal
 from server.security.tokens import Role
+from server.storage.journal import Journal
 
 router = APIRouter(tags=["access"])
 RUNTIME_SETTINGS = (

@@ -4,26 +4,31 @@ Every table takes the same paging and time filters (`since`, `until` as Unix
 seconds, `limit`, `offset`) plus equality filters on its own columns; the
 journal is read off the event loop. A CSV export takes the same filters and
 streams every matching row, page by page (`csv_export`).
+
+The equality filters are declared once, in the journal's schema (`FILTERS`:
+column, type, meaning); the routes' query parameters are built from it, each
+validated and documented, and the journal refuses any other column.
 """
 
 from __future__ import annotations
 
 import asyncio
 import csv
+import inspect
 import io
 import json
 import time
-from collections.abc import Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from typing import Annotated, Any, Literal, get_args
 
-from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response, StreamingResponse
 
 from server.api.schemas import ErrorView
 from server.cell import Cell
-from server.core.journal import FILTERS, TABLES, Cursor, Journal
 from server.core.kpis import Window, compute_kpis
+from server.storage.journal import FILTERS, TABLES, Cursor, Journal, filter_columns
 
 router = APIRouter(tags=["analytics"])
 
@@ -37,13 +42,13 @@ Limit = Annotated[int, Query(ge=1, le=10_000)]
 Offset = Annotated[int, Query(ge=0, le=10_000_000)]
 TEXT_MAX_LENGTH = 64
 TEXT_PATTERN = r"^[A-Za-z0-9_.:-]+$"
-Text = Annotated[str | None, Query(max_length=TEXT_MAX_LENGTH, pattern=TEXT_PATTERN)]
 ExportTable = Literal["events", "transitions", "operations", "errors", "recoveries"]
 EXPORT_TABLES: tuple[str, ...] = get_args(ExportTable)
 # Rows read, formatted and sent at a time: what bounds an export's memory, never its length.
 EXPORT_PAGE_ROWS = 5_000
 # The KPI window reads at most this many rows of each table.
 KPI_ROW_LIMIT = 100_000
+KEYWORD_ONLY = inspect.Parameter.KEYWORD_ONLY
 
 
 def _journal(request: Request) -> Journal:
@@ -88,111 +93,109 @@ def _decode(row: dict[str, Any]) -> dict[str, Any]:
     return row
 
 
-@router.get("/history")
-async def get_history(
-    request: Request,
-    since: Since = None,
-    until: Until = None,
-    old_state: Text = None,
-    new_state: Text = None,
-    event: Text = None,
-    limit: Limit = 100,
-    offset: Offset = 0,
-) -> dict[str, Any]:
-    """Transitions, newest first: time, old and new state, event, event id, time in old state."""
-    return await _page(
-        request,
+def _filter_parameter(column: str, type_: type, description: str) -> inspect.Parameter:
+    """An optional query parameter filtering `column` by equality. Text is bounded in
+    length and characters (TEXT_MAX_LENGTH, TEXT_PATTERN): a value is never anything odd."""
+    if type_ is str:
+        query = Query(max_length=TEXT_MAX_LENGTH, pattern=TEXT_PATTERN, description=description)
+    else:
+        query = Query(description=description)
+    return inspect.Parameter(
+        column, KEYWORD_ONLY, default=None, annotation=Annotated[type_ | None, query]
+    )
+
+
+def _table_route(table: str, name: str, doc: str) -> Callable[..., Awaitable[dict[str, Any]]]:
+    """The JSON route of a journal table: time range, paging, and the table's filters
+    (those of FILTERS offered on its JSON route), each a documented query parameter."""
+
+    async def endpoint(
+        request: Request,
+        since: float | None,
+        until: float | None,
+        limit: int,
+        offset: int,
+        **filters: Any,
+    ) -> dict[str, Any]:
+        return await _page(request, table, since, until, limit, offset, **filters)
+
+    endpoint.__name__ = endpoint.__qualname__ = name
+    endpoint.__doc__ = doc
+    endpoint.__signature__ = inspect.Signature(  # type: ignore[attr-defined]
+        [
+            inspect.Parameter("request", KEYWORD_ONLY, annotation=Request),
+            inspect.Parameter("since", KEYWORD_ONLY, default=None, annotation=Since),
+            inspect.Parameter("until", KEYWORD_ONLY, default=None, annotation=Until),
+            *(
+                _filter_parameter(f.column, f.type, f.meaning)
+                for f in FILTERS[table]
+                if f.on_json_route
+            ),
+            inspect.Parameter("limit", KEYWORD_ONLY, default=100, annotation=Limit),
+            inspect.Parameter("offset", KEYWORD_ONLY, default=0, annotation=Offset),
+        ],
+        return_annotation=dict[str, Any],
+    )
+    return endpoint
+
+
+# path, table (the answer's key), route name, what the rows are
+TABLE_ROUTES = (
+    (
+        "/history",
         "transitions",
-        since,
-        until,
-        limit,
-        offset,
-        old_state=old_state,
-        new_state=new_state,
-        event=event,
-    )
-
-
-@router.get("/operations")
-async def get_operations(
-    request: Request,
-    since: Since = None,
-    until: Until = None,
-    kind: Text = None,
-    outcome: Text = None,
-    limit: Limit = 100,
-    offset: Offset = 0,
-) -> dict[str, Any]:
-    """Operations, newest first: kind, start, end, outcome, result summary, error."""
-    return await _page(
-        request, "operations", since, until, limit, offset, kind=kind, outcome=outcome
-    )
-
-
-@router.get("/errors")
-async def get_errors(
-    request: Request,
-    since: Since = None,
-    until: Until = None,
-    code: Text = None,
-    component: Text = None,
-    classification: Text = None,
-    state: Text = None,
-    limit: Limit = 100,
-    offset: Offset = 0,
-) -> dict[str, Any]:
-    """Faults, newest first: code, message, component, classification, event id."""
-    return await _page(
-        request,
+        "get_history",
+        "Transitions, newest first: time, old and new state, event, event id, time in old state.",
+    ),
+    (
+        "/operations",
+        "operations",
+        "get_operations",
+        "Operations, newest first: kind, start, end, outcome, result summary, error.",
+    ),
+    (
+        "/errors",
         "errors",
-        since,
-        until,
-        limit,
-        offset,
-        code=code,
-        component=component,
-        classification=classification,
-        state=state,
-    )
-
-
-@router.get("/events")
-async def get_events(
-    request: Request,
-    since: Since = None,
-    until: Until = None,
-    type: Text = None,
-    source: Text = None,
-    outcome: Text = None,
-    state: Text = None,
-    limit: Limit = 100,
-    offset: Offset = 0,
-) -> dict[str, Any]:
-    """Every event the worker decided, accepted or refused, with its data and message."""
-    return await _page(
-        request,
+        "get_errors",
+        "Faults, newest first: code, message, component, classification, event id.",
+    ),
+    (
+        "/events",
         "events",
-        since,
-        until,
-        limit,
-        offset,
-        type=type,
-        source=source,
-        outcome=outcome,
-        state=state,
-    )
+        "get_events",
+        "Every event the worker decided, accepted or refused, with its data and message.",
+    ),
+)
+for _path, _table, _name, _doc in TABLE_ROUTES:
+    # `name` gives the summary and operationId, as a function of that name would.
+    router.add_api_route(_path, _table_route(_table, _name, _doc), methods=["GET"], name=_name)
 
 
-def _export_filter(column: str) -> Any:
-    """An export's equality filter: validated as `Text` on the JSON routes, documented
-    with the tables it applies to (from FILTERS, which the journal enforces too)."""
-    tables = ", ".join(t for t in EXPORT_TABLES if column in FILTERS[t])
-    return Query(
-        None,
-        max_length=TEXT_MAX_LENGTH,
-        pattern=TEXT_PATTERN,
-        description=f"equality filter, for {tables}",
+def _export_filters() -> Callable[..., dict[str, Any]]:
+    """A dependency taking every export table's filters as query parameters; each is
+    documented with what it means in each table that has it. Returns those given."""
+    tables: dict[str, list[str]] = {}  # column -> its meaning in each table
+    types: dict[str, type] = {}  # one parameter per column: its type must agree
+    for table in EXPORT_TABLES:
+        for f in FILTERS[table]:
+            tables.setdefault(f.column, []).append(f"{f.meaning} ({table})")
+            if types.setdefault(f.column, f.type) is not f.type:
+                raise TypeError(f"filter {f.column} has different types in different tables")
+
+    def given(**filters: Any) -> dict[str, Any]:
+        return {column: value for column, value in filters.items() if value is not None}
+
+    given.__signature__ = inspect.Signature(  # type: ignore[attr-defined]
+        [
+            _filter_parameter(column, types[column], "; ".join(meanings))
+            for column, meanings in tables.items()
+        ],
+        return_annotation=dict[str, Any],
     )
+    return given
+
+
+ExportFilters = Annotated[dict[str, Any], Depends(_export_filters())]
 
 
 @router.get(
@@ -203,49 +206,21 @@ def _export_filter(column: str) -> Any:
 async def export_csv(
     request: Request,
     table: ExportTable,
+    filters: ExportFilters,  # its query parameters follow `until` in the schema
     since: Since = None,
     until: Until = None,
-    type: str | None = _export_filter("type"),
-    source: str | None = _export_filter("source"),
-    outcome: str | None = _export_filter("outcome"),
-    state: str | None = _export_filter("state"),
-    old_state: str | None = _export_filter("old_state"),
-    new_state: str | None = _export_filter("new_state"),
-    event: str | None = _export_filter("event"),
-    event_id: str | None = _export_filter("event_id"),
-    kind: str | None = _export_filter("kind"),
-    code: str | None = _export_filter("code"),
-    component: str | None = _export_filter("component"),
-    classification: str | None = _export_filter("classification"),
-    run_id: str | None = _export_filter("run_id"),
-    error_code: str | None = _export_filter("error_code"),
 ) -> Response:
     """A whole table as CSV, oldest first, for spreadsheets and reports.
 
     Every matching row, with no row limit: streamed page by page, so a long table is
     never cut short (docs/api.md says what the file holds). Takes the equality
-    filters of that table's JSON route; each parameter names its tables. A filter on
-    another table's column is a 422 naming it: ignored, it would give a file holding
-    more than was asked for.
+    filters of that table (its JSON route's; transitions also `event_id`); each
+    parameter says what it means in each table that has it. A filter on another
+    table's column is a 422 naming it: ignored, it would give a file holding more
+    than was asked for.
     """
-    given = {
-        "type": type,
-        "source": source,
-        "outcome": outcome,
-        "state": state,
-        "old_state": old_state,
-        "new_state": new_state,
-        "event": event,
-        "event_id": event_id,
-        "kind": kind,
-        "code": code,
-        "component": component,
-        "classification": classification,
-        "run_id": run_id,
-        "error_code": error_code,
-    }
-    filters = {column: value for column, value in given.items() if value is not None}
-    misplaced = [column for column in filters if column not in FILTERS[table]]
+    allowed = filter_columns(table)
+    misplaced = [column for column in filters if column not in allowed]
     if misplaced:
         raise RequestValidationError(
             [
@@ -253,7 +228,7 @@ async def export_csv(
                     "type": "value_error",
                     "loc": ("query", column),
                     "msg": f"{table} cannot be filtered by {column} "
-                    f"(its filters: {', '.join(FILTERS[table])})",
+                    f"(its filters: {', '.join(allowed)})",
                     "input": filters[column],
                 }
                 for column in misplaced

@@ -15,8 +15,8 @@ from collections.abc import Callable
 from starlette.types import Scope
 
 from server.api.observe import Observer
-from server.core.journal import Journal
 from server.security.tokens import Principal
+from server.storage.journal import Journal, records
 
 
 def audit_observer(journal_of: Callable[[Scope], Journal | None]) -> Observer:
@@ -37,7 +37,7 @@ def audit_observer(journal_of: Callable[[Scope], Journal | None]) -> Observer:
         client = scope.get("client")
         host = client[0] if client else "unknown"
         journal.append(
-            [Journal.audit(time.time(), who, host, f"{method} {scope['path']}", outcome, detail)],
+            [records.audit(time.time(), who, host, f"{method} {scope['path']}", outcome, detail)],
             durable=False,
         )
 

@@ -24,8 +24,8 @@ from server.core.clock import SYSTEM_CLOCK, Clock
 from server.core.context import FaultRecord, RunningOperation, TransitionRecord
 from server.core.event_queue import Envelope
 from server.core.events import Outcome
-from server.core.journal import Journal, Record
 from server.core.snapshot import SnapshotFile
+from server.storage.journal import Journal, Record, records
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +55,7 @@ class Recorder:
 
     def journal_health(self) -> dict[str, Any]:
         """The write side's figures for /health: the backlog and the last write failure."""
-        failure = getattr(self.journal, "last_error", None)
+        failure = self.journal.last_error
         return {
             "backlog": self.journal.backlog,
             "last_error": failure.message if failure else None,
@@ -65,11 +65,11 @@ class Recorder:
     # --- records committed with the event ----------------------------------
 
     def transition(self, record: TransitionRecord) -> None:
-        self._pending.append(Journal.transition(record.as_dict()))
+        self._pending.append(records.transition(record.as_dict()))
 
     def fault(self, fault: FaultRecord, state: str) -> None:
         self._pending.append(
-            Journal.error(
+            records.error(
                 fault.time,
                 fault.code,
                 fault.message,
@@ -82,7 +82,7 @@ class Recorder:
 
     def run_started(self, run: RunningOperation) -> None:
         self._pending.append(
-            Journal.operation_started(run.run_id, run.name, run.started_at, dict(run.params))
+            records.operation_started(run.run_id, run.name, run.started_at, dict(run.params))
         )
 
     def run_ended(
@@ -94,7 +94,7 @@ class Recorder:
         parts: int,
     ) -> None:
         self._pending.append(
-            Journal.operation_ended(run_id, self._clock.time(), outcome, result, error, parts)
+            records.operation_ended(run_id, self._clock.time(), outcome, result, error, parts)
         )
 
     def save_snapshot(self, snapshot: dict[str, Any], running: RunningOperation | None) -> None:
@@ -109,14 +109,14 @@ class Recorder:
     # --- records written at once, not waited on ------------------------------
 
     def progress(self, run_id: str, progress: dict[str, Any]) -> None:
-        self.journal.append([Journal.operation_progress(run_id, progress)], durable=False)
+        self.journal.append([records.operation_progress(run_id, progress)], durable=False)
 
     def recovery(self, run_id: str, code: str, attempt: int, succeeded: bool) -> None:
-        record = Journal.recovery(self._clock.time(), run_id, code, attempt, succeeded)
+        record = records.recovery(self._clock.time(), run_id, code, attempt, succeeded)
         self.journal.append([record], durable=False)
 
     def warning(self, code: str, message: str, component: str, event_id: str, state: str) -> None:
-        record = Journal.error(
+        record = records.error(
             self._clock.time(), code, message, component, "warning", event_id, state
         )
         self.journal.append([record], durable=False)
@@ -125,8 +125,8 @@ class Recorder:
 
     def commit(self, envelope: Envelope, outcome: Outcome) -> asyncio.Future[None] | None:
         """The event's row and everything it caused, in one write; the future marks it durable."""
-        records, self._pending = self._pending, []
-        event = Journal.event(
+        pending, self._pending = self._pending, []
+        event = records.event(
             envelope.event_id,
             envelope.timestamp,
             envelope.event.value,
@@ -136,7 +136,7 @@ class Recorder:
             outcome.message,
             outcome.state.value,
         )
-        return self.journal.append([event, *records])
+        return self.journal.append([event, *pending])
 
     def answer_when_durable(
         self, envelope: Envelope, outcome: Outcome, durable: asyncio.Future[None] | None

@@ -39,7 +39,6 @@ from server.core.events import (
     StopPayload,
     payload_of,
 )
-from server.core.journal import Journal
 from server.core.operations.base import Operation
 from server.core.recorder import Recorder
 from server.core.runs import Runs
@@ -51,6 +50,7 @@ from server.drivers.base import DeviceFault
 from server.errors import EventQueueFull, TransitionNotAllowed, WorkerStopped
 from server.logging_setup import current_event_id
 from server.storage import CellStores
+from server.storage.journal import Journal
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,8 @@ from server.api import analytics
 from server.cell import Cell
 from server.config import Settings
 from server.core.devices import CellDevices
-from server.core.journal import Journal, Record
+from server.openapi import generate
+from server.storage.journal import FILTERS, Record, records
 from tests.conftest import START, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, serve
@@ -91,6 +92,27 @@ async def test_history_operations_errors_events_with_filters_and_paging(api) -> 
     assert bad.status_code == 422 and "limit" in bad.json()["detail"]
 
 
+def test_the_routes_take_each_tables_declared_filters_documented() -> None:
+    paths = generate()["paths"]
+    for path, table, _, _ in analytics.TABLE_ROUTES:
+        parameters = paths[path]["get"]["parameters"]
+        filters = [f for f in FILTERS[table] if f.on_json_route]
+        assert [p["name"] for p in parameters] == [
+            "since",
+            "until",
+            *(f.column for f in filters),
+            "limit",
+            "offset",
+        ]
+        for parameter, declared in zip(parameters[2:-2], filters, strict=True):
+            assert parameter["description"] == declared.meaning
+            assert parameter["schema"]["anyOf"][0]["pattern"] == analytics.TEXT_PATTERN
+    exported = {p["name"] for p in paths["/export/{table}.csv"]["get"]["parameters"]}
+    assert exported == {"table", "since", "until"} | {
+        f.column for table in analytics.EXPORT_TABLES for f in FILTERS[table]
+    }
+
+
 async def test_csv_export(api) -> None:
     await a_shift(api)
     response = await api.get("/export/transitions.csv")
@@ -139,7 +161,7 @@ async def test_csv_export_of_an_empty_table_is_its_header(api) -> None:
 
 
 def a_test_error(i: int, at: float) -> Record:
-    return Journal.error(at, f"TEST_{'AB'[i % 2]}", f"row {i}", "test", "warning", f"e{i}", "IDLE")
+    return records.error(at, f"TEST_{'AB'[i % 2]}", f"row {i}", "test", "warning", f"e{i}", "IDLE")
 
 
 async def test_csv_export_streams_every_row_in_pages_once_and_in_order(served, monkeypatch) -> None:

@@ -9,12 +9,14 @@ import sqlite3
 import time
 from pathlib import Path
 
+import pytest
+
 from server.cell import Cell
 from server.config import Settings
 from server.core.devices import CellDevices
 from server.core.events import StopPayload
-from server.core.journal import Journal
 from server.core.transitions import Command, State
+from server.storage.journal import Journal, records
 from tests.conftest import START_PAYLOAD, demo_stores, wait_for_state
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
@@ -115,8 +117,8 @@ async def test_retention_prunes_old_rows(tmp_path) -> None:
     old, new = time.time() - 3 * 86_400, time.time()
     await journal.append(
         [
-            Journal.event("old", old, "X", "t", {}, "accepted", "", "IDLE"),
-            Journal.event("new", new, "X", "t", {}, "accepted", "", "IDLE"),
+            records.event("old", old, "X", "t", {}, "accepted", "", "IDLE"),
+            records.event("new", new, "X", "t", {}, "accepted", "", "IDLE"),
         ]
     )
     journal.stop()
@@ -154,9 +156,30 @@ async def test_text_sqlite_cannot_store_does_not_stop_the_journal(tmp_path) -> N
     journal.open()
     journal.start(asyncio.get_running_loop())
     await journal.append(
-        [Journal.error(time.time(), "X", "bad \ud800 text", "robot", "critical", "e1", "ERROR")]
+        [records.error(time.time(), "X", "bad \ud800 text", "robot", "critical", "e1", "ERROR")]
     )
-    await journal.append([Journal.event("e2", time.time(), "X", "t", {}, "accepted", "", "IDLE")])
+    await journal.append([records.event("e2", time.time(), "X", "t", {}, "accepted", "", "IDLE")])
     assert journal.query("errors")[0]["message"] == "bad ? text"
     assert journal.query("events")[0]["id"] == "e2"
+    journal.stop()
+
+
+async def test_last_error_is_the_last_write_failure_until_a_write_succeeds(tmp_path) -> None:
+    journal = Journal(tmp_path / "journal.db")
+    journal.open()
+    journal.start(asyncio.get_running_loop())
+    assert journal.last_error is None
+    before = time.time()
+    await journal.append([records.operation_started("r1", "trajectory", before, {})])
+    bad = records.Record("INSERT INTO operations (run_id) VALUES (?)", ("r2",))  # NOT NULLs
+    with pytest.raises(sqlite3.IntegrityError):
+        await journal.append([bad])
+    failure = journal.last_error
+    assert failure is not None and "NOT NULL" in failure.message
+    assert before <= failure.at <= time.time()
+    assert failure.as_dict() == {"message": failure.message, "at": failure.at}
+    await journal.caught_up()  # nothing written: the failure stays the last word
+    assert journal.last_error == failure
+    await journal.append([records.event("e1", time.time(), "X", "t", {}, "accepted", "", "IDLE")])
+    assert journal.last_error is None
     journal.stop()

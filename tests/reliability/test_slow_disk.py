@@ -1,6 +1,6 @@
 """A slow disk delays the answers to commands, never the decisions or the stop.
 
-The design (server/core/journal.py): a command is answered only once its
+The design (server/storage/journal/writer.py): a command is answered only once its
 journal record is durable, but the worker hands records to the writer thread
 and goes on, and the e-stop halts the devices before its event is even queued.
 tests/integration/test_persistence.py checks that an answer implies a durable
@@ -35,7 +35,7 @@ import httpx
 import pytest
 
 import server.cell
-from server.core.journal import Journal
+from server.storage.journal import Journal
 from tests.reliability._journal_checks import missing_events
 from tests.rig import SPRAY_DEMO, Rig, open_rig
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from server.core.journal import Journal
+from server.storage.journal import Journal, records
 from tests.reliability._journal_checks import (
     invalid_transitions,
     journaled_transitions,
@@ -47,7 +47,7 @@ def _journal(path: Path) -> Path:
 
 
 def _transition(connection: sqlite3.Connection, old: str, event: str, new: str, eid: str) -> None:
-    record = Journal.transition(
+    record = records.transition(
         {
             "timestamp": 1.0,
             "old_state": old,
@@ -68,9 +68,9 @@ def test_the_journal_checks_find_what_is_wrong(tmp_path: Path) -> None:
         _transition(connection, "ERROR", "START_REQUESTED", "EXECUTING_TRAJECTORY", "a-3")
         _transition(connection, "ERROR", "RESET_REQUESTED", "EXECUTING_TRAJECTORY", "a-4")
         for event_id in ("a-1", "a-2", "a-3"):
-            record = Journal.event(event_id, 1.0, "START_REQUESTED", "api", {}, "accepted", "", "")
+            record = records.event(event_id, 1.0, "START_REQUESTED", "api", {}, "accepted", "", "")
             connection.execute(record.sql, record.params)
-        record = Journal.operation_started("a-1", "trajectory", 1.0, {})
+        record = records.operation_started("a-1", "trajectory", 1.0, {})
         connection.execute(record.sql, record.params)
     connection.close()
 

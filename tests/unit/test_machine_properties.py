@@ -27,10 +27,10 @@ from server.core.events import (
     RunCompletedPayload,
     RunFailedPayload,
 )
-from server.core.journal import Journal
 from server.core.operations import default_operations
 from server.core.transitions import TRANSITIONS, Event, State
 from server.core.worker import Worker
+from server.storage.journal import Journal
 from tests.conftest import START_PAYLOAD, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 

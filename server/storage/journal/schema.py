@@ -1,0 +1,129 @@
+"""The journal's tables: their SQL, their columns, and what a query may filter on.
+
+`FILTERS` is the one declaration of each table's equality filters: the readers
+refuse any other column, and the HTTP routes (server/api/analytics.py) build
+their query parameters, with type and description, from it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS events (
+    id TEXT PRIMARY KEY, time REAL NOT NULL, type TEXT NOT NULL, source TEXT NOT NULL,
+    data TEXT NOT NULL, outcome TEXT NOT NULL, message TEXT NOT NULL, state TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS transitions (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, old_state TEXT NOT NULL,
+    new_state TEXT NOT NULL, event TEXT NOT NULL, event_id TEXT NOT NULL,
+    time_in_old_state REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS operations (
+    run_id TEXT PRIMARY KEY, kind TEXT NOT NULL, started_at REAL NOT NULL, ended_at REAL,
+    outcome TEXT, params TEXT NOT NULL, progress TEXT, result TEXT, error TEXT,
+    workpieces INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS errors (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, code TEXT NOT NULL,
+    message TEXT NOT NULL, component TEXT NOT NULL, classification TEXT NOT NULL,
+    event_id TEXT NOT NULL, state TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS recoveries (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, run_id TEXT NOT NULL,
+    error_code TEXT NOT NULL, attempt INTEGER NOT NULL, succeeded INTEGER NOT NULL
+);
+CREATE TABLE IF NOT EXISTS audit (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, principal TEXT NOT NULL,
+    address TEXT NOT NULL, action TEXT NOT NULL, outcome TEXT NOT NULL, detail TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS audit_time ON audit(time);
+CREATE INDEX IF NOT EXISTS events_time ON events(time);
+CREATE INDEX IF NOT EXISTS transitions_time ON transitions(time);
+CREATE INDEX IF NOT EXISTS operations_started ON operations(started_at);
+CREATE INDEX IF NOT EXISTS errors_time ON errors(time);
+CREATE INDEX IF NOT EXISTS recoveries_time ON recoveries(time);
+"""
+
+# Per table: its time column (ranges, order, retention) and its columns, in the
+# order rows are read and exported.
+TABLES: dict[str, tuple[str, list[str]]] = {
+    "events": ("time", ["id", "time", "type", "source", "data", "outcome", "message", "state"]),
+    "transitions": (
+        "time",
+        ["seq", "time", "old_state", "new_state", "event", "event_id", "time_in_old_state"],
+    ),
+    "operations": (
+        "started_at",
+        [
+            "run_id",
+            "kind",
+            "started_at",
+            "ended_at",
+            "outcome",
+            "params",
+            "progress",
+            "result",
+            "error",
+            "workpieces",
+        ],
+    ),
+    "errors": (
+        "time",
+        ["seq", "time", "code", "message", "component", "classification", "event_id", "state"],
+    ),
+    "recoveries": ("time", ["seq", "time", "run_id", "error_code", "attempt", "succeeded"]),
+    "audit": ("time", ["seq", "time", "principal", "address", "action", "outcome", "detail"]),
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Filter:
+    """A column a query may filter on by equality."""
+
+    column: str
+    type: type  # of the value compared with the column
+    meaning: str  # one line: what the column holds (documents the query parameter)
+    # False: only the CSV export offers it, not the table's JSON route (which never did).
+    on_json_route: bool = True
+
+
+FILTERS: dict[str, tuple[Filter, ...]] = {
+    "events": (
+        Filter("type", str, "the event's type, e.g. START_REQUESTED"),
+        Filter("source", str, "who sent the event: api, system, operation, a device, ..."),
+        Filter("outcome", str, "the worker's verdict: accepted or refused"),
+        Filter("state", str, "the cell's state once the event was decided"),
+    ),
+    "transitions": (
+        Filter("old_state", str, "the state the cell left"),
+        Filter("new_state", str, "the state the cell entered"),
+        Filter("event", str, "the type of the event that caused the transition"),
+        Filter("event_id", str, "the id of that event", on_json_route=False),
+    ),
+    "operations": (
+        Filter("kind", str, "the operation, e.g. trajectory or calibrate_robot"),
+        Filter("outcome", str, "how it ended: completed, failed, cancelled or interrupted"),
+    ),
+    "errors": (
+        Filter("code", str, "the fault code, e.g. EMERGENCY_STOP"),
+        Filter("component", str, "the component that reported the fault"),
+        Filter("classification", str, "critical, recoverable or warning"),
+        Filter("state", str, "the cell's state when the fault was recorded"),
+    ),
+    "recoveries": (
+        Filter("run_id", str, "the run of the operation that was retried"),
+        Filter("error_code", str, "the fault code that caused the retry"),
+    ),
+    "audit": (
+        Filter("principal", str, "who: the token's name and role, or anonymous"),
+        Filter("address", str, "the client's address"),
+        Filter("action", str, "what: the method and path"),
+        Filter("outcome", str, "accepted, or refused with the status"),
+    ),
+}
+
+
+def filter_columns(table: str) -> tuple[str, ...]:
+    """The names of the columns `table` may be filtered on."""
+    return tuple(f.column for f in FILTERS[table])

@@ -1,0 +1,178 @@
+"""The journal's writer thread: group commit, answers after the commit, retention.
+
+Why a writer thread with group commit: SQLite writes (and their fsync) must
+never run on the event loop, and the worker must never wait for the disk. The
+worker hands records to `append`, which returns a future; the writer thread
+takes everything queued, writes it in one transaction, commits, then resolves
+those futures. A command's HTTP answer waits for that future, so **an event the
+API acknowledged is on disk when the acknowledgement leaves**, while the
+worker goes on with the next event and a slow disk delays answers, never
+decisions or the emergency stop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import sqlite3
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from server.storage.journal.records import Record
+from server.storage.journal.schema import TABLES
+
+log = logging.getLogger(__name__)
+
+DAY_S = 86_400.0
+
+Batch = list[tuple[list[Record], "asyncio.Future[None] | None"]]
+
+
+@dataclass(frozen=True, slots=True)
+class WriteFailure:
+    """The journal's last failed write: what SQLite said, and when (Unix time)."""
+
+    message: str
+    at: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"message": self.message, "at": self.at}
+
+
+def prune(connection: sqlite3.Connection, retention_days: float) -> None:
+    """Delete the rows older than `retention_days` from every table (errors logged)."""
+    cutoff = time.time() - retention_days * DAY_S
+    try:
+        with connection:
+            for table, (time_column, _) in TABLES.items():
+                connection.execute(f"DELETE FROM {table} WHERE {time_column} < ?", (cutoff,))
+    except sqlite3.Error as exc:
+        log.error("journal retention pruning failed: %s", exc)
+
+
+class Writer:
+    """One thread writing queued records, a transaction per wake-up, pruning daily.
+
+    `connect` opens the thread's connection (called on the thread); `prune` is
+    given that connection once a day.
+    """
+
+    def __init__(
+        self,
+        connect: Callable[[], sqlite3.Connection],
+        prune: Callable[[sqlite3.Connection], None],
+    ) -> None:
+        self._connect = connect
+        self._prune = prune
+        self._queue: deque[tuple[list[Record], asyncio.Future[None] | None]] = deque()
+        self._wake = threading.Condition()
+        self._stopping = False
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        # The last write failure; None once a write succeeds (or when none failed).
+        self.last_error: WriteFailure | None = None
+
+    def start(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Start the thread; futures are resolved on `loop`."""
+        self._loop = loop
+        self._thread = threading.Thread(target=self._run, name="journal-writer", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Write what is queued, then stop the thread."""
+        with self._wake:
+            self._stopping = True
+            self._wake.notify()
+        if self._thread is not None:
+            self._thread.join(timeout=30)
+
+    @property
+    def backlog(self) -> int:
+        """Lists of records queued and not yet taken by the thread."""
+        return len(self._queue)
+
+    def append(self, records: list[Record], *, durable: bool = True) -> asyncio.Future[None] | None:
+        """Queue records for one transaction; the future resolves once committed.
+
+        No future when `durable` is False or before `start`.
+        """
+        future = None
+        if durable and self._loop is not None:
+            future = self._loop.create_future()
+        with self._wake:
+            self._queue.append((records, future))
+            self._wake.notify()
+        return future
+
+    async def caught_up(self) -> None:
+        """Wait until every record queued before this call is committed.
+
+        Why: the records of a transition are queued as the worker decides it, so a
+        client that has just seen ERROR on /state and then asks /history must find
+        that transition there. Queries call this first (read-your-writes). A failed
+        write is reported by the writer itself; the reader just reads what is there.
+        """
+        future = self.append([])
+        if future is not None:
+            with contextlib.suppress(Exception):
+                await future
+
+    def _run(self) -> None:
+        connection = self._connect()
+        last_prune = time.monotonic()
+        while True:
+            with self._wake:
+                while not self._queue and not self._stopping:
+                    self._wake.wait(timeout=60)
+                batch = list(self._queue)
+                self._queue.clear()
+                stopping = self._stopping
+            if batch:
+                self._write(connection, batch)
+            if stopping and not self._queue:
+                break
+            if time.monotonic() - last_prune > DAY_S:
+                last_prune = time.monotonic()
+                self._prune(connection)
+        connection.close()
+
+    def _write(self, connection: sqlite3.Connection, batch: Batch) -> None:
+        error: Exception | None = None
+        try:
+            with connection:
+                for records, _ in batch:
+                    for record in records:
+                        connection.execute(record.sql, tuple(_clean(p) for p in record.params))
+            if any(records for records, _ in batch):  # not just read-your-writes markers
+                self.last_error = None
+        except Exception as exc:  # never let the writer die: every waiting answer must come
+            error = exc
+            self.last_error = WriteFailure(str(exc), time.time())
+            log.critical("journal write failed: %s", exc)
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        for _, future in batch:
+            if future is not None:
+                loop.call_soon_threadsafe(_settle, future, error)
+
+
+def _clean(value: Any) -> Any:
+    """Text as SQLite can store it: unpaired surrogates (e.g. from a device) replaced."""
+    if isinstance(value, str):
+        return value.encode("utf-8", "replace").decode("utf-8")
+    return value
+
+
+def _settle(future: asyncio.Future[None], error: Exception | None) -> None:
+    if future.done():
+        return
+    if error is None:
+        future.set_result(None)
+    else:
+        future.set_exception(error)
