@@ -1,6 +1,7 @@
 # The two commands: `make run` (the server on the simulated cell) and `make test`
 # (the whole suite). Each sets itself up on a fresh clone: a virtualenv in .venv
-# with the pinned dependencies (constraints.txt).
+# with the pinned dependencies (constraints.txt). `make test-fast` runs the unit
+# tier alone, for the edit loop.
 
 PYTHON ?= python3
 VENV := .venv
@@ -10,7 +11,7 @@ HOST ?= 127.0.0.1
 PORT ?= 8000
 DATA ?= data
 
-.PHONY: run test lint bench diagram openapi clean browser
+.PHONY: run test test-fast lint bench diagram openapi clean browser
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -23,6 +24,10 @@ run: $(STAMP)
 test: $(STAMP) lint browser
 	$(PY) -m pytest
 
+# The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
+test-fast: $(STAMP)
+	$(PY) -m pytest -m unit -q
+
 # The browser tests drive Debian's Chromium through Playwright (never `playwright install`).
 browser:
 	@test -x /usr/bin/chromium || { \
@@ -31,9 +36,11 @@ browser:
 		$$SUDO apt-get update -qq && \
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium; }
 
+# ruff, then mypy over server/ and clients/ (configured in pyproject.toml: [tool.mypy]).
 lint: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
+	$(PY) -m mypy
 
 bench: $(STAMP)
 	$(PY) -m bench
@@ -45,4 +52,4 @@ openapi: $(STAMP)
 	$(PY) -m server.openapi --write
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache .hypothesis
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache .hypothesis

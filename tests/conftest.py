@@ -1,9 +1,14 @@
-"""Shared fixtures: tier one, the core on in-process fakes (unit tests only)."""
+"""Shared fixtures: tier one, the core on in-process fakes (unit tests only).
+
+Every test is marked with its tier, from the directory it lives in
+(tests/unit → `unit`, ...), so `pytest -m unit` runs one tier (`make test-fast`).
+"""
 
 from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
 
 import pytest
 
@@ -18,6 +23,21 @@ from server.storage import CellStores
 from server.storage.journal import Journal
 from server.storage.workpieces import WorkpieceIn
 from tests.fakes import FakeCamera, FakeClock, FakeGlue, FakeRobot
+
+TESTS = Path(__file__).parent
+TIERS = ("unit", "integration", "e2e", "browser", "reliability")  # registered in pyproject
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark each test with its tier: the first directory under tests/."""
+    for item in items:
+        try:
+            tier = item.path.relative_to(TESTS).parts[0]
+        except ValueError:  # collected from outside tests/
+            continue
+        if tier in TIERS:
+            item.add_marker(getattr(pytest.mark, tier))
+
 
 # A 120 × 80 mm rectangle in the library as "demo"; start it without the camera.
 DEMO_OUTLINE_MM = [(340.0, -40.0), (460.0, -40.0), (460.0, 40.0), (340.0, 40.0)]

@@ -7,7 +7,7 @@ reach the file system.
 from __future__ import annotations
 
 import asyncio
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Request, Response
 from fastapi.responses import FileResponse
@@ -19,7 +19,9 @@ from server.storage.workpieces import IDENTIFIER, Workpiece, WorkpieceIn, Workpi
 
 router = APIRouter(tags=["workpieces"])
 WorkpieceId = Annotated[str, Path(pattern=IDENTIFIER, description="workpiece identifier")]
-NOT_FOUND = {404: {"model": ErrorView, "description": "no such workpiece"}}
+NOT_FOUND: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorView, "description": "no such workpiece"}
+}
 
 
 class WorkpieceList(BaseModel):

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -91,7 +91,7 @@ def _apply(matrix: np.ndarray, points: ArrayLike) -> NDArray[np.float64]:
     if len(pts) == 0:
         return np.empty((0, 2))
     out = cv2.perspectiveTransform(pts.reshape(-1, 1, 2), np.asarray(matrix, dtype=np.float64))
-    return out.reshape(-1, 2)
+    return cast(NDArray[np.float64], out.reshape(-1, 2))
 
 
 def pixels_to_robot(homography: np.ndarray, pixels: ArrayLike) -> NDArray[np.float64]:

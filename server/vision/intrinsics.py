@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -107,7 +107,7 @@ def find_chessboard(
     small = gray
     if factor > 1:
         size = (gray.shape[1] // factor, gray.shape[0] // factor)
-        small = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+        small = cast(NDArray[np.uint8], cv2.resize(gray, size, interpolation=cv2.INTER_AREA))
     found, corners = cv2.findChessboardCorners(small, tuple(pattern), flags=_FIND_FLAGS)
     if not found or corners is None:
         return None
@@ -219,7 +219,7 @@ class Undistorter:
             P=self.camera_matrix,
             criteria=_POINT_CRITERIA,
         )
-        return out.reshape(shape)
+        return cast(NDArray[np.float64], out.reshape(shape))
 
     def distort_points(self, pixels: ArrayLike) -> NDArray[np.float64]:
         """Undistorted points (N×2 px) → where they appear in the raw frame (the inverse)."""
@@ -232,7 +232,7 @@ class Undistorter:
         out, _ = cv2.projectPoints(
             rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.camera_matrix, self.dist_coeffs
         )
-        return out.reshape(shape)
+        return cast(NDArray[np.float64], out.reshape(shape))
 
 
 def intrinsics_of(

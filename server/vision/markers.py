@@ -23,6 +23,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -59,9 +60,9 @@ def to_gray(image: np.ndarray) -> NDArray[np.uint8]:
     if image.ndim == 3 and image.shape[2] == 1:
         return image[..., 0]
     if image.ndim == 3 and image.shape[2] == 3:
-        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        return cast(NDArray[np.uint8], cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
     if image.ndim == 3 and image.shape[2] == 4:
-        return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
+        return cast(NDArray[np.uint8], cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY))
     raise ValueError(f"expected a grey, BGR or BGRA image, got shape {image.shape}")
 
 
@@ -71,10 +72,12 @@ def diagonal_intersection(corners: np.ndarray) -> NDArray[np.float64]:
     d1, d2 = p2 - p0, p3 - p1
     denom = d1[0] * d2[1] - d1[1] * d2[0]
     if abs(denom) < 1e-12:
-        return np.mean([p0, p1, p2, p3], axis=0)
+        mean: NDArray[np.float64] = np.mean([p0, p1, p2, p3], axis=0)
+        return mean
     r = p1 - p0
     t = (r[0] * d2[1] - r[1] * d2[0]) / denom
-    return p0 + t * d1
+    crossing: NDArray[np.float64] = p0 + t * d1
+    return crossing
 
 
 def missing_markers(found: Iterable[int], required: Iterable[int] = range(9)) -> list[int]:

@@ -154,7 +154,8 @@ def _refine_edge(gray: NDArray[np.float32], contour: Array, level: float) -> Arr
         frac = np.where(d0 != d1, d0 / (d0 - d1), 0.5)
     offset = steps[best] + np.clip(frac, 0.0, 1.0) * _PROFILE_STEP_PX
     offset = np.where(found & (np.abs(offset) < _PROFILE_HALF_PX - 0.5), offset, 0.0)
-    return contour + offset[:, None] * normal
+    refined: Array = contour + offset[:, None] * normal
+    return refined
 
 
 # --- outlines in millimetres -----------------------------------------------------------------
@@ -198,7 +199,8 @@ def outline_to_mm(
 def _nearest_points(dense: Array, chosen: Array) -> Array:
     """For each chosen (float32-rounded) vertex, the dense point it came from."""
     index = np.argmin(((dense[None, :, :] - chosen[:, None, :]) ** 2).sum(axis=2), axis=1)
-    return dense[index]
+    nearest: Array = dense[index]
+    return nearest
 
 
 @dataclass(frozen=True)
@@ -257,7 +259,8 @@ def resample_closed(outline: ArrayLike, count: int) -> Array:
     at = np.arange(count) * cum[-1] / count
     index = np.clip(np.searchsorted(cum, at, side="right") - 1, 0, len(seg) - 1)
     t = (at - cum[index]) / np.where(seg[index] > 0, seg[index], 1.0)
-    return closed[index] + t[:, None] * (closed[index + 1] - closed[index])
+    resampled: Array = closed[index] + t[:, None] * (closed[index + 1] - closed[index])
+    return resampled
 
 
 # --- matching against the library -------------------------------------------------------------

@@ -91,7 +91,7 @@ def _orient(u: Array, v: Array, w: Array) -> Array:
     )
 
 
-def _crosses(p: Array, q: Array, a: Array, b: Array) -> Array:
+def _crosses(p: Array, q: Array, a: Array, b: Array) -> NDArray[np.bool_]:
     """Where segments p→q and a→b cross properly (touching at an end does not count)."""
     scale = max(1.0, float(np.abs(np.concatenate([p.ravel(), q.ravel(), a.ravel()])).max()))
     tol = 1e-9 * scale * scale
@@ -118,7 +118,8 @@ def _distances(points: Array, polygon: Array) -> Array:
     ab = b - a
     rel = points[:, None, :] - a[None]
     t = np.clip((rel * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-300), 0.0, 1.0)
-    return np.linalg.norm(rel - t[..., None] * ab, axis=-1).min(axis=1)
+    distances: Array = np.linalg.norm(rel - t[..., None] * ab, axis=-1).min(axis=1)
+    return distances
 
 
 def _inside(pts: Array, point: Array) -> bool:
@@ -248,7 +249,7 @@ def _scan_segments(pts: Array, spacing: float) -> list[list[tuple[float, float, 
     middle = 0.5 * (y_min + y_max)
     ys = middle + (np.arange(count) - (count - 1) / 2.0) * spacing
     a, b = pts, np.roll(pts, -1, axis=0)
-    rows = []
+    rows: list[list[tuple[float, float, float]]] = []
     for y in ys:
         crosses = ((a[:, 1] <= y) & (y < b[:, 1])) | ((b[:, 1] <= y) & (y < a[:, 1]))
         if not crosses.any():

@@ -20,6 +20,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -91,7 +92,7 @@ class BoardPose:
     @property
     def rotation(self) -> NDArray[np.float64]:
         matrix, _ = cv2.Rodrigues(np.asarray(self.rvec, dtype=np.float64))
-        return matrix
+        return cast(NDArray[np.float64], matrix)
 
     def to_camera(self, points_board: NDArray) -> NDArray[np.float64]:
         """Board-frame points (N×3) in the camera frame."""
@@ -221,13 +222,16 @@ def _clean_view(model: CameraModel, board: Chessboard, pose: BoardPose) -> NDArr
     footprint_mm = distance / math.sqrt(model.fx * model.fy)
     sigma = footprint_blur_sigma_px() * footprint_mm / BOARD_MM_PER_PX
     blurred = cv2.GaussianBlur(texture, (0, 0), sigma)
-    view = cv2.remap(
-        blurred,
-        map_x,
-        map_y,
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=BACKDROP,
+    view = cast(
+        NDArray[np.uint8],
+        cv2.remap(
+            blurred,
+            map_x,
+            map_y,
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=BACKDROP,
+        ),
     )
     with _view_lock:
         _view_cache[key] = view

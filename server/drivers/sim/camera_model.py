@@ -21,6 +21,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -44,7 +45,7 @@ def _rotation_about(axis: Sequence[float], angle_deg: float) -> Array:
     axis_arr = np.asarray(axis, dtype=np.float64)
     rvec = axis_arr / np.linalg.norm(axis_arr) * math.radians(angle_deg)
     matrix, _ = cv2.Rodrigues(rvec)
-    return matrix
+    return cast(Array, matrix)
 
 
 @dataclass(frozen=True)
@@ -113,7 +114,17 @@ class CameraModel:
         rotation = _rotation_about((0.0, 0.0, 1.0), roll_deg) @ np.vstack([x_cam, y_cam, z_cam])
         rvec, _ = cv2.Rodrigues(rotation)
         tvec = -rotation @ centre
-        return cls(fx, fy, cx, cy, tuple(dist), tuple(rvec.ravel()), tuple(tvec), width, height)
+        return cls(
+            fx,
+            fy,
+            cx,
+            cy,
+            cast(tuple[float, float, float, float, float], tuple(dist)),
+            cast(tuple[float, float, float], tuple(rvec.ravel())),
+            cast(tuple[float, float, float], tuple(tvec)),
+            width,
+            height,
+        )
 
     @classmethod
     def default(cls) -> CameraModel:
@@ -150,7 +161,7 @@ class CameraModel:
     def rotation(self) -> Array:
         """R with X_cam = R · X_robot + t."""
         matrix, _ = cv2.Rodrigues(np.array(self.rvec, dtype=np.float64))
-        return matrix
+        return cast(Array, matrix)
 
     @property
     def position_mm(self) -> Array:
@@ -306,9 +317,9 @@ def lighting_gain(model: CameraModel, vignetting: float, light_gradient: float) 
     )
     r2 = ((u - model.cx) ** 2 + (v - model.cy) ** 2) / corner_r2
     gain = (1.0 - vignetting * r2) * (1.0 + light_gradient * (u / model.width - 0.5))
-    gain = gain.astype(np.float32)[..., None]
-    gain.setflags(write=False)
-    return gain
+    gain32 = gain.astype(np.float32)[..., None]
+    gain32.setflags(write=False)
+    return gain32
 
 
 def expose(clean: NDArray, noise_sigma: float, rng: np.random.Generator) -> NDArray[np.uint8]:
@@ -322,12 +333,13 @@ def expose(clean: NDArray, noise_sigma: float, rng: np.random.Generator) -> NDAr
     if noise_sigma > 0:
         cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
         noise = np.empty_like(clean)
-        cv2.randn(noise, (0.0, 0.0, 0.0), (noise_sigma, noise_sigma, noise_sigma))
+        # OpenCV takes a Scalar (a tuple) for mean and stddev here and in cv2.max; its stubs do not.
+        cv2.randn(noise, (0.0, 0.0, 0.0), (noise_sigma, noise_sigma, noise_sigma))  # type: ignore[call-overload]
         cv2.add(clean, noise, dst=frame)
     else:
         frame[...] = clean
-    cv2.max(frame, 0.0, dst=frame)
-    return cv2.convertScaleAbs(frame)  # rounds and saturates at 255
+    cv2.max(frame, 0.0, dst=frame)  # type: ignore[call-overload]
+    return cast(NDArray[np.uint8], cv2.convertScaleAbs(frame))  # rounds and saturates at 255
 
 
 def footprint_blur_sigma_px() -> float:

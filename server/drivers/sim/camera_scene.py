@@ -25,7 +25,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -367,7 +367,7 @@ def _composite(
     local = [p - (c0, r0) for p in polygons_px]
     alpha = polygon_coverage(local, (r1 - r0, c1 - c0))
     if blur_sigma > 0:
-        alpha = cv2.GaussianBlur(alpha, (0, 0), blur_sigma)
+        alpha = cast(NDArray[np.float32], cv2.GaussianBlur(alpha, (0, 0), blur_sigma))
     alpha = alpha[..., None]
     region = image[r0:r1, c0:c1].astype(np.float32)
     region = region * (1.0 - alpha) + np.asarray(colour, dtype=np.float32) * alpha
