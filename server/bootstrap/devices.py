@@ -88,6 +88,7 @@ async def build_devices(
         )
 
     camera_id = settings.vision_camera_id
+    camera: SimulatedCamera | OpenCVCamera
     if settings.camera_simulated:
         camera = SimulatedCamera(timeout=settings.vision_processing_timeout)
     else:

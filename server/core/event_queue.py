@@ -17,13 +17,13 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from server.core.transitions import Event
 from server.errors import EventQueueFull
 
 if TYPE_CHECKING:
-    from server.core.events import Payload
+    from server.core.events import Outcome, Payload
 
 
 class Priority(IntEnum):
@@ -45,7 +45,7 @@ class Envelope:
     priority: Priority
     enqueued_at: float = field(default_factory=time.perf_counter)
     timestamp: float = field(default_factory=time.time)
-    future: asyncio.Future[Any] | None = None
+    future: asyncio.Future[Outcome] | None = None
 
 
 class EventQueue:

@@ -8,6 +8,7 @@ agree on its fields by construction rather than by agreed dict keys.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Final
@@ -154,9 +155,10 @@ def payload_of(event: Event, payload: Payload | None) -> Payload:
     A wrong kind is a programming error, not bad input: HTTP input is
     validated into its payload before it gets here.
     """
-    expected = PAYLOAD_OF_EVENT[event]
+    expected: Callable[..., Payload] = PAYLOAD_OF_EVENT[event]
     if payload is None:
-        return expected()  # type: ignore[call-arg]  # a TypeError names what is missing
+        return expected()  # a payload with required fields raises TypeError naming them
     if type(payload) is not expected:
-        raise TypeError(f"{event.value} carries {expected.__name__}, not {type(payload).__name__}")
+        wanted = PAYLOAD_OF_EVENT[event].__name__
+        raise TypeError(f"{event.value} carries {wanted}, not {type(payload).__name__}")
     return payload

@@ -154,7 +154,8 @@ def _where(
     until: float | None,
     filters: dict[str, str] | None,
 ) -> tuple[str, tuple[Any, ...]]:
-    clauses, params = [], []
+    clauses: list[str] = []
+    params: list[object] = []
     if since is not None:
         clauses.append(f"{time_column} >= ?")
         params.append(since)
