@@ -1,12 +1,13 @@
 """The operator dashboard (HMI): plain files from clients/hmi, served by the app itself.
 
-`GET /` is the page (`index.html`); its script and style sheet are under
-`/hmi/...`. Nothing here is secret: the page asks for a token and sends it as
-`Authorization: Bearer` on every API call, like any other client. The page
-and its assets go through the same gate as every request (`access.AccessGate`:
-policy entry `("GET", "/")` and the open prefix `/hmi/`, after the
-`trusted_networks` check). The page may only talk
-to its own origin (Content-Security-Policy), so it fetches nothing from
+`GET /` is the page (`index.html`); its style sheet and its scripts, ES
+modules (`app.js` and what it imports; StaticFiles serves `.js` as JavaScript,
+which module scripts require), are under `/hmi/...`. Nothing here is secret:
+the page asks for a token and sends it as `Authorization: Bearer` on every API
+call, like any other client. The page and its assets go through the same
+gate as every request (`access.AccessGate`: policy entry `("GET", "/")` and the
+open prefix `/hmi/`, after the `trusted_networks` check). The page may only
+talk to its own origin (Content-Security-Policy), so it fetches nothing from
 elsewhere and cannot be framed by another site.
 """
 

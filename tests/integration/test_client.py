@@ -1,4 +1,4 @@
-"""clients/client.py against a real server on loopback, the core on in-process fakes.
+"""clients/client/ (the package) against a real server on loopback, the core on in-process fakes.
 
 The server runs in a thread with its own event loop, so the blocking client can
 be called directly from the test and the async client from the test's loop,

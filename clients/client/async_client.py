@@ -1,0 +1,177 @@
+"""The asyncio client, for dashboards and bridges: the blocking client's methods,
+plus `messages()`, which follows /ws across reconnects.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterable
+from types import TracebackType
+from typing import Any, Self, TypeVar
+
+import httpx
+
+from clients.client import builders
+from clients.client.builders import Call
+from clients.client.config import DEFAULT_URL, default_headers, normalize_url
+from clients.client.errors import CommandResult
+from clients.client.stream import MessageStream
+from clients.client.wait import StateWait
+
+T = TypeVar("T")
+
+
+class AsyncCellClient:
+    """Asyncio client (httpx.AsyncClient), the same methods as CellClient, plus `messages`."""
+
+    def __init__(
+        self,
+        base_url: str = DEFAULT_URL,
+        token: str | None = None,
+        *,
+        timeout: float = 10.0,
+    ) -> None:
+        self.base_url = normalize_url(base_url)
+        self.timeout = timeout
+        self.token = token
+        self._http = httpx.AsyncClient(
+            base_url=self.base_url, headers=default_headers(token), timeout=timeout
+        )
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def _send(self, call: Call[T]) -> T:
+        try:
+            response = await self._http.request(
+                call.method, call.path, json=call.json, params=call.params
+            )
+        except httpx.TransportError as exc:
+            raise builders.unreachable(self.base_url, exc, self.timeout) from exc
+        return builders.read(call, response)
+
+    async def start(
+        self, workpiece_id: str | None = None, contour_matching: bool = True
+    ) -> CommandResult:
+        """Start spraying (IDLE → EXECUTING_TRAJECTORY)."""
+        return await self._send(builders.start(workpiece_id, contour_matching))
+
+    async def pause(self) -> CommandResult:
+        """Hold the trajectory at its next waypoint, glue off."""
+        return await self._send(builders.command("pause"))
+
+    async def resume(self) -> CommandResult:
+        """Continue a paused trajectory from where it held."""
+        return await self._send(builders.command("resume"))
+
+    async def cancel(self) -> CommandResult:
+        """Stop the running operation at once and return to IDLE."""
+        return await self._send(builders.command("cancel"))
+
+    async def estop(self, reason: str | None = None) -> CommandResult:
+        """Software stop: valve closed and robot stopped, then ERROR (any role)."""
+        return await self._send(builders.estop(reason))
+
+    async def reset(self) -> CommandResult:
+        """Leave ERROR for IDLE once every device answers (maintenance role)."""
+        return await self._send(builders.command("reset"))
+
+    async def calibrate_robot(self) -> CommandResult:
+        """Fit the image → robot map from the ArUco markers (maintenance role)."""
+        return await self._send(builders.command("calibrate-robot"))
+
+    async def calibrate_camera(self) -> CommandResult:
+        """Calibrate the camera's intrinsics from chessboard views (maintenance role)."""
+        return await self._send(builders.command("calibrate-camera"))
+
+    async def create_workpiece(
+        self, name: str | None = None, workpiece_id: str | None = None
+    ) -> CommandResult:
+        """Capture the part on the table into the library."""
+        return await self._send(builders.create_workpiece(name, workpiece_id))
+
+    async def state(self) -> dict[str, Any]:
+        """GET /state: state, operation and progress, the fault if any."""
+        return await self._send(builders.state())
+
+    async def workpieces(self) -> list[dict[str, Any]]:
+        """The workpiece library."""
+        return await self._send(builders.workpieces())
+
+    async def history(self, limit: int = 20) -> list[dict[str, Any]]:
+        """The latest `limit` transitions, newest first."""
+        return await self._send(builders.history(limit))
+
+    async def kpis(self) -> dict[str, Any]:
+        """The current shift's KPIs and OEE."""
+        return await self._send(builders.kpis())
+
+    async def health(self) -> dict[str, Any]:
+        """Each device's link and the worker's figures (needs no token)."""
+        return await self._send(builders.health())
+
+    async def allowed(self, command: str) -> dict[str, Any]:
+        """Whether `command` would be accepted now: `allowed`, `state`, `reason`."""
+        return await self._send(builders.allowed(command))
+
+    async def wait_for_state(
+        self,
+        state: str,
+        timeout: float,
+        *,
+        poll_interval: float = 0.1,
+        fail_on: Iterable[str] = ("ERROR",),
+    ) -> dict[str, Any]:
+        """Poll GET /state until the cell is in `state` (see CellClient.wait_for_state)."""
+        wait = StateWait(state, timeout, fail_on)
+        while True:
+            if wait.reached(await self.state()):
+                assert wait.last is not None
+                return wait.last
+            remaining = wait.remaining()
+            if remaining <= 0:
+                raise wait.expired()
+            await asyncio.sleep(min(poll_interval, remaining))
+
+    async def ws_ticket(self) -> str:
+        """A one-shot ticket for /ws (valid a few seconds, usable once)."""
+        return await self._send(builders.ws_ticket())
+
+    def ws_url(self, ticket: str, *, after_seq: int | None = None, boot: str | None = None) -> str:
+        """The /ws address for `ticket`, under the same base URL (keeps a path prefix).
+
+        With `after_seq` and `boot` (the last seq received and the snapshot's boot;
+        one means nothing without the other) the server replays what came after.
+        """
+        return builders.ws_url(self.base_url, ticket, after_seq=after_seq, boot=boot)
+
+    def messages(
+        self,
+        types: Iterable[str] | None = None,
+        *,
+        reconnect: bool = True,
+        initial_backoff: float = 0.2,
+        max_backoff: float = 5.0,
+    ) -> MessageStream:
+        """Follow /ws: the snapshot, then every message (of `types`, if given), in seq order.
+
+        See MessageStream for what happens across reconnects.
+        """
+        return MessageStream(
+            self,
+            types,
+            reconnect=reconnect,
+            initial_backoff=initial_backoff,
+            max_backoff=max_backoff,
+        )

@@ -1,0 +1,152 @@
+"""The blocking client, for scripts and the `gluectl` CLI."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from types import TracebackType
+from typing import Any, Self, TypeVar
+
+import httpx
+
+from clients.client import builders
+from clients.client.builders import Call
+from clients.client.config import DEFAULT_URL, default_headers, normalize_url
+from clients.client.errors import CommandResult
+from clients.client.wait import StateWait
+
+T = TypeVar("T")
+
+
+class CellClient:
+    """Blocking client (httpx.Client). Use as a context manager, or call close()."""
+
+    def __init__(
+        self,
+        base_url: str = DEFAULT_URL,
+        token: str | None = None,
+        *,
+        timeout: float = 10.0,
+    ) -> None:
+        self.base_url = normalize_url(base_url)
+        self.timeout = timeout
+        self._http = httpx.Client(
+            base_url=self.base_url, headers=default_headers(token), timeout=timeout
+        )
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._http.close()
+
+    def _send(self, call: Call[T]) -> T:
+        try:
+            response = self._http.request(
+                call.method, call.path, json=call.json, params=call.params
+            )
+        except httpx.TransportError as exc:
+            raise builders.unreachable(self.base_url, exc, self.timeout) from exc
+        return builders.read(call, response)
+
+    # commands: a CommandResult when accepted (202), Refused when refused (409)
+
+    def start(
+        self, workpiece_id: str | None = None, contour_matching: bool = True
+    ) -> CommandResult:
+        """Start spraying (IDLE → EXECUTING_TRAJECTORY)."""
+        return self._send(builders.start(workpiece_id, contour_matching))
+
+    def pause(self) -> CommandResult:
+        """Hold the trajectory at its next waypoint, glue off."""
+        return self._send(builders.command("pause"))
+
+    def resume(self) -> CommandResult:
+        """Continue a paused trajectory from where it held."""
+        return self._send(builders.command("resume"))
+
+    def cancel(self) -> CommandResult:
+        """Stop the running operation at once and return to IDLE."""
+        return self._send(builders.command("cancel"))
+
+    def estop(self, reason: str | None = None) -> CommandResult:
+        """Software stop: valve closed and robot stopped, then ERROR (any role)."""
+        return self._send(builders.estop(reason))
+
+    def reset(self) -> CommandResult:
+        """Leave ERROR for IDLE once every device answers (maintenance role)."""
+        return self._send(builders.command("reset"))
+
+    def calibrate_robot(self) -> CommandResult:
+        """Fit the image → robot map from the ArUco markers (maintenance role)."""
+        return self._send(builders.command("calibrate-robot"))
+
+    def calibrate_camera(self) -> CommandResult:
+        """Calibrate the camera's intrinsics from chessboard views (maintenance role)."""
+        return self._send(builders.command("calibrate-camera"))
+
+    def create_workpiece(
+        self, name: str | None = None, workpiece_id: str | None = None
+    ) -> CommandResult:
+        """Capture the part on the table into the library."""
+        return self._send(builders.create_workpiece(name, workpiece_id))
+
+    # queries
+
+    def state(self) -> dict[str, Any]:
+        """GET /state: state, operation and progress, the fault if any."""
+        return self._send(builders.state())
+
+    def workpieces(self) -> list[dict[str, Any]]:
+        """The workpiece library."""
+        return self._send(builders.workpieces())
+
+    def history(self, limit: int = 20) -> list[dict[str, Any]]:
+        """The latest `limit` transitions, newest first."""
+        return self._send(builders.history(limit))
+
+    def kpis(self) -> dict[str, Any]:
+        """The current shift's KPIs and OEE."""
+        return self._send(builders.kpis())
+
+    def health(self) -> dict[str, Any]:
+        """Each device's link and the worker's figures (needs no token)."""
+        return self._send(builders.health())
+
+    def allowed(self, command: str) -> dict[str, Any]:
+        """Whether `command` would be accepted now: `allowed`, `state`, `reason`."""
+        return self._send(builders.allowed(command))
+
+    def wait_for_state(
+        self,
+        state: str,
+        timeout: float,
+        *,
+        poll_interval: float = 0.1,
+        fail_on: Iterable[str] = ("ERROR",),
+    ) -> dict[str, Any]:
+        """Poll GET /state until the cell is in `state`; returns that snapshot.
+
+        Raises WaitTimeout after `timeout` seconds, and CellFaulted as soon as the
+        cell is seen in a `fail_on` state (ERROR: only a reset leaves it, so waiting
+        on would just run into the timeout); pass `fail_on=()` to wait through it,
+        e.g. for someone else's reset. Polling can miss a state shorter than
+        `poll_interval`.
+        """
+        wait = StateWait(state, timeout, fail_on)
+        while True:
+            if wait.reached(self.state()):
+                assert wait.last is not None
+                return wait.last
+            remaining = wait.remaining()
+            if remaining <= 0:
+                raise wait.expired()
+            time.sleep(min(poll_interval, remaining))

@@ -1,0 +1,167 @@
+/* The panels refreshed every few seconds and on each change: devices (health),
+ * KPIs, history; and the workpiece library, refreshed when a workpiece was made. */
+
+import { AuthError, blobUrl, getJson } from "./api.js";
+import { $, clockTime, duration, element, facts, number, percent } from "./dom.js";
+import { HISTORY_ROWS, hmi, STATE_TONE } from "./store.js";
+
+let refreshing = false;
+let refreshAgain = false;
+
+/** Health, KPIs and history; a request during a refresh runs once it is done. */
+export async function refreshPanels() {
+  if (!hmi.token) return;
+  if (refreshing) {
+    refreshAgain = true;
+    return;
+  }
+  refreshing = true;
+  try {
+    do {
+      refreshAgain = false;
+      await Promise.all([
+        panel("card-health", "/health", renderHealth),
+        panel("card-kpis", "/kpis", renderKpis),
+        panel("card-history", `/history?limit=${HISTORY_ROWS}`, renderHistory),
+      ]);
+    } while (refreshAgain && hmi.token);
+  } finally {
+    refreshing = false;
+  }
+}
+
+async function panel(cardClass, path, render) {
+  const card = document.querySelector(`.${cardClass}`);
+  try {
+    render(await getJson(path));
+    card.dataset.stale = "false";
+  } catch {
+    card.dataset.stale = "true";
+  }
+}
+
+// --- devices, KPIs, history -------------------------------------------------
+
+function renderHealth(health) {
+  const status = $("health-status");
+  status.textContent = health.status;
+  status.dataset.kind = health.status === "ok" ? "ok" : "fault";
+  const devices = $("devices");
+  devices.replaceChildren(
+    ...["robot", "glue", "camera"]
+      .filter((name) => health.devices[name])
+      .map((name) => deviceCard(name, health.devices[name])),
+  );
+}
+
+function deviceCard(name, device) {
+  const card = element("div", "device");
+  card.dataset.device = name;
+  card.dataset.connected = String(device.connected);
+  const state = element("span", "pill", device.connected ? "connected" : "disconnected");
+  state.dataset.kind = device.connected ? "ok" : "fault";
+  const head = element("div", "device-head");
+  head.append(element("span", "device-name", name), state);
+  card.append(head, facts(deviceFacts(name, device)));
+  if (device.last_error) card.append(element("div", "device-error", device.last_error));
+  return card;
+}
+
+function deviceFacts(name, device) {
+  const rtt = device.last_rtt_ms == null ? "—" : `${number(device.last_rtt_ms, 1)} ms`;
+  const rows = [["round trip", rtt]];
+  if (name === "robot") {
+    rows.push(
+      ["link losses", String(device.connection_losses ?? "—")],
+      ["reconnects", String(device.reconnects ?? "—")],
+    );
+  } else if (name === "glue") {
+    const alarms = (device.alarms || []).join(", ");
+    rows.push(
+      ["flow", `${number(device.flow_ml_min, 1)} ml/min`],
+      ["pressure", `${number(device.pressure_psi, 1)} psi`],
+      ["temperature", `${number(device.temperature_c, 1)} °C`],
+      ["valve", device.valve_open ? "OPEN" : "closed", device.valve_open ? "on" : ""],
+      ["alarms", alarms || "none", alarms ? "alarm" : ""],
+    );
+  } else if (name === "camera") {
+    rows.push(["resolution", device.resolution || "—"], ["mode", device.mode || "—"]);
+  }
+  return rows;
+}
+
+function renderKpis(kpis) {
+  const oee = kpis.oee || {};
+  const figures = [
+    ["OEE", percent(oee.oee)],
+    ["Availability", percent(oee.availability)],
+    ["Utilization", percent(kpis.utilization)],
+    ["Workpieces", String(kpis.workpieces_processed ?? "—")],
+    ["Failed", String(kpis.workpieces_failed ?? "—")],
+    ["Operations", String(kpis.operations_completed ?? "—")],
+    ["MTBF", kpis.mtbf_s == null ? "—" : duration(kpis.mtbf_s)],
+    ["MTTR", kpis.mttr_s == null ? "—" : duration(kpis.mttr_s)],
+    ["Errors", String(kpis.errors_counted ?? "—")],
+  ];
+  $("kpis").replaceChildren(
+    ...figures.map(([label, value]) => {
+      const tile = element("div", "kpi");
+      tile.dataset.kpi = label.toLowerCase();
+      tile.append(element("div", "kpi-value", value), element("div", "kpi-label", label));
+      return tile;
+    }),
+  );
+  $("kpi-window").textContent = kpis.window ? `last ${number(kpis.window.hours, 0)} h` : "";
+}
+
+function renderHistory(page) {
+  const rows = (page.transitions || []).slice(0, HISTORY_ROWS).map((t) => {
+    const row = document.createElement("tr");
+    for (const [text, cls] of [
+      [clockTime(t.time), ""],
+      [t.old_state, `tone-${STATE_TONE[t.old_state] || "init"}`],
+      [t.new_state, `tone-${STATE_TONE[t.new_state] || "init"}`],
+      [t.event, ""],
+      [duration(t.time_in_old_state), "num"],
+    ]) {
+      row.append(element("td", cls, text));
+    }
+    return row;
+  });
+  $("history").replaceChildren(...rows);
+}
+
+// --- workpiece library ------------------------------------------------------
+
+export async function refreshLibrary() {
+  try {
+    const { workpieces } = await getJson("/workpieces");
+    const urls = await Promise.all(
+      workpieces.map((w) => (w.has_thumbnail ? blobUrl(`/workpieces/${encodeURIComponent(w.id)}/thumbnail`) : null)),
+    );
+    hmi.thumbnails.forEach((url) => URL.revokeObjectURL(url));
+    hmi.thumbnails = urls.filter(Boolean);
+    $("library").replaceChildren(...workpieces.map((w, i) => workpieceCard(w, urls[i])));
+    $("library-count").textContent = `${workpieces.length} in the library`;
+  } catch (error) {
+    if (!(error instanceof AuthError)) $("library-count").textContent = "library unavailable";
+  }
+}
+
+function workpieceCard(workpiece, url) {
+  const card = element("figure", "workpiece");
+  card.dataset.workpiece = workpiece.id;
+  const picture = url ? document.createElement("img") : element("div", "no-thumb", "no image");
+  if (url) {
+    picture.src = url;
+    picture.alt = `thumbnail of ${workpiece.name}`;
+  }
+  const spray = workpiece.spray || {};
+  const caption = element("figcaption");
+  caption.append(
+    element("strong", "", workpiece.name),
+    element("span", "muted small", `${workpiece.id} · fill ${spray.fill || "—"} · ${spray.speed_mm_s ?? "—"} mm/s`),
+  );
+  card.append(picture, caption);
+  return card;
+}
