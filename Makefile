@@ -11,7 +11,7 @@ HOST ?= 127.0.0.1
 PORT ?= 8000
 DATA ?= data
 
-.PHONY: run test test-fast lint bench diagram openapi clean browser
+.PHONY: run test test-fast lint bench diagram openapi clean browser node
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -21,11 +21,11 @@ $(STAMP): pyproject.toml constraints.txt
 run: $(STAMP)
 	$(PY) -m server --host $(HOST) --port $(PORT) --data-dir $(DATA)
 
-test: $(STAMP) lint browser
+test: $(STAMP) lint browser node
 	$(PY) -m pytest
 
 # The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
-test-fast: $(STAMP)
+test-fast: $(STAMP) node
 	$(PY) -m pytest -m unit -q
 
 # The browser tests drive Debian's Chromium through Playwright (never `playwright install`).
@@ -35,6 +35,14 @@ browser:
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 		$$SUDO apt-get update -qq && \
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium; }
+
+# The dashboard's geometry module is unit-tested with node's own test runner (no npm).
+node:
+	@command -v node >/dev/null || { \
+		echo "installing Debian's nodejs for the dashboard's unit tests"; \
+		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq nodejs; }
 
 # ruff, then mypy over server/ and clients/ (configured in pyproject.toml: [tool.mypy]).
 lint: $(STAMP)

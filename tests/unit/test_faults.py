@@ -62,7 +62,7 @@ EXPECTED = {
 _CODE = re.compile(r"[A-Z][A-Z0-9]*(?:_[A-Z0-9]+)*")
 # Calls whose first argument is a fault code (the drivers' and worker's reporting helpers).
 _FIRST_ARG_IS_CODE = {"OperationError", "OperationWarning", "_frame_failed", "_link_lost",
-                      "_report", "_warn"}  # fmt: skip
+                      "_report", "warn"}  # fmt: skip
 
 
 def _code(node: ast.AST | None) -> str | None:
@@ -118,13 +118,13 @@ def test_the_scan_finds_codes_from_every_kind_of_producer() -> None:
     # one per producer kind, so a scan that silently finds nothing fails here
     kinds = {
         "WORKSPACE_VIOLATION": "OperationError(code, ...)",
-        "CALIBRATION_DEGRADING": "a warning dict {'code': ...}",
+        "CALIBRATION_DEGRADING": "OperationWarning(code, ...)",
         "COMM_LOST": "a driver's _link_lost / _frame_failed(code, ...)",
         "NO_ANSWER": "DeviceFault(device, code, ...)",
         "ALARM": "the glue driver's _report(code, ...)",
         "DEVICE_FAULT": "RunOutcome(code=...)",
         "EMERGENCY_STOP": "code, message = ...",
-        "SLOW_OPERATION": "the worker's _warn(code, ...)",
+        "SLOW_OPERATION": "alerts.warn(code, ...)",
     }
     missing = {code: kind for code, kind in kinds.items() if code not in RAISED}
     assert not missing, f"the scan no longer finds: {missing}"

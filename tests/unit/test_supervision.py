@@ -20,7 +20,7 @@ from typing import Any
 import pytest
 
 from server.config import Settings
-from server.core.operations.base import Operation, OperationContext
+from server.core.operations.base import Operation, OperationContext, OperationResult
 from server.core.supervision import RunOutcome, supervise
 from server.errors import DeviceError, DeviceTimeout, OperationError
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
@@ -47,20 +47,19 @@ def context(config: Settings) -> OperationContext:
         settings=config,
         stores=None,  # type: ignore[arg-type]  # no operation here touches the stores
         params={},
-        report=lambda progress: None,
         run_id="run-1",
         operation="test",
     )
 
 
-def ok(data: dict[str, Any]) -> Any:
-    """What an operation returns on success (today: its dict)."""
-    return data
+def ok(data: dict[str, Any]) -> OperationResult:
+    """What an operation returns on success."""
+    return OperationResult(data)
 
 
 def data_of(outcome: RunOutcome) -> dict[str, Any] | None:
-    """The successful operation's data as the outcome carries it (today: `result`)."""
-    return outcome.result
+    """The successful operation's data as the outcome carries it."""
+    return outcome.result.data if outcome.result is not None else None
 
 
 async def run(
