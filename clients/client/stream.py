@@ -186,7 +186,7 @@ class MessageStream:
                         message = json.loads(raw)
                         seq = message.get("seq")
                         if isinstance(seq, int):
-                            if seq <= self.last_seq:  # already seen (never expected)
+                            if self.last_seq is not None and seq <= self.last_seq:  # seen before
                                 continue
                             self.last_seq = seq
                         if self._wanted(message):
