@@ -7,7 +7,8 @@ Every test is marked with its tier, from the directory it lives in
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Awaitable, Callable
+import logging
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -26,6 +27,13 @@ from tests.fakes import FakeCamera, FakeClock, FakeGlue, FakeRobot
 
 TESTS = Path(__file__).parent
 TIERS = ("unit", "integration", "e2e", "browser", "reliability")  # registered in pyproject
+
+
+@pytest.fixture(autouse=True)
+def _logging_enabled() -> Iterator[None]:
+    """Undo a benchmark's `logging.disable` (the bench smoke tests call their mains in-process)."""
+    yield
+    logging.disable(logging.NOTSET)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
