@@ -468,6 +468,12 @@ def reset(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
     _command(ctx, json_flag, lambda c: c.reset())
 
 
+@app.command()
+def home(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """Send the robot to its safe position; the cell stays IDLE (maintenance role)."""
+    _command(ctx, json_flag, lambda c: c.home())
+
+
 @app.command("calibrate-robot")
 def calibrate_robot(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
     """Fit the image → robot map from ArUco markers 0-8 (maintenance role)."""

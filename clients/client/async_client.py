@@ -87,6 +87,10 @@ class AsyncCellClient:
         """Leave ERROR for IDLE once every device answers (maintenance role)."""
         return await self._send(builders.command("reset"))
 
+    async def home(self) -> CommandResult:
+        """Send the robot to its safe position, in IDLE (maintenance role)."""
+        return await self._send(builders.command("home"))
+
     async def calibrate_robot(self) -> CommandResult:
         """Fit the image → robot map from the ArUco markers (maintenance role)."""
         return await self._send(builders.command("calibrate-robot"))

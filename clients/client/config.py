@@ -39,6 +39,7 @@ COMMANDS = (
     "cancel",
     "estop",
     "reset",
+    "home",
 )
 USER_AGENT = "glue-cell-client/0.1"
 WS_MAX_MESSAGE_BYTES = 16 * 2**20

@@ -85,6 +85,10 @@ class CellClient:
         """Leave ERROR for IDLE once every device answers (maintenance role)."""
         return self._send(builders.command("reset"))
 
+    def home(self) -> CommandResult:
+        """Send the robot to its safe position, in IDLE (maintenance role)."""
+        return self._send(builders.command("home"))
+
     def calibrate_robot(self) -> CommandResult:
         """Fit the image → robot map from the ArUco markers (maintenance role)."""
         return self._send(builders.command("calibrate-robot"))

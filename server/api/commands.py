@@ -1,9 +1,12 @@
 """Command routes: each posts one event and answers once the worker has decided.
 
-202 when accepted, 409 when the current state refuses it (with the reason),
-503 with Retry-After when the event queue is full. The e-stop route does not
-queue behind anything: it halts the devices first, then posts the event ahead
-of everything waiting.
+202 when accepted; 409 when the current state refuses it or what the command
+needs first is missing (a calibration, a part in the library), with what to do;
+422 naming the field when the request itself is wrong (start without contour
+matching names no workpiece); 503 with Retry-After when the event queue is
+full. A refusal changes nothing and is journaled and audited like any command.
+The e-stop route does not queue behind anything: it halts the devices first,
+then posts the event ahead of everything waiting.
 """
 
 from __future__ import annotations
@@ -34,7 +37,11 @@ router = APIRouter(tags=["commands"])
 
 RESPONSES: dict[int | str, dict[str, Any]] = {
     202: {"model": CommandResult, "description": "accepted: the machine changed state"},
-    409: {"model": CommandResult, "description": "refused: not allowed in the current state"},
+    409: {
+        "model": CommandResult,
+        "description": "refused: not allowed in the current state, or what the command needs "
+        "first is missing (the message says what to do); nothing changed",
+    },
     503: {"model": QueueFullResult, "description": "the event queue is full; retry later"},
 }
 
@@ -49,6 +56,18 @@ def _client(request: Request) -> str:
 
 
 def _answer(outcome: Outcome) -> JSONResponse:
+    if not outcome.accepted and outcome.field is not None:
+        # The request names something wrong: a 422 like any invalid field, with the
+        # cell's answer beside it (nothing changed).
+        problem = {"field": outcome.field, "message": outcome.message, "type": "precondition"}
+        refused = {
+            "detail": f"invalid request: {outcome.field}: {outcome.message}",
+            "errors": [problem],
+            "accepted": False,
+            "event_id": outcome.event_id,
+            "state": outcome.state.value,
+        }
+        return JSONResponse(refused, status_code=422)
     body = CommandResult(
         accepted=outcome.accepted,
         event_id=outcome.event_id,
@@ -137,3 +156,13 @@ async def estop(
 async def reset(request: Request) -> JSONResponse:
     """Leave ERROR for IDLE, once every device answers again; never restarts an operation."""
     return await _run(request, Command.RESET)
+
+
+@router.post("/home", status_code=202, responses=RESPONSES, response_model=CommandResult)
+async def home(request: Request) -> JSONResponse:
+    """Send the robot to its safe position (IDLE, stays IDLE; target checked first).
+
+    The only way the robot moves outside an operation: nothing else (a reset,
+    a restart, the end of a run) moves it by itself.
+    """
+    return await _run(request, Command.HOME)

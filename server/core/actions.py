@@ -50,7 +50,7 @@ class Action(StrEnum):
     CHANGE_STATE = "change state"  # the new state, in history, journal and on the bus
     NOTE_READY = "note ready"  # a device reported ready; SYSTEM_READY once all have
     ENTER_IDLE = "enter idle"  # keep the result, clear the run's data (and the fault on reset)
-    START_HOMING = "start homing"  # send the robot to its safe position
+    START_HOMING = "start homing"  # send the robot to its safe position (the home command)
     START_RUN = "start run"  # start the state's operation
     OPEN_GATE = "open gate"  # let a held operation continue
 
@@ -101,7 +101,9 @@ def actions_of(row: Transition) -> tuple[Action, ...]:
     if row.event in READINESS_EVENTS:
         actions.append(Action.NOTE_READY)
     if row.target is State.IDLE and changes_state:
-        actions += [Action.ENTER_IDLE, Action.START_HOMING]
+        actions.append(Action.ENTER_IDLE)  # never a move: the robot stays where it is
+    if row.event is Event.HOME_REQUESTED:
+        actions.append(Action.START_HOMING)
     if starts_operation(row):
         actions.append(Action.START_RUN)
     if row.event is Event.RESUME_REQUESTED:

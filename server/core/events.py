@@ -26,6 +26,7 @@ class Outcome:
     event: Event
     state: State
     message: str
+    field: str | None = None  # a refusal because this field of the request is wrong (HTTP 422)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -38,9 +39,8 @@ class Outcome:
 
     def with_note(self, note: str) -> Outcome:
         """The same answer with `note` added to its message."""
-        return Outcome(
-            self.accepted, self.event_id, self.event, self.state, f"{self.message}{note}"
-        )
+        message = f"{self.message}{note}"
+        return Outcome(self.accepted, self.event_id, self.event, self.state, message, self.field)
 
 
 @dataclass(frozen=True, slots=True)

@@ -41,6 +41,7 @@ RECOMMENDED_ACTION = {
     "WORKPIECE_NOT_MATCHED": "check the part is in the library (create-workpiece), then reset",
     "INTERRUPTED": "check the part and the glue line, clean if needed, then reset",
     "NOT_CALIBRATED": "reset, then run calibrate-robot",
+    "WORKPIECE_EXISTS": "reset, then create the part under another id or edit it with PUT",
     "CALIBRATION_STALE": "reset, then run calibrate-robot again",
 }
 

@@ -27,9 +27,16 @@ from server.core.events import (
     RunFailedPayload,
 )
 from server.core.frames import LatestFrame
-from server.core.operations.base import Operation, OperationContext, PauseGate, PlannedPath
+from server.core.operations.base import (
+    Operation,
+    OperationContext,
+    OperationResult,
+    PauseGate,
+    PlannedPath,
+)
+from server.core.operations.safe_position import move_to_safe_position
 from server.core.recorder import Recorder
-from server.core.supervision import RunOutcome, supervise
+from server.core.supervision import RunOutcome, as_result, supervise
 from server.core.transitions import Event
 from server.storage import CellStores
 
@@ -102,8 +109,9 @@ class Runs:
             frames=self.frames,
             clock=self.clock,
         )
+        operation = _from_safe_position(self.operations[name])
         self._task = asyncio.create_task(
-            self._supervise(self.operations[name], op_ctx), name=f"operation-{name}"
+            self._supervise(operation, op_ctx), name=f"operation-{name}"
         )
 
     async def _supervise(self, operation: Operation, op_ctx: OperationContext) -> None:
@@ -211,6 +219,20 @@ class Runs:
         if self._task is not None:
             self._task.cancel()
             await asyncio.gather(self._task, return_exceptions=True)
+
+
+def _from_safe_position(operation: Operation) -> Operation:
+    """`operation`, preceded by the move to the safe position: a run's first step.
+
+    Why: the cell never moves the robot by itself (not on entering IDLE, not
+    on a reset); the run a person commanded starts from a known pose.
+    """
+
+    async def run(ctx: OperationContext) -> OperationResult:
+        await move_to_safe_position(ctx)
+        return as_result(await operation(ctx))
+
+    return run
 
 
 class _RunListener:

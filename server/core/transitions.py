@@ -71,6 +71,7 @@ class Event(StrEnum):
     ERROR_OCCURRED = "ERROR_OCCURRED"
     EMERGENCY_STOP = "EMERGENCY_STOP"
     RESET_REQUESTED = "RESET_REQUESTED"
+    HOME_REQUESTED = "HOME_REQUESTED"
 
 
 class Guard(StrEnum):
@@ -118,6 +119,8 @@ _ROWS: Final[tuple[Transition, ...]] = (
     Transition(State.IDLE, Event.CALIBRATE_ROBOT_REQUESTED, State.CALIBRATING_ROBOT),
     Transition(State.IDLE, Event.CALIBRATE_CAMERA_REQUESTED, State.CALIBRATING_CAMERA),
     Transition(State.IDLE, Event.CREATE_WORKPIECE_REQUESTED, State.CREATING_WORKPIECE),
+    # A person sends the robot to its safe position; the cell stays IDLE while it moves.
+    Transition(State.IDLE, Event.HOME_REQUESTED, State.IDLE),
     # Spraying: finish, cancel or pause.
     Transition(State.EXECUTING_TRAJECTORY, Event.OPERATION_COMPLETED, State.IDLE),
     Transition(State.EXECUTING_TRAJECTORY, Event.CANCEL_REQUESTED, State.IDLE),
@@ -170,6 +173,7 @@ class Command(StrEnum):
     CANCEL = "cancel"
     ESTOP = "estop"
     RESET = "reset"
+    HOME = "home"
 
 
 # The event each command posts.
@@ -184,6 +188,7 @@ COMMANDS: Final = MappingProxyType(
         Command.CANCEL: Event.CANCEL_REQUESTED,
         Command.ESTOP: Event.EMERGENCY_STOP,
         Command.RESET: Event.RESET_REQUESTED,
+        Command.HOME: Event.HOME_REQUESTED,
     }
 )
 COMMAND_OF_EVENT: Final = MappingProxyType({event: name for name, event in COMMANDS.items()})

@@ -13,6 +13,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from server.core.engine import available_commands, check
+from server.core.events import payload_of
 from server.core.frames import Frame
 from server.core.transitions import COMMANDS, Command, State
 
@@ -75,8 +76,19 @@ class CellView:
         }
 
     def allowed(self, command: Command) -> tuple[bool, str]:
-        """Whether `command` would be accepted now, with the reason when it would not."""
-        return check(self._ctx.state, COMMANDS[command], self._worker.facts())
+        """Whether `command` (with default parameters) would be accepted now, and why not.
+
+        The same checks as the worker's, in the same order: the state (and its
+        guards), then what the command needs besides (server/core/preconditions.py).
+        """
+        event = COMMANDS[command]
+        allowed, reason = check(self._ctx.state, event, self._worker.facts())
+        if not allowed:
+            return allowed, reason
+        unmet = self._worker.preconditions.check(event, payload_of(event, None))
+        if unmet is not None:
+            return False, f"{command} is refused: {unmet.message}"
+        return True, reason
 
     @property
     def error_message(self) -> str | None:

@@ -40,6 +40,7 @@ from server.core.events import (
     payload_of,
 )
 from server.core.operations.base import Operation
+from server.core.preconditions import Preconditions
 from server.core.recorder import Recorder
 from server.core.runs import Runs
 from server.core.snapshot import SnapshotFile
@@ -100,6 +101,9 @@ class Worker:
         self.activities = Activities(
             settings, devices, self._halt, self._post_ready, self._post_fault
         )
+        self.preconditions = Preconditions(
+            stores, settings
+        )  # what a command needs besides the state
         self.view = CellView(self)  # what the API, the hub and metrics read
         self._ready: set[str] = set()
         self._boot = secrets.token_hex(3)
@@ -300,6 +304,9 @@ class Worker:
             decision = step(state, event, facts)
         except TransitionNotAllowed as refusal:
             return self._refuse(envelope, str(refusal))
+        unmet = self.preconditions.check(event, envelope.payload)
+        if unmet is not None:
+            return self._refuse(envelope, unmet.message, unmet.field)
         overtakable = decision.target is not State.ERROR
         for action in decision.actions:
             if overtakable and action not in EXIT_ACTIONS:
@@ -312,10 +319,12 @@ class Worker:
         message = f"{event_label(event)} accepted: {state.value} → {decision.target.value}"
         return self._outcome(envelope, True, message)
 
-    def _outcome(self, envelope: Envelope, accepted: bool, message: str) -> Outcome:
-        return Outcome(accepted, envelope.event_id, envelope.event, self.ctx.state, message)
+    def _outcome(
+        self, envelope: Envelope, accepted: bool, message: str, field: str | None = None
+    ) -> Outcome:
+        return Outcome(accepted, envelope.event_id, envelope.event, self.ctx.state, message, field)
 
-    def _refuse(self, envelope: Envelope, message: str) -> Outcome:
+    def _refuse(self, envelope: Envelope, message: str, field: str | None = None) -> Outcome:
         log.info(
             "refused %s (%s) from %s: %s",
             envelope.event.value,
@@ -323,7 +332,7 @@ class Worker:
             envelope.source,
             message,
         )
-        return self._outcome(envelope, False, message)
+        return self._outcome(envelope, False, message, field)
 
     def _is_current_run(self, envelope: Envelope) -> bool:
         run_id = getattr(envelope.payload, "run_id", None)

@@ -53,6 +53,7 @@ POLICY: Final = MappingProxyType(
         ("POST", "/calibrate-robot"): MAINT,
         ("POST", "/calibrate-camera"): MAINT,
         ("POST", "/reset"): MAINT,
+        ("POST", "/home"): MAINT,
         ("POST", "/workpieces"): MAINT,
         ("PUT", "/workpieces/{workpiece_id}"): MAINT,
         ("DELETE", "/workpieces/{workpiece_id}"): MAINT,

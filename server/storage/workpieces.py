@@ -95,6 +95,16 @@ class WorkpieceLibrary:
                 log.error("workpiece file %s unreadable, skipped: %s", path, exc)
         return items
 
+    def exists(self, workpiece_id: str) -> bool:
+        """Whether the library holds `workpiece_id` (a stat, no read: cheap enough to ask often)."""
+        try:
+            return self._path(workpiece_id).exists()
+        except KeyError:
+            return False
+
+    def is_empty(self) -> bool:
+        return next(self.directory.glob("*.json"), None) is None
+
     def get(self, workpiece_id: str) -> Workpiece:
         """The workpiece, or KeyError."""
         document = read_json(self._path(workpiece_id))
@@ -140,11 +150,23 @@ class WorkpieceLibrary:
         return workpiece
 
     def create(
-        self, data: WorkpieceIn, *, source: str = "api", thumbnail_png: bytes | None = None
+        self,
+        data: WorkpieceIn,
+        *,
+        workpiece_id: str | None = None,
+        source: str = "api",
+        thumbnail_png: bytes | None = None,
     ) -> Workpiece:
-        """Store under the next free wp-NNNN id; no two creations can get the same id."""
+        """Store a new part under `workpiece_id` or the next free wp-NNNN id; never replaces.
+
+        Raises FileExistsError when `workpiece_id` is taken: changing a part is
+        `put` (PUT /workpieces/{id}, maintenance), never a creation.
+        """
         with self._lock:
-            return self.put(self.new_id(), data, source=source, thumbnail_png=thumbnail_png)
+            if workpiece_id is not None and self.exists(workpiece_id):
+                raise FileExistsError(workpiece_id)
+            chosen = workpiece_id or self.new_id()
+            return self.put(chosen, data, source=source, thumbnail_png=thumbnail_png)
 
     def delete(self, workpiece_id: str) -> None:
         """Remove the entry and its thumbnail; KeyError if there is none."""

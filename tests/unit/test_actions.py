@@ -61,8 +61,20 @@ def test_exit_actions_come_before_the_change_and_the_fault_before_the_state(stat
     if Action.RECORD_FAULT in actions and Action.CHANGE_STATE in actions:
         assert actions.index(Action.RECORD_FAULT) < actions.index(Action.CHANGE_STATE)
     for entry in (Action.START_RUN, Action.START_HOMING, Action.ENTER_IDLE):
-        if entry in actions:
+        if entry in actions and Action.CHANGE_STATE in actions:
             assert actions.index(Action.CHANGE_STATE) < actions.index(entry)
+
+
+@pytest.mark.parametrize(("state", "event"), PAIRS)
+def test_the_robot_moves_only_when_a_person_commanded_it(state, event):
+    """Homing only on `home`; a run only when a command starts one: never on entering IDLE."""
+    decision = _decided(state, event)
+    if decision is None:
+        return
+    if Action.START_HOMING in decision.actions:
+        assert event is Event.HOME_REQUESTED
+    if Action.START_RUN in decision.actions:
+        assert event.value.endswith("_REQUESTED")
 
 
 @pytest.mark.parametrize(("state", "event"), PAIRS)

@@ -26,7 +26,9 @@ def test_spec_methods_and_return_shapes(tmp_path) -> None:
     demo_stores(tmp_path)
     with EmbeddedCell(settings, devices=devices) as cell:
         assert cell.get_current_state() is State.IDLE
-        assert cell.can_execute_operation("start") is True
+        assert cell.can_execute_operation("calibrate-robot") is True
+        # A plain start matches parts on the table: not without a robot calibration.
+        assert cell.can_execute_operation("start") is False
         assert cell.can_execute_operation("resume") is False
         assert cell.can_execute_operation("no-such-thing") is False
         ok, message = cell.start(contourMatching=False, workpiece_id="demo")

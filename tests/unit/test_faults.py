@@ -50,6 +50,7 @@ EXPECTED = {
     "PATH_INVALID": "critical",
     "NO_WORKPIECE": "critical",
     "WORKPIECE_UNKNOWN": "critical",
+    "WORKPIECE_EXISTS": "critical",
     "LIBRARY_EMPTY": "critical",
     "NOT_CALIBRATED": "critical",
     "CALIBRATION_STALE": "critical",

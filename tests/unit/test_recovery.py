@@ -9,7 +9,7 @@ from typing import Any
 from server.core.operations import OperationContext, OperationResult, OperationWarning
 from server.core.transitions import Event, State
 from server.errors import OperationError
-from tests.conftest import wait_for_state
+from tests.conftest import START_PAYLOAD, wait_for_state
 from tests.fakes import FakeClock
 
 
@@ -50,9 +50,9 @@ async def test_a_recoverable_fault_is_retried_then_stays_in_error(make_worker, f
 
 async def test_a_recovery_that_succeeds_completes_the_operation(make_worker, fast_settings):
     calls: list[int] = []
-    op = failing("WORKPIECE_NOT_FOUND", calls, succeed_on=2)
-    worker = await make_worker(recovering(fast_settings), operations={"create_workpiece": op})
-    await worker.request(Event.CREATE_WORKPIECE_REQUESTED, source="test")
+    op = failing("MARKER_NOT_FOUND", calls, succeed_on=2)
+    worker = await make_worker(recovering(fast_settings), operations={"calibrate_robot": op})
+    await worker.request(Event.CALIBRATE_ROBOT_REQUESTED, source="test")
     await wait_for_state(worker, State.IDLE)
     assert calls == [1, 2]
     assert worker.ctx.operation_result == {"found": True}
@@ -63,7 +63,7 @@ async def test_a_critical_fault_is_never_retried(make_worker, fast_settings) -> 
     worker = await make_worker(
         recovering(fast_settings), operations={"trajectory": failing("WORKSPACE_VIOLATION", calls)}
     )
-    await worker.request(Event.START_REQUESTED, source="test")
+    await worker.request(Event.START_REQUESTED, source="test", payload=START_PAYLOAD)
     await wait_for_state(worker, State.ERROR)
     assert calls == [1]
     assert worker.ctx.error.classification == "critical"

@@ -15,6 +15,7 @@ import numpy as np
 
 from server.core.operations.base import OperationContext
 from server.errors import OperationError
+from server.storage.calibration import CalibrationStore
 from server.vision.homography import PlaneCalibration
 
 MIN_WIDTH, MIN_HEIGHT = 1920, 1080
@@ -50,19 +51,31 @@ async def capture_undistorted(ctx: OperationContext, purpose: str) -> np.ndarray
     return undistorted
 
 
-def require_robot_calibration(ctx: OperationContext, purpose: str) -> PlaneCalibration:
-    """The image → robot map, if there is one that matches the current camera calibration."""
-    store = ctx.stores.calibration
+def robot_calibration_problem(store: CalibrationStore, purpose: str) -> OperationError | None:
+    """Why the image → robot map cannot be used now, or None when it can.
+
+    Checked before a run is accepted (server/core/preconditions.py) and again,
+    raised, when the operation uses it.
+    """
     if store.robot is None:
-        raise OperationError(
+        return OperationError(
             "NOT_CALIBRATED", f"{purpose} needs the robot calibration: run calibrate-robot first"
         )
     made_with = store.robot_meta.get("camera_calibration_at")
-    current = store.camera_meta.get("created_at")
-    if made_with != current:
-        raise OperationError(
+    if made_with != store.camera_meta.get("created_at"):
+        return OperationError(
             "CALIBRATION_STALE",
             f"{purpose}: the robot calibration predates the current camera calibration; "
             "run calibrate-robot again",
         )
+    return None
+
+
+def require_robot_calibration(ctx: OperationContext, purpose: str) -> PlaneCalibration:
+    """The image → robot map, if there is one that matches the current camera calibration."""
+    store = ctx.stores.calibration
+    problem = robot_calibration_problem(store, purpose)
+    if problem is not None:
+        raise problem
+    assert store.robot is not None
     return store.robot

@@ -19,6 +19,7 @@ import numpy as np
 
 from server.config import Settings
 from server.core.operations.base import OperationContext, OperationResult
+from server.core.operations.safe_position import workspace_problem
 from server.core.operations.workpieces import Target, locate_workpieces
 from server.drivers.base import Pose
 from server.errors import OperationError
@@ -92,16 +93,15 @@ def plan_path(targets: Sequence[Target], settings: Settings) -> list[Waypoint]:
 
 def check_workspace(path: Sequence[Waypoint], settings: Settings) -> None:
     """Refuse the whole path before any motion if one waypoint leaves the workspace."""
-    low, high = settings.workspace_min_mm, settings.workspace_max_mm
     for index, waypoint in enumerate(path, start=1):
-        for axis, value, lo, hi in zip("xyz", waypoint.pose[:3], low, high, strict=True):
-            if not lo <= value <= hi:
-                raise OperationError(
-                    "WORKSPACE_VIOLATION",
-                    f"waypoint {index} of {len(path)} ({waypoint.workpiece}) is outside the "
-                    f"workspace: {axis}={value:.1f} mm, allowed {lo:.0f}..{hi:.0f} mm; "
-                    "move the part inside the workspace or check the calibration",
-                )
+        problem = workspace_problem(waypoint.pose, settings)
+        if problem is not None:
+            raise OperationError(
+                "WORKSPACE_VIOLATION",
+                f"waypoint {index} of {len(path)} ({waypoint.workpiece}) is outside the "
+                f"workspace: {problem}; move the part inside the workspace or check the "
+                "calibration",
+            )
 
 
 async def resolve_targets(ctx: OperationContext) -> list[Target]:

@@ -80,14 +80,17 @@ async def create_workpiece(ctx: OperationContext) -> OperationResult:
         outline_mm=[(float(x), float(y)) for x, y in outline_mm],
         spray=spray,
     )
-    if ctx.params.get("workpiece_id"):
+    wanted = ctx.params.get("workpiece_id")
+    try:
         stored = await asyncio.to_thread(
-            library.put, ctx.params["workpiece_id"], entry, source="camera", thumbnail_png=thumbnail
+            library.create, entry, workpiece_id=wanted, source="camera", thumbnail_png=thumbnail
         )
-    else:
-        stored = await asyncio.to_thread(
-            library.create, entry, source="camera", thumbnail_png=thumbnail
-        )
+    except FileExistsError as exc:  # taken since the command was accepted
+        raise OperationError(
+            "WORKPIECE_EXISTS",
+            f"workpiece {wanted!r} was created meanwhile; create-workpiece never replaces a part: "
+            f"change it with PUT /workpieces/{wanted}",
+        ) from exc
     centroid = outline_mm.mean(axis=0)
     ctx.report({"step": "stored", "fraction": 1.0, "workpiece": stored.id})
     return OperationResult(

@@ -1,0 +1,56 @@
+"""The robot's safe position: where a run begins and where `home` sends it.
+
+Why here and not on entering IDLE: the robot moves only when a person or a
+running operation they commanded needs it to. So a reset, a restart or the
+end of a run never moves the robot; the move to the safe position is the
+first step of the next commanded operation (and the whole of the `home`
+command), and its target is checked against the workspace before it moves.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+from server.config import Settings
+from server.core.operations.base import OperationContext
+from server.drivers.base import Pose
+from server.errors import OperationError
+
+
+def workspace_problem(pose: Pose, settings: Settings) -> str | None:
+    """Which axis of `pose` leaves the workspace (the message), or None when it is inside."""
+    low, high = settings.workspace_min_mm, settings.workspace_max_mm
+    for axis, value, lo, hi in zip("xyz", pose[:3], low, high, strict=True):
+        if not lo <= value <= hi:
+            return f"{axis}={value:.1f} mm, allowed {lo:.0f}..{hi:.0f} mm"
+    return None
+
+
+def safe_pose(settings: Settings) -> Pose:
+    """The safe position, refused with WORKSPACE_VIOLATION when it lies outside the workspace."""
+    pose = Pose.from_sequence(settings.safe_position)
+    problem = workspace_problem(pose, settings)
+    if problem is not None:
+        raise OperationError(
+            "WORKSPACE_VIOLATION",
+            f"the safe position is outside the workspace ({problem}): correct safe_position "
+            "or the workspace bounds in the settings",
+        )
+    return pose
+
+
+async def move_to_safe_position(ctx: OperationContext) -> None:
+    """The first step of a run: travel to the safe position, checked before any motion."""
+    settings = ctx.settings
+    pose = safe_pose(settings)
+    try:
+        await asyncio.wait_for(
+            ctx.robot.move_linear(pose, settings.travel_speed_mm_s, settings.acceleration_mm_s2),
+            settings.safe_position_timeout,
+        )
+    except TimeoutError as exc:
+        limit = settings.safe_position_timeout
+        raise OperationError(
+            "SAFE_POSITION_FAILED",
+            f"the robot did not reach its safe position within {limit:g} s (safe_position_timeout)",
+        ) from exc

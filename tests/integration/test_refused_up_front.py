@@ -1,0 +1,98 @@
+"""Operator mistakes are refused before the transition: 409/422, state unchanged, on record.
+
+Before this, `POST /start {"contour_matching": false}` without a workpiece, or with
+an unknown one, was accepted (202) and then drove the cell into ERROR, which needs a
+maintenance reset; `create-workpiece` with the id of an existing part replaced it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import httpx
+import pytest
+
+from server.cell import Cell
+from server.config import Settings
+from server.core.devices import CellDevices
+from tests.conftest import demo_stores
+from tests.fakes import FakeCamera, FakeGlue, FakeRobot
+from tests.serving import admin_headers, serve
+
+
+@pytest.fixture
+async def api(fast_settings: Settings):
+    """The served app on fakes, with the demo part in the library and no calibration."""
+    devices = CellDevices(FakeRobot(speed_factor=5), FakeGlue(), FakeCamera())
+    demo_stores(fast_settings.data_path)
+    cell = Cell(fast_settings, devices=devices)
+    async with (
+        serve(cell) as url,
+        httpx.AsyncClient(
+            base_url=url, timeout=10, headers=admin_headers(fast_settings.data_path)
+        ) as client,
+    ):
+        async with asyncio.timeout(10):
+            while (await client.get("/state")).json()["state"] != "IDLE":
+                await asyncio.sleep(0.01)
+        yield client
+
+
+async def _still_idle_and_on_record(api: httpx.AsyncClient, event_id: str) -> None:
+    state = (await api.get("/state")).json()
+    assert state["state"] == "IDLE" and state["stop_reason"] is None
+    await asyncio.sleep(0.1)  # the audit row is written as the answer leaves
+    events = (await api.get("/events", params={"outcome": "refused"})).json()
+    assert event_id in [row["id"] for row in events["events"]]
+    audit = (await api.get("/audit")).json()["audit"]
+    assert any(event_id in (row["detail"] or "") for row in audit)
+
+
+async def test_start_without_matching_and_without_a_workpiece_is_a_422_naming_it(api) -> None:
+    answer = await api.post("/start", json={"contour_matching": False})
+    assert answer.status_code == 422
+    body = answer.json()
+    assert body["errors"][0]["field"] == "workpiece_id"
+    assert "workpiece_id is required" in body["detail"] and body["state"] == "IDLE"
+    await _still_idle_and_on_record(api, body["event_id"])
+
+
+async def test_start_with_an_unknown_workpiece_is_a_409_saying_what_to_do(api) -> None:
+    answer = await api.post("/start", json={"contour_matching": False, "workpiece_id": "nope"})
+    assert answer.status_code == 409
+    body = answer.json()
+    assert (
+        "'nope' is not in the library" in body["message"] and "GET /workpieces" in body["message"]
+    )
+    await _still_idle_and_on_record(api, body["event_id"])
+
+
+async def test_start_with_matching_needs_a_robot_calibration_and_allowed_says_so(api) -> None:
+    allowed = (await api.get("/operations/start/allowed")).json()
+    assert allowed["allowed"] is False and "run calibrate-robot first" in allowed["reason"]
+    answer = await api.post("/start")
+    assert answer.status_code == 409 and "run calibrate-robot first" in answer.json()["message"]
+    await _still_idle_and_on_record(api, answer.json()["event_id"])
+
+
+async def test_an_empty_library_refuses_matching_and_allowed_gives_the_same_reason(api) -> None:
+    assert (await api.delete("/workpieces/demo")).status_code in (200, 204)
+    allowed = (await api.get("/operations/start/allowed")).json()
+    answer = await api.post("/start")
+    assert answer.status_code == 409
+    assert "library is empty" in answer.json()["message"]
+    assert "library is empty" in allowed["reason"] and allowed["allowed"] is False
+
+
+async def test_create_workpiece_never_replaces_an_existing_part(api) -> None:
+    before = (await api.get("/workpieces/demo")).json()
+    answer = await api.post("/create-workpiece", json={"workpiece_id": "demo", "name": "x"})
+    assert answer.status_code == 409
+    assert "PUT /workpieces/demo" in answer.json()["message"]
+    assert (await api.get("/workpieces/demo")).json() == before
+    await _still_idle_and_on_record(api, answer.json()["event_id"])
+
+
+async def test_a_good_start_is_still_accepted(api) -> None:
+    answer = await api.post("/start", json={"contour_matching": False, "workpiece_id": "demo"})
+    assert answer.status_code == 202 and answer.json()["state"] == "EXECUTING_TRAJECTORY"
