@@ -11,21 +11,39 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Request, Response
 from fastapi.responses import FileResponse
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from server.api.schemas import ErrorView
 from server.cell import Cell
-from server.storage.workpieces import IDENTIFIER, Workpiece, WorkpieceIn, WorkpieceLibrary
+from server.storage.workpieces import (
+    IDENTIFIER,
+    DamagedEntry,
+    DamagedWorkpiece,
+    Workpiece,
+    WorkpieceIn,
+    WorkpieceLibrary,
+)
 
 router = APIRouter(tags=["workpieces"])
 WorkpieceId = Annotated[str, Path(pattern=IDENTIFIER, description="workpiece identifier")]
 NOT_FOUND: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorView, "description": "no such workpiece"}
 }
+DAMAGED: dict[int | str, dict[str, Any]] = {
+    409: {
+        "model": ErrorView,
+        "description": "the part's file is damaged: PUT repairs it, DELETE removes it",
+    }
+}
 
 
 class WorkpieceList(BaseModel):
     workpieces: list[Workpiece]
+    damaged: list[DamagedWorkpiece] = Field(
+        default_factory=list,
+        description="library files that cannot be read, with the reason: "
+        "PUT /workpieces/{id} repairs one, DELETE removes it",
+    )
 
 
 def _library(request: Request) -> WorkpieceLibrary:
@@ -38,10 +56,19 @@ def _missing(workpiece_id: str) -> HTTPException:
     return HTTPException(404, f"workpiece {workpiece_id!r} is not in the library")
 
 
+def _damaged(damage: DamagedEntry) -> HTTPException:
+    return HTTPException(
+        409,
+        f"{damage}: PUT /workpieces/{damage.workpiece_id} repairs it (maintenance), "
+        "DELETE removes it",
+    )
+
+
 @router.get("/workpieces", response_model=WorkpieceList)
 async def list_workpieces(request: Request) -> WorkpieceList:
-    """Every workpiece in the library."""
-    return WorkpieceList(workpieces=await asyncio.to_thread(_library(request).list))
+    """Every workpiece in the library, and the files that cannot be read."""
+    parts, damaged = await asyncio.to_thread(_library(request).survey)
+    return WorkpieceList(workpieces=parts, damaged=damaged)
 
 
 @router.post("/workpieces", response_model=Workpiece, status_code=201)
@@ -50,19 +77,23 @@ async def create_workpiece_from_outline(request: Request, body: WorkpieceIn) -> 
     return await asyncio.to_thread(_library(request).create, body)
 
 
-@router.get("/workpieces/{workpiece_id}", response_model=Workpiece, responses=NOT_FOUND)
+@router.get(
+    "/workpieces/{workpiece_id}", response_model=Workpiece, responses={**NOT_FOUND, **DAMAGED}
+)
 async def get_workpiece(request: Request, workpiece_id: WorkpieceId) -> Workpiece:
     try:
         return await asyncio.to_thread(_library(request).get, workpiece_id)
     except KeyError:
         raise _missing(workpiece_id) from None
+    except DamagedEntry as damage:
+        raise _damaged(damage) from None
 
 
 @router.put("/workpieces/{workpiece_id}", response_model=Workpiece)
 async def put_workpiece(
     request: Request, workpiece_id: WorkpieceId, body: WorkpieceIn
 ) -> Workpiece:
-    """Create or replace the workpiece under this identifier."""
+    """Create or replace the workpiece under this identifier (repairs a damaged file)."""
     return await asyncio.to_thread(_library(request).put, workpiece_id, body)
 
 

@@ -8,6 +8,7 @@ library part can be sprayed as it lies, or matched to where it lies now.
 
 from __future__ import annotations
 
+import builtins
 import logging
 import re
 import threading
@@ -70,6 +71,33 @@ class Workpiece(WorkpieceIn):
     has_thumbnail: bool = False
 
 
+class DamagedWorkpiece(BaseModel):
+    """A library file that cannot be read as a part, and why."""
+
+    id: str
+    reason: str
+
+
+class DamagedEntry(ValueError):
+    """The part's file exists but cannot be read (truncated, not JSON, invalid)."""
+
+    def __init__(self, workpiece_id: str, reason: str) -> None:
+        self.workpiece_id = workpiece_id
+        self.reason = reason
+        super().__init__(f"workpiece {workpiece_id!r} is damaged: {reason}")
+
+
+def _reason(exc: Exception) -> str:
+    """One line a technician can read: the JSON error, or the first invalid field."""
+    if isinstance(exc, ValidationError):
+        first = exc.errors()[0]
+        where = ".".join(str(part) for part in first["loc"]) or "document"
+        return f"{where}: {first['msg']} ({exc.error_count()} problem(s))"
+    if exc.__cause__ is not None:  # read_json: the decoder's own words
+        return f"not valid JSON: {exc.__cause__}"
+    return str(exc)
+
+
 class WorkpieceLibrary:
     """CRUD over the workpiece files; safe to call from worker threads."""
 
@@ -87,13 +115,30 @@ class WorkpieceLibrary:
         return self._path(workpiece_id).with_suffix(".png")
 
     def list(self) -> list[Workpiece]:
-        items = []
+        """Every readable part; a damaged file is left out (see `damaged`), never fatal."""
+        return self.survey()[0]
+
+    def damaged(self) -> builtins.list[DamagedWorkpiece]:
+        """The files that cannot be read as a part, each with the reason."""
+        return self.survey()[1]
+
+    def survey(self) -> tuple[builtins.list[Workpiece], builtins.list[DamagedWorkpiece]]:
+        """The readable parts and the damaged files, in one pass over the directory.
+
+        Why not fail: one truncated file (a full disk, a hand edit) must not stop
+        the server or hide the other parts; it is listed with its reason until
+        PUT repairs it or DELETE removes it.
+        """
+        items: list[Workpiece] = []
+        damaged: list[DamagedWorkpiece] = []
         for path in sorted(self.directory.glob("*.json")):
             try:
                 items.append(Workpiece.model_validate(read_json(path)))
             except (ValueError, ValidationError) as exc:
-                log.error("workpiece file %s unreadable, skipped: %s", path, exc)
-        return items
+                reason = _reason(exc)
+                log.error("workpiece file %s is damaged, left out: %s", path, reason)
+                damaged.append(DamagedWorkpiece(id=path.stem, reason=reason))
+        return items, damaged
 
     def exists(self, workpiece_id: str) -> bool:
         """Whether the library holds `workpiece_id` (a stat, no read: cheap enough to ask often)."""
@@ -103,14 +148,19 @@ class WorkpieceLibrary:
             return False
 
     def is_empty(self) -> bool:
-        return next(self.directory.glob("*.json"), None) is None
+        """No readable part: a library of damaged files matches nothing."""
+        return not self.list()
 
     def get(self, workpiece_id: str) -> Workpiece:
-        """The workpiece, or KeyError."""
-        document = read_json(self._path(workpiece_id))
-        if document is None:
-            raise KeyError(workpiece_id)
-        return Workpiece.model_validate(document)
+        """The workpiece; KeyError when there is none, DamagedEntry when its file is unreadable."""
+        path = self._path(workpiece_id)
+        try:
+            document = read_json(path)
+            if document is None:
+                raise KeyError(workpiece_id)
+            return Workpiece.model_validate(document)
+        except (ValueError, ValidationError) as exc:
+            raise DamagedEntry(workpiece_id, _reason(exc)) from exc
 
     def new_id(self) -> str:
         with self._lock:
@@ -128,13 +178,13 @@ class WorkpieceLibrary:
         source: str = "api",
         thumbnail_png: bytes | None = None,
     ) -> Workpiece:
-        """Create or replace; keeps created_at of an existing entry."""
+        """Create or replace; keeps created_at of an existing entry; repairs a damaged one."""
         path = self._path(workpiece_id)
         now = time.time()
         with self._lock:
             try:
                 created = self.get(workpiece_id).created_at
-            except KeyError:
+            except (KeyError, DamagedEntry):
                 created = now
             if thumbnail_png is not None:
                 write_bytes_atomic(self.thumbnail_path(workpiece_id), thumbnail_png)
