@@ -33,13 +33,12 @@ from typing import Any
 
 import psutil
 
-from bench.engine_throughput import NullDevice, event_sequence
+from bench.engine_throughput import DEMO_PART, START_DEMO, NullDevice, event_sequence, submit
 from bench.report import emit
 from server.cell import Cell
 from server.config import Settings
 from server.core.bus import SubscriptionClosed
 from server.core.devices import CellDevices
-from server.core.events import StartPayload
 from server.core.transitions import Event, State
 from server.core.worker import Worker
 from server.runtime import tune_garbage_collection
@@ -59,15 +58,13 @@ def rss_mb() -> float:
 
 async def drive(worker: Worker, events: list[Event]) -> None:
     for first in range(0, len(events), BATCH):
-        envelopes = [worker.submit(e, source="bench") for e in events[first : first + BATCH]]
+        envelopes = [submit(worker, e) for e in events[first : first + BATCH]]
         await asyncio.gather(*(e.future for e in envelopes if e.future is not None))
 
 
 async def run_operations(worker: Worker, count: int) -> None:
     for _ in range(count):
-        outcome = await worker.request(
-            Event.START_REQUESTED, source="bench", payload=StartPayload(workpiece_id="demo")
-        )
+        outcome = await worker.request(Event.START_REQUESTED, source="bench", payload=START_DEMO)
         assert outcome.accepted, outcome.message
         while worker.ctx.state is not State.IDLE:
             await asyncio.sleep(0)
@@ -84,7 +81,8 @@ async def measure(event_count: int, operation_count: int) -> list[dict[str, Any]
         tune_garbage_collection()  # as python -m server does
         async with serve(cell):
             worker = cell.worker
-            assert worker is not None
+            assert worker is not None and cell.stores is not None
+            cell.stores.workpieces.put("demo", DEMO_PART)
             while worker.ctx.state is not State.IDLE:
                 await asyncio.sleep(0.01)
             subscription = cell.bus.subscribe(maxsize=BATCH * 4)
