@@ -18,6 +18,7 @@ import httpx
 import pytest
 import websockets
 
+from server.config import Settings
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.robot_jsonrpc import JsonRpcRobot
 from tests.processes import server_process, simulator
@@ -25,6 +26,7 @@ from tests.serving import admin_headers, free_port
 
 SPEED_FACTOR = "8"
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}  # the commissioned part
+SAFE_POSITION = list(Settings().safe_position)  # the server runs with the default
 
 
 @pytest.fixture(scope="module")
@@ -134,6 +136,9 @@ async def test_start_drives_a_full_cycle_seen_state_by_state(cell, api, robot_si
         for s in await robot_sim.call("sim.getExecutedPath")
         if s["method"] == "moveL" and not s["interrupted"]
     ]
+    # The run's first step is the move to the safe position, then the planned path.
+    assert executed[0] == pytest.approx(SAFE_POSITION, abs=0.01)
+    executed = executed[1:]
     assert len(executed) >= len(planned)
     for reached, target in zip(executed, planned, strict=False):
         assert reached == pytest.approx(target, abs=0.01)

@@ -78,13 +78,16 @@ async def test_state_allowed_history_and_health(api) -> None:
     state = (await api.get("/state")).json()
     assert state["state"] == "IDLE" and state["previous_state"] == "INITIALIZING"
     assert state["operation"] is None and state["error"] is None
-    allowed = (await api.get("/operations/start/allowed")).json()
+    allowed = (await api.get("/operations/calibrate-robot/allowed")).json()
     assert allowed == {
-        "operation": "start",
+        "operation": "calibrate-robot",
         "allowed": True,
         "state": "IDLE",
-        "reason": "start is allowed in IDLE (→ EXECUTING_TRAJECTORY)",
+        "reason": "calibrate-robot is allowed in IDLE (→ CALIBRATING_ROBOT)",
     }
+    # A plain start matches parts on the table: this cell has no robot calibration yet.
+    start = (await api.get("/operations/start/allowed")).json()
+    assert start["allowed"] is False and "run calibrate-robot first" in start["reason"]
     refused = (await api.get("/operations/resume/allowed")).json()
     assert refused["allowed"] is False and refused["reason"] == "resume is not allowed in IDLE"
     unknown = await api.get("/operations/fly/allowed")

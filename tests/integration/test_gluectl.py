@@ -167,7 +167,7 @@ async def test_the_other_commands(cli: Cli) -> None:
         (("workpieces",), "demo"),
         (("kpis",), "oee.availability"),
         (("health",), "robot"),
-        (("allowed", "start"), "start is allowed in IDLE"),
+        (("allowed", "calibrate-robot"), "calibrate-robot is allowed in IDLE"),
     ):
         ran = await cli(*args)
         assert ran.code == 0 and text in ran.stdout, (args, ran)
@@ -181,9 +181,9 @@ async def test_the_other_commands(cli: Cli) -> None:
         ran = await cli("--json", command)
         assert ran.code == 0 and ran.json()["state"] == state  # type: ignore[index]
         await settle(cli.client)
+    # No robot calibration on the fake camera: refused up front (exit 3), saying what to do.
     created = await cli("create-workpiece", "--name", "bracket", "--id", "bracket")
-    assert created.code == 0 and "CREATING_WORKPIECE" in created.stdout
-    await settle(cli.client)
+    assert created.code == 3 and "run calibrate-robot first" in created.stderr
     cli.cell.devices.robot.speed_factor = 0.5  # a run of several seconds: no race with the CLI
     await cli.client.start(workpiece_id="demo", contour_matching=False)
     for command, state in (

@@ -52,9 +52,11 @@ async def test_camera_calibration_recovers_the_focal_length(rig: Rig) -> None:
     assert fx == pytest.approx(rig.camera.model.fx, rel=0.02)
     assert fy == pytest.approx(rig.camera.model.fy, rel=0.02)
     assert rig.camera.mode == "table"  # the simulated operator put the board away
-    # A new camera calibration makes the old robot calibration stale: refused, not misused.
-    snapshot = await run(rig, "create-workpiece")
-    assert snapshot["state"] == "ERROR" and snapshot["error"]["code"] == "CALIBRATION_STALE"
+    # A new camera calibration makes the old robot calibration stale: refused before it
+    # starts (409, still IDLE), not misused and not a fault.
+    refused = await rig.api.post("/create-workpiece")
+    assert refused.status_code == 409 and "run calibrate-robot again" in refused.json()["message"]
+    assert (await rig.api.get("/state")).json()["state"] == "IDLE"
 
 
 async def test_camera_calibration_waits_between_views_for_the_board_to_move(tmp_path) -> None:
@@ -115,8 +117,11 @@ async def test_a_created_workpiece_is_found_again_where_it_lies(rig, shape, x, y
         for px, py in planned_xy
     ]
     assert max(distances) < 1.0, max(distances)
-    # And the robot simulator executed exactly the planned path.
+    # And the robot simulator executed exactly the planned path, after the run's first
+    # step: the move to the safe position.
     executed = [s.end for s in rig.robot.executed_path if s.method == "moveL"]
+    assert list(executed[0]) == pytest.approx(list(rig.cell.settings.safe_position), abs=0.01)
+    executed = executed[1:]
     planned = [w["pose"] for w in trajectory["planned_path"]]
     assert len(executed) >= len(planned)
     for reached, target in zip(executed, planned, strict=False):
@@ -172,5 +177,9 @@ async def test_the_workpiece_library_over_http(rig: Rig) -> None:
     assert bad.status_code == 422 and "outline_mm" in bad.json()["detail"]
     bad = await api.put("/workpieces/..%2Fetc", json=body)
     assert bad.status_code in (404, 422)
-    unknown = await run(rig, "start", {"contour_matching": False, "workpiece_id": "nope"})
-    assert unknown["error"]["code"] == "WORKPIECE_UNKNOWN"
+    # An unknown part is refused before the run starts (409), not a fault.
+    unknown = await api.post("/start", json={"contour_matching": False, "workpiece_id": "nope"})
+    assert (
+        unknown.status_code == 409 and "'nope' is not in the library" in unknown.json()["message"]
+    )
+    assert (await api.get("/state")).json()["state"] == "IDLE"
