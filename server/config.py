@@ -14,12 +14,14 @@ path as a real cell.
 
 from __future__ import annotations
 
+import itertools
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import AliasChoices, Field, field_validator
+from pydantic import AliasChoices, Field, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -32,6 +34,20 @@ SIMULATED = "sim"
 DEFAULT_MARKER_POSITIONS_MM: list[tuple[float, float]] = [
     (x, y) for y in (-150.0, 0.0, 150.0) for x in (250.0, 400.0, 550.0)
 ]
+
+
+def _has_four_in_general_position(points: list[tuple[float, float]], tolerance: float) -> bool:
+    """Whether four of the points have no three within `tolerance` of one line."""
+
+    def apart(a: tuple[float, float], b: tuple[float, float], c: tuple[float, float]) -> bool:
+        cross = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+        longest = max(math.dist(a, b), math.dist(b, c), math.dist(a, c))
+        return longest > 0 and abs(cross) / longest > tolerance  # the triangle's least height
+
+    return any(
+        all(apart(*three) for three in itertools.combinations(four, 3))
+        for four in itertools.combinations(points, 4)
+    )
 
 
 class JsonFileSource(PydanticBaseSettingsSource):
@@ -171,10 +187,33 @@ class Settings(BaseSettings):
     workspace_min_mm: tuple[float, float, float] = (100.0, -400.0, -5.0)
     workspace_max_mm: tuple[float, float, float] = (800.0, 400.0, 500.0)
     marker_positions_mm: list[tuple[float, float]] = Field(
-        default_factory=lambda: list(DEFAULT_MARKER_POSITIONS_MM)
+        default_factory=lambda: list(DEFAULT_MARKER_POSITIONS_MM),
+        description="robot (x, y) mm on the table of the centres of ArUco markers 0-8; "
+        "the default is the simulated table's grid, so a real camera needs it set",
+    )
+    marker_size_mm: float = Field(
+        30.0,
+        gt=0,
+        le=500,
+        description="side of each marker's black square as printed (measure it): the "
+        "robot calibration checks its map's scale against it",
     )
     calibration_max_error_mm: float = Field(
         1.0, gt=0, le=20, description="robot calibration fails above this mean marker error"
+    )
+    calibration_max_scale_error_pct: float = Field(
+        1.0,
+        gt=0,
+        le=10,
+        description="robot calibration fails when the markers' side through its map differs "
+        "from marker_size_mm by more than this (%)",
+    )
+    calibration_max_holdout_error_mm: float = Field(
+        1.0,
+        gt=0,
+        le=20,
+        description="robot calibration fails when a map fitted without one marker misses "
+        "that marker by more than this (leave-one-out, worst marker)",
     )
     chessboard_cols: int = Field(9, ge=3, le=40, description="inner corners per row")
     chessboard_rows: int = Field(6, ge=3, le=40, description="inner corners per column")
@@ -208,6 +247,50 @@ class Settings(BaseSettings):
         if len(value) != 9:
             raise ValueError("marker_positions_mm needs the robot positions of markers 0-8 (nine)")
         return value
+
+    @model_validator(mode="after")
+    def _marker_layout(self) -> Settings:
+        """The marker layout is what the robot calibration maps to, so it is checked at load.
+
+        Why each rule: a real table's layout is never the simulator's grid by accident (the
+        default is refused for a real camera); a marker outside the workspace is one the robot
+        could not be checked against; overlapping markers are a typo; and a homography needs
+        four markers no three of which are on one line, also with any one marker left out,
+        because the calibration's hold-out check fits the map without each marker in turn.
+        """
+        name = "marker_positions_mm"
+        if not self.camera_simulated and name not in self.model_fields_set:
+            raise ValueError(
+                f"{name} must be set for a real camera (vision_camera_id="
+                f"{self.vision_camera_id!r}): the default is the simulated table's grid, "
+                "not your table's marker layout"
+            )
+        points = [(float(x), float(y)) for x, y in self.marker_positions_mm]
+        (x_low, y_low, _), (x_high, y_high, _) = self.workspace_min_mm, self.workspace_max_mm
+        for i, (x, y) in enumerate(points):
+            if not (x_low <= x <= x_high and y_low <= y <= y_high):
+                raise ValueError(
+                    f"{name}: marker {i} at ({x:g}, {y:g}) mm is outside the workspace "
+                    f"(workspace_min_mm/workspace_max_mm: x {x_low:g}..{x_high:g}, "
+                    f"y {y_low:g}..{y_high:g} mm)"
+                )
+        diagonal = self.marker_size_mm * math.sqrt(2.0)
+        for (i, p), (j, q) in itertools.combinations(enumerate(points), 2):
+            if math.dist(p, q) < diagonal:
+                raise ValueError(
+                    f"{name}: markers {i} and {j} are {math.dist(p, q):.1f} mm apart, less than "
+                    f"a marker's diagonal ({diagonal:.1f} mm for marker_size_mm="
+                    f"{self.marker_size_mm:g}): they would overlap"
+                )
+        for left_out in range(len(points)):
+            rest = [p for i, p in enumerate(points) if i != left_out]
+            if not _has_four_in_general_position(rest, self.marker_size_mm):
+                raise ValueError(
+                    f"{name} is degenerate: a calibration needs four markers no three of which "
+                    f"lie on one line (within marker_size_mm={self.marker_size_mm:g} mm), also "
+                    f"with any one marker left out; without marker {left_out} there are not"
+                )
+        return self
 
     @classmethod
     def settings_customise_sources(

@@ -26,6 +26,7 @@ from server.core.devices import CellDevices
 from server.drivers.camera import OpenCVCamera, SimulatedCamera
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.robot_jsonrpc import JsonRpcRobot
+from server.drivers.sim.camera_scene import Scene
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +91,10 @@ async def build_devices(
     camera_id = settings.vision_camera_id
     camera: SimulatedCamera | OpenCVCamera
     if settings.camera_simulated:
-        camera = SimulatedCamera(timeout=settings.vision_processing_timeout)
+        # The simulated table is printed from the configured layout, so the settings the
+        # robot calibration checks against describe the table it sees.
+        scene = Scene.printed(settings.marker_positions_mm, settings.marker_size_mm)
+        camera = SimulatedCamera(scene, timeout=settings.vision_processing_timeout)
     else:
         source: int | str = int(camera_id) if camera_id.isdigit() else camera_id
         camera = OpenCVCamera(source, timeout=settings.vision_processing_timeout)

@@ -43,6 +43,11 @@ RECOMMENDED_ACTION = {
     "NOT_CALIBRATED": "reset, then run calibrate-robot",
     "WORKPIECE_EXISTS": "reset, then create the part under another id or edit it with PUT",
     "CALIBRATION_STALE": "reset, then run calibrate-robot again",
+    "CALIBRATION_SCALE": "measure the markers' positions and printed side; correct "
+    "marker_positions_mm or marker_size_mm (a restart applies them), reset, then run "
+    "calibrate-robot",
+    "CALIBRATION_HOLDOUT": "check the named marker lies flat where marker_positions_mm says, "
+    "reset, then run calibrate-robot",
 }
 
 

@@ -26,6 +26,8 @@ __all__ = [
     "PlaneCalibration",
     "annotate_markers",
     "fit_plane_calibration",
+    "leave_one_out_errors",
+    "mapped_side_mm",
     "pixels_to_robot",
     "robot_to_pixels",
 ]
@@ -131,6 +133,39 @@ def fit_plane_calibration(
         mean_error_mm=float(errors.mean()),
         max_error_mm=float(errors.max()),
     )
+
+
+def leave_one_out_errors(
+    pixels: Mapping[int, ArrayLike], robot_mm: Mapping[int, tuple[float, float]]
+) -> dict[int, float]:
+    """For each marker, how far (mm) a map fitted to all the *other* markers puts it.
+
+    Why: a fit's own residuals flatter it. With nine markers and eight degrees of freedom a
+    marker whose configured position is wrong by 2 mm pulls the map towards itself and shows
+    a residual well under 1 mm; predicted from the other eight, it is off by the full 2 mm.
+    The hold-out error is the error the map makes where it has no marker (where parts lie).
+    Raises ValueError, like `fit_plane_calibration`, when leaving a marker out leaves the
+    others degenerate.
+    """
+    ids = sorted(set(pixels) & set(robot_mm))
+    errors: dict[int, float] = {}
+    for held in ids:
+        rest = [i for i in ids if i != held]
+        fit = fit_plane_calibration({i: pixels[i] for i in rest}, {i: robot_mm[i] for i in rest})
+        predicted = pixels_to_robot(fit.homography, _as_points(pixels[held])[0])[0]
+        errors[held] = float(np.linalg.norm(predicted - np.asarray(robot_mm[held])))
+    return errors
+
+
+def mapped_side_mm(homography: np.ndarray, corners: ArrayLike) -> float:
+    """The mean side (mm) of a marker whose corners (4×2 undistorted px) go through the map.
+
+    Why: the printed marker's side is a length known independently of the marker layout, so
+    comparing it with what the map makes of it checks the map's scale (a layout measured or
+    printed at the wrong scale fits itself perfectly, and only this shows it).
+    """
+    quad = pixels_to_robot(homography, corners).reshape(4, 2)
+    return float(np.mean(np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)))
 
 
 def annotate_markers(

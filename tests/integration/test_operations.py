@@ -12,6 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
+from server.config import DEFAULT_MARKER_POSITIONS_MM as GRID
+from server.drivers.sim.camera_scene import Scene
 from server.vision.homography import pixels_to_robot
 from tests.rig import Rig, open_rig, run
 
@@ -28,6 +30,10 @@ async def test_robot_calibration_maps_every_marker_within_half_a_millimetre(rig:
     calibration = (await rig.api.get("/calibration")).json()["robot"]
     assert calibration["mean_error_mm"] < 0.5 and calibration["max_error_mm"] < 0.5
     assert calibration["created_at"] > 0
+    # Checked independently of the fit: its scale against the printed marker side, and each
+    # marker predicted by a map fitted without it.
+    assert abs(calibration["scale_error_pct"]) < 0.2, calibration
+    assert calibration["holdout_max_error_mm"] < 0.5, calibration
     # Independently of the fit's own residuals: where the camera truly sees each
     # marker centre, through the stored undistortion and map, back to the robot.
     camera, store = rig.camera, rig.cell.stores.calibration
@@ -129,7 +135,11 @@ async def test_a_created_workpiece_is_found_again_where_it_lies(rig, shape, x, y
 
 
 async def test_a_part_partly_outside_the_workspace_is_refused_before_any_motion(tmp_path):
-    async with open_rig(tmp_path, workspace_max_mm=(440.0, 400.0, 500.0)) as rig:
+    # The workspace must hold every marker (a setting checked at load), so the part is moved
+    # beyond the markers, across the workspace's edge at x = 660 mm.
+    async with open_rig(tmp_path, workspace_max_mm=(660.0, 400.0, 500.0)) as rig:
+        rig.camera.clear_workpieces()
+        rig.camera.place_workpiece("rect-120x80", 650.0, 0.0, 5.0)
         rig.robot.clear_path()
         snapshot = await run(rig, "start")
         assert snapshot["state"] == "ERROR"
@@ -139,6 +149,43 @@ async def test_a_part_partly_outside_the_workspace_is_refused_before_any_motion(
         safe = tuple(rig.cell.settings.safe_position)
         assert [s for s in rig.robot.executed_path if tuple(s.end) != safe] == []
         assert rig.glue.valve_open is False
+
+
+async def test_a_table_printed_at_another_scale_is_refused_and_the_map_kept(rig: Rig) -> None:
+    before = (await rig.api.get("/calibration")).json()["robot"]
+    rig.camera.scene = Scene.printed(rig.cell.settings.marker_positions_mm, 30.0, scale=1.02)
+    snapshot = await run(rig, "calibrate-robot")
+    assert snapshot["state"] == "ERROR"
+    error = snapshot["error"]
+    assert error["code"] == "CALIBRATION_SCALE", error
+    # the measured numbers and the limit: 30 mm markers read as 30 / 1.02 = 29.41 mm
+    assert "off by -1.9" in error["message"] and "limit 1 %" in error["message"], error
+    assert "29.4" in error["message"] and "marker_size_mm is 30 mm" in error["message"], error
+    assert (await rig.api.get("/calibration")).json()["robot"] == before
+
+
+async def test_a_moved_marker_is_refused_by_the_holdout_and_the_map_kept(rig: Rig) -> None:
+    before = (await rig.api.get("/calibration")).json()["robot"]
+    x, y = rig.camera.scene.marker_positions_mm[4]
+    rig.camera.scene.marker_positions_mm[4] = (x + 2.0, y)  # bumped on the table
+    snapshot = await run(rig, "calibrate-robot")
+    assert snapshot["state"] == "ERROR"
+    error = snapshot["error"]
+    assert error["code"] == "CALIBRATION_HOLDOUT", error
+    assert "hold-out error 2.0" in error["message"] and "exceeds 1 mm" in error["message"], error
+    assert "without marker 4" in error["message"], error
+    assert (await rig.api.get("/calibration")).json()["robot"] == before
+
+
+async def test_the_simulated_table_is_printed_from_the_configured_layout(tmp_path) -> None:
+    # Not the simulator's grid, nor any projective image of it (the map would absorb that).
+    layout = [(x + 15.0 if y > 0 else x, y) for x, y in GRID]
+    layout[4] = (420.0, 10.0)
+    async with open_rig(tmp_path, marker_positions_mm=layout, marker_size_mm=36.0) as rig:
+        # commissioning calibrated the robot against this layout and this marker size
+        robot = (await rig.api.get("/calibration")).json()["robot"]
+        assert robot is not None and robot["mean_error_mm"] < 0.5, robot
+        assert abs(robot["scale_error_pct"]) < 0.2 and robot["holdout_max_error_mm"] < 0.5
 
 
 async def test_a_covered_marker_fails_calibration_naming_it(rig: Rig) -> None:

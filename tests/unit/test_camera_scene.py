@@ -119,6 +119,17 @@ def test_workpiece_library_is_centred_on_area_centroids() -> None:
         Workpiece.named("banana", 0, 0)
 
 
+def test_a_table_printed_at_another_scale_moves_the_markers_not_their_size() -> None:
+    layout = Scene().marker_positions_mm
+    printed = Scene.printed(layout, 36.0, scale=1.02)
+    centre = np.mean(layout, axis=0)
+    np.testing.assert_allclose(
+        np.asarray(printed.marker_positions_mm) - centre, 1.02 * (np.asarray(layout) - centre)
+    )
+    assert printed.marker_size_mm == 36.0
+    assert Scene.printed(layout).marker_positions_mm == Scene().marker_positions_mm
+
+
 def test_placing_a_workpiece_on_a_marker_warns(caplog: pytest.LogCaptureFixture) -> None:
     scene = Scene()
     with caplog.at_level(logging.WARNING):

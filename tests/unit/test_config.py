@@ -104,3 +104,52 @@ def test_the_specifications_production_config_loads_and_says_what_it_ignores(
 
 def test_defaults_carry_no_compatibility_notes() -> None:
     assert Settings().compatibility_notes() == []
+
+
+GRID = [(x, y) for y in (-150.0, 0.0, 150.0) for x in (250.0, 400.0, 550.0)]
+
+
+def test_a_real_camera_needs_the_marker_layout_set() -> None:
+    with pytest.raises(ValidationError, match="marker_positions_mm must be set for a real camera"):
+        Settings(vision_camera_id="0")
+    assert Settings(vision_camera_id="0", marker_positions_mm=GRID).marker_positions_mm == GRID
+
+
+def test_a_real_cameras_layout_may_come_from_the_environment(monkeypatch) -> None:
+    monkeypatch.setenv("VISION_CAMERA_ID", "0")
+    monkeypatch.setenv("GLUE_APP_MARKER_POSITIONS_MM", json.dumps(GRID))
+    assert Settings().marker_positions_mm == GRID
+
+
+def test_a_marker_outside_the_workspace_is_refused_naming_it() -> None:
+    layout = [*GRID[:8], (900.0, 150.0)]
+    with pytest.raises(ValidationError, match=r"marker_positions_mm: marker 8 at \(900, 150\)"):
+        Settings(marker_positions_mm=layout)
+
+
+def test_overlapping_markers_are_refused() -> None:
+    layout = [*GRID[:8], (410.0, 140.0)]
+    with pytest.raises(ValidationError, match=r"markers 7 and 8 are 14\.1 mm apart"):
+        Settings(marker_positions_mm=layout)
+
+
+@pytest.mark.parametrize(
+    "layout",
+    [
+        [(150.0 + 60.0 * i, 0.0) for i in range(9)],  # all on one line
+        # two off the line: fine, but the hold-out check leaves each out in turn
+        [(150.0 + 60.0 * i, 0.0) for i in range(7)] + [(300.0, 200.0), (500.0, -200.0)],
+    ],
+    ids=["one line", "one marker left out"],
+)
+def test_a_degenerate_marker_layout_is_refused(layout) -> None:
+    with pytest.raises(ValidationError, match="marker_positions_mm is degenerate"):
+        Settings(marker_positions_mm=layout)
+
+
+def test_a_layout_just_off_one_line_counts_as_on_it() -> None:
+    # within marker_size_mm of one line: the homography would be ill-conditioned
+    layout = [(150.0 + 60.0 * i, 10.0 * (i % 2)) for i in range(9)]
+    with pytest.raises(ValidationError, match="degenerate"):
+        Settings(marker_positions_mm=layout)
+    Settings(marker_positions_mm=[(x, y + 0.5 * (x % 7)) for x, y in GRID])  # a real, uneven grid

@@ -55,6 +55,8 @@ EXPECTED = {
     "NOT_CALIBRATED": "critical",
     "CALIBRATION_STALE": "critical",
     "CALIBRATION_INACCURATE": "critical",
+    "CALIBRATION_SCALE": "critical",
+    "CALIBRATION_HOLDOUT": "critical",
     "FRAME_TOO_SMALL": "critical",
     "OPERATION_TIMEOUT": "critical",
     "INTERNAL": "critical",

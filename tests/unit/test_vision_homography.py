@@ -19,11 +19,13 @@ from server.vision.homography import (
     PlaneCalibration,
     annotate_markers,
     fit_plane_calibration,
+    leave_one_out_errors,
+    mapped_side_mm,
     pixels_to_robot,
     robot_to_pixels,
 )
 from server.vision.intrinsics import Undistorter, intrinsics_of
-from server.vision.markers import MarkerDetector
+from server.vision.markers import MarkerDetector, border_corners
 
 MODEL = DEFAULT_CAMERA_MODEL
 ROBOT_MM = dict(enumerate(Scene().marker_positions_mm))
@@ -126,3 +128,69 @@ def test_annotation_is_a_marked_up_copy(
     assert np.count_nonzero(np.any(annotated != raw_frame, axis=2)) > 1000
     grey = annotate_markers(raw_frame[..., 1], detections)
     assert grey.shape == raw_frame.shape
+
+
+def _sides_through_the_map(scene: Scene, undistorter: Undistorter) -> tuple[list[float], float]:
+    """Each marker's side (mm) through a map fitted to the configured (default) layout."""
+    frame = undistorter(render_table(scene, rng=np.random.default_rng(5)))
+    detections = MarkerDetector(fast=False).detect(frame)
+    fit = fit_plane_calibration({i: d.centre for i, d in detections.items()}, ROBOT_MM)
+    edges = [border_corners(frame, d.corners) for d in detections.values()]
+    return [mapped_side_mm(fit.homography, corners) for corners in edges], fit.mean_error_mm
+
+
+def test_the_printed_marker_side_comes_back_through_the_map(undistorter: Undistorter) -> None:
+    sides, _ = _sides_through_the_map(Scene(), undistorter)
+    assert len(sides) == 9
+    for side in sides:
+        assert side == pytest.approx(30.0, rel=0.001)  # a tenth of the 1 % the check allows
+
+
+def test_the_detectors_own_corners_would_shrink_the_marker(
+    raw_frame: np.ndarray, undistorter: Undistorter, calibration: PlaneCalibration
+) -> None:
+    """Why border_corners exists: sub-pixel L-corners sit inside the square."""
+    frame = undistorter(raw_frame)
+    detections = MarkerDetector(fast=False).detect(frame)
+    homography = calibration.homography
+    from_corners = np.mean([mapped_side_mm(homography, d.corners) for d in detections.values()])
+    edges = [border_corners(frame, d.corners) for d in detections.values()]
+    from_edges = np.mean([mapped_side_mm(homography, corners) for corners in edges])
+    assert abs(from_edges - 30.0) < abs(from_corners - 30.0) / 5
+
+
+@pytest.mark.parametrize("scale", [1.02, 0.98])
+def test_a_layout_printed_at_another_scale_fits_itself_but_not_the_marker_side(
+    scale: float, undistorter: Undistorter
+) -> None:
+    printed = Scene.printed(Scene().marker_positions_mm, 30.0, scale=scale)
+    sides, mean_error = _sides_through_the_map(printed, undistorter)
+    assert mean_error < 0.1  # the fit alone cannot tell
+    assert np.mean(sides) == pytest.approx(30.0 / scale, rel=0.001)
+
+
+def test_the_holdout_of_a_good_layout_is_small(raw_frame: np.ndarray) -> None:
+    detections = MarkerDetector(fast=False).detect(raw_frame)
+    errors = leave_one_out_errors({i: d.centre for i, d in detections.items()}, ROBOT_MM)
+    assert sorted(errors) == list(range(9))
+    assert max(errors.values()) < 0.5  # raw frame: lens distortion left in
+
+
+def test_a_wrong_marker_position_hides_in_the_fit_but_not_in_the_holdout(
+    raw_frame: np.ndarray, undistorter: Undistorter
+) -> None:
+    detections = MarkerDetector(fast=False).detect(undistorter(raw_frame))
+    pixels = {i: d.centre for i, d in detections.items()}
+    bumped = dict(ROBOT_MM)
+    bumped[4] = (bumped[4][0] + 2.0, bumped[4][1])
+    fit = fit_plane_calibration(pixels, bumped)
+    assert fit.mean_error_mm < 0.5  # under half the default 1 mm limit: not even a warning
+    errors = leave_one_out_errors(pixels, bumped)
+    assert errors[4] == pytest.approx(2.0, abs=0.1)
+    assert max(e for i, e in errors.items() if i != 4) < 1.0
+
+
+def test_a_holdout_that_leaves_too_few_markers_is_a_clear_error() -> None:
+    pixels = {i: np.array([10.0 * i, 5.0 * (i % 2)]) for i in range(4)}
+    with pytest.raises(ValueError, match="at least 4 markers"):
+        leave_one_out_errors(pixels, ROBOT_MM)

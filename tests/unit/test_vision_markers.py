@@ -10,10 +10,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from server.drivers.sim.camera_scene import Scene, marker_centre_pixels, render_table
+from server.drivers.sim.camera_scene import (
+    Scene,
+    marker_centre_pixels,
+    marker_corner_pixels,
+    render_table,
+)
 from server.vision.markers import (
     MarkerDetection,
     MarkerDetector,
+    border_corners,
     diagonal_intersection,
     missing_markers,
 )
@@ -133,3 +139,23 @@ def test_diagonal_intersection_is_the_perspective_centre() -> None:
     quad = np.array([[0.0, 0.0], [4.0, 0.0], [3.0, 2.0], [1.0, 2.0]])
     centre = diagonal_intersection(quad)
     np.testing.assert_allclose(centre, [2.0, 4.0 / 3.0])
+
+
+def test_border_corners_find_the_printed_square_where_the_refined_corners_fall_inside(
+    frames: list[np.ndarray], reference: MarkerDetector
+) -> None:
+    truth = marker_corner_pixels(Scene())
+    for frame in frames[:2]:
+        for marker_id, detection in reference.detect(frame).items():
+            edges = border_corners(frame, detection.corners)
+            edge_error = np.linalg.norm(edges - truth[marker_id], axis=1)
+            corner_error = np.linalg.norm(detection.corners - truth[marker_id], axis=1)
+            assert edge_error.mean() < 0.05, (marker_id, edge_error)
+            assert corner_error.mean() > 2 * edge_error.mean(), (marker_id, corner_error)
+
+
+def test_border_corners_without_a_border_is_a_clear_error() -> None:
+    flat = np.full((200, 200), 128, dtype=np.uint8)
+    square = np.array([[80.0, 80.0], [120.0, 80.0], [120.0, 120.0], [80.0, 120.0]])
+    with pytest.raises(ValueError, match=r"edge 0 of the marker at \(100\.0, 100\.0\) px"):
+        border_corners(flat, square)

@@ -4,6 +4,7 @@ calibration (chessboard views → intrinsics), each validated and persisted."""
 from __future__ import annotations
 
 import asyncio
+from dataclasses import dataclass
 from functools import cache
 from typing import Any
 
@@ -12,9 +13,15 @@ import numpy as np
 from server.core.operations.base import OperationContext, OperationResult, OperationWarning
 from server.core.operations.camera_frames import capture, capture_undistorted
 from server.errors import OperationError
-from server.vision.homography import PlaneCalibration, annotate_markers, fit_plane_calibration
+from server.vision.homography import (
+    PlaneCalibration,
+    annotate_markers,
+    fit_plane_calibration,
+    leave_one_out_errors,
+    mapped_side_mm,
+)
 from server.vision.intrinsics import calibrate_intrinsics, find_chessboard
-from server.vision.markers import MarkerDetection, MarkerDetector, missing_markers
+from server.vision.markers import MarkerDetection, MarkerDetector, border_corners, missing_markers
 
 REQUIRED_MARKERS = range(9)
 MIN_VIEW_SHIFT_PX = 20.0  # a real operator must move the board between views
@@ -25,9 +32,62 @@ def _detector() -> MarkerDetector:
     return MarkerDetector(fast=False)  # calibration wants the reference, not the fast path
 
 
+@dataclass(frozen=True)
+class IndependentChecks:
+    """What the calibration is checked against besides its own fit.
+
+    `side_mm` is each marker's side through the map (its scale against the printed size);
+    `holdout_mm` each marker's leave-one-out error (where the map has no marker).
+    """
+
+    side_mm: dict[int, float]
+    holdout_mm: dict[int, float]
+
+    @property
+    def mean_side_mm(self) -> float:
+        return sum(self.side_mm.values()) / len(self.side_mm)
+
+    def scale_error_pct(self, marker_size_mm: float) -> float:
+        """How far the map's scale is from the printed markers', in %, signed."""
+        return 100.0 * (self.mean_side_mm / marker_size_mm - 1.0)
+
+    @property
+    def worst_holdout(self) -> tuple[int, float]:
+        marker = max(self.holdout_mm, key=self.holdout_mm.__getitem__)
+        return marker, self.holdout_mm[marker]
+
+
+def _check_independently(
+    frame: np.ndarray,
+    calibration: PlaneCalibration,
+    detections: dict[int, MarkerDetection],
+    marker_positions: list[tuple[float, float]],
+) -> IndependentChecks:
+    """The markers' sides through the map, and the leave-one-out errors."""
+    cells = _detector().dictionary.markerSize + 2  # the black border is one cell wide
+    side_mm = {}
+    for i in REQUIRED_MARKERS:
+        try:
+            edges = border_corners(frame, detections[i].corners, cells)
+        except ValueError:
+            continue  # a smudged border: the other markers still measure the scale
+        side_mm[i] = mapped_side_mm(calibration.homography, edges)
+    if not side_mm:
+        raise OperationError(
+            "CALIBRATION_SCALE",
+            "robot calibration scale not measurable: no marker's border edges were found; "
+            "check that the markers are clean and evenly lit",
+        )
+    holdout_mm = leave_one_out_errors(
+        {i: detections[i].centre for i in REQUIRED_MARKERS},
+        {i: marker_positions[i] for i in REQUIRED_MARKERS},
+    )
+    return IndependentChecks(side_mm, holdout_mm)
+
+
 def _calibrate_from_frame(
     frame: np.ndarray, marker_positions: list[tuple[float, float]]
-) -> tuple[PlaneCalibration, np.ndarray, dict[int, MarkerDetection]]:
+) -> tuple[PlaneCalibration, np.ndarray, IndependentChecks]:
     detections = _detector().detect(frame)
     missing = missing_markers(detections, REQUIRED_MARKERS)
     if missing:
@@ -42,20 +102,28 @@ def _calibrate_from_frame(
     pixels = {i: detections[i].centre for i in REQUIRED_MARKERS}
     robot_mm = {i: marker_positions[i] for i in REQUIRED_MARKERS}
     calibration = fit_plane_calibration(pixels, robot_mm)
-    return calibration, annotate_markers(frame, detections, calibration.residuals_mm), detections
+    checks = _check_independently(frame, calibration, detections, marker_positions)
+    return calibration, annotate_markers(frame, detections, calibration.residuals_mm), checks
 
 
 DEGRADING_SHARE = 0.5  # of calibration_max_error_mm: accepted, but warned of
 
 
 async def calibrate_robot(ctx: OperationContext) -> OperationResult:
-    """Detect markers 0-8, fit the image → robot-plane map, check it, persist it."""
+    """Detect markers 0-8, fit the image → robot-plane map, check it, persist it.
+
+    Checked three ways before it replaces the stored map: its own fit (mean residual), its
+    scale against the printed marker side (a layout at the wrong scale fits itself
+    perfectly), and each marker predicted by a map fitted without it (a wrong marker
+    position hides in the fit's residuals). A refused map leaves the stored one in place.
+    """
+    settings = ctx.settings
     frame = await capture_undistorted(ctx, "robot calibration")
     ctx.report({"step": "detecting markers", "fraction": 0.3})
-    calibration, image, _ = await asyncio.to_thread(
-        _calibrate_from_frame, frame, ctx.settings.marker_positions_mm
+    calibration, image, checks = await asyncio.to_thread(
+        _calibrate_from_frame, frame, settings.marker_positions_mm
     )
-    limit = ctx.settings.calibration_max_error_mm
+    limit = settings.calibration_max_error_mm
     if calibration.mean_error_mm > limit:
         worst = max(calibration.residuals_mm, key=calibration.residuals_mm.__getitem__)
         raise OperationError(
@@ -64,16 +132,41 @@ async def calibrate_robot(ctx: OperationContext) -> OperationResult:
             f"{limit:g} mm (worst: marker {worst}, {calibration.residuals_mm[worst]:.2f} mm); "
             "check the marker positions in the settings and that the markers lie flat",
         )
+    size = settings.marker_size_mm
+    scale_error = checks.scale_error_pct(size)
+    scale_limit = settings.calibration_max_scale_error_pct
+    if abs(scale_error) > scale_limit:
+        raise OperationError(
+            "CALIBRATION_SCALE",
+            f"robot calibration scale is off by {scale_error:+.2f} % (limit {scale_limit:g} %): "
+            f"the markers measure {checks.mean_side_mm:.2f} mm through the map, "
+            f"marker_size_mm is {size:g} mm; check marker_positions_mm against the table "
+            "(measured at the wrong scale?) and marker_size_mm against the printed markers",
+        )
+    worst, holdout = checks.worst_holdout
+    holdout_limit = settings.calibration_max_holdout_error_mm
+    if holdout > holdout_limit:
+        raise OperationError(
+            "CALIBRATION_HOLDOUT",
+            f"robot calibration hold-out error {holdout:.2f} mm exceeds {holdout_limit:g} mm: "
+            f"a map fitted without marker {worst} misses it by that much (mean over the "
+            f"markers {sum(checks.holdout_mm.values()) / len(checks.holdout_mm):.2f} mm); "
+            f"check marker {worst}'s position in marker_positions_mm and that it has not moved",
+        )
     store = ctx.stores.calibration
     meta = {
         "markers": len(REQUIRED_MARKERS),
         "camera_calibration_at": store.camera_meta.get("created_at"),
+        "scale_error_pct": round(scale_error, 4),
+        "holdout_max_error_mm": round(holdout, 4),
     }
     await asyncio.to_thread(store.save_robot, calibration, image, meta)
     ctx.report({"step": "saved", "fraction": 1.0})
     result: dict[str, Any] = {
         "mean_error_mm": round(calibration.mean_error_mm, 4),
         "max_error_mm": round(calibration.max_error_mm, 4),
+        "scale_error_pct": round(scale_error, 4),
+        "holdout_max_error_mm": round(holdout, 4),
         "undistorted": store.camera is not None,
     }
     warnings: tuple[OperationWarning, ...] = ()

@@ -127,6 +127,30 @@ class Scene:
     light_gradient: float = 0.05  # fractional brightness change from left to right
     seed: int = 0  # table texture, and sensor noise when no rng is given
 
+    @classmethod
+    def printed(
+        cls,
+        layout_mm: Sequence[tuple[float, float]],
+        marker_size_mm: float = DEFAULT_MARKER_SIZE_MM,
+        *,
+        scale: float = 1.0,
+    ) -> Scene:
+        """The table laid out from a marker layout, as a technician would: each marker's
+        centre at the layout's position, its black square `marker_size_mm` wide.
+
+        `scale` prints the layout at another scale, about its centroid (a drawing or jig
+        printed at 102 %, a layout measured with the wrong ruler); the markers keep their
+        size. A robot calibration that maps such a table to the unscaled layout fits it
+        perfectly, and only the markers' known size shows that the map is wrong.
+        """
+        points = np.asarray(layout_mm, dtype=np.float64).reshape(-1, 2)
+        centre = points.mean(axis=0)
+        placed = centre + float(scale) * (points - centre)
+        return cls(
+            marker_positions_mm=[(float(x), float(y)) for x, y in placed],
+            marker_size_mm=float(marker_size_mm),
+        )
+
     @property
     def marker_ids(self) -> list[int]:
         """Marker i is at marker_positions_mm[i]."""
