@@ -288,6 +288,11 @@ class Worker:
             )
         )
 
+    @property
+    def reset_under_way(self) -> str | None:
+        """Why a reset is refused now because another one's probe is running, or None."""
+        return RESET_UNDER_WAY if self._reset_probe is not None else None
+
     def facts(self) -> Facts:
         """Guard facts from what is known without asking the devices (a reset probes them)."""
         known: list[str] = []

@@ -10,7 +10,7 @@ import pytest
 from server.core.event_queue import Priority
 from server.core.events import FaultPayload, RunCompletedPayload, StopPayload
 from server.core.operations import OperationContext
-from server.core.transitions import Event, State
+from server.core.transitions import Command, Event, State
 from server.errors import EventQueueFull, OperationError
 from tests.conftest import START_PAYLOAD, wait_for_state
 from tests.fakes import FakeClock, FakeGlue, FakeRobot
@@ -363,6 +363,9 @@ async def test_one_reset_is_probed_at_a_time(make_worker) -> None:
     await probing(robot, reads)
     second = await worker.request(Event.RESET_REQUESTED, source="test")
     assert not second.accepted and "already probing" in second.message
+    allowed, reason = worker.view.allowed(Command.RESET)
+    assert not allowed and "already probing" in reason
+    assert "reset" not in worker.view.snapshot()["available_commands"]
     assert (await first).accepted and worker.ctx.state is State.IDLE
 
 
