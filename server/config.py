@@ -145,6 +145,14 @@ class Settings(BaseSettings):
     emergency_stop_timeout: float = Field(1.0, gt=0)
     safe_position_timeout: float = Field(30.0, gt=0)
     error_state_timeout: float = Field(300.0, gt=0)
+    reset_probe_timeout: float = Field(
+        2.0,
+        gt=0,
+        le=60,
+        description="seconds a reset waits for every device's live answer (all at once); "
+        "a device not answering in time refuses the reset, and the cell keeps taking "
+        "e-stops and faults meanwhile",
+    )
 
     # Hardware addresses: "sim" starts the simulator on loopback.
     robot_ip: str = Field(SIMULATED, validation_alias=AliasChoices("robot_ip", "ROBOT_IP"))

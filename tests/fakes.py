@@ -29,11 +29,17 @@ class FakeRobot:
         self.failing = False
         self.stalled = False
         self.probe_delay = 0.0  # seconds get_position takes (a slow controller)
+        self.sessions = 0  # link sessions begun (one per reset probe)
+        self.position_reads = 0
         self._listener: FaultListener | None = None
         self._stop_event = asyncio.Event()
 
     def set_fault_listener(self, listener: FaultListener | None) -> None:
         self._listener = listener
+
+    def new_session(self) -> int:
+        self.sessions += 1
+        return self.sessions
 
     def _check(self) -> None:
         if self.failing:
@@ -76,6 +82,7 @@ class FakeRobot:
 
     async def get_position(self) -> Pose:
         self._check()
+        self.position_reads += 1
         if self.probe_delay:
             await asyncio.sleep(self.probe_delay)
         return self.position
@@ -110,10 +117,15 @@ class FakeGlue:
         self.pressure = 0.0
         self.alarms: tuple[str, ...] = ()
         self.silent = False
+        self.sessions = 0  # link sessions begun (one per reset probe)
         self._listener: FaultListener | None = None
 
     def set_fault_listener(self, listener: FaultListener | None) -> None:
         self._listener = listener
+
+    def new_session(self) -> int:
+        self.sessions += 1
+        return self.sessions
 
     async def _exchange(self) -> None:
         if self.silent:

@@ -178,18 +178,22 @@ DEVICE_FAULTS: dict[str, DeviceFaultKind] = {
 
 @contextlib.asynccontextmanager
 async def open_rig(data_path, **overrides: Any) -> AsyncIterator[Rig]:
-    """Simulators, cell and HTTP client; the cell commissioned in `data_path`."""
+    """Simulators, cell and HTTP client; the cell commissioned in `data_path`.
+
+    `overrides` replace any setting, the rig's timeouts included."""
     async with RobotSimulator(speed_factor=4) as robot, GlueSimulator() as glue:
+        defaults: dict[str, Any] = {
+            "robot_communication_timeout": TIMEOUT,
+            "glue_system_timeout": TIMEOUT,
+            "emergency_stop_timeout": 0.5,
+            "vision_processing_timeout": 10,
+        }
         settings = Settings(
             robot_ip="127.0.0.1",
             robot_port=robot.port,
             glue_controller_port=f"tcp://127.0.0.1:{glue.port}",
-            robot_communication_timeout=TIMEOUT,
-            glue_system_timeout=TIMEOUT,
-            emergency_stop_timeout=0.5,
-            vision_processing_timeout=10,
             data_path=data_path,
-            **overrides,
+            **{**defaults, **overrides},
         )
         cell = Cell(settings)
         async with (

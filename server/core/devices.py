@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from server.drivers.base import Camera, FaultListener, GlueDispenser, Robot
+from server.errors import DeviceTimeout
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -59,23 +60,37 @@ class CellDevices:
         stop = asyncio.ensure_future(_within(self.robot.stop(), timeout))
         return asyncio.ensure_future(_halt_report(valve, stop))
 
-    async def probe_faults(self, timeouts: dict[str, float]) -> list[str]:
-        """Ask every device for a live answer, each within its own timeout; the faults left."""
+    async def probe_faults(self, timeout: float) -> list[str]:
+        """Ask every device for a live answer within `timeout` s in all; the faults left.
+
+        First a new session of each link begins, so that a request sent before
+        this reset (a poll or a heartbeat a stalled device swallowed) can no
+        longer fault the cell once the reset has passed. `timeout`
+        (reset_probe_timeout) bounds each device's whole probe, reconnecting
+        included, and the devices are probed at once: a dead device costs the
+        reset `timeout`, not its communication timeout.
+        """
+        self.robot.new_session()
+        self.glue.new_session()
 
         async def probe(name: str) -> str | None:
             device = self.by_name()[name]
-            timeout = timeouts[name]
             try:
-                if not device.health.connected:  # never came up, or the link was lost
-                    await _within(device.connect(), timeout)
-                if name == "robot":
-                    await _within(self.robot.get_position(), timeout)
-                elif name == "glue":
-                    return await _within(self._probe_glue(), timeout)
-                else:
-                    await _within(self.camera.capture(), timeout)
+                async with asyncio.timeout(timeout):
+                    if not device.health.connected:  # never came up, or the link was lost
+                        await device.connect()
+                    if name == "robot":
+                        await self.robot.get_position()
+                    elif name == "glue":
+                        return await self._probe_glue()
+                    else:
+                        await self.camera.capture()
             except asyncio.CancelledError:
                 raise
+            except TimeoutError:
+                return f"{name}: no answer in time (reset_probe_timeout {timeout:g} s)"
+            except DeviceTimeout as exc:
+                return f"{name}: no answer in time ({str(exc).removeprefix(name + ': ')})"
             except Exception as exc:
                 return f"{name}: {_describe(exc)}"
             return None

@@ -58,7 +58,7 @@ class CellView:
             "operation": operation,
             "error": ctx.error.as_dict() if ctx.error else None,
             "stop_reason": ctx.stop_reason.as_dict() if ctx.stop_reason else None,
-            "available_commands": available_commands(ctx.state, self._worker.facts()),
+            "available_commands": self._available_commands(),
             "operation_result": ctx.operation_result,
         }
 
@@ -75,6 +75,12 @@ class CellView:
             "history": [r.as_dict() for r in list(ctx.history)[-SNAPSHOT_HISTORY:]],
         }
 
+    def _available_commands(self) -> list[str]:
+        commands = available_commands(self._ctx.state, self._worker.facts())
+        if self._worker.reset_under_way:  # one reset is probed at a time
+            commands = [name for name in commands if name != Command.RESET]
+        return commands
+
     def allowed(self, command: Command) -> tuple[bool, str]:
         """Whether `command` (with default parameters) would be accepted now, and why not.
 
@@ -82,6 +88,9 @@ class CellView:
         guards), then what the command needs besides (server/core/preconditions.py).
         """
         event = COMMANDS[command]
+        under_way = self._worker.reset_under_way
+        if command is Command.RESET and under_way:
+            return False, f"reset is refused: {under_way}"
         allowed, reason = check(self._ctx.state, event, self._worker.facts())
         if not allowed:
             return allowed, reason

@@ -9,8 +9,19 @@ what it caused are durable in the journal (`recorder.py`).
 
 Operations and devices talk back only by posting events (OPERATION_COMPLETED,
 OPERATION_FAILED, ERROR_OCCURRED), which keeps every change of state in this
-one loop. Running operations is `runs.py`; start-up and homing `startup.py`;
-warnings and the ERROR-timeout alert `alerts.py`.
+one loop.
+
+A reset is decided when the devices have answered its live probe, without
+holding the loop meanwhile: the worker starts the probe as a task, goes on
+draining the queue (an e-stop or a fault is decided at once, as always), and
+the probe puts the reset's own envelope back in the queue with what it found.
+Decided then, in order with everything else, the reset passes only if no
+e-stop and no fault was decided while the devices were probed ("overtaken"
+otherwise: the cell stays in ERROR and says why). One reset is probed at a
+time; another sent meanwhile is refused.
+
+Running operations is `runs.py`; start-up and homing `startup.py`; warnings
+and the ERROR-timeout alert `alerts.py`.
 """
 
 from __future__ import annotations
@@ -21,6 +32,7 @@ import logging
 import secrets
 import time
 from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
 
 from server.config import Settings
 from server.core.actions import EXIT_ACTIONS, Action
@@ -57,7 +69,23 @@ log = logging.getLogger(__name__)
 
 COMPLETION_EVENTS = frozenset({Event.OPERATION_COMPLETED, Event.OPERATION_FAILED})
 OVERTAKEN = "overtaken by an emergency stop while it was being decided; nothing was changed"
+RESET_OVERTAKEN = (
+    "overtaken by an emergency stop or a fault while the devices were probed; "
+    "still in ERROR, nothing was changed: reset again"
+)
+RESET_UNDER_WAY = "a reset is already probing the devices; wait for its answer"
 Handler = Callable[[Decision, Envelope], Awaitable[None] | None]
+
+
+@dataclass(slots=True)
+class ResetProbe:
+    """A reset waiting for the devices' live answers, and what was decided since it began."""
+
+    envelope: Envelope
+    estops: int  # Worker._estops when the probe began
+    faults: int  # Worker._faults when the probe began
+    found: list[str] = field(default_factory=list)  # the faults the probe found
+    task: asyncio.Task[None] | None = None
 
 
 class Worker:
@@ -111,6 +139,8 @@ class Worker:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task[None] | None = None
         self._estops = 0  # e-stops requested so far; see _handle
+        self._faults = 0  # faults recorded so far; a reset probed meanwhile is overtaken
+        self._reset_probe: ResetProbe | None = None  # the reset whose probe is under way
         self._handlers: dict[Action, Handler] = {
             Action.HALT: lambda _d, _e: self._halt(),
             Action.RECORD_RUN_END: lambda d, e: self.runs.record_end(d.event, e.payload),
@@ -141,14 +171,19 @@ class Worker:
         """Stop draining; every waiting sender gets WorkerStopped, never a hang."""
         if self._task is not None:
             self._task.cancel()
+        probe, self._reset_probe = self._reset_probe, None
+        probing = probe.task if probe is not None else None
+        if probing is not None:
+            probing.cancel()
         self.alerts.stop()
         await asyncio.gather(
-            *(t for t in (self._task,) if t is not None),
+            *(t for t in (self._task, probing) if t is not None),
             self.runs.stop(),
             self.activities.stop(),
             return_exceptions=True,
         )
-        for envelope in self.queue.drain():
+        waiting = self.queue.drain() + ([probe.envelope] if probe is not None else [])
+        for envelope in waiting:
             if envelope.future is not None and not envelope.future.done():
                 envelope.future.set_exception(WorkerStopped("the server is shutting down"))
         self.devices.set_fault_listener(None)
@@ -253,6 +288,11 @@ class Worker:
             )
         )
 
+    @property
+    def reset_under_way(self) -> str | None:
+        """Why a reset is refused now because another one's probe is running, or None."""
+        return RESET_UNDER_WAY if self._reset_probe is not None else None
+
     def facts(self) -> Facts:
         """Guard facts from what is known without asking the devices (a reset probes them)."""
         known: list[str] = []
@@ -282,6 +322,9 @@ class Worker:
                 outcome = self._outcome(envelope, False, message)
             finally:
                 current_event_id.reset(token)
+            if outcome is None:  # a reset gone to probe the devices: decided when it is back
+                await asyncio.sleep(0)
+                continue
             self.stats.record(time.perf_counter() - started, accepted=outcome.accepted)
             durable = self.recorder.commit(envelope, outcome)
             self.recorder.answer_when_durable(envelope, outcome, durable)
@@ -289,17 +332,25 @@ class Worker:
             # never starves the HTTP handlers (the e-stop route above all).
             await asyncio.sleep(0)
 
-    async def _handle(self, envelope: Envelope) -> Outcome:
+    async def _handle(self, envelope: Envelope) -> Outcome | None:
+        """The event's outcome, or None for a reset that went to probe the devices first."""
         event, state = envelope.event, self.ctx.state
         if event in COMPLETION_EVENTS and not self._is_current_run(envelope):
             return self._refuse(envelope, f"{event.value} of a run that already ended; ignored")
         facts = self.facts()
         estops = self._estops
-        if event is Event.RESET_REQUESTED and state is State.ERROR:
-            faults = await self.devices.probe_faults(self.activities.device_timeouts())
-            facts = Facts(ready_devices=facts.ready_devices, active_faults=tuple(faults))
-            if self._estops != estops:
-                return self._refuse(envelope, OVERTAKEN)
+        probe = self._reset_probe
+        if probe is not None and probe.envelope is envelope:  # back from its probe
+            self._reset_probe = None
+            if self._estops != probe.estops or self._faults != probe.faults:
+                return self._refuse(envelope, RESET_OVERTAKEN)
+            facts = Facts(ready_devices=facts.ready_devices, active_faults=tuple(probe.found))
+            estops = probe.estops
+        elif event is Event.RESET_REQUESTED and state is State.ERROR:
+            if probe is not None:
+                return self._refuse(envelope, RESET_UNDER_WAY)
+            self._start_reset_probe(envelope)
+            return None
         try:
             decision = step(state, event, facts)
         except TransitionNotAllowed as refusal:
@@ -318,6 +369,20 @@ class Worker:
                 await pending
         message = f"{event_label(event)} accepted: {state.value} → {decision.target.value}"
         return self._outcome(envelope, True, message)
+
+    def _start_reset_probe(self, envelope: Envelope) -> None:
+        probe = ResetProbe(envelope, self._estops, self._faults)
+        probe.task = asyncio.create_task(self._probe_for_reset(probe), name="reset-probe")
+        self._reset_probe = probe
+
+    async def _probe_for_reset(self, probe: ResetProbe) -> None:
+        """Probe the devices (bounded by reset_probe_timeout), then queue the reset again."""
+        try:
+            probe.found = await self.devices.probe_faults(self.settings.reset_probe_timeout)
+        except Exception as exc:  # the sender must get an answer whatever went wrong
+            log.exception("the reset probe failed")
+            probe.found = [f"the reset probe failed: {exc}"]
+        self.queue.put(probe.envelope, bounded=False)
 
     def _outcome(
         self, envelope: Envelope, accepted: bool, message: str, field: str | None = None
@@ -353,6 +418,7 @@ class Worker:
             envelope.payload, envelope.source, envelope.event_id, self.clock.time()
         )
         self.ctx.record_error(fault)
+        self._faults += 1
         self.recorder.fault(fault, decision.target.value)
         running = self.ctx.operation
         log.error(

@@ -121,6 +121,14 @@ class Robot(Protocol):
     async def stop(self) -> None:
         """Stop motion at once. Must get through while a move is in progress."""
 
+    def new_session(self) -> int:
+        """Begin a new link session (a reset does) and return its number.
+
+        A request sent before it may still end, but its timeout or late answer
+        no longer reports a fault or changes `health`: what the device did
+        before a reset must not fault the cell after it.
+        """
+
     def set_fault_listener(self, listener: FaultListener | None) -> None:
         """Where to report faults found outside a command (e.g. connection lost)."""
 
@@ -149,6 +157,14 @@ class GlueDispenser(Protocol):
 
     async def read_status(self) -> GlueStatus:
         """Valve, setpoints, measured flow, pressure, temperature and alarms."""
+
+    def new_session(self) -> int:
+        """Begin a new link session (a reset does) and return its number.
+
+        A request sent before it may still end, but its timeout or late answer
+        no longer reports a fault or changes `health`: what the device did
+        before a reset must not fault the cell after it.
+        """
 
     def set_fault_listener(self, listener: FaultListener | None) -> None:
         """Where to report faults found outside a command (e.g. alarm bit, silence)."""

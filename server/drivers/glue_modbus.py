@@ -27,6 +27,13 @@ for `valve_settle_s` while the valve moves) and raises DeviceError if the valve
 still reports open: closing is the safety-relevant direction and costs about
 2 ms at 115200 baud. Opening is not read back; the monitor sees the feedback.
 
+Sessions: `new_session()` (a reset's probe calls it) begins a numbered
+session. An exchange belongs to the session it was asked in; if it times out
+or loses the link once a newer session has begun, the link is still dropped
+(a late reply must not be misread) but no fault is reported and the health is
+not marked down: a poll the dispenser swallowed before a reset must not send
+the cell back to ERROR after the reset passed.
+
 The monitor task (started by connect(), stopped by close()) polls the status
 every `poll_interval` s, keeps `health.details` current and reports each new
 alarm bit ("ALARM") and a measured pressure outside `pressure_range_psi`
@@ -131,6 +138,8 @@ class ModbusGlueDispenser:
         self._monitor: asyncio.Task[None] | None = None
         self._running = False
         self._link_fault = False
+        self._session = 0  # see "Sessions" in the module doc
+        self._line_session = 0  # the session of the exchange on the line now
         self._active_alarms: frozenset[str] = frozenset()
         self._pressure_fault = False
 
@@ -264,20 +273,33 @@ class ModbusGlueDispenser:
         """Where NO_REPLY, COMM_LOST, ALARM, PRESSURE_OUT_OF_RANGE and VALVE_STUCK_OPEN go."""
         self._listener = listener
 
+    def new_session(self) -> int:
+        """Begin a new session: exchanges already asked for can no longer fault the dispenser."""
+        self._session += 1
+        return self._session
+
     # --- exchanges ---------------------------------------------------------------
 
     async def _call(self, what: str, priority: int, body: Callable[[], Awaitable[T]]) -> T:
         """Run `body` on the line within `timeout`, classifying a timeout by where it hit."""
         on_line = False
+        session = self._session
         try:
             async with asyncio.timeout(self.timeout):
                 await self._line.acquire(priority)
                 on_line = True
+                self._line_session = session
                 try:
                     return await body()
                 finally:
                     self._line.release()
         except TimeoutError:
+            if session != self._session:
+                if on_line:
+                    self._drop_link()  # a late reply must not be read as the next one's
+                message = f"{what}: no reply within {self.timeout:g} s (asked before a reset)"
+                logger.info("glue dispenser: %s; not a fault now", message)
+                raise DeviceTimeout(DEVICE, message) from None
             if not on_line:
                 message = (
                     f"{what}: the Modbus line stayed busy for {self.timeout:g} s "
@@ -405,6 +427,9 @@ class ModbusGlueDispenser:
 
     def _link_lost(self, code: str, message: str) -> None:
         """Mark the link down; report once per outage, and only once connect() has succeeded."""
+        if self._line_session != self._session:
+            logger.info("glue dispenser: %s (asked before a reset; not a fault now)", message)
+            return
         self.health.record_error(message, connected=False)
         if self._link_fault:
             return

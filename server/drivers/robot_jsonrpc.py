@@ -16,8 +16,18 @@ A quiet link is watched too: with `heartbeat_interval` set, a link that has
 carried no answer for that long is asked `getPosition`. A controller that stops
 answering while the cell is IDLE is then found within interval + timeout, not
 at the next move: one `NO_ANSWER` fault per onset, the condition listed in
-`health.active_faults` until an answer comes again. The last pose read is kept
-in `health.details["position"]` for the dashboard.
+`health.active_faults` until an answer comes again. Any other request that
+times out counts the same way, so a controller known to be silent is never
+offered a reset. The last pose read is kept in `health.details["position"]`
+for the dashboard.
+
+Sessions: every new link, and every `new_session()` (a reset's probe calls
+it), begins a numbered session. A request belongs to the session it was sent
+in; its timeout or its late answer, once a newer session has begun, is only
+its caller's business: it reports no fault and changes no health. Without
+this, a `getPosition` a stalled controller swallowed before a reset would time
+out after the reset had passed and send the cell back to ERROR with a stale
+fault.
 
 Motion commands answer as soon as the motion starts, so `move_linear` and
 `move_joint` poll `isMoving` until it turns false, then check the arm really
@@ -134,6 +144,7 @@ class JsonRpcRobot:
         self._reconnect_task: asyncio.Task[None] | None = None
         self._background: set[asyncio.Task[Any]] = set()
         self._generation = 0  # bumped per link, so stale signals from an old link are ignored
+        self._session = 0  # bumped per link and per reset: see "Sessions" in the module doc
         self._connected = False
         self._closing = False
         self._watch_task: asyncio.Task[None] | None = None
@@ -148,6 +159,11 @@ class JsonRpcRobot:
 
     def set_fault_listener(self, listener: FaultListener | None) -> None:
         self._listener = listener
+
+    def new_session(self) -> int:
+        """Begin a new session: requests already sent can no longer fault the robot."""
+        self._session += 1
+        return self._session
 
     async def connect(self) -> None:
         """Open the link and check the controller answers (getPosition).
@@ -212,6 +228,7 @@ class JsonRpcRobot:
                 f"within {self.timeout:g} s",
             ) from None
         self._generation += 1
+        self._session += 1
         self._writer = writer
         self._reader_task = asyncio.create_task(
             self._read_loop(reader, self._generation), name=f"robot-reader-{self.port}"
@@ -239,10 +256,8 @@ class JsonRpcRobot:
                 pose = await self.get_position()
             except asyncio.CancelledError:
                 raise
-            except DeviceTimeout as exc:
-                self._went_silent(str(exc))
             except DeviceError:
-                pass  # a lost link reports itself (_link_lost); a bad answer fails the next call
+                pass  # a timeout or a lost link reports itself; a bad answer fails the next call
             except Exception:  # the watch must outlive anything odd the controller sends
                 logger.exception("robot: heartbeat failed")
             else:
@@ -400,7 +415,7 @@ class JsonRpcRobot:
         if writer is None:
             raise DeviceDisconnected(DEVICE, f"{method}: no link to the robot controller")
         timeout = self.timeout if timeout is None else timeout
-        generation = self._generation
+        generation, session = self._generation, self._session
         request_id = next(self._ids)
         self._last_id = request_id
         future: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
@@ -413,7 +428,12 @@ class JsonRpcRobot:
                 response = await future
         except TimeoutError:
             message = f"{method} got no answer within {timeout:g} s"
-            self.health.record_error(message)
+            if session == self._session:
+                self.health.record_error(message)
+                if self._connected:  # a failed connection probe is its caller's to report
+                    self._went_silent(message)
+            else:
+                logger.info("robot: %s (sent before a reset; not a fault now)", message)
             raise DeviceTimeout(DEVICE, message) from None
         except (ConnectionError, OSError) as exc:
             self._link_lost(generation, f"write failed: {exc!r}")
@@ -421,12 +441,13 @@ class JsonRpcRobot:
         finally:
             self._pending.pop(request_id, None)
         self._last_answer = time.monotonic()
-        self.health.record_ok(self._last_answer - started)
-        self.health.connected = self._connected
-        if self._silent:  # answering again: the condition is gone (a reset may now pass)
-            self._silent = False
-            self.health.active_faults = ()
-            logger.warning("robot: the controller answers again")
+        if session == self._session:  # a late answer of an older session proves nothing now
+            self.health.record_ok(self._last_answer - started)
+            self.health.connected = self._connected
+            if self._silent:  # answering again: the condition is gone (a reset may now pass)
+                self._silent = False
+                self.health.active_faults = ()
+                logger.warning("robot: the controller answers again")
         error = response.get("error")
         if error is not None:
             code = error.get("code", 0) if isinstance(error, dict) else 0

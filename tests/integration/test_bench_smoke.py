@@ -18,7 +18,15 @@ from typing import Any
 
 import pytest
 
-from bench import engine_throughput, estop_latency, memory, rest_throughput, scaling, ws_fanout
+from bench import (
+    engine_throughput,
+    estop_latency,
+    memory,
+    reset_probe,
+    rest_throughput,
+    scaling,
+    ws_fanout,
+)
 from bench.report import RESULTS_ENV, emit
 
 LATENCY_KEYS = {"p50_ms", "p99_ms", "max_ms", "n"}
@@ -112,6 +120,14 @@ def test_estop_latency_measures_every_condition(results_in_tmp: Path) -> None:
     for row in rows:
         assert_ordered_latencies(row)
         assert row["n"] == 3
+
+
+def test_reset_probe_measures_every_condition(results_in_tmp: Path) -> None:
+    rows = reset_probe.main(["--trials", "2", "--slow-trials", "1"])
+    assert [row["n"] for row in rows] == [2, 1, 1]
+    for row in rows:
+        assert_ordered_latencies(row)
+    assert written_rows(results_in_tmp, "reset_probe") == rows
 
 
 def test_memory_and_scaling_report_every_point(results_in_tmp: Path) -> None:

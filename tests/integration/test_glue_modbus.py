@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import re
 import signal
@@ -389,3 +390,19 @@ async def test_simulator_as_a_separate_process() -> None:
         if proc.returncode is None:
             proc.kill()
             await proc.wait()
+
+
+async def test_an_exchange_from_before_a_new_session_cannot_fault_it(
+    glue: ModbusGlueDispenser, sim: GlueSimulator, faults: list[DeviceFault]
+) -> None:
+    sim.inject_no_reply()
+    stale = asyncio.create_task(glue.read_status())  # asked during the silence
+    await asyncio.sleep(0)
+    glue.new_session()  # what a reset's probe does first
+    sim.clear_faults()
+    with contextlib.suppress(DeviceTimeout):
+        await stale
+    await asyncio.sleep(3 * TIMEOUT)  # the swallowed exchanges of the old session have ended
+    assert codes(faults, "NO_REPLY") == []
+    status = await glue.read_status()
+    assert not status.valve_open and glue.health.connected

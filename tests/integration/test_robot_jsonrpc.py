@@ -526,3 +526,47 @@ async def test_simulator_runs_as_a_separate_process() -> None:
         if process.returncode is None:
             process.kill()
             await process.wait()
+
+
+async def test_a_request_from_before_a_new_session_cannot_fault_it(sim: RobotSimulator) -> None:
+    robot = make_robot(sim.port, timeout=0.5)
+    faults: list[DeviceFault] = []
+    robot.set_fault_listener(faults.append)
+    await robot.connect()
+    try:
+        sim.inject_fault("stall")
+        stale = asyncio.create_task(robot.get_position())  # swallowed by the stall
+        await wait_until(lambda: sim.ignored_while_stalled == 1, what="the request swallowed")
+        sim.clear_faults()
+        robot.new_session()  # what a reset's probe does first
+        assert await robot.get_position() == HOME
+        with pytest.raises(DeviceTimeout):
+            await stale  # its caller still learns of it ...
+        assert faults == []  # ... but it is no fault of the new session
+        assert robot.health.active_faults == ()
+        assert robot.health.connected
+    finally:
+        await robot.close()
+
+
+async def test_any_request_that_times_out_marks_the_controller_silent(
+    sim: RobotSimulator,
+) -> None:
+    robot = make_robot(sim.port, timeout=0.3)  # no heartbeat
+    faults: list[DeviceFault] = []
+    robot.set_fault_listener(faults.append)
+    await robot.connect()
+    try:
+        sim.inject_fault("stall")
+        with pytest.raises(DeviceTimeout):
+            await robot.is_moving()
+        assert [f.code for f in faults] == ["NO_ANSWER"]
+        assert robot.health.active_faults == ("robot: no answer within 0.3 s",)
+        with pytest.raises(DeviceTimeout):
+            await robot.get_position()
+        assert len(faults) == 1  # once per onset
+        sim.clear_faults()
+        assert await robot.get_position() == HOME
+        assert robot.health.active_faults == ()
+    finally:
+        await robot.close()

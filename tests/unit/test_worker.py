@@ -10,7 +10,7 @@ import pytest
 from server.core.event_queue import Priority
 from server.core.events import FaultPayload, RunCompletedPayload, StopPayload
 from server.core.operations import OperationContext
-from server.core.transitions import Event, State
+from server.core.transitions import Command, Event, State
 from server.errors import EventQueueFull, OperationError
 from tests.conftest import START_PAYLOAD, wait_for_state
 from tests.fakes import FakeClock, FakeGlue, FakeRobot
@@ -308,3 +308,93 @@ async def test_an_estop_during_a_reset_probe_wins(make_worker) -> None:
     assert stop.state is State.ERROR and worker.ctx.state is State.ERROR
     await asyncio.sleep(0.1)
     assert len(robot.moves) == moves_before  # no homing move after the stop
+
+
+async def probing(robot: FakeRobot, reads: int) -> None:
+    """Until the reset's probe has asked the robot for its position."""
+    async with asyncio.timeout(10):
+        while robot.position_reads == reads:
+            await asyncio.sleep(0.005)
+
+
+async def test_an_estop_is_decided_while_a_reset_probe_runs(make_worker) -> None:
+    robot = FakeRobot()
+    worker = await make_worker(robot=robot)
+    await worker.emergency_stop(source="test")
+    robot.probe_delay = 0.5  # the reset's live probe takes a while
+    reads = robot.position_reads
+    reset = asyncio.create_task(worker.request(Event.RESET_REQUESTED, source="test"))
+    await probing(robot, reads)
+    stop = await worker.emergency_stop(source="test")
+    assert stop.accepted and not reset.done()  # the stop did not wait for the probe
+    outcome = await reset
+    assert not outcome.accepted and "overtaken by an emergency stop" in outcome.message
+    assert worker.ctx.state is State.ERROR
+
+
+async def test_a_fault_during_a_reset_probe_overtakes_the_reset(make_worker) -> None:
+    robot = FakeRobot()
+    worker = await make_worker(robot=robot)
+    await worker.emergency_stop(source="test")
+    robot.probe_delay = 0.3
+    reads = robot.position_reads
+    reset = asyncio.create_task(worker.request(Event.RESET_REQUESTED, source="test"))
+    await probing(robot, reads)
+    fault = worker.submit(
+        Event.ERROR_OCCURRED,
+        source="glue",
+        priority=Priority.FAULT,
+        payload=FaultPayload("ALARM", "nozzle blocked", "glue"),
+        bounded=False,
+    )
+    assert (await fault.future).accepted and not reset.done()
+    outcome = await reset
+    assert not outcome.accepted and "a fault while the devices were probed" in outcome.message
+    assert worker.ctx.state is State.ERROR and worker.ctx.error.code == "ALARM"
+
+
+async def test_one_reset_is_probed_at_a_time(make_worker) -> None:
+    robot = FakeRobot()
+    worker = await make_worker(robot=robot)
+    await worker.emergency_stop(source="test")
+    robot.probe_delay = 0.2
+    reads = robot.position_reads
+    first = asyncio.create_task(worker.request(Event.RESET_REQUESTED, source="test"))
+    await probing(robot, reads)
+    second = await worker.request(Event.RESET_REQUESTED, source="test")
+    assert not second.accepted and "already probing" in second.message
+    allowed, reason = worker.view.allowed(Command.RESET)
+    assert not allowed and "already probing" in reason
+    assert "reset" not in worker.view.snapshot()["available_commands"]
+    assert (await first).accepted and worker.ctx.state is State.IDLE
+
+
+async def test_the_reset_probe_is_bounded_and_begins_new_link_sessions(
+    make_worker, fast_settings
+) -> None:
+    robot, glue = FakeRobot(), FakeGlue()
+    worker = await make_worker(
+        fast_settings.model_copy(update={"reset_probe_timeout": 0.05}), robot=robot, glue=glue
+    )
+    await worker.emergency_stop(source="test")
+    robot.probe_delay = 3600  # a controller that never answers the probe
+    refused = await worker.request(Event.RESET_REQUESTED, source="test")
+    assert not refused.accepted
+    assert "robot: no answer in time (reset_probe_timeout 0.05 s)" in refused.message
+    assert robot.sessions == glue.sessions == 1
+    robot.probe_delay = 0.0
+    assert (await worker.request(Event.RESET_REQUESTED, source="test")).accepted
+    assert robot.sessions == glue.sessions == 2
+
+
+async def test_stop_answers_a_reset_waiting_for_its_probe(make_worker) -> None:
+    robot = FakeRobot()
+    worker = await make_worker(robot=robot)
+    await worker.emergency_stop(source="test")
+    robot.probe_delay = 3600
+    reads = robot.position_reads
+    reset = asyncio.create_task(worker.request(Event.RESET_REQUESTED, source="test"))
+    await probing(robot, reads)
+    await worker.stop()
+    with pytest.raises(Exception, match="shutting down"):
+        await reset
