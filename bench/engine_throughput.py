@@ -74,6 +74,21 @@ def submit(worker: Worker, event: Event) -> Envelope:
     return worker.submit(event, source="bench", payload=payload)
 
 
+async def submit_all(worker: Worker, events: list[Event]) -> None:
+    """Queue the events, waiting for each reset's answer before what follows it.
+
+    Why wait there: a reset probes the devices while the worker goes on with the
+    queue, so a start queued behind it would find the cell still in ERROR.
+    """
+    pending: list[Envelope] = []
+    for event in events:
+        pending.append(submit(worker, event))
+        if event is Event.RESET_REQUESTED:
+            await asyncio.gather(*(e.future for e in pending if e.future is not None))
+            pending = []
+    await asyncio.gather(*(e.future for e in pending if e.future is not None))
+
+
 def stores_with_demo(directory: Path) -> CellStores:
     stores = CellStores.open(directory)
     stores.workpieces.put("demo", DEMO_PART)
@@ -227,8 +242,7 @@ async def _drive(worker: Worker, events: list[Event]) -> float:
     while worker.ctx.state is not State.IDLE:
         await asyncio.sleep(0.001)
     started = time.perf_counter()
-    envelopes = [submit(worker, e) for e in events]
-    await asyncio.gather(*(e.future for e in envelopes))
+    await submit_all(worker, events)
     elapsed = time.perf_counter() - started
     refused = worker.stats.refused
     await worker.stop()

@@ -33,7 +33,7 @@ from typing import Any
 
 import psutil
 
-from bench.engine_throughput import DEMO_PART, START_DEMO, NullDevice, event_sequence, submit
+from bench.engine_throughput import DEMO_PART, START_DEMO, NullDevice, event_sequence, submit_all
 from bench.report import emit
 from server.cell import Cell
 from server.config import Settings
@@ -58,8 +58,7 @@ def rss_mb() -> float:
 
 async def drive(worker: Worker, events: list[Event]) -> None:
     for first in range(0, len(events), BATCH):
-        envelopes = [submit(worker, e) for e in events[first : first + BATCH]]
-        await asyncio.gather(*(e.future for e in envelopes if e.future is not None))
+        await submit_all(worker, events[first : first + BATCH])
 
 
 async def run_operations(worker: Worker, count: int) -> None:
