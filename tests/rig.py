@@ -137,7 +137,8 @@ DEVICE_FAULTS: dict[str, DeviceFaultKind] = {
         DeviceFaultKind(
             "dispenser-silent",
             "glue",
-            frozenset({"NO_REPLY", "DEVICE_FAULT"}),
+            # Silent while the valve may be open: VALVE_UNCONFIRMED within glue_link_timeout.
+            frozenset({"VALVE_UNCONFIRMED", "NO_REPLY", "DEVICE_FAULT"}),
             "glue",
             "spray",
             lambda rig: rig.glue.inject_no_reply(),
@@ -180,16 +181,18 @@ DEVICE_FAULTS: dict[str, DeviceFaultKind] = {
 async def open_rig(data_path, **overrides: Any) -> AsyncIterator[Rig]:
     """Simulators, cell and HTTP client; the cell commissioned in `data_path`."""
     async with RobotSimulator(speed_factor=4) as robot, GlueSimulator() as glue:
+        rig_settings: dict[str, Any] = {
+            "robot_communication_timeout": TIMEOUT,
+            "glue_system_timeout": TIMEOUT,
+            "emergency_stop_timeout": 0.5,
+            "vision_processing_timeout": 10,
+        }
         settings = Settings(
             robot_ip="127.0.0.1",
             robot_port=robot.port,
             glue_controller_port=f"tcp://127.0.0.1:{glue.port}",
-            robot_communication_timeout=TIMEOUT,
-            glue_system_timeout=TIMEOUT,
-            emergency_stop_timeout=0.5,
-            vision_processing_timeout=10,
             data_path=data_path,
-            **overrides,
+            **{**rig_settings, **overrides},  # a test may override the rig's timeouts too
         )
         cell = Cell(settings)
         async with (
