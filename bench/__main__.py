@@ -18,6 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = (
     ("engine_throughput", ["--profile"]),
     ("device_latency", []),
+    ("device_feed", []),
     ("estop_latency", []),
     ("ws_fanout", []),
     ("rest_throughput", []),
