@@ -12,8 +12,8 @@ while glue flowed. The feed publishes a `device` message
 It reads what the drivers already keep (`CellDevices.health()`): the dispenser
 polls its status every glue_poll_interval. The robot's pose is read only by its
 moves and heartbeat, so while an operation runs the feed asks for it whenever
-the last read is older than one push interval, one request at a time and never
-waiting for it: `getPosition` reads, it never moves. Each value carries its
+the last read is older than one push interval, one request at a time, waiting
+half an interval at most for the answer: `getPosition` reads, it never moves. Each value carries its
 age (`age_ms`), so a client can tell how fresh it is.
 
 A `device` message is a bus sample (server/core/bus.py): no seq, not replayed,
@@ -104,7 +104,7 @@ class DeviceFeed:
         while True:
             running = self.view.state in OPERATIONAL_STATES
             if running:
-                self._refresh_position()
+                await self._refresh_position()
             self.publish()
             try:
                 async with asyncio.timeout(self.interval if running else IDLE_PUSH_S):
@@ -117,16 +117,24 @@ class DeviceFeed:
     def _subscribe(self) -> Subscription:
         return self.bus.subscribe(64, types=["state_changed"])
 
-    def _refresh_position(self) -> None:
-        """Ask the robot for its pose when the last one read is older than a push interval."""
-        if self._asking is not None and not self._asking.done():
-            return
-        taken = self.devices.robot.health.details.get("position_at")
-        if taken is not None and time.time() - taken < self.interval:
-            return  # a move's own read is fresh enough
-        if not self.devices.robot.health.connected:
-            return
-        self._asking = asyncio.create_task(self._ask_position(), name="device-feed-position")
+    async def _refresh_position(self) -> None:
+        """Ask the robot for its pose when the last one read is older than a push interval.
+
+        The answer is awaited for half an interval at most (a round trip is well
+        under a millisecond): the message then carries the fresh pose, and a robot
+        that does not answer delays no message by more than that.
+        """
+        asking = self._asking
+        if asking is None or asking.done():
+            taken = self.devices.robot.health.details.get("position_at")
+            if taken is not None and time.time() - taken < self.interval:
+                return  # a move's own read is fresh enough
+            if not self.devices.robot.health.connected:
+                return
+            asking = self._asking = asyncio.create_task(
+                self._ask_position(), name="device-feed-position"
+            )
+        await asyncio.wait({asking}, timeout=self.interval / 2)
 
     async def _ask_position(self) -> None:
         # A failure here is the robot driver's to report (link lost, no answer); the
