@@ -18,6 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = (
     ("engine_throughput", ["--profile"]),
     ("device_latency", []),
+    ("device_feed", []),
     ("estop_latency", []),
     ("reset_probe", []),
     ("ws_fanout", []),

@@ -17,6 +17,7 @@ from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
 from server.core.events import Outcome, Payload, StopPayload
+from server.core.live import DeviceFeed
 from server.core.operations import Operation, default_operations
 from server.core.snapshot import SnapshotFile
 from server.core.transitions import (
@@ -60,6 +61,7 @@ class Cell:
         self.stores: CellStores | None = None
         self.journal: Journal | None = None
         self._snapshot_file: SnapshotFile | None = None
+        self._feed: DeviceFeed | None = None
 
     @property
     def devices(self) -> CellDevices:
@@ -127,8 +129,13 @@ class Cell:
             interruption=interruption,
         )
         await self.worker.start()
+        self._feed = DeviceFeed(devices, self.bus, self.worker.view, settings.device_push_interval)
+        self._feed.start()
 
     async def stop(self) -> None:
+        if self._feed is not None:
+            await self._feed.stop()
+            self._feed = None
         if self.worker is not None:
             await self.worker.stop()
             await self.worker.devices.safe_halt(self.settings.emergency_stop_timeout)

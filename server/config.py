@@ -171,10 +171,52 @@ class Settings(BaseSettings):
         SIMULATED, validation_alias=AliasChoices("glue_controller_port", "GLUE_CONTROLLER_PORT")
     )
     glue_modbus_device_id: int = Field(1, ge=1, le=247)
+    # Glue supervision (docs/hardware.md says where each default comes from)
     glue_pressure_range_psi: tuple[float, float] = Field(
-        (0.0, 150.0),
-        description="measured glue pressure outside [low, high] PSI is a fault (the "
-        "dispenser's own alarms apply too); set it to the process window of a real cell",
+        (20.0, 60.0),
+        description="measured glue pressure above high PSI is a fault at any time, below low "
+        "PSI while the valve is open (the dispenser's own alarms apply too); default: the "
+        "default setpoint (default_pressure_psi, 40 PSI) +-50 %",
+    )
+    glue_flow_deviation_pct: float = Field(
+        20.0,
+        gt=0,
+        le=100,
+        description="while spraying, measured flow off its setpoint by more than this many "
+        "percent for glue_flow_deviation_s is a fault",
+    )
+    glue_flow_deviation_s: float = Field(
+        0.5,
+        ge=0.05,
+        le=10,
+        description="how long a flow deviation may last (the valve's opening transient is "
+        "shorter); 0.5 s is 50 mm of bead at the default spray speed",
+    )
+    glue_temperature_range_c: tuple[float, float] = Field(
+        (10.0, 40.0),
+        description="glue temperature outside [low, high] degC is a fault at any time; the "
+        "default suits a room-temperature adhesive, set it for a heated one",
+    )
+    glue_link_timeout: float = Field(
+        0.5,
+        gt=0,
+        le=5,
+        description="a dispenser silent this long while its valve may be open is a fault at "
+        "once (the valve could not be confirmed closed); must exceed glue_poll_interval",
+    )
+    glue_poll_interval: float = Field(
+        0.1,
+        ge=0.02,
+        le=1,
+        description="how often the dispenser's status is read (valve, flow, pressure, "
+        "temperature, alarms)",
+    )
+    device_push_interval: float = Field(
+        0.1,
+        ge=0.02,
+        le=1,
+        description="while an operation runs, a `device` message (valve, flow, pressure, "
+        "robot position) is pushed on /ws at most this often; once a second otherwise",
     )
 
     # Cell geometry and motion
@@ -248,6 +290,30 @@ class Settings(BaseSettings):
         if not 0 <= low < high <= 150:
             raise ValueError("glue_pressure_range_psi needs 0 <= low < high <= 150 PSI")
         return value
+
+    @field_validator("glue_temperature_range_c")
+    @classmethod
+    def _ordered_temperatures(cls, value: tuple[float, float]) -> tuple[float, float]:
+        low, high = value
+        if not -40 <= low < high <= 150:
+            raise ValueError("glue_temperature_range_c needs -40 <= low < high <= 150 degC")
+        return value
+
+    @model_validator(mode="after")
+    def _consistent_glue_supervision(self) -> Settings:
+        """Refuse supervision that would trip on the cell's own normal operation."""
+        low, high = self.glue_pressure_range_psi
+        if not low <= self.default_pressure_psi <= high:
+            raise ValueError(
+                f"default_pressure_psi ({self.default_pressure_psi:g}) must lie inside "
+                f"glue_pressure_range_psi ({low:g}..{high:g}): every run would stop on it"
+            )
+        if self.glue_link_timeout <= self.glue_poll_interval:
+            raise ValueError(
+                f"glue_link_timeout ({self.glue_link_timeout:g} s) must exceed "
+                f"glue_poll_interval ({self.glue_poll_interval:g} s)"
+            )
+        return self
 
     @field_validator("marker_positions_mm")
     @classmethod

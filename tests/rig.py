@@ -137,7 +137,8 @@ DEVICE_FAULTS: dict[str, DeviceFaultKind] = {
         DeviceFaultKind(
             "dispenser-silent",
             "glue",
-            frozenset({"NO_REPLY", "DEVICE_FAULT"}),
+            # Silent while the valve may be open: VALVE_UNCONFIRMED within glue_link_timeout.
+            frozenset({"VALVE_UNCONFIRMED", "NO_REPLY", "DEVICE_FAULT"}),
             "glue",
             "spray",
             lambda rig: rig.glue.inject_no_reply(),

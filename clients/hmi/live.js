@@ -5,7 +5,7 @@
  * the page resynchronises from GET /state. */
 
 import { AuthError, api, errorText, getJson } from "./api.js";
-import { refreshLibrary, refreshPanels } from "./panels.js";
+import { applyDeviceSample, refreshLibrary, refreshPanels } from "./panels.js";
 import {
   applyIfNewer,
   applyState,
@@ -20,6 +20,7 @@ import {
   ENDINGS,
   hmi,
   isOperational,
+  LIVE_TYPES,
   RECONNECT_FIRST_MS,
   RECONNECT_MAX_MS,
   WATCHDOG_DEAD_MS,
@@ -43,7 +44,8 @@ export async function connect() {
   }
   if (!hmi.token) return;
   const scheme = location.protocol === "https:" ? "wss" : "ws";
-  const ws = new WebSocket(`${scheme}://${location.host}/ws?ticket=${encodeURIComponent(ticket)}`);
+  const query = `ticket=${encodeURIComponent(ticket)}&types=${LIVE_TYPES.join(",")}`;
+  const ws = new WebSocket(`${scheme}://${location.host}/ws?${query}`);
   hmi.ws = ws;
   hmi.lastMessageMs = performance.now();
   ws.onmessage = (event) => hmi.ws === ws && onMessage(JSON.parse(event.data));
@@ -102,6 +104,7 @@ function onMessage(message) {
   hmi.lastMessageMs = performance.now();
   hmi.counters.messages += 1;
   if (message.type === "snapshot") return onSnapshot(message);
+  if (message.type === "device") return applyDeviceSample(message); // a sample: no seq
   if (typeof message.seq === "number") checkSequence(message.seq);
   if (message.type === "state_changed") onStateChanged(message);
   else if (message.type === "progress") onProgress(message);
@@ -119,7 +122,7 @@ function onSnapshot(snapshot) {
   if (progress) updateProgress(progress);
   setLive(true);
   applyState(snapshot);
-  refreshPanels();
+  refreshPanels(true);
   refreshTrajectory();
 }
 
@@ -139,8 +142,8 @@ function onStateChanged(message) {
     hmi.progress.ended = ENDINGS[event] || event.toLowerCase();
   }
   applyState(message.snapshot);
-  refreshPanels();
-  setTimeout(refreshPanels, 1000); // device figures settle a moment after a transition
+  refreshPanels(true); // link figures and faults; `device` messages carry the readings
+  setTimeout(refreshPanels, 1000); // KPIs and history settle a moment after a transition
   if (from === "CALIBRATING_ROBOT" || from === "CALIBRATING_CAMERA") refreshCalibration();
   if (isOperational(from) && !isOperational(to)) refreshFrame(); // it may have taken a picture
   if (from === "CREATING_WORKPIECE") refreshLibrary();

@@ -1,5 +1,9 @@
 /* The panels refreshed every few seconds and on each change: devices (health),
- * KPIs, history; and the workpiece library, refreshed when a workpiece was made. */
+ * KPIs, history; and the workpiece library, refreshed when a workpiece was made.
+ * While the WebSocket is live the devices card is not polled: GET /health once on
+ * each snapshot and change of state, and `device` messages (valve, flow, pressure,
+ * robot pose; every 0.1 s during a run) update it in between. A 3 s poll missed a
+ * valve opened between two polls and showed "closed" while glue flowed. */
 
 import { AuthError, blobUrl, getJson } from "./api.js";
 import { $, clockTime, duration, element, facts, number, percent } from "./dom.js";
@@ -7,10 +11,13 @@ import { HISTORY_ROWS, hmi, STATE_TONE } from "./store.js";
 
 let refreshing = false;
 let refreshAgain = false;
+let healthAgain = false;
 
-/** Health, KPIs and history; a request during a refresh runs once it is done. */
-export async function refreshPanels() {
+/** KPIs and history, and health when asked or not live; a request during a
+ * refresh runs once it is done. */
+export async function refreshPanels(withHealth = !hmi.live) {
   if (!hmi.token) return;
+  healthAgain = healthAgain || withHealth;
   if (refreshing) {
     refreshAgain = true;
     return;
@@ -19,8 +26,10 @@ export async function refreshPanels() {
   try {
     do {
       refreshAgain = false;
+      const health = healthAgain;
+      healthAgain = false;
       await Promise.all([
-        panel("card-health", "/health", renderHealth),
+        health ? panel("card-health", "/health", renderHealth) : null,
         panel("card-kpis", "/kpis", renderKpis),
         panel("card-history", `/history?limit=${HISTORY_ROWS}`, renderHistory),
       ]);
@@ -28,6 +37,20 @@ export async function refreshPanels() {
   } finally {
     refreshing = false;
   }
+}
+
+/** A `device` message: the live readings merged into the last health shown. */
+export function applyDeviceSample(sample) {
+  const health = hmi.health;
+  if (!health) return; // the first GET /health (on the snapshot) has not answered yet
+  for (const name of ["glue", "robot"]) {
+    const { age_ms: _age, ...readings } = sample[name] || {};
+    if (health.devices[name]) Object.assign(health.devices[name], readings);
+  }
+  const connected = Object.values(health.devices).every((device) => device.connected);
+  health.status = connected ? "ok" : "degraded";
+  renderHealth(health);
+  document.querySelector(".card-health").dataset.stale = "false";
 }
 
 async function panel(cardClass, path, render) {
@@ -43,6 +66,7 @@ async function panel(cardClass, path, render) {
 // --- devices, KPIs, history -------------------------------------------------
 
 function renderHealth(health) {
+  hmi.health = health;
   const status = $("health-status");
   status.textContent = health.status;
   status.dataset.kind = health.status === "ok" ? "ok" : "fault";
@@ -58,6 +82,7 @@ function deviceCard(name, device) {
   const card = element("div", "device");
   card.dataset.device = name;
   card.dataset.connected = String(device.connected);
+  if (name === "glue") card.dataset.valve = device.valve_open ? "open" : "closed";
   const state = element("span", "pill", device.connected ? "connected" : "disconnected");
   state.dataset.kind = device.connected ? "ok" : "fault";
   const head = element("div", "device-head");
@@ -71,7 +96,10 @@ function deviceFacts(name, device) {
   const rtt = device.last_rtt_ms == null ? "—" : `${number(device.last_rtt_ms, 1)} ms`;
   const rows = [["round trip", rtt]];
   if (name === "robot") {
+    const pose = Array.isArray(device.position) ? device.position : [];
+    const where = pose.length >= 3 ? pose.slice(0, 3).map((v) => number(v, 1)).join(", ") : "—";
     rows.push(
+      ["position", pose.length >= 3 ? `${where} mm` : where],
       ["link losses", String(device.connection_losses ?? "—")],
       ["reconnects", String(device.reconnects ?? "—")],
     );

@@ -4,7 +4,9 @@
  */
 
 export const TOKEN_KEY = "gluecell.hmi.token";
-export const REFRESH_MS = 3000;            // health, KPIs, history
+export const REFRESH_MS = 3000;            // KPIs, history; health only while not live
+// What the page asks /ws for: every record, and the live `device` samples.
+export const LIVE_TYPES = ["state_changed", "progress", "error", "alert", "device"];
 export const RECONNECT_FIRST_MS = 1000;    // then doubled up to RECONNECT_MAX_MS, with jitter
 export const RECONNECT_MAX_MS = 10000;
 export const WATCHDOG_PING_MS = 10000;     // ask the server for a pong after this much silence
@@ -32,6 +34,7 @@ export const ENDINGS = {
 export const hmi = {
   token: null,
   view: null,            // the last StateView received
+  health: null,          // the last GET /health, kept current by `device` messages
   enteredAtMs: 0,        // performance.now() when that state was entered
   live: false,
   ws: null,

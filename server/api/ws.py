@@ -20,6 +20,12 @@ snapshot is the truth from then on. A `types=a,b` query parameter filters
 from the start, replay included; a later subscribe message filters what is
 published from then on, as before.
 
+`device` messages (live valve, flow, pressure and robot pose; see
+server/core/live.py) are samples, not records: they carry no seq, are never
+replayed, and are sent only to a client that names `device` in `types` (the
+query or a subscribe message). Without `types` a client gets every record and
+no samples, so its stream is what it was before samples existed.
+
 Close codes (also in docs/api.md):
   1003  the client sent something that is not a valid JSON message, or the
         query is invalid (after_seq not a non-negative integer, after_seq
@@ -59,7 +65,7 @@ from server.core.view import CellView
 log = logging.getLogger(__name__)
 router = APIRouter()
 
-MESSAGE_TYPES = ("state_changed", "progress", "error", "alert")
+MESSAGE_TYPES = ("state_changed", "progress", "error", "alert", "device")
 SEND_TIMEOUT = 5.0
 ENCODED_CACHE = 64  # recent messages kept encoded; a client further behind re-encodes
 MAX_SEQ_DIGITS = 18  # after_seq: any seq a server reaches, and still a 64-bit integer
@@ -134,6 +140,8 @@ class WebSocketHub:
 
     def encode(self, message: BusMessage) -> str:
         """The message's JSON text, shared by every client (clients lag by a few at most)."""
+        if not message.numbered:  # a sample: sent once, to the clients that asked for it
+            return json.dumps(message.as_dict())
         text = self._encoded.get(message.seq)
         if text is None:
             text = json.dumps(message.as_dict())
@@ -260,7 +268,7 @@ async def _send_loop(
             message = await subscription.get()
         except SubscriptionClosed as closed:
             return CLOSE_SLOW, f"{closed.reason}: you fell behind; reconnect and resync"
-        if message.seq <= snapshot_seq:
+        if message.numbered and message.seq <= snapshot_seq:
             continue  # sent from the ring already (never expected: see `live`)
         if (close := await _send(websocket, hub, message)) is not None:
             return close

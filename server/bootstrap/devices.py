@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Awaitable, Callable
+from typing import Any
 from urllib.parse import urlsplit
 
 from server.config import Settings
@@ -37,6 +38,18 @@ def parse_tcp_address(value: str) -> tuple[str, int]:
     if parts.scheme != "tcp" or not parts.hostname or not parts.port:
         raise ValueError(f"GLUE_CONTROLLER_PORT={value!r}: expected tcp://host:port")
     return parts.hostname, parts.port
+
+
+def glue_supervision(settings: Settings) -> dict[str, Any]:
+    """The dispenser driver's supervision options from the settings (docs/hardware.md)."""
+    return {
+        "poll_interval": settings.glue_poll_interval,
+        "pressure_range_psi": settings.glue_pressure_range_psi,
+        "flow_tolerance_pct": settings.glue_flow_deviation_pct,
+        "flow_deviation_s": settings.glue_flow_deviation_s,
+        "temperature_range_c": settings.glue_temperature_range_c,
+        "link_timeout": settings.glue_link_timeout,
+    }
 
 
 async def build_devices(
@@ -63,6 +76,7 @@ async def build_devices(
     )
 
     port = settings.glue_controller_port
+    supervision = glue_supervision(settings)
     if settings.glue_simulated:
         assert host is not None and host.glue is not None
         glue = ModbusGlueDispenser.tcp(
@@ -70,7 +84,7 @@ async def build_devices(
             host.glue.port,
             device_id=settings.glue_modbus_device_id,
             timeout=settings.glue_system_timeout,
-            pressure_range_psi=settings.glue_pressure_range_psi,
+            **supervision,
         )
         log.info("glue: simulator on 127.0.0.1:%d (Modbus RTU over TCP)", host.glue.port)
     elif port.startswith("tcp://"):
@@ -78,14 +92,14 @@ async def build_devices(
             *parse_tcp_address(port),
             device_id=settings.glue_modbus_device_id,
             timeout=settings.glue_system_timeout,
-            pressure_range_psi=settings.glue_pressure_range_psi,
+            **supervision,
         )
     else:
         glue = ModbusGlueDispenser.serial(
             port,
             device_id=settings.glue_modbus_device_id,
             timeout=settings.glue_system_timeout,
-            pressure_range_psi=settings.glue_pressure_range_psi,
+            **supervision,
         )
 
     camera_id = settings.vision_camera_id

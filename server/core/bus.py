@@ -23,6 +23,13 @@ hole between what it kept and what a new subscription receives. `boot` names
 this bus's numbering: seq starts again at 1 with every new bus (every server
 process), so a seq only means something together with its boot.
 
+Samples (`publish_sample`, SAMPLE_TYPES: the live `device` readings) are not
+records: a missed one is replaced a tenth of a second later. They take no seq
+number and are not kept in the ring (at ten a second they would push the
+records out of it within two minutes of running), and a subscription receives
+them only when it names their type: an "everything" subscription (types None)
+means every record, so no existing consumer's stream changes.
+
 Publish from the event loop's thread only (other threads use
 `loop.call_soon_threadsafe`).
 """
@@ -47,6 +54,7 @@ WAKE_BATCH = 16  # subscribers woken per turn of the loop
 # consumer catch up. Bounded by count, not time, so memory stays flat (each
 # message is a dict of a few hundred bytes to a few KiB: a few MiB at most).
 REPLAY_HISTORY = 1024
+SAMPLE_TYPES = frozenset({"device"})  # unnumbered, not replayed, sent only when asked for
 
 
 @dataclass(frozen=True, slots=True)
@@ -58,8 +66,15 @@ class BusMessage:
     time: float
     data: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def numbered(self) -> bool:
+        """False for a sample (seq 0): see the module docstring."""
+        return self.seq > 0
+
     def as_dict(self) -> dict[str, Any]:
-        """The wire form: the payload's keys beside seq, type and time."""
+        """The wire form: the payload's keys beside seq, type and time (a sample has no seq)."""
+        if not self.numbered:
+            return {"type": self.type, "time": self.time, **self.data}
         return {"type": self.type, "seq": self.seq, "time": self.time, **self.data}
 
 
@@ -87,7 +102,9 @@ class Subscription:
         return len(self._buffer)
 
     def wants(self, message_type: str) -> bool:
-        return self.types is None or message_type in self.types
+        if self.types is None:
+            return message_type not in SAMPLE_TYPES
+        return message_type in self.types
 
     def set_types(self, types: Iterable[str] | None) -> None:
         """Change which message types this subscriber receives from now on."""
@@ -163,6 +180,15 @@ class Bus:
         self.last_seq = next(self._seq)
         message = BusMessage(self.last_seq, message_type, time.time(), data)
         self._recent.append(message)
+        for subscription in tuple(self._subscribers):
+            if subscription.offer(message):
+                self._to_wake[subscription] = None
+        self._wake_first_batch()
+        return message
+
+    def publish_sample(self, message_type: str, data: dict[str, Any]) -> BusMessage:
+        """Hand a sample to the subscribers that asked for its type: no seq, not kept."""
+        message = BusMessage(0, message_type, time.time(), data)
         for subscription in tuple(self._subscribers):
             if subscription.offer(message):
                 self._to_wake[subscription] = None

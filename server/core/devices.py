@@ -107,9 +107,14 @@ class CellDevices:
             return "glue: the valve still reads open after a close command"
         if status.alarms:
             return f"glue: alarm {', '.join(status.alarms)}"
-        if not low <= status.pressure_psi <= high:
+        # The valve is closed now, so only the high limit applies (the low one guards
+        # spraying: a supply at rest between runs is no fault).
+        if status.pressure_psi > high:
             return f"glue: pressure {status.pressure_psi:.1f} PSI outside {low:g}..{high:g} PSI"
-        return None
+        # Whatever else the driver's own supervision sees in this reading (a temperature
+        # outside its window): the probe replaces what facts knew, so it must say so.
+        persisting = self.glue.health.active_faults
+        return "; ".join(persisting) if persisting else None
 
     def health(self) -> dict[str, dict[str, Any]]:
         """Each device's connection state, last round-trip and last error."""

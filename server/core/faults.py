@@ -35,6 +35,10 @@ RECOMMENDED_ACTION = {
     "DEVICE_UNAVAILABLE": "check the named device is powered and connected, then reset",
     "ALARM": "clear the dispenser alarm at the dispenser, then reset",
     "PRESSURE_OUT_OF_RANGE": "check the glue supply pressure, then reset",
+    "FLOW_DEVIATION": "check the nozzle for a blockage and the glue supply, then reset",
+    "TEMPERATURE_OUT_OF_RANGE": "check the glue's heating or the room, then reset",
+    "VALVE_UNCONFIRMED": "check the glue valve is closed at the nozzle, then the "
+    "dispenser's power and RS-485 cable; then reset",
     "WORKSPACE_VIOLATION": "move the part inside the workspace or recalibrate, then reset",
     "MARKER_NOT_FOUND": "uncover or clean the named marker, check lighting, then reset",
     "WORKPIECE_NOT_FOUND": "place the part fully in view, away from the markers, then reset",

@@ -35,9 +35,32 @@ not marked down: a poll the dispenser swallowed before a reset must not send
 the cell back to ERROR after the reset passed.
 
 The monitor task (started by connect(), stopped by close()) polls the status
-every `poll_interval` s, keeps `health.details` current and reports each new
-alarm bit ("ALARM") and a measured pressure outside `pressure_range_psi`
-("PRESSURE_OUT_OF_RANGE") once per onset, not on every poll.
+every `poll_interval` s, keeps `health.details` current (`status_at` is when
+the reading was taken) and reports once per onset, not on every poll:
+
+* "ALARM": each new alarm bit of the dispenser's own;
+* "PRESSURE_OUT_OF_RANGE": above the high end of `pressure_range_psi` at any
+  time (over-pressure is a hazard whatever the valve does), below its low end
+  while the valve reads open, on every poll for `flow_deviation_s` (a sagging
+  supply sprays thin; a supply at rest between runs is no fault, and a reset
+  probes with the valve closed);
+* "FLOW_DEVIATION": while the valve reads open, measured flow off its setpoint
+  by more than `flow_tolerance_pct` % on every poll for `flow_deviation_s`
+  (the valve's opening transient is shorter, a blocked or starved nozzle not);
+* "TEMPERATURE_OUT_OF_RANGE": outside `temperature_range_c`, at any time.
+
+Silence with the valve open cannot wait for `timeout` (15 s of unsupervised
+glue). A watchdog task checks every `link_timeout / 5` s: while the valve may
+be open (an open command was sent and no close has been read back since, or a
+status read reported it open), an exchange that has waited longer than
+`link_timeout` for its reply is a "VALVE_UNCONFIRMED" fault at once, saying
+the valve could not be confirmed closed; the cell then stops the robot. The
+watchdog also ends that exchange (as a timeout, dropping the link), so the
+halt's valve close is sent at once rather than after `timeout`; while the
+valve may be open, every later silent exchange is ended the same way. A
+watchdog tick that itself came late (the event loop was held up) judges
+nothing, so a busy process is never taken for a silent dispenser; the next
+punctual tick decides.
 """
 
 from __future__ import annotations
@@ -63,6 +86,8 @@ logger = logging.getLogger(__name__)
 DEVICE = "glue"
 URGENT, COMMAND, POLL = 0, 1, 2  # line priorities: valve close, commands, monitor polls
 PRESSURE_HYSTERESIS_PSI = 1.0
+TEMPERATURE_HYSTERESIS_C = 0.5
+WATCHDOG_TICKS = 5  # watchdog checks per link_timeout
 _VALVE_READBACK_INTERVAL_S = 0.02
 
 ModbusClient = AsyncModbusTcpClient | AsyncModbusSerialClient
@@ -117,18 +142,36 @@ class ModbusGlueDispenser:
         timeout: float = 15.0,
         poll_interval: float = 0.2,
         pressure_range_psi: tuple[float, float] = (0.0, regs.PRESSURE_SETPOINT.maximum),
+        flow_tolerance_pct: float | None = None,
+        flow_deviation_s: float = 0.5,
+        temperature_range_c: tuple[float, float] | None = None,
+        link_timeout: float | None = None,
         valve_settle_s: float = 0.2,
         link_hint: str = "",
     ) -> None:
-        """Prefer `serial()` and `tcp()`; `make_client` builds the pymodbus client on connect()."""
+        """Prefer `serial()` and `tcp()`; `make_client` builds the pymodbus client on connect().
+
+        `flow_tolerance_pct`, `temperature_range_c` and `link_timeout` None switch
+        that check off (the driver alone checks nothing the cell did not ask for;
+        the cell's settings switch them on with real defaults).
+        """
         if timeout <= 0:
             raise ValueError(f"timeout must be > 0 s, got {timeout}")
+        if link_timeout is not None and link_timeout <= poll_interval:
+            raise ValueError(
+                f"link_timeout ({link_timeout:g} s) must be longer than poll_interval "
+                f"({poll_interval:g} s), or every pause between polls would look like silence"
+            )
         self._make_client = make_client
         self.where = where
         self.device_id = device_id
         self.timeout = timeout
         self.poll_interval = poll_interval
         self.pressure_range_psi = pressure_range_psi
+        self.flow_tolerance_pct = flow_tolerance_pct
+        self.flow_deviation_s = flow_deviation_s
+        self.temperature_range_c = temperature_range_c
+        self.link_timeout = link_timeout
         self.valve_settle_s = valve_settle_s
         self._link_hint = link_hint
         self.health = DeviceHealth(name=DEVICE, details={"link": where, "device_id": device_id})
@@ -141,7 +184,20 @@ class ModbusGlueDispenser:
         self._session = 0  # see "Sessions" in the module doc
         self._line_session = 0  # the session of the exchange on the line now
         self._active_alarms: frozenset[str] = frozenset()
-        self._pressure_fault = False
+        self._pressure_fault: str | None = None  # the excursion reported: high or low
+        self._flow_fault = False
+        self._flow_off_since: float | None = None  # monotonic time of the first deviating poll
+        self._pressure_low_since: float | None = None  # the same, for pressure while spraying
+        self._temperature_fault = False
+        # Valve supervision: may it be open, and what waits for the dispenser's answer.
+        self._valve_may_be_open = False
+        self._opening = 0  # open commands on their way: a poll must not clear the flag
+        self._waiting_since: dict[int, float] = {}  # exchange -> monotonic time it was sent
+        self._exchange_ids = 0
+        self._unconfirmed_reported = False
+        self._watchdog: asyncio.Task[None] | None = None
+        self._on_line: asyncio.Timeout | None = None  # the deadline of the exchange on the line
+        self._cut_short = False
 
     @classmethod
     def serial(
@@ -208,7 +264,12 @@ class ModbusGlueDispenser:
             return
         # a new session: alarms and excursions still present are news again
         self._active_alarms = frozenset()
-        self._pressure_fault = False
+        self._pressure_fault = None
+        self._flow_fault = False
+        self._flow_off_since = None
+        self._pressure_low_since = None
+        self._temperature_fault = False
+        self._unconfirmed_reported = False
         try:
             self._client = self._make_client()
         except DeviceError as exc:
@@ -224,15 +285,21 @@ class ModbusGlueDispenser:
             raise
         self._running = True
         self._monitor = asyncio.create_task(self._monitor_loop(), name="glue-dispenser-monitor")
+        if self.link_timeout is not None:
+            self._watchdog = asyncio.create_task(
+                self._watchdog_loop(self.link_timeout), name="glue-dispenser-watchdog"
+            )
         logger.info("glue dispenser connected on %s (device id %d)", self.where, self.device_id)
 
     async def close(self) -> None:
         """Stop the monitor and close the link; never raises."""
         self._running = False
-        task, self._monitor = self._monitor, None
-        if task is not None:
+        tasks = {t for t in (self._monitor, self._watchdog) if t is not None}
+        self._monitor = self._watchdog = None
+        for task in tasks:
             task.cancel()
-            await asyncio.wait({task})
+        if tasks:
+            await asyncio.wait(tasks)
         client, self._client = self._client, None
         if client is not None:
             try:
@@ -251,7 +318,17 @@ class ModbusGlueDispenser:
             if not open_:
                 await self._verify_closed(what)
 
-        await self._call(what, COMMAND if open_ else URGENT, body)
+        if not open_:
+            await self._call(what, URGENT, body)
+            return
+        # Counted open from before the command may reach the line: a reply lost on
+        # the way leaves a valve that may well be open.
+        self._valve_may_be_open = True
+        self._opening += 1
+        try:
+            await self._call(what, COMMAND, body)
+        finally:
+            self._opening -= 1
 
     async def set_flow_rate(self, ml_per_min: float) -> None:
         """Set the flow setpoint (ml/min); ValueError outside the register's range."""
@@ -270,7 +347,8 @@ class ModbusGlueDispenser:
         return await self._read_status(COMMAND)
 
     def set_fault_listener(self, listener: FaultListener | None) -> None:
-        """Where NO_REPLY, COMM_LOST, ALARM, PRESSURE_OUT_OF_RANGE and VALVE_STUCK_OPEN go."""
+        """Where NO_REPLY, COMM_LOST, ALARM, PRESSURE_OUT_OF_RANGE, FLOW_DEVIATION,
+        TEMPERATURE_OUT_OF_RANGE, VALVE_UNCONFIRMED and VALVE_STUCK_OPEN go."""
         self._listener = listener
 
     def new_session(self) -> int:
@@ -285,13 +363,15 @@ class ModbusGlueDispenser:
         on_line = False
         session = self._session
         try:
-            async with asyncio.timeout(self.timeout):
+            async with asyncio.timeout(self.timeout) as deadline:
                 await self._line.acquire(priority)
                 on_line = True
                 self._line_session = session
+                self._on_line = deadline  # the watchdog may cut a silent exchange short
                 try:
                     return await body()
                 finally:
+                    self._on_line = None
                     self._line.release()
         except TimeoutError:
             if session != self._session:
@@ -307,10 +387,17 @@ class ModbusGlueDispenser:
                 )
                 self.health.record_error(message)
                 raise DeviceTimeout(DEVICE, message) from None
-            message = (
-                f"{what}: no reply within {self.timeout:g} s from device {self.device_id} "
-                f"on {self.where}; check power, wiring and the device id"
-            )
+            if self._cut_short:
+                self._cut_short = False
+                message = (
+                    f"{what}: no reply within the link timeout ({self.link_timeout:g} s) "
+                    f"while the valve may be open, from device {self.device_id} on {self.where}"
+                )
+            else:
+                message = (
+                    f"{what}: no reply within {self.timeout:g} s from device {self.device_id} "
+                    f"on {self.where}; check power, wiring and the device id"
+                )
             self._drop_link()
             self._link_lost("NO_REPLY", message)
             raise DeviceTimeout(DEVICE, message) from None
@@ -337,6 +424,9 @@ class ModbusGlueDispenser:
         """One Modbus transaction, with pymodbus errors turned into the cell's errors."""
         client = await self._ensure_link()
         started = time.perf_counter()
+        self._exchange_ids += 1
+        exchange = self._exchange_ids
+        self._waiting_since[exchange] = time.monotonic()
         try:
             response = await send(client)
         except ConnectionException as exc:
@@ -355,6 +445,8 @@ class ModbusGlueDispenser:
             message = f"{what}: {exc}"
             self.health.record_error(message)
             raise DeviceError(DEVICE, message) from exc
+        finally:
+            self._waiting_since.pop(exchange, None)
         self._link_ok(time.perf_counter() - started)
         if response.isError():
             code = int(getattr(response, "exception_code", 0))
@@ -389,6 +481,10 @@ class ModbusGlueDispenser:
         while True:
             (state,) = await self._read_input(regs.VALVE_STATE.address, 1, check)
             if state == 0:
+                if not self._opening:
+                    self._valve_may_be_open = False
+                # What /health and the live feed show at once, before the next poll.
+                self.health.details.update(valve_open=False, status_at=time.time())
                 return
             if time.monotonic() >= deadline:
                 break
@@ -421,6 +517,8 @@ class ModbusGlueDispenser:
 
     def _link_ok(self, rtt_s: float) -> None:
         self.health.record_ok(rtt_s)
+        self._unconfirmed_reported = False
+        self._cut_short = False
         if self._link_fault:
             self._link_fault = False
             logger.info("glue dispenser on %s answers again", self.where)
@@ -448,7 +546,7 @@ class ModbusGlueDispenser:
             logger.exception("the glue fault listener failed on %s", code)
 
     def _observe(self, status: GlueStatus, uptime_s: int) -> None:
-        """Update health.details and report alarm and pressure onsets from one status read."""
+        """Update health.details and report the onsets one status read shows (module doc)."""
         self.health.details.update(
             valve_open=status.valve_open,
             flow_ml_min=status.flow_ml_min,
@@ -458,7 +556,12 @@ class ModbusGlueDispenser:
             temperature_c=status.temperature_c,
             alarms=list(status.alarms),
             uptime_s=uptime_s,
+            status_at=time.time(),
         )
+        if status.valve_open:
+            self._valve_may_be_open = True
+        elif not self._opening:
+            self._valve_may_be_open = False
         new = [name for name in status.alarms if name not in self._active_alarms]
         self._active_alarms = frozenset(status.alarms)
         if new:
@@ -467,24 +570,128 @@ class ModbusGlueDispenser:
                 f"glue dispenser alarm: {', '.join(new)} (pressure {status.pressure_psi:g} PSI, "
                 f"flow {status.flow_ml_min:g} ml/min, {status.temperature_c:g} °C)",
             )
+        faults = [f"glue: alarm {', '.join(status.alarms)}"] if status.alarms else []
+        faults += self._check_pressure(status)
+        faults += self._check_flow(status)
+        faults += self._check_temperature(status)
+        self.health.active_faults = tuple(faults)
+
+    def _check_pressure(self, status: GlueStatus) -> list[str]:
+        """The high limit always; the low one while the valve reads open, for flow_deviation_s.
+
+        A valve opening draws the supply down for a moment (and the first setpoint
+        of a run is still rising): the same grace as a flow deviation's.
+        """
         low, high = self.pressure_range_psi
+        low_applies = status.valve_open and low > 0
         pressure = status.pressure_psi
-        if not low <= pressure <= high:
-            if not self._pressure_fault:
-                self._pressure_fault = True
+        sagging = False
+        if low_applies and pressure < low:
+            now = time.monotonic()
+            if self._pressure_low_since is None:
+                self._pressure_low_since = now
+            sagging = now - self._pressure_low_since >= self.flow_deviation_s
+        else:
+            self._pressure_low_since = None
+        kind = "high" if pressure > high else "low" if sagging else None
+        if kind is not None:
+            if kind != self._pressure_fault:  # a new excursion (or the other side): news
+                self._pressure_fault = kind
+                while_open = " while spraying" if kind == "low" else ""
                 self._report(
                     "PRESSURE_OUT_OF_RANGE",
-                    f"glue pressure {pressure:g} PSI is outside the allowed {low:g}-{high:g} PSI "
-                    f"(setpoint {status.pressure_setpoint_psi:g} PSI)",
+                    f"glue pressure {pressure:g} PSI is outside the allowed {low:g}-{high:g} PSI"
+                    f"{while_open} (setpoint {status.pressure_setpoint_psi:g} PSI)",
                 )
-        elif self._pressure_fault:
-            margin_low = low + PRESSURE_HYSTERESIS_PSI if low > 0 else low
+            return [f"glue: pressure {pressure:.1f} PSI outside {low:g}..{high:g} PSI"]
+        if self._pressure_fault is not None:
+            margin_low = low + PRESSURE_HYSTERESIS_PSI if low_applies else 0.0
             if margin_low <= pressure <= high - PRESSURE_HYSTERESIS_PSI:
-                self._pressure_fault = False  # back inside with margin: the next excursion reports
-        faults = [f"glue: alarm {', '.join(status.alarms)}"] if status.alarms else []
-        if not low <= pressure <= high:
-            faults.append(f"glue: pressure {pressure:.1f} PSI outside {low:g}..{high:g} PSI")
-        self.health.active_faults = tuple(faults)
+                self._pressure_fault = None  # back inside with margin: the next excursion reports
+        return []
+
+    def _check_flow(self, status: GlueStatus) -> list[str]:
+        """Measured flow off its setpoint while the valve reads open, for flow_deviation_s."""
+        tolerance = self.flow_tolerance_pct
+        setpoint = status.flow_setpoint_ml_min
+        if tolerance is None or not status.valve_open or setpoint <= 0:
+            self._flow_off_since = None
+            self._flow_fault = False
+            return []
+        deviation_pct = abs(status.flow_ml_min - setpoint) / setpoint * 100.0
+        if deviation_pct <= tolerance:
+            self._flow_off_since = None
+            self._flow_fault = False
+            return []
+        now = time.monotonic()
+        if self._flow_off_since is None:
+            self._flow_off_since = now
+        if now - self._flow_off_since < self.flow_deviation_s:
+            return []  # the valve's opening transient, or a setpoint change settling
+        if not self._flow_fault:
+            self._flow_fault = True
+            self._report(
+                "FLOW_DEVIATION",
+                f"glue flow {status.flow_ml_min:g} ml/min is {deviation_pct:.0f} % off its "
+                f"setpoint {setpoint:g} ml/min (allowed {tolerance:g} %) for "
+                f"{self.flow_deviation_s:g} s while spraying; check the nozzle and the supply",
+            )
+        return [f"glue: flow {status.flow_ml_min:.1f} ml/min, {deviation_pct:.0f} % off setpoint"]
+
+    def _check_temperature(self, status: GlueStatus) -> list[str]:
+        if self.temperature_range_c is None:
+            return []
+        low, high = self.temperature_range_c
+        temperature = status.temperature_c
+        if not low <= temperature <= high:
+            if not self._temperature_fault:
+                self._temperature_fault = True
+                self._report(
+                    "TEMPERATURE_OUT_OF_RANGE",
+                    f"glue temperature {temperature:g} °C is outside the allowed "
+                    f"{low:g}-{high:g} °C",
+                )
+            return [f"glue: temperature {temperature:.1f} °C outside {low:g}..{high:g} °C"]
+        if self._temperature_fault and (
+            low + TEMPERATURE_HYSTERESIS_C <= temperature <= high - TEMPERATURE_HYSTERESIS_C
+        ):
+            self._temperature_fault = False
+        return []
+
+    async def _watchdog_loop(self, link_timeout: float) -> None:
+        """Silence while the valve may be open is a fault at once (see the module doc)."""
+        tick = link_timeout / WATCHDOG_TICKS
+        last = time.monotonic()
+        while True:
+            await asyncio.sleep(tick)
+            now = time.monotonic()
+            punctual = now - last < 2 * tick
+            last = now
+            if not punctual or not self._valve_may_be_open:
+                continue
+            oldest = min(self._waiting_since.values(), default=now)
+            silent_s = now - oldest
+            if silent_s <= link_timeout:
+                continue
+            if not self._unconfirmed_reported:
+                self._unconfirmed_reported = True
+                self._link_fault = True  # this is the outage's report: no NO_REPLY after it
+                message = (
+                    f"the glue dispenser on {self.where} has not answered for {silent_s:.2f} s "
+                    f"(link timeout {link_timeout:g} s) while the valve may be open: the valve "
+                    "could not be confirmed closed; check the valve at the nozzle, then the "
+                    "dispenser's power and wiring"
+                )
+                self.health.record_error(message, connected=False)
+                logger.error("glue dispenser: %s", message)
+                self._report("VALVE_UNCONFIRMED", message)
+            # End the silent exchange now (the link is dropped, so no late reply is taken
+            # for another's): the halt's valve close must reach the line at once, not after
+            # `timeout`, in case the silence was one lost frame.
+            deadline = self._on_line
+            if deadline is not None and not self._cut_short:
+                self._cut_short = True
+                deadline.reschedule(asyncio.get_running_loop().time())
 
     async def _monitor_loop(self) -> None:
         """Poll the status in the background so alarms and silence surface without a command."""

@@ -18,8 +18,9 @@ answering while the cell is IDLE is then found within interval + timeout, not
 at the next move: one `NO_ANSWER` fault per onset, the condition listed in
 `health.active_faults` until an answer comes again. Any other request that
 times out counts the same way, so a controller known to be silent is never
-offered a reset. The last pose read is kept in `health.details["position"]`
-for the dashboard.
+offered a reset. Every pose read (a move's own, the heartbeat's, the cell's
+live feed's) is kept in `health.details["position"]`, with its time in
+`position_at`.
 
 Sessions: every new link, and every `new_session()` (a reset's probe calls
 it), begins a numbered session. A request belongs to the session it was sent
@@ -253,15 +254,13 @@ class JsonRpcRobot:
             if not self._connected or time.monotonic() - self._last_answer < interval:
                 continue  # down (reconnection reports itself), or a move's polling proves it
             try:
-                pose = await self.get_position()
+                await self.get_position()  # the pose read is kept in health.details
             except asyncio.CancelledError:
                 raise
             except DeviceError:
                 pass  # a timeout or a lost link reports itself; a bad answer fails the next call
             except Exception:  # the watch must outlive anything odd the controller sends
                 logger.exception("robot: heartbeat failed")
-            else:
-                self.health.details["position"] = [round(v, 3) for v in pose]
 
     def _went_silent(self, detail: str) -> None:
         """Report a controller that stopped answering, once per onset."""
@@ -462,13 +461,16 @@ class JsonRpcRobot:
     # --- Robot protocol ------------------------------------------------------------
 
     async def get_position(self) -> Pose:
+        """The tool pose now; every pose read is also kept in `health.details` with its time."""
         result = await self.call("getPosition")
         try:
-            return Pose.from_sequence(result)
+            pose = Pose.from_sequence(result)
         except (TypeError, ValueError) as exc:
             raise DeviceError(
                 DEVICE, f"getPosition answered {result!r}, not a pose: {exc}"
             ) from exc
+        self.health.details.update(position=[round(v, 3) for v in pose], position_at=time.time())
+        return pose
 
     async def is_moving(self) -> bool:
         result = await self.call("isMoving")

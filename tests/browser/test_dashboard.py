@@ -341,6 +341,38 @@ async def test_a_cycle_then_stop_mid_run_then_reset(dashboard: Dashboard, browse
     assert problems == []
 
 
+async def test_the_devices_card_is_live_and_does_not_poll(
+    dashboard: Dashboard, browser: Browser
+) -> None:
+    """Valve, flow and the robot's pose arrive as /ws `device` messages: the card shows the
+    valve open while glue flows and closed right after STOP, with no 3 s poll of /health."""
+    page, problems = await open_page(browser, dashboard, PANEL)
+    await log_in(page, dashboard.token)
+    await expect_state(page, "IDLE")
+    glue, robot = page.locator("[data-device=glue]"), page.locator("[data-device=robot]")
+    await expect(glue).to_have_attribute("data-valve", "closed")
+    polls: list[str] = []
+    page.on("request", lambda r: polls.append(r.url) if r.url.endswith("/health") else None)
+    await asyncio.sleep(7.0)  # more than twice the old 3 s refresh, live and idle
+    assert polls == [], "the devices card polled /health while the page was live"
+
+    await page.click('[data-command="start"]')
+    await expect_state(page, "EXECUTING_TRAJECTORY")
+    await expect(glue).to_have_attribute("data-valve", "open", timeout=15_000)
+    await expect(glue.locator(".fact", has_text="valve")).to_contain_text("OPEN")
+    position = robot.locator(".fact", has_text="position")
+    first = await position.inner_text()
+    await expect(position).not_to_have_text(first)  # the pose follows the arm
+    await shot(page, "08-devices-live")
+    await page.click("#estop")
+    await expect_state(page, "ERROR")
+    await expect(glue).to_have_attribute("data-valve", "closed")
+    assert not dashboard.rig.glue.valve_open
+    await page.click('[data-command="reset"]')
+    await expect_state(page, "IDLE")
+    assert problems == []
+
+
 async def test_refusals_show_the_servers_message(dashboard: Dashboard, browser: Browser) -> None:
     """403 for a role too low, 409 for a command the state forbids: the server's words."""
     created = await dashboard.rig.api.post("/tokens", json={"name": "hall", "role": "viewer"})

@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 
 from bench import (
+    device_feed,
     engine_throughput,
     estop_latency,
     memory,
@@ -147,3 +148,12 @@ def test_memory_and_scaling_report_every_point(results_in_tmp: Path) -> None:
     assert [row["journal_events"] for row in sweeps["journal_size"]] == [0, 500]
     assert sweeps["ws_clients"][0]["ws_clients"] == 2
     assert (results_in_tmp / "scaling.png").stat().st_size > 10_000
+
+
+def test_device_feed_reports_ages_and_the_silence_detection(results_in_tmp: Path) -> None:
+    rows = device_feed.main(["--runs", "1", "--silences", "2"])
+    assert [row["measure"].split(":")[0] for row in rows[:3]] == ["device message"] * 3
+    for row in rows:
+        assert_ordered_latencies(row)
+    assert "VALVE_UNCONFIRMED" in rows[3]["measure"] and rows[3]["n"] == 2
+    assert written_rows(results_in_tmp, "device_feed") == rows

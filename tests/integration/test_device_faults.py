@@ -85,7 +85,8 @@ async def test_dispenser_silent(rig: Rig) -> None:
     stops = rig.robot.stop_received_count
     rig.glue.inject_no_reply()
     snapshot = await assert_safe(rig, "glue")
-    assert snapshot["stop_reason"]["code"] in ("NO_REPLY", "DEVICE_FAULT")
+    # Silent while spraying: the valve could not be confirmed closed (glue supervision).
+    assert snapshot["stop_reason"]["code"] in ("VALVE_UNCONFIRMED", "NO_REPLY", "DEVICE_FAULT")
     assert rig.robot.stop_received_count > stops
     refused = await rig.reset()
     assert refused.status_code == 409 and "glue" in refused.json()["message"]
@@ -93,6 +94,47 @@ async def test_dispenser_silent(rig: Rig) -> None:
     accepted = await rig.reset()
     assert accepted.status_code == 202, accepted.json()
     assert rig.glue.valve_open is False  # the close lost during the silence is re-asserted
+
+
+async def test_dispenser_silent_with_the_valve_open_stops_at_once(cell_data) -> None:
+    """Within glue_link_timeout, not after glue_system_timeout (its real default, 15 s)."""
+    async with open_rig(cell_data, glue_system_timeout=15.0) as rig:
+        await rig.start_spraying()
+        stops = rig.robot.stop_received_count
+        rig.glue.inject_no_reply()
+        snapshot = await assert_safe(rig, "glue")  # waits far less than 15 s
+        assert snapshot["stop_reason"]["code"] == "VALVE_UNCONFIRMED"
+        assert "the valve could not be confirmed closed" in snapshot["stop_reason"]["message"]
+        assert "check the glue valve is closed" in snapshot["stop_reason"]["recommended_action"]
+        assert rig.robot.stop_received_count > stops
+        rig.glue.clear_faults()
+        async with asyncio.timeout(10):
+            while (await rig.reset()).status_code != 202:
+                await asyncio.sleep(0.2)
+        assert rig.glue.valve_open is False
+
+
+@pytest.mark.parametrize(
+    ("inject", "code", "words"),
+    [
+        (lambda glue: glue.force_flow(5.0), "FLOW_DEVIATION", "off its setpoint"),
+        (lambda glue: glue.force_pressure(100.0), "PRESSURE_OUT_OF_RANGE", "20-60 PSI"),
+        (lambda glue: glue.force_temperature(55.0), "TEMPERATURE_OUT_OF_RANGE", "10-40 °C"),
+    ],
+    ids=["flow", "pressure", "temperature"],
+)
+async def test_glue_supervision_is_on_by_default(rig: Rig, inject, code: str, words: str) -> None:
+    """Each within the register's range, outside the default process window."""
+    await rig.start_spraying()
+    inject(rig.glue)
+    snapshot = await assert_safe(rig, "glue")
+    assert snapshot["stop_reason"]["code"] == code
+    assert words in snapshot["stop_reason"]["message"]
+    assert rig.glue.valve_open is False
+    rig.glue.clear_faults()
+    async with asyncio.timeout(10):  # the monitor's next poll sees it cleared
+        while (await rig.reset()).status_code != 202:
+            await asyncio.sleep(0.1)
 
 
 async def test_dispenser_alarm(rig: Rig) -> None:

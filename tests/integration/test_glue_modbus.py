@@ -406,3 +406,162 @@ async def test_an_exchange_from_before_a_new_session_cannot_fault_it(
     assert codes(faults, "NO_REPLY") == []
     status = await glue.read_status()
     assert not status.valve_open and glue.health.connected
+
+
+# --- supervision: flow, pressure while spraying, temperature, silence with the valve open ---
+
+
+async def supervised(
+    sim: GlueSimulator, faults: list[DeviceFault], **options
+) -> ModbusGlueDispenser:
+    """A dispenser with the cell's supervision switched on (options override)."""
+    settings = {
+        "timeout": TIMEOUT,
+        "poll_interval": POLL_S,
+        "pressure_range_psi": (20.0, 60.0),
+        "flow_tolerance_pct": 20.0,
+        "flow_deviation_s": 0.3,
+        "temperature_range_c": (10.0, 40.0),
+        "link_timeout": 0.25,
+        **options,
+    }
+    dispenser = ModbusGlueDispenser.tcp("127.0.0.1", sim.port, **settings)
+    dispenser.set_fault_listener(faults.append)
+    await dispenser.connect()
+    return dispenser
+
+
+async def spray(glue: ModbusGlueDispenser, flow: float = 100.0, psi: float = 40.0) -> None:
+    await glue.set_flow_rate(flow)
+    await glue.set_pressure(psi)
+    await glue.set_valve(True)
+    await wait_until(lambda: glue.health.details["flow_ml_min"] > 0.9 * flow)
+
+
+async def test_normal_spraying_trips_no_supervision(
+    sim: GlueSimulator, faults: list[DeviceFault]
+) -> None:
+    """At rest (pressure setpoint 0, below the window's low end) and while spraying."""
+    glue = await supervised(sim, faults)
+    try:
+        await asyncio.sleep(10 * POLL_S)  # at rest: the low pressure limit does not apply
+        await spray(glue)
+        await asyncio.sleep(0.5)  # longer than flow_deviation_s, many polls
+        await glue.set_flow_rate(50.0)  # a setpoint change while spraying settles in time
+        await asyncio.sleep(0.5)
+        await glue.set_valve(False)
+        assert faults == []
+        assert glue.health.active_faults == ()
+    finally:
+        await glue.close()
+
+
+async def test_flow_off_its_setpoint_while_spraying_is_reported_once(
+    sim: GlueSimulator, faults: list[DeviceFault]
+) -> None:
+    glue = await supervised(sim, faults)
+    try:
+        sim.force_flow(40.0)  # pinned only while the valve is open: at rest nothing to see
+        await asyncio.sleep(10 * POLL_S)
+        assert codes(faults, "FLOW_DEVIATION") == []
+        await glue.set_flow_rate(100.0)
+        await glue.set_pressure(40.0)
+        await glue.set_valve(True)
+        await wait_until(lambda: bool(codes(faults, "FLOW_DEVIATION")))
+        await asyncio.sleep(5 * POLL_S)
+        (fault,) = codes(faults, "FLOW_DEVIATION")
+        assert "40 ml/min is 60 % off its setpoint 100 ml/min (allowed 20 %)" in fault.message
+        assert any("flow" in f for f in glue.health.active_faults)
+        await glue.set_valve(False)  # no longer spraying: the condition is gone
+        await wait_until(lambda: glue.health.active_faults == ())
+    finally:
+        await glue.close()
+
+
+async def test_low_pressure_is_a_fault_only_while_spraying(
+    sim: GlueSimulator, faults: list[DeviceFault]
+) -> None:
+    glue = await supervised(sim, faults)
+    try:
+        sim.force_pressure(5.0)
+        await asyncio.sleep(10 * POLL_S)
+        assert codes(faults, "PRESSURE_OUT_OF_RANGE") == []  # a supply at rest
+        await glue.set_valve(True)
+        await wait_until(lambda: bool(codes(faults, "PRESSURE_OUT_OF_RANGE")))
+        (fault,) = codes(faults, "PRESSURE_OUT_OF_RANGE")
+        assert "5 PSI is outside the allowed 20-60 PSI while spraying" in fault.message
+        await glue.set_valve(False)
+        sim.force_pressure(70.0)  # above the window: a fault whatever the valve does
+        await wait_until(lambda: len(codes(faults, "PRESSURE_OUT_OF_RANGE")) == 2)
+    finally:
+        await glue.close()
+
+
+async def test_temperature_outside_its_window_is_reported_once(
+    sim: GlueSimulator, faults: list[DeviceFault]
+) -> None:
+    glue = await supervised(sim, faults)
+    try:
+        sim.force_temperature(55.0)
+        await wait_until(lambda: bool(codes(faults, "TEMPERATURE_OUT_OF_RANGE")))
+        await asyncio.sleep(5 * POLL_S)
+        (fault,) = codes(faults, "TEMPERATURE_OUT_OF_RANGE")
+        assert "55 °C is outside the allowed 10-40 °C" in fault.message
+        assert glue.health.active_faults == ("glue: temperature 55.0 °C outside 10..40 °C",)
+        sim.force_temperature(None)
+        await wait_until(lambda: glue.health.active_faults == ())
+        sim.force_temperature(2.0)
+        await wait_until(lambda: len(codes(faults, "TEMPERATURE_OUT_OF_RANGE")) == 2)
+    finally:
+        await glue.close()
+
+
+async def test_silence_with_the_valve_open_is_a_fault_within_the_link_timeout(
+    sim: GlueSimulator, faults: list[DeviceFault]
+) -> None:
+    """Not after the (here 30 s) exchange timeout: the valve could not be confirmed closed."""
+    glue = await supervised(sim, faults, timeout=30.0)
+    try:
+        await spray(glue)
+        sim.inject_no_reply()
+        await wait_until(lambda: bool(codes(faults, "VALVE_UNCONFIRMED")), within=10.0)
+        (fault,) = codes(faults, "VALVE_UNCONFIRMED")
+        assert "the valve could not be confirmed closed" in fault.message
+        assert "link timeout 0.25 s" in fault.message
+        assert not glue.health.connected
+        # The silent exchange was ended: a close is sent now, not after 30 s, and is
+        # itself bounded by the link timeout while the dispenser stays silent.
+        with pytest.raises(DeviceTimeout, match="link timeout"):
+            async with asyncio.timeout(10.0):
+                await glue.set_valve(False)
+        assert codes(faults, "NO_REPLY") == []  # one report per outage
+        sim.clear_faults()
+        await glue.set_valve(False)  # answered: read back closed, supervision at rest
+        assert not sim.valve_open
+        assert glue.health.connected
+        sim.inject_no_reply()  # silence with the valve closed is no valve fault
+        await asyncio.sleep(4 * 0.25)
+        assert len(codes(faults, "VALVE_UNCONFIRMED")) == 1
+    finally:
+        await glue.close()
+
+
+async def test_a_close_read_back_shows_in_health_before_the_next_poll(
+    sim: GlueSimulator, faults: list[DeviceFault]
+) -> None:
+    glue = await supervised(sim, faults, poll_interval=60.0, link_timeout=None)
+    try:
+        await glue.set_valve(True)
+        await glue.read_status()
+        assert glue.health.details["valve_open"] is True
+        before = glue.health.details["status_at"]
+        await glue.set_valve(False)
+        assert glue.health.details["valve_open"] is False
+        assert glue.health.details["status_at"] >= before
+    finally:
+        await glue.close()
+
+
+def test_a_link_timeout_must_exceed_the_poll_interval() -> None:
+    with pytest.raises(ValueError, match=r"link_timeout .* must be longer than poll_interval"):
+        ModbusGlueDispenser.tcp("127.0.0.1", 1, poll_interval=0.5, link_timeout=0.5)

@@ -153,3 +153,20 @@ def test_a_layout_just_off_one_line_counts_as_on_it() -> None:
     with pytest.raises(ValidationError, match="degenerate"):
         Settings(marker_positions_mm=layout)
     Settings(marker_positions_mm=[(x, y + 0.5 * (x % 7)) for x, y in GRID])  # a real, uneven grid
+
+
+def test_glue_supervision_has_real_defaults() -> None:
+    settings = Settings()
+    assert settings.glue_pressure_range_psi == (20.0, 60.0)  # not the register's 0-150
+    assert settings.glue_flow_deviation_pct == 20.0 and settings.glue_flow_deviation_s == 0.5
+    assert settings.glue_temperature_range_c == (10.0, 40.0)
+    assert settings.glue_link_timeout == 0.5
+
+
+def test_glue_supervision_that_would_trip_every_run_is_refused() -> None:
+    with pytest.raises(ValidationError, match=r"default_pressure_psi .* glue_pressure_range_psi"):
+        Settings(default_pressure_psi=80.0)
+    with pytest.raises(ValidationError, match=r"glue_link_timeout .* glue_poll_interval"):
+        Settings(glue_link_timeout=0.1, glue_poll_interval=0.2)
+    with pytest.raises(ValidationError, match="glue_temperature_range_c"):
+        Settings(glue_temperature_range_c=(40.0, 10.0))

@@ -39,6 +39,9 @@ EXPECTED = {
     "DEVICE_FAULT": "critical",
     "ALARM": "critical",
     "PRESSURE_OUT_OF_RANGE": "critical",
+    "FLOW_DEVIATION": "critical",  # a wrong bead until a person looks at the nozzle
+    "TEMPERATURE_OUT_OF_RANGE": "critical",
+    "VALVE_UNCONFIRMED": "critical",  # glue may still be flowing
     "VALVE_STUCK_OPEN": "critical",
     "CAPTURE_FAILED": "critical",
     "SAFE_POSITION_FAILED": "critical",

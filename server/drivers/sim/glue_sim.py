@@ -21,6 +21,8 @@ is the time.time() of the last open → closed transition, for latency benchmark
 Fault injection, in-process: `inject_no_reply(seconds=None)` (requests are
 read and dropped, the connection stays open), `set_alarm(name)` /
 `clear_alarm(name)`, `force_pressure(psi)` (measured pressure pinned),
+`force_flow(ml_min)` (measured flow pinned while the valve is open: a blocked
+or starved nozzle), `force_temperature(c)` (measured temperature pinned),
 `inject_exception(code)` (every request answered with that Modbus exception),
 `inject_stuck_valve()` (the valve ignores its command), `clear_faults()`.
 Out of process, the same through the control channel: JSON lines over TCP on
@@ -28,6 +30,7 @@ Out of process, the same through the control channel: JSON lines over TCP on
   {"cmd": "no_reply", "seconds": 2.0}   seconds omitted or null: until cleared
   {"cmd": "alarm", "name": "HIGH_PRESSURE"}   {"cmd": "clear_alarm", "name": ...}
   {"cmd": "force_pressure", "psi": 180.0}     {"cmd": "exception", "code": 4}
+  {"cmd": "force_flow", "ml_min": 5.0}        {"cmd": "force_temperature", "c": 70.0}
   {"cmd": "stuck_valve"}   {"cmd": "clear"}   {"cmd": "status"}
 answered {"ok": true, ...} or {"ok": false, "error": "..."}. The control
 channel always answers, even while Modbus replies are suppressed.
@@ -114,6 +117,8 @@ class GlueSimulator:
         # faults
         self._alarm_bits = 0
         self._forced_pressure: float | None = None
+        self._forced_flow: float | None = None
+        self._forced_temperature: float | None = None
         self._no_reply = False
         self._no_reply_until: float | None = None
         self._exception_code: int | None = None
@@ -213,6 +218,8 @@ class GlueSimulator:
             "exception_code": self._exception_code,
             "valve_stuck": self._valve_stuck,
             "forced_pressure_psi": self._forced_pressure,
+            "forced_flow_ml_min": self._forced_flow,
+            "forced_temperature_c": self._forced_temperature,
             "valve_closed_at": self.valve_closed_at,
             "dropped_requests": self.dropped_requests,
         }
@@ -238,6 +245,18 @@ class GlueSimulator:
             regs.PRESSURE_MEASURED.encode(psi)  # refuse what the register cannot carry
         self._forced_pressure = psi
 
+    def force_flow(self, ml_min: float | None) -> None:
+        """Pin the measured flow to `ml_min` while the valve is open (None releases it)."""
+        if ml_min is not None:
+            regs.FLOW_MEASURED.encode(ml_min)
+        self._forced_flow = ml_min
+
+    def force_temperature(self, celsius: float | None) -> None:
+        """Pin the measured temperature to `celsius` (None releases it)."""
+        if celsius is not None:
+            regs.TEMPERATURE.encode(celsius)
+        self._forced_temperature = celsius
+
     def inject_exception(self, code: int = ExcCodes.DEVICE_FAILURE) -> None:
         """Answer every Modbus request with exception `code` until cleared."""
         if code not in regs.MODBUS_EXCEPTIONS:
@@ -255,6 +274,8 @@ class GlueSimulator:
         self._no_reply_until = None
         self._alarm_bits = 0
         self._forced_pressure = None
+        self._forced_flow = None
+        self._forced_temperature = None
         self._exception_code = None
 
     # --- the dispenser model -----------------------------------------------------
@@ -284,7 +305,11 @@ class GlueSimulator:
         self._advance()
         elapsed = (time.monotonic() - self._started) * self._speed
         flow = max(0.0, self._flow + self._jitter(0.1)) if self._valve_open else 0.0
+        if self._forced_flow is not None and self._valve_open:
+            flow = self._forced_flow
         temperature = AMBIENT_C + 1.5 * math.sin(2 * math.pi * elapsed / 600.0) + self._jitter(0.02)
+        if self._forced_temperature is not None:
+            temperature = self._forced_temperature
         values = {
             regs.VALVE_STATE: int(self._valve_open),
             regs.FLOW_SETPOINT_ACTIVE: regs.FLOW_SETPOINT_ACTIVE.encode(self._flow_sp),
@@ -384,6 +409,12 @@ class GlueSimulator:
         elif cmd == "force_pressure":
             psi = request.get("psi")
             self.force_pressure(None if psi is None else float(psi))
+        elif cmd == "force_flow":
+            flow = request.get("ml_min")
+            self.force_flow(None if flow is None else float(flow))
+        elif cmd == "force_temperature":
+            celsius = request.get("c")
+            self.force_temperature(None if celsius is None else float(celsius))
         elif cmd == "exception":
             self.inject_exception(int(request.get("code", ExcCodes.DEVICE_FAILURE)))
         elif cmd == "stuck_valve":
@@ -393,7 +424,7 @@ class GlueSimulator:
         elif cmd != "status":
             raise ValueError(
                 f"unknown cmd {cmd!r}; use no_reply, alarm, clear_alarm, force_pressure, "
-                "exception, stuck_valve, clear or status"
+                "force_flow, force_temperature, exception, stuck_valve, clear or status"
             )
         return {"ok": True, "status": self.status()}
 
