@@ -43,6 +43,8 @@ RECOMMENDED_ACTION = {
     "NOT_CALIBRATED": "reset, then run calibrate-robot",
     "WORKPIECE_EXISTS": "reset, then create the part under another id or edit it with PUT",
     "CALIBRATION_STALE": "reset, then run calibrate-robot again",
+    "PLANNING_TIMEOUT": "coarsen the part's fill spacing or simplify its outline "
+    "(PUT /workpieces/{id}), or raise planning_timeout, then reset",
 }
 
 

@@ -57,6 +57,7 @@ EXPECTED = {
     "CALIBRATION_INACCURATE": "critical",
     "FRAME_TOO_SMALL": "critical",
     "OPERATION_TIMEOUT": "critical",
+    "PLANNING_TIMEOUT": "critical",
     "INTERNAL": "critical",
 }
 
