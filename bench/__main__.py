@@ -25,6 +25,7 @@ BENCHMARKS = (
     ("scaling", []),
     ("vision", []),
     ("journal", []),
+    ("planning", []),
 )
 
 

@@ -37,7 +37,7 @@ _ID = re.compile(IDENTIFIER)
 
 # What a part may ask of the path planner, checked when the library is edited (422).
 # Why these figures: docs/operations-guide.md ("Limits on a part's path"); the worst part
-# they allow plans in about a second here, far inside planning_timeout.
+# they allow plans in under a second here (bench/planning.py), a tenth of planning_timeout.
 MAX_OUTLINE_POINTS = 500  # a camera outline (0.3 mm tolerance) has tens to a few hundred
 MAX_FILL_LINES = 1000  # scan lines across the part: 1 m at 1 mm, 10 m at 10 mm
 MAX_FILL_STROKES = 2000  # straight fill strokes (lines × times each crosses the part / 2)

@@ -309,10 +309,17 @@ def _cells(
     previous: list[tuple[float, float, float]] = []
     for row in rows:
         checkpoint()
-        links = [
-            [j for j, p in enumerate(previous) if min(s[2], p[2]) > max(s[1], p[1])] for s in row
-        ]
-        back = [sum(1 for link in links if j in link) for j in range(len(previous))]
+        # which segments of the previous row each one overlaps (vectorised: a row of a
+        # toothed part has hundreds of segments, and this ran between two checkpoints)
+        if row and previous:
+            here, before = np.asarray(row), np.asarray(previous)
+            overlap = np.minimum(here[:, None, 2], before[None, :, 2]) > np.maximum(
+                here[:, None, 1], before[None, :, 1]
+            )
+            links = [np.flatnonzero(line).tolist() for line in overlap]
+            back = overlap.sum(axis=0).tolist()
+        else:
+            links, back = [[] for _ in row], [0] * len(previous)
         next_open = []
         for segment, link in zip(row, links, strict=True):
             if len(link) == 1 and back[link[0]] == 1:

@@ -18,7 +18,15 @@ from typing import Any
 
 import pytest
 
-from bench import engine_throughput, estop_latency, memory, rest_throughput, scaling, ws_fanout
+from bench import (
+    engine_throughput,
+    estop_latency,
+    memory,
+    planning,
+    rest_throughput,
+    scaling,
+    ws_fanout,
+)
 from bench.report import RESULTS_ENV, emit
 
 LATENCY_KEYS = {"p50_ms", "p99_ms", "max_ms", "n"}
@@ -131,3 +139,25 @@ def test_memory_and_scaling_report_every_point(results_in_tmp: Path) -> None:
     assert [row["journal_events"] for row in sweeps["journal_size"]] == [0, 500]
     assert sweeps["ws_clients"][0]["ws_clients"] == 2
     assert (results_in_tmp / "scaling.png").stat().st_size > 10_000
+
+
+def test_planning_measures_the_library_while_plans_are_cancelled(results_in_tmp: Path) -> None:
+    rows = planning.main(["--repeats", "1", "--cycles", "2", "--idle", "0.3"])
+    assert [row["condition"].split(" ")[0] for row in rows] == [
+        "idle",
+        "control:",
+        "worst",
+        "issue's",
+    ]
+    for row in rows:
+        assert_ordered_latencies(row)
+        assert row["server_rss_mb"] > 0
+    for row in rows[1:]:
+        assert row["cycles"] == 2
+        assert 0 < row["cancel_to_idle_p50_ms"] <= row["cancel_to_idle_max_ms"]
+    document = json.loads((results_in_tmp / "planning.json").read_text(encoding="utf-8"))
+    assert document["rows"] == rows
+    worst = document["worst_allowed_part"]
+    assert worst["points"] <= 500 and worst["fill_lines"] <= 1000
+    assert 1500 < worst["fill_strokes"] <= 2000  # at the limit: the finest spacing accepted
+    assert 0 < worst["plan_s_median"] <= worst["plan_s_max"]
