@@ -27,6 +27,7 @@ BENCHMARKS = (
     ("scaling", []),
     ("vision", []),
     ("journal", []),
+    ("planning", []),
 )
 
 

@@ -144,6 +144,12 @@ class Settings(BaseSettings):
     # Safety (seconds)
     emergency_stop_timeout: float = Field(1.0, gt=0)
     safe_position_timeout: float = Field(30.0, gt=0)
+    planning_timeout: float = Field(
+        10.0,
+        gt=0,
+        le=600,
+        description="seconds a run may spend planning its path (PLANNING_TIMEOUT past it)",
+    )
     error_state_timeout: float = Field(300.0, gt=0)
     reset_probe_timeout: float = Field(
         2.0,

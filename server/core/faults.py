@@ -52,6 +52,8 @@ RECOMMENDED_ACTION = {
     "calibrate-robot",
     "CALIBRATION_HOLDOUT": "check the named marker lies flat where marker_positions_mm says, "
     "reset, then run calibrate-robot",
+    "PLANNING_TIMEOUT": "coarsen the part's fill spacing or simplify its outline "
+    "(PUT /workpieces/{id}), or raise planning_timeout, then reset",
 }
 
 

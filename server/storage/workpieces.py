@@ -10,20 +10,38 @@ from __future__ import annotations
 
 import builtins
 import logging
+import math
 import re
 import threading
 import time
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+)
 
 from server.storage.files import read_json, write_bytes_atomic, write_json_atomic
+from server.vision.paths import fill_size
 
 log = logging.getLogger(__name__)
 
 IDENTIFIER = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 _ID = re.compile(IDENTIFIER)
+
+# What a part may ask of the path planner, checked when the library is edited (422).
+# Why these figures: docs/operations-guide.md ("Limits on a part's path"); the worst part
+# they allow plans in under a second here (bench/planning.py), a tenth of planning_timeout.
+MAX_OUTLINE_POINTS = 500  # a camera outline (0.3 mm tolerance) has tens to a few hundred
+MAX_FILL_LINES = 1000  # scan lines across the part: 1 m at 1 mm, 10 m at 10 mm
+MAX_FILL_STROKES = 2000  # straight fill strokes (lines × times each crosses the part / 2)
+STORED_MAX_POINTS = 2000  # what a file stored before the limits may hold and still be read
 
 
 class SpraySettings(BaseModel):
@@ -48,8 +66,11 @@ class WorkpieceIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
+    # Why a ClassVar: a stored entry keeps being readable under tighter edit limits.
+    edit_limits: ClassVar[bool] = True
+
     name: str = Field(min_length=1, max_length=100)
-    outline_mm: list[Point] = Field(min_length=3, max_length=2000)
+    outline_mm: list[Point] = Field(min_length=3, max_length=MAX_OUTLINE_POINTS)
     spray: SpraySettings = Field(default_factory=SpraySettings)
 
     @field_validator("outline_mm")
@@ -60,10 +81,48 @@ class WorkpieceIn(BaseModel):
                 raise ValueError("outline points must lie within ±5000 mm")
         return points
 
+    @field_validator("spray")
+    @classmethod
+    def _fill_plannable(cls, spray: SpraySettings, info: ValidationInfo) -> SpraySettings:
+        """Refuse a fill too fine for the part: it would take too long to plan and spray.
+
+        The 800-point outline with a 1 mm fill kept planning threads busy for minutes; the
+        count here costs a millisecond and names the spacing that would be accepted.
+        """
+        outline = info.data.get("outline_mm")
+        if not cls.edit_limits or spray.fill == "none" or outline is None:
+            return spray
+        try:
+            lines, strokes = fill_size(
+                np.asarray(outline, dtype=np.float64),
+                spray.fill_spacing_mm,
+                spray.fill_angle_deg,
+                max_lines=MAX_FILL_LINES,
+            )
+        except ValueError:
+            return spray  # a degenerate outline: the planner says why (PATH_INVALID)
+        if strokes is None:
+            wanted = math.ceil(spray.fill_spacing_mm * lines / MAX_FILL_LINES * 10) / 10
+            raise ValueError(
+                f"fill_spacing_mm {spray.fill_spacing_mm:g} gives {lines} fill lines across "
+                f"this outline, at most {MAX_FILL_LINES}: use a spacing of at least "
+                f"{wanted:.1f} mm"
+            )
+        if strokes > MAX_FILL_STROKES:
+            wanted = math.ceil(spray.fill_spacing_mm * strokes / MAX_FILL_STROKES * 10) / 10
+            raise ValueError(
+                f"fill_spacing_mm {spray.fill_spacing_mm:g} gives {strokes} fill strokes on "
+                f"this outline, at most {MAX_FILL_STROKES}: use a spacing of about "
+                f"{wanted:.1f} mm or more, or a simpler outline"
+            )
+        return spray
+
 
 class Workpiece(WorkpieceIn):
     """A library entry."""
 
+    edit_limits: ClassVar[bool] = False
+    outline_mm: list[Point] = Field(min_length=3, max_length=STORED_MAX_POINTS)
     id: str = Field(pattern=IDENTIFIER)
     created_at: float
     updated_at: float

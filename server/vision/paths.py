@@ -14,19 +14,41 @@ Fill lines are scan lines clipped to the polygon and ordered boustrophedon per c
 part (a concave part is filled region by region, not by jumping across a notch on every
 line); with `zigzag` neighbouring lines are joined into one polyline wherever the join stays
 on the part, so the valve does not switch at every line.
+
+Planning can be stopped: each function takes a `checkpoint`, called once per pass of its
+loops (an offset step, a scan line, a cell, a join). It returns to carry on or raises to
+stop; what it raises comes out of the planner unchanged. Why: the planner runs in a thread,
+and a thread cannot be cancelled from outside; a run that is cancelled or out of time stops
+the planning at its next checkpoint (milliseconds) instead of leaving it running. `fill_size`
+counts a fill's lines and straight strokes without planning it, cheaply enough to refuse a
+part whose fill would take too long to plan and spray.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["SprayPattern", "fill_lines", "offset_polygon", "spray_polylines"]
+__all__ = [
+    "Checkpoint",
+    "SprayPattern",
+    "fill_lines",
+    "fill_size",
+    "offset_polygon",
+    "spray_polylines",
+]
 
 Array = NDArray[np.float64]
+Checkpoint = Callable[[], None]  # returns to carry on, raises to stop the planning
+
+
+def _carry_on() -> None:
+    """The default checkpoint: planning runs to its end."""
+
 
 FILL_KINDS = ("none", "zigzag", "raster")
 MITRE_LIMIT = 4.0  # a corner sharper than this (mitre / offset) is bevelled, not spiked
@@ -150,7 +172,9 @@ def _offset_vertices(points: Array, dirs: Array, offset: float) -> Array | None:
     return prev_base + s[:, None] * prev_dir
 
 
-def offset_polygon(outline_mm: np.ndarray, offset_mm: float) -> Array:
+def offset_polygon(
+    outline_mm: np.ndarray, offset_mm: float, *, checkpoint: Checkpoint = _carry_on
+) -> Array:
     """The outline moved `offset_mm` outward (>0) or inward (<0), mitred, counter-clockwise.
 
     Raises ValueError when an inward offset makes the part vanish or split, or an outward
@@ -165,6 +189,7 @@ def offset_polygon(outline_mm: np.ndarray, offset_mm: float) -> Array:
     lines_d = np.roll(pts, -1, axis=0) - pts
     lines_d /= np.linalg.norm(lines_d, axis=1, keepdims=True)
     while True:
+        checkpoint()
         if len(lines_p) < 3:
             raise ValueError(_too_far(offset))
         verts = _offset_vertices(lines_p, lines_d, offset)
@@ -242,15 +267,22 @@ def _bevel(verts: Array, corners: Array, dirs: Array, offset: float) -> Array:
 # --- fill ------------------------------------------------------------------------------------
 
 
-def _scan_segments(pts: Array, spacing: float) -> list[list[tuple[float, float, float]]]:
-    """Per scan line (bottom to top), the (y, x_start, x_end) inside the polygon."""
+def _scan_ys(pts: Array, spacing: float) -> Array:
+    """The scan lines' y (local frame), centred on the part, `spacing` apart."""
     y_min, y_max = float(pts[:, 1].min()), float(pts[:, 1].max())
     count = max(1, math.floor((y_max - y_min) / spacing + 1e-9))
     middle = 0.5 * (y_min + y_max)
-    ys = middle + (np.arange(count) - (count - 1) / 2.0) * spacing
+    return np.asarray(middle + (np.arange(count) - (count - 1) / 2.0) * spacing, dtype=np.float64)
+
+
+def _scan_segments(
+    pts: Array, spacing: float, checkpoint: Checkpoint = _carry_on
+) -> list[list[tuple[float, float, float]]]:
+    """Per scan line (bottom to top), the (y, x_start, x_end) inside the polygon."""
     a, b = pts, np.roll(pts, -1, axis=0)
     rows: list[list[tuple[float, float, float]]] = []
-    for y in ys:
+    for y in _scan_ys(pts, spacing):
+        checkpoint()
         crosses = ((a[:, 1] <= y) & (y < b[:, 1])) | ((b[:, 1] <= y) & (y < a[:, 1]))
         if not crosses.any():
             rows.append([])
@@ -267,17 +299,27 @@ def _scan_segments(pts: Array, spacing: float) -> list[list[tuple[float, float, 
     return rows
 
 
-def _cells(rows: list[list[tuple[float, float, float]]]) -> list[list[tuple[float, float, float]]]:
+def _cells(
+    rows: list[list[tuple[float, float, float]]], checkpoint: Checkpoint = _carry_on
+) -> list[list[tuple[float, float, float]]]:
     """Group segments into cells: runs of lines where each segment overlaps exactly one
     segment on the next line and vice versa (a boustrophedon decomposition)."""
     cells: list[list[tuple[float, float, float]]] = []
     open_cells: list[int] = []  # index into cells, one per segment of the previous row
     previous: list[tuple[float, float, float]] = []
     for row in rows:
-        links = [
-            [j for j, p in enumerate(previous) if min(s[2], p[2]) > max(s[1], p[1])] for s in row
-        ]
-        back = [sum(1 for link in links if j in link) for j in range(len(previous))]
+        checkpoint()
+        # which segments of the previous row each one overlaps (vectorised: a row of a
+        # toothed part has hundreds of segments, and this ran between two checkpoints)
+        if row and previous:
+            here, before = np.asarray(row), np.asarray(previous)
+            overlap = np.minimum(here[:, None, 2], before[None, :, 2]) > np.maximum(
+                here[:, None, 1], before[None, :, 1]
+            )
+            links = [np.flatnonzero(line).tolist() for line in overlap]
+            back = overlap.sum(axis=0).tolist()
+        else:
+            links, back = [[] for _ in row], [0] * len(previous)
         next_open = []
         for segment, link in zip(row, links, strict=True):
             if len(link) == 1 and back[link[0]] == 1:
@@ -298,6 +340,7 @@ def fill_lines(
     *,
     zigzag: bool = True,
     start: ArrayLike | None = None,
+    checkpoint: Checkpoint = _carry_on,
 ) -> list[Array]:
     """Scan lines at `angle_deg`, `spacing_mm` apart, clipped to the polygon, in spray order.
 
@@ -313,25 +356,32 @@ def fill_lines(
     a = math.radians(angle_deg)
     rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
     local = pts @ rot  # rotate by -angle: scan lines run along local x
-    cells = _cells(_scan_segments(local, float(spacing_mm)))
+    cells = _cells(_scan_segments(local, float(spacing_mm), checkpoint), checkpoint)
     here = None if start is None else np.asarray(start, dtype=np.float64).reshape(2) @ rot
     ordered: list[Array] = []
-    remaining = list(range(len(cells)))
-    while remaining:
-        # next cell: the one with an end segment nearest to where we are
-        best = None
-        for index in remaining:
-            cell = cells[index]
-            for from_top in (False, True):
-                seg = cell[-1] if from_top else cell[0]
-                for left_first in (True, False):
-                    x = seg[1] if left_first else seg[2]
-                    d = 0.0 if here is None else math.hypot(x - here[0], seg[0] - here[1])
-                    if best is None or d < best[0] - 1e-9:
-                        best = (d, index, from_top, left_first)
-        assert best is not None
-        _, index, from_top, left_first = best
-        remaining.remove(index)
+    # Each cell's four ways in: (first or last segment) × (left or right end), as (x, y).
+    ends = np.array(
+        [
+            [(c[0][1], c[0][0]), (c[0][2], c[0][0]), (c[-1][1], c[-1][0]), (c[-1][2], c[-1][0])]
+            for c in cells
+        ],
+        dtype=np.float64,
+    ).reshape(-1, 4, 2)
+    ways = ((False, True), (False, False), (True, True), (True, False))  # from_top, left_first
+    left = np.ones(len(cells), dtype=bool)
+    for _ in range(len(cells)):
+        checkpoint()
+        # next cell: the one with an end segment nearest to where we are (the first of
+        # those within 1e-9 mm, in cell order); vectorised, so many cells stay cheap
+        live = np.flatnonzero(left)
+        choice = 0
+        if here is not None:
+            near = ends[live]
+            d = np.hypot(near[..., 0] - here[0], near[..., 1] - here[1]).ravel()
+            choice = int(np.flatnonzero(d <= d.min() + 1e-9)[0])
+        index = int(live[choice // 4])
+        from_top, left_first = ways[choice % 4]
+        left[index] = False
         sequence = cells[index][::-1] if from_top else cells[index]
         for seg in sequence:
             y, x0, x1 = seg
@@ -344,6 +394,7 @@ def fill_lines(
         return segments
     polylines: list[Array] = []
     for seg in segments:
+        checkpoint()
         if polylines and _join_inside(pts, polylines[-1][-1], seg[0]):
             polylines[-1] = np.vstack([polylines[-1], seg])
         else:
@@ -367,7 +418,9 @@ def _join_inside(pts: Array, p: Array, q: Array) -> bool:
 # --- the whole pattern -----------------------------------------------------------------------
 
 
-def spray_polylines(outline_mm: np.ndarray, pattern: SprayPattern) -> list[Array]:
+def spray_polylines(
+    outline_mm: np.ndarray, pattern: SprayPattern, *, checkpoint: Checkpoint = _carry_on
+) -> list[Array]:
     """The polylines (M×2 mm) along which glue flows, in execution order.
 
     First the bead along the outline at `outline_offset_mm` (closed: last point = first),
@@ -376,7 +429,7 @@ def spray_polylines(outline_mm: np.ndarray, pattern: SprayPattern) -> list[Array
     is never filled onto the table).
     """
     outline = _clean(outline_mm)
-    bead = offset_polygon(outline, pattern.outline_offset_mm)
+    bead = offset_polygon(outline, pattern.outline_offset_mm, checkpoint=checkpoint)
     paths: list[Array] = []
     if pattern.outline:
         paths.append(np.vstack([bead, bead[:1]]))
@@ -390,6 +443,32 @@ def spray_polylines(outline_mm: np.ndarray, pattern: SprayPattern) -> list[Array
                 pattern.fill_angle_deg,
                 zigzag=pattern.fill == "zigzag",
                 start=start,
+                checkpoint=checkpoint,
             )
         )
     return paths
+
+
+def fill_size(
+    outline_mm: np.ndarray, spacing_mm: float, angle_deg: float = 0.0, *, max_lines: int
+) -> tuple[int, int | None]:
+    """The fill's scan lines and straight strokes (lines × crossings / 2), without planning it.
+
+    One vectorised pass over lines × edges. The strokes of a fill of more than `max_lines`
+    lines are not counted (None): the count itself would then cost what it is there to
+    prevent.
+    """
+    if not spacing_mm > 0:
+        raise ValueError(f"fill spacing must be positive, got {spacing_mm}")
+    pts = _clean(outline_mm)
+    a = math.radians(angle_deg)
+    rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    local = pts @ rot  # as fill_lines: scan lines run along local x
+    extent = float(local[:, 1].max() - local[:, 1].min())
+    lines = max(1, math.floor(extent / float(spacing_mm) + 1e-9))
+    if lines > max_lines:
+        return lines, None
+    ys = _scan_ys(local, float(spacing_mm))[:, None]
+    ya, yb = local[None, :, 1], np.roll(local, -1, axis=0)[None, :, 1]
+    crosses = ((ya <= ys) & (ys < yb)) | ((yb <= ys) & (ys < ya))
+    return lines, int((crosses.sum(axis=1) // 2).sum())

@@ -62,6 +62,7 @@ EXPECTED = {
     "CALIBRATION_HOLDOUT": "critical",
     "FRAME_TOO_SMALL": "critical",
     "OPERATION_TIMEOUT": "critical",
+    "PLANNING_TIMEOUT": "critical",
     "INTERNAL": "critical",
 }
 

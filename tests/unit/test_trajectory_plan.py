@@ -8,19 +8,24 @@ naming the waypoint and the axis; the workspace's own boundary is inside.
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import math
+import threading
+import time
 from typing import Any
 
 import numpy as np
 import pytest
 
 from server.config import Settings
+from server.core.operations import trajectory
 from server.core.operations.trajectory import (
     TRAVEL_CLEARANCE_MM,
     Waypoint,
     check_workspace,
     plan_path,
+    plan_within_limit,
 )
 from server.core.operations.workpieces import Target
 from server.drivers.base import Pose
@@ -256,3 +261,75 @@ def test_a_part_partly_outside_is_refused_before_anything_else() -> None:
     with pytest.raises(OperationError) as caught:
         check_workspace(path, SETTINGS)
     assert caught.value.code == "WORKSPACE_VIOLATION" and "x=90.0 mm" in str(caught.value)
+
+
+# --- planning bounded and stoppable ------------------------------------------------------------
+
+
+def gear(points: int = 800, radius: float = 300.0) -> list[tuple[float, float]]:
+    """The issue's part: an 800-point outline (teeth 15 % deep); with a 1 mm fill its plan
+    takes tens of seconds here."""
+    t = np.linspace(0.0, 2 * math.pi, points, endpoint=False)
+    r = radius * (1 + 0.15 * np.where(np.arange(points) % 2 == 0, 1.0, -1.0))
+    return [
+        (450.0 + float(a * math.cos(b)), float(a * math.sin(b))) for a, b in zip(r, t, strict=True)
+    ]
+
+
+class _EndlessPlan:
+    """A plan_path stand-in that runs until its checkpoint stops it, and says when it has."""
+
+    def __init__(self) -> None:
+        self.started = threading.Event()
+        self.stopped = threading.Event()
+
+    def __call__(self, targets: Any, settings: Settings, checkpoint: Any) -> list[Waypoint]:
+        self.started.set()
+        try:
+            while True:
+                checkpoint()
+                time.sleep(0.001)
+        finally:
+            self.stopped.set()
+
+
+async def test_a_plan_past_planning_timeout_fails_with_planning_timeout() -> None:
+    settings = Settings(planning_timeout=0.05)
+    heavy = target(gear(), name="gear", fill="zigzag", fill_spacing_mm=1.0)
+    with pytest.raises(OperationError) as caught:
+        await plan_within_limit([heavy], settings)
+    assert caught.value.code == "PLANNING_TIMEOUT"
+    assert "gear" in str(caught.value) and "planning_timeout" in str(caught.value)
+
+
+async def test_a_timed_out_plan_has_stopped_when_the_run_hears_of_it(monkeypatch) -> None:
+    endless = _EndlessPlan()
+    monkeypatch.setattr(trajectory, "plan_path", endless)
+    with pytest.raises(OperationError, match="planning_timeout"):
+        await plan_within_limit([target()], Settings(planning_timeout=0.05))
+    assert endless.stopped.is_set()
+
+
+async def test_a_cancelled_plan_has_stopped_when_the_cancellation_returns(monkeypatch) -> None:
+    # Before: the run's task was cancelled and the planning thread ran on, for minutes.
+    endless = _EndlessPlan()
+    monkeypatch.setattr(trajectory, "plan_path", endless)
+    planning = asyncio.create_task(plan_within_limit([target()], Settings()))
+    while not endless.started.is_set():
+        await asyncio.sleep(0.001)
+    planning.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await planning
+    assert endless.stopped.is_set()
+
+
+async def test_a_plan_within_the_limit_is_the_plan() -> None:
+    parts = [target(fill="zigzag", fill_spacing_mm=8.0)]
+    assert await plan_within_limit(parts, SETTINGS) == plan_path(parts, SETTINGS)
+
+
+async def test_an_invalid_path_keeps_its_own_code_under_the_limit() -> None:
+    flat = target([(300.0, 0.0), (350.0, 0.0), (400.0, 0.0)], name="flat")
+    with pytest.raises(OperationError) as caught:
+        await plan_within_limit([flat], SETTINGS)
+    assert caught.value.code == "PATH_INVALID"

@@ -11,7 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from server.vision.outlines import polygon_area_centroid
-from server.vision.paths import SprayPattern, fill_lines, offset_polygon, spray_polylines
+from server.vision.paths import (
+    SprayPattern,
+    fill_lines,
+    fill_size,
+    offset_polygon,
+    spray_polylines,
+)
 
 SQUARE = np.array([[0.0, 0.0], [50.0, 0.0], [50.0, 50.0], [0.0, 50.0]])
 # the simulator's L bracket: legs 100 and 70 mm, 30 mm wide (concave at (30, 30))
@@ -221,3 +227,60 @@ def test_spray_pattern_validates() -> None:
         SprayPattern(fill="spiral")
     with pytest.raises(ValueError, match="fill_spacing_mm"):
         SprayPattern(fill="zigzag", fill_spacing_mm=0.0)
+
+
+# --- stopping and sizing the planning --------------------------------------------------------
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_a_checkpoint_that_raises_stops_the_planning_at_once() -> None:
+    # Why: a thread cannot be cancelled, so cancellation and the time limit reach the
+    # planner only through its checkpoint; what it raises must come out unchanged.
+    calls = 0
+
+    def checkpoint() -> None:
+        nonlocal calls
+        calls += 1
+        if calls == 5:
+            raise _Stop
+
+    pattern = SprayPattern(outline_offset_mm=-2.0, fill="zigzag", fill_spacing_mm=1.0)
+    with pytest.raises(_Stop):
+        spray_polylines(U_SHAPE, pattern, checkpoint=checkpoint)
+    assert calls == 5
+
+
+@pytest.mark.parametrize("fill", ["zigzag", "raster"])
+def test_the_planner_calls_its_checkpoint_in_every_loop(fill: str) -> None:
+    # At least once per offset step, scan line, cell and join: no loop runs unchecked.
+    calls = 0
+
+    def checkpoint() -> None:
+        nonlocal calls
+        calls += 1
+
+    pattern = SprayPattern(outline_offset_mm=-2.0, fill=fill, fill_spacing_mm=2.0)
+    paths = spray_polylines(U_SHAPE, pattern, checkpoint=checkpoint)
+    plain = spray_polylines(U_SHAPE, pattern)
+    assert all(np.array_equal(a, b) for a, b in zip(paths, plain, strict=True))
+    lines = math.floor((60 - 4) / 2.0 + 1e-9)
+    assert calls >= 2 * lines  # the scan lines and the cells' rows, at the least
+
+
+@pytest.mark.parametrize("angle", [0.0, 30.0, 90.0])
+@pytest.mark.parametrize("shape", ["square", "l", "u"])
+def test_fill_size_counts_the_strokes_the_raster_fill_has(shape: str, angle: float) -> None:
+    polygon = {"square": SQUARE, "l": L_SHAPE, "u": U_SHAPE}[shape]
+    lines, strokes = fill_size(polygon, 3.0, angle, max_lines=1000)
+    assert strokes == len(fill_lines(polygon, 3.0, angle, zigzag=False))
+    extent = {0.0: 1, 90.0: 0}.get(angle)
+    if extent is not None:
+        assert lines == math.floor(float(np.ptp(polygon[:, extent])) / 3.0 + 1e-9)
+
+
+def test_fill_size_does_not_count_a_fill_of_too_many_lines() -> None:
+    # 50 mm at 0.01 mm is 5000 lines: counting them would cost what the limit prevents.
+    assert fill_size(SQUARE, 0.01, max_lines=1000) == (5000, None)

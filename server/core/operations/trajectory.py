@@ -5,13 +5,28 @@ and checked against the workspace before the robot moves at all, so a
 violation never leaves a half-sprayed part. During the run the valve is open
 only on spraying segments; it is closed before the robot holds for a pause and
 whenever the run ends, however it ends.
+
+Planning is bounded and stoppable. It runs on a thread of its own
+(`_PLANNER`, one at a time), not on the shared default pool, so a long plan
+never queues the library reads and vision calls of other requests behind it.
+A thread cannot be cancelled, so the planner is stopped cooperatively: the
+path functions call a checkpoint in their loops, which raises once the run
+is cancelled (cancel, e-stop, processing_timeout) or planning_timeout has
+passed; the run waits for the planning to have stopped before it ends. A plan
+that runs out of time fails the run with PLANNING_TIMEOUT before any motion
+of the path. At each checkpoint the planner also gives the GIL away, so the
+event loop answering other requests does not wait for a switch interval
+(5 ms) at every turn while a plan runs.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import threading
+import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,10 +38,20 @@ from server.core.operations.safe_position import workspace_problem
 from server.core.operations.workpieces import Target, locate_workpieces
 from server.drivers.base import Pose
 from server.errors import OperationError
-from server.vision.paths import SprayPattern, spray_polylines
+from server.vision.paths import Checkpoint, SprayPattern, spray_polylines
 
 log = logging.getLogger(__name__)
 TRAVEL_CLEARANCE_MM = 50.0
+# One planning at a time, off the default pool (see the module's docstring).
+_PLANNER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="path-planning")
+
+
+class PlanningStopped(Exception):
+    """Raised inside the planner at its next checkpoint once the planning is to stop."""
+
+
+def _carry_on() -> None:
+    """No stop: the planning runs to its end (direct calls, tests)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,8 +73,13 @@ class Waypoint:
         }
 
 
-def plan_path(targets: Sequence[Target], settings: Settings) -> list[Waypoint]:
-    """Travel above each polyline, descend, spray along it, lift; workpiece after workpiece."""
+def plan_path(
+    targets: Sequence[Target], settings: Settings, checkpoint: Checkpoint = _carry_on
+) -> list[Waypoint]:
+    """Travel above each polyline, descend, spray along it, lift; workpiece after workpiece.
+
+    `checkpoint` is called in the planner's loops; what it raises stops the planning.
+    """
     z = settings.spray_height_mm
     travel_z = z + TRAVEL_CLEARANCE_MM
     travel = settings.travel_speed_mm_s
@@ -64,10 +94,12 @@ def plan_path(targets: Sequence[Target], settings: Settings) -> list[Waypoint]:
             fill_angle_deg=spray.fill_angle_deg,
         )
         try:
-            polylines = spray_polylines(np.asarray(target.outline_mm, dtype=np.float64), pattern)
+            outline = np.asarray(target.outline_mm, dtype=np.float64)
+            polylines = spray_polylines(outline, pattern, checkpoint=checkpoint)
         except ValueError as exc:
             raise OperationError("PATH_INVALID", f"workpiece {target.workpiece_id}: {exc}") from exc
         for line in polylines:
+            checkpoint()
             (x0, y0), name = line[0], target.workpiece_id
             path.append(Waypoint(Pose(x0, y0, travel_z), False, travel, name))
             path.append(Waypoint(Pose(x0, y0, z), False, travel, name))
@@ -89,6 +121,52 @@ def plan_path(targets: Sequence[Target], settings: Settings) -> list[Waypoint]:
     if not path:
         raise OperationError("PATH_EMPTY", "the spray settings give nothing to spray")
     return path
+
+
+async def plan_within_limit(targets: Sequence[Target], settings: Settings) -> list[Waypoint]:
+    """`plan_path` on the planner's thread, stopped at planning_timeout or on cancellation.
+
+    Returns only once the planning has stopped, whichever way: a cancelled or
+    timed-out plan leaves no work behind. Raises OperationError PLANNING_TIMEOUT
+    when the limit is reached.
+    """
+    stop = threading.Event()
+
+    def checkpoint() -> None:
+        if stop.is_set():
+            raise PlanningStopped
+        time.sleep(0)  # gives the GIL away: the event loop never waits out a switch interval
+
+    loop = asyncio.get_running_loop()
+    planning = loop.run_in_executor(_PLANNER, plan_path, targets, settings, checkpoint)
+    limit = settings.planning_timeout
+    try:
+        async with asyncio.timeout(limit):
+            return await asyncio.shield(planning)
+    except TimeoutError:
+        await _stop(planning, stop)
+        error = planning.exception()
+        if error is None:  # it finished in the same instant: keep the plan
+            return planning.result()
+        if not isinstance(error, PlanningStopped):
+            raise error from None  # its own failure (an invalid path) as it is
+        names = ", ".join(t.workpiece_id for t in targets)
+        raise OperationError(
+            "PLANNING_TIMEOUT",
+            f"planning the path of {names} took longer than {limit:g} s (planning_timeout); "
+            "nothing has moved along it: coarsen the fill spacing or simplify the outline "
+            "(PUT /workpieces/{id}), or raise planning_timeout",
+        ) from None
+    except asyncio.CancelledError:
+        await _stop(planning, stop)
+        raise
+
+
+async def _stop(planning: asyncio.Future[list[Waypoint]], stop: threading.Event) -> None:
+    """Stop the planning and wait until it has: at its next checkpoint, within milliseconds."""
+    stop.set()
+    await asyncio.wait({planning})
+    planning.exception()  # retrieved: a stopped plan is not an unhandled error
 
 
 def check_workspace(path: Sequence[Waypoint], settings: Settings) -> None:
@@ -123,7 +201,7 @@ async def resolve_targets(ctx: OperationContext) -> list[Target]:
 async def execute_trajectory(ctx: OperationContext) -> OperationResult:
     """Plan, check and spray; report progress after every waypoint."""
     targets = await resolve_targets(ctx)
-    path = await asyncio.to_thread(plan_path, targets, ctx.settings)  # a fine fill costs ms
+    path = await plan_within_limit(targets, ctx.settings)
     check_workspace(path, ctx.settings)
     ctx.publish_plan(
         [w.as_dict() for w in path],

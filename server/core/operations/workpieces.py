@@ -14,6 +14,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from pydantic import ValidationError
 
 from server.core.operations.base import OperationContext, OperationResult
 from server.core.operations.camera_frames import capture_undistorted, require_robot_calibration
@@ -75,11 +76,20 @@ async def create_workpiece(ctx: OperationContext) -> OperationResult:
     outline_mm, thumbnail = await asyncio.to_thread(measure)
     library = ctx.stores.workpieces
     spray = SpraySettings.model_validate(ctx.params.get("spray") or {})
-    entry = WorkpieceIn(
-        name=ctx.params.get("name") or ctx.params.get("workpiece_id") or "part from camera",
-        outline_mm=[(float(x), float(y)) for x, y in outline_mm],
-        spray=spray,
-    )
+    try:
+        entry = WorkpieceIn(
+            name=ctx.params.get("name") or ctx.params.get("workpiece_id") or "part from camera",
+            outline_mm=[(float(x), float(y)) for x, y in outline_mm],
+            spray=spray,
+        )
+    except ValidationError as exc:  # the library's limits on what a path may ask of the planner
+        first = exc.errors()[0]
+        raise OperationError(
+            "PATH_INVALID",
+            f"the measured part cannot be stored: {'.'.join(map(str, first['loc']))}: "
+            f"{first['msg']}; create it with a coarser fill, or store a simplified outline "
+            "with POST /workpieces",
+        ) from exc
     wanted = ctx.params.get("workpiece_id")
     try:
         stored = await asyncio.to_thread(
