@@ -151,28 +151,32 @@ def test_memory_and_scaling_report_every_point(results_in_tmp: Path) -> None:
     assert (results_in_tmp / "scaling.png").stat().st_size > 10_000
 
 
-        "control:",
-        "idle",
-        "issue's",
-        "worst",
-        assert 0 < row["cancel_to_idle_p50_ms"] <= row["cancel_to_idle_max_ms"]
-        assert row["cycles"] == 2
-        assert row["server_rss_mb"] > 0
-        assert_ordered_latencies(row)
-    ]
-    assert "VALVE_UNCONFIRMED" in rows[3]["measure"] and rows[3]["n"] == 2
-    assert 0 < worst["plan_s_median"] <= worst["plan_s_max"]
-    assert 1500 < worst["fill_strokes"] <= 2000  # at the limit: the finest spacing accepted
-    assert [row["condition"].split(" ")[0] for row in rows] == [
-    assert [row["measure"].split(":")[0] for row in rows[:3]] == ["device message"] * 3
-    assert document["rows"] == rows
-    assert worst["points"] <= 500 and worst["fill_lines"] <= 1000
-    assert written_rows(results_in_tmp, "device_feed") == rows
-    document = json.loads((results_in_tmp / "planning.json").read_text(encoding="utf-8"))
-    for row in rows:
-    for row in rows[1:]:
-    rows = device_feed.main(["--runs", "1", "--silences", "2"])
-    rows = planning.main(["--repeats", "1", "--cycles", "2", "--idle", "0.3"])
-    worst = document["worst_allowed_part"]
 def test_device_feed_reports_ages_and_the_silence_detection(results_in_tmp: Path) -> None:
+    rows = device_feed.main(["--runs", "1", "--silences", "2"])
+    assert [row["measure"].split(":")[0] for row in rows[:3]] == ["device message"] * 3
+    for row in rows:
+        assert_ordered_latencies(row)
+    assert "VALVE_UNCONFIRMED" in rows[3]["measure"] and rows[3]["n"] == 2
+    assert written_rows(results_in_tmp, "device_feed") == rows
+
+
 def test_planning_measures_the_library_while_plans_are_cancelled(results_in_tmp: Path) -> None:
+    rows = planning.main(["--repeats", "1", "--cycles", "2", "--idle", "0.3"])
+    assert [row["condition"].split(" ")[0] for row in rows] == [
+        "idle",
+        "control:",
+        "worst",
+        "issue's",
+    ]
+    for row in rows:
+        assert_ordered_latencies(row)
+        assert row["server_rss_mb"] > 0
+    for row in rows[1:]:
+        assert row["cycles"] == 2
+        assert 0 < row["cancel_to_idle_p50_ms"] <= row["cancel_to_idle_max_ms"]
+    document = json.loads((results_in_tmp / "planning.json").read_text(encoding="utf-8"))
+    assert document["rows"] == rows
+    worst = document["worst_allowed_part"]
+    assert worst["points"] <= 500 and worst["fill_lines"] <= 1000
+    assert 1500 < worst["fill_strokes"] <= 2000  # at the limit: the finest spacing accepted
+    assert 0 < worst["plan_s_median"] <= worst["plan_s_max"]
