@@ -2,7 +2,8 @@
 
 One run at a time. A run starts with the transition into an operational state
 (START_RUN), lives across EXECUTING_TRAJECTORY and PAUSED (its pause gate is
-closed and opened by CLOSE_GATE / OPEN_GATE), and ends with the transition out
+closed by HOLD, which waits until the run holds, and opened by OPEN_GATE), and
+ends with the transition out
 (RECORD_RUN_END, CANCEL_RUN). Its outcome reaches the machine only as an
 OPERATION_COMPLETED or OPERATION_FAILED event posted back to the worker, so
 every change of state stays in the worker's loop.
@@ -168,9 +169,25 @@ class Runs:
         )
 
     def hold(self) -> None:
-        """Close the gate: the operation holds at its next checkpoint."""
+        """Close the gate: the operation stops where it is (a move under way is
+        interrupted) and holds until the gate opens."""
         if self._gate is not None:
             self._gate.pause()
+
+    async def settled(self, timeout: float) -> bool:
+        """Wait (at most `timeout` s) until the run holds: no step of it in progress, or
+        its task ended. False when it did not in time."""
+        gate, task = self._gate, self._task
+        if gate is None or task is None or task.done():
+            return True
+        waiter = asyncio.ensure_future(gate.settled())
+        try:
+            done, _ = await asyncio.wait(
+                {waiter, task}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED
+            )
+        finally:
+            waiter.cancel()
+        return bool(done)
 
     def release(self) -> None:
         """Open the gate: a held operation continues."""

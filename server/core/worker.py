@@ -60,6 +60,14 @@ OVERTAKEN = "overtaken by an emergency stop while it was being decided; nothing 
 Handler = Callable[[Decision, Envelope], Awaitable[None] | None]
 
 
+class PauseNotHeld(Exception):
+    """A pause whose hold was not confirmed: the pause is refused and the cell stops."""
+
+    def __init__(self, component: str, problems: list[str]) -> None:
+        self.component = component
+        super().__init__("; ".join(problems))
+
+
 class Worker:
     """Drains the event queue and runs the machine's actions."""
 
@@ -116,7 +124,7 @@ class Worker:
             Action.RECORD_RUN_END: lambda d, e: self.runs.record_end(d.event, e.payload),
             Action.CANCEL_RUN: lambda _d, _e: self.runs.cancel(),
             Action.CANCEL_HOMING: lambda _d, _e: self.activities.cancel(),
-            Action.CLOSE_GATE: lambda _d, _e: self.runs.hold(),
+            Action.HOLD: lambda _d, _e: self._hold(),
             Action.RECORD_FAULT: self._record_fault,
             Action.CHANGE_STATE: self._change_state,
             Action.NOTE_READY: self._note_ready,
@@ -313,9 +321,13 @@ class Worker:
                 if self._estops != estops:
                     return self._refuse(envelope, OVERTAKEN)
                 overtakable = False
-            pending = self._handlers[action](decision, envelope)
-            if pending is not None:
-                await pending
+            try:
+                pending = self._handlers[action](decision, envelope)
+                if pending is not None:
+                    await pending
+            except PauseNotHeld as exc:
+                self._post_fault(DeviceFault(exc.component, "PAUSE_NOT_HELD", str(exc)))
+                return self._refuse(envelope, f"pause not confirmed: {exc}; the cell stops")
         message = f"{event_label(event)} accepted: {state.value} → {decision.target.value}"
         return self._outcome(envelope, True, message)
 
@@ -347,6 +359,26 @@ class Worker:
                 "error",
                 {"code": "HALT_INCOMPLETE", "message": error, "component": error.split(":", 1)[0]},
             )
+
+    async def _hold(self) -> None:
+        """Pause: valve closed and robot stopped at once, as a halt, and the run held.
+
+        Why the worker commands the devices itself rather than leaving it to the
+        run: the commands leave on the loop's next turn, whatever the run is
+        awaiting. The run, told by its gate, then stops its own move, closes the
+        valve again (an open it had queued may land after this close) and holds;
+        PAUSED is entered only once both devices answered and the run holds.
+        """
+        halt = self.devices.start_halt(self.settings.emergency_stop_timeout)
+        self.runs.hold()
+        report = await halt
+        if report.errors:
+            component = report.errors[0].split(":", 1)[0]
+            raise PauseNotHeld("glue" if component.startswith("glue") else "robot", report.errors)
+        limit = self.settings.pause_hold_timeout
+        if not await self.runs.settled(limit):
+            problem = f"the run did not hold within {limit:g} s (pause_hold_timeout)"
+            raise PauseNotHeld("operation", [problem])
 
     def _record_fault(self, decision: Decision, envelope: Envelope) -> None:
         fault = FaultRecord.of(
