@@ -19,6 +19,7 @@ BENCHMARKS = (
     ("engine_throughput", ["--profile"]),
     ("device_latency", []),
     ("estop_latency", []),
+    ("pause_latency", []),
     ("ws_fanout", []),
     ("rest_throughput", []),
     ("memory", []),

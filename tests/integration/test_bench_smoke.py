@@ -18,7 +18,15 @@ from typing import Any
 
 import pytest
 
-from bench import engine_throughput, estop_latency, memory, rest_throughput, scaling, ws_fanout
+from bench import (
+    engine_throughput,
+    estop_latency,
+    memory,
+    pause_latency,
+    rest_throughput,
+    scaling,
+    ws_fanout,
+)
 from bench.report import RESULTS_ENV, emit
 
 LATENCY_KEYS = {"p50_ms", "p99_ms", "max_ms", "n"}
@@ -112,6 +120,14 @@ def test_estop_latency_measures_every_condition(results_in_tmp: Path) -> None:
     for row in rows:
         assert_ordered_latencies(row)
         assert row["n"] == 3
+
+
+def test_pause_latency_reports_each_measure(results_in_tmp: Path) -> None:
+    rows = pause_latency.main(["--trials", "3"])
+    assert [row["measure"] for row in rows] == ["total", "valve_closed", "robot_still", "answered"]
+    for row in rows:
+        assert row["n"] == 3 and row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
+    assert rows[0]["p50_ms"] > 0
 
 
 def test_memory_and_scaling_report_every_point(results_in_tmp: Path) -> None:

@@ -12,6 +12,7 @@ so nothing is sprayed twice).
 from __future__ import annotations
 
 import asyncio
+import itertools
 import math
 import random
 from dataclasses import dataclass
@@ -107,7 +108,7 @@ def assert_bead_continuous(rig: Rig, plan: dict) -> None:
     for stroke, line in zip(strokes, lines, strict=True):
         assert math.dist(stroke[0].start, line[0]) <= JOIN_MM, (stroke[0], line[0])
         assert math.dist(stroke[-1].end, line[-1]) <= JOIN_MM, (stroke[-1], line[-1])
-        planned = sum(math.dist(a, b) for a, b in zip(line, line[1:], strict=False))
+        planned = sum(math.dist(a, b) for a, b in itertools.pairwise(line))
         sprayed = sum(piece.length for piece in stroke)
         assert sprayed == pytest.approx(planned, abs=JOIN_MM), "a stretch sprayed twice"
 
