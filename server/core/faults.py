@@ -43,6 +43,7 @@ RECOMMENDED_ACTION = {
     "NOT_CALIBRATED": "reset, then run calibrate-robot",
     "WORKPIECE_EXISTS": "reset, then create the part under another id or edit it with PUT",
     "CALIBRATION_STALE": "reset, then run calibrate-robot again",
+    "PAUSE_NOT_HELD": "check the named device answers (valve closed, robot still), then reset",
 }
 
 

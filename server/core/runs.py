@@ -3,10 +3,9 @@
 One run at a time. A run starts with the transition into an operational state
 (START_RUN), lives across EXECUTING_TRAJECTORY and PAUSED (its pause gate is
 closed by HOLD, which waits until the run holds, and opened by OPEN_GATE), and
-ends with the transition out
-(RECORD_RUN_END, CANCEL_RUN). Its outcome reaches the machine only as an
-OPERATION_COMPLETED or OPERATION_FAILED event posted back to the worker, so
-every change of state stays in the worker's loop.
+ends with the transition out (RECORD_RUN_END, CANCEL_RUN). Its outcome reaches
+the machine only as an OPERATION_COMPLETED or OPERATION_FAILED event posted
+back to the worker, so every change of state stays in the worker's loop.
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -81,9 +81,11 @@ class PauseGate:
 
     The worker closes the gate on PAUSE and opens it on RESUME. An operation
     marks the stretches that command the devices as *steps* (`async with
-    gate.step():`); inside one it races each move against `wait_paused()` and,
-    when a pause comes, stops the robot where it is, closes the valve and
-    leaves the step. `settled()` is what the worker waits for before it
+    gate.step():`); inside one it runs each move as a task registered with
+    `interrupting(task)`, which `pause()` cancels on the spot (a move that was
+    about to send its motion command never sends it; one under way makes the
+    driver send `stop`); the operation then stops the robot where it is,
+    closes the valve and leaves the step. `settled()` is what the worker waits for before it
     reports PAUSED: no step in progress, so nothing the operation sent can
     still move the arm or open the valve. Outside a step an operation commands
     nothing, so a pause there is settled at once; the next step waits at the
@@ -94,7 +96,7 @@ class PauseGate:
         self._clock = clock
         self._open = asyncio.Event()
         self._open.set()
-        self._pause_requested = asyncio.Event()
+        self._interruptible: set[asyncio.Future[Any]] = set()
         self._no_step = asyncio.Event()
         self._no_step.set()
         self._steps = 0
@@ -110,13 +112,13 @@ class PauseGate:
         if self._paused_at is None:
             self._paused_at = self._clock.monotonic()
         self._open.clear()
-        self._pause_requested.set()
+        for move in list(self._interruptible):
+            move.cancel()
 
     def resume(self) -> None:
         if self._paused_at is not None:
             self._paused_total += self._clock.monotonic() - self._paused_at
             self._paused_at = None
-        self._pause_requested.clear()
         self._open.set()
 
     def paused_seconds(self) -> float:
@@ -125,9 +127,14 @@ class PauseGate:
         current = now - self._paused_at if self._paused_at is not None else 0.0
         return self._paused_total + current
 
-    async def wait_paused(self) -> None:
-        """Return once a pause is requested (at once if the gate is closed already)."""
-        await self._pause_requested.wait()
+    @contextlib.contextmanager
+    def interrupting(self, move: asyncio.Future[Any]) -> Iterator[None]:
+        """While inside, a pause cancels `move` at once (synchronously, in `pause()`)."""
+        self._interruptible.add(move)
+        try:
+            yield
+        finally:
+            self._interruptible.discard(move)
 
     async def settled(self) -> None:
         """Return once no step is in progress: the run commands nothing until the gate opens."""

@@ -2,9 +2,10 @@
 
 Why not just hold between moves: a spray segment lasts up to a second or
 more, and a pause that waited for its end would leave the arm moving with the
-valve open after PAUSED was reported. So a move inside a pause-gate step is
-raced against the pause: when it comes, the move is cancelled (the driver
-sends `stop`), the robot is confirmed still and its pose is read; the
+valve open after PAUSED was reported. So a move inside a pause-gate step runs
+as a task the pause cancels on the spot (the driver sends `stop`; a move that
+had not sent `moveL` yet never sends it, so nothing starts after the
+worker's stop), the robot is confirmed still and its pose is read; the
 operation then closes the valve, leaves the step, holds, and on resume
 re-approaches that pose and continues the same segment from there.
 """
@@ -12,7 +13,6 @@ re-approaches that pose and continues the same segment from there.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import math
 
 from server.core.operations.base import OperationContext
@@ -38,22 +38,18 @@ async def pausable_move(ctx: OperationContext, target: Pose, speed: float) -> Po
     move = asyncio.ensure_future(
         ctx.robot.move_linear(target, speed, ctx.settings.acceleration_mm_s2)
     )
-    paused = asyncio.ensure_future(gate.wait_paused())
-    try:
-        await asyncio.wait({move, paused}, return_when=asyncio.FIRST_COMPLETED)
-    except asyncio.CancelledError:
-        move.cancel()
-        await asyncio.gather(move, return_exceptions=True)
-        raise
-    finally:
-        paused.cancel()
+    with gate.interrupting(move):  # a pause cancels it at once; the driver then sends stop
+        try:
+            await asyncio.wait({move})
+        except asyncio.CancelledError:
+            move.cancel()
+            await asyncio.gather(move, return_exceptions=True)
+            raise
     if not gate.paused:
         move.result()  # finished (or failed: the fault is the run's)
         return None
-    if not move.done():
-        move.cancel()  # the driver sends stop before it lets the cancellation through
-    with contextlib.suppress(Exception, asyncio.CancelledError):
-        await move
+    if not move.cancelled():
+        move.exception()  # stopped by the worker's own stop: taken as the pause's
     return await stop_here(ctx, target)
 
 

@@ -169,11 +169,12 @@ async def execute_trajectory(ctx: OperationContext) -> OperationResult:
                     await glue.set_valve(waypoint.spray)
                     valve_open = waypoint.spray
                 resume_at = await pausable_move(ctx, waypoint.pose, waypoint.speed)
-                if resume_at is not None:
-                    # Stopped mid-segment: the valve closed by the run itself too, before
-                    # the step ends (an open it had queued may land after the worker's close).
+                if ctx.gate.paused:
+                    # The valve closed by the run itself too, before the step ends: an open
+                    # it had queued may have landed after the worker's close.
                     await close_valve()
-                    continue
+                if resume_at is not None:
+                    continue  # stopped mid-segment: resume continues it from there
             index += 1
             ctx.report(
                 {
