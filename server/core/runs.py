@@ -177,8 +177,8 @@ class Runs:
         """Wait (at most `timeout` s) until the run holds: no step of it in progress, or
         its task ended. False when it did not in time."""
         gate, task = self._gate, self._task
-        if gate is None or task is None or task.done():
-            return True
+        if gate is None or not gate.in_step or task is None or task.done():
+            return True  # nothing in progress: settled without a task
         waiter = asyncio.ensure_future(gate.settled())
         try:
             done, _ = await asyncio.wait(

@@ -136,6 +136,11 @@ class PauseGate:
         finally:
             self._interruptible.discard(move)
 
+    @property
+    def in_step(self) -> bool:
+        """A step is in progress: the run may be commanding the devices."""
+        return self._steps > 0
+
     async def settled(self) -> None:
         """Return once no step is in progress: the run commands nothing until the gate opens."""
         await self._no_step.wait()
