@@ -153,11 +153,9 @@ async def execute_trajectory(ctx: OperationContext) -> OperationResult:
                     # Back to where the pause stopped the arm, valve closed, then the rest
                     # of the same segment with glue: no gap, nothing sprayed twice.
                     if not at(await ctx.robot.get_position(), resume_at):
-                        resume_at = await pausable_move(
-                            ctx, resume_at, ctx.settings.travel_speed_mm_s
-                        )
-                        if resume_at is not None:
-                            continue  # paused again on the way back
+                        back = await pausable_move(ctx, resume_at, ctx.settings.travel_speed_mm_s)
+                        if back is not None:
+                            continue  # paused again on the way back: same point next time
                     resume_at = None
                 if waypoint.spray and waypoint.flow_rate_ml_min != flow:
                     flow = waypoint.flow_rate_ml_min
