@@ -21,6 +21,7 @@ BENCHMARKS = (
     ("device_feed", []),
     ("estop_latency", []),
     ("reset_probe", []),
+    ("pause_latency", []),
     ("ws_fanout", []),
     ("rest_throughput", []),
     ("memory", []),

@@ -190,6 +190,9 @@ class NullDevice:
     async def stop(self) -> None: ...
     async def set_valve(self, open_: bool) -> None: ...
     async def move_linear(self, *args: Any) -> None: ...
+    async def is_moving(self) -> bool:
+        return False
+
     async def get_position(self) -> Pose:
         return Pose(0, 0, 0)
 

@@ -434,7 +434,7 @@ def start(
 
 @app.command()
 def pause(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
-    """Hold the trajectory at its next waypoint, glue off."""
+    """Stop the trajectory where it is, glue off; resume continues the same segment."""
     _command(ctx, json_flag, lambda c: c.pause())
 
 

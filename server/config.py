@@ -143,6 +143,13 @@ class Settings(BaseSettings):
 
     # Safety (seconds)
     emergency_stop_timeout: float = Field(1.0, gt=0)
+    pause_hold_timeout: float = Field(
+        2.0,
+        gt=0,
+        le=60,
+        description="a pause must have the valve closed and the robot confirmed still "
+        "within this; otherwise it is refused and the cell goes to ERROR (PAUSE_NOT_HELD)",
+    )
     safe_position_timeout: float = Field(30.0, gt=0)
     planning_timeout: float = Field(
         10.0,

@@ -68,7 +68,7 @@ class AsyncCellClient:
         return await self._send(builders.start(workpiece_id, contour_matching))
 
     async def pause(self) -> CommandResult:
-        """Hold the trajectory at its next waypoint, glue off."""
+        """Stop the trajectory where it is, glue off; resume continues the same segment."""
         return await self._send(builders.command("pause"))
 
     async def resume(self) -> CommandResult:

@@ -66,7 +66,7 @@ class CellClient:
         return self._send(builders.start(workpiece_id, contour_matching))
 
     def pause(self) -> CommandResult:
-        """Hold the trajectory at its next waypoint, glue off."""
+        """Stop the trajectory where it is, glue off; resume continues the same segment."""
         return self._send(builders.command("pause"))
 
     def resume(self) -> CommandResult:

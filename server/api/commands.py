@@ -124,13 +124,13 @@ async def create_workpiece(
 
 @router.post("/pause", status_code=202, responses=RESPONSES, response_model=CommandResult)
 async def pause(request: Request) -> JSONResponse:
-    """Hold the trajectory at its next waypoint with the glue off."""
+    """Stop the trajectory where it is: valve closed and robot still before PAUSED is answered."""
     return await _run(request, Command.PAUSE)
 
 
 @router.post("/resume", status_code=202, responses=RESPONSES, response_model=CommandResult)
 async def resume(request: Request) -> JSONResponse:
-    """Continue a paused trajectory from where it held."""
+    """Continue a paused trajectory: back to where the robot stopped, then the same segment."""
     return await _run(request, Command.RESUME)
 
 

@@ -14,6 +14,10 @@ every (state, event) pair without an event loop:
   HALT follows the cancellation again unless the run ended by itself: a valve
   command the operation had on the line may sit behind the first close.
 * The fault is recorded (RECORD_FAULT) before anyone sees the ERROR state.
+* Into PAUSED, HOLD comes before the state changes: the valve is commanded
+  closed and the robot stopped at once (both on their way together, as for a
+  halt), and the run confirms it holds where it stopped, so PAUSED is never
+  reported while the arm moves or glue flows.
 
 Actions before CHANGE_STATE are *exit* actions: after them the worker checks
 whether an emergency stop came in meanwhile, and if so abandons a decision
@@ -45,7 +49,7 @@ class Action(StrEnum):
     RECORD_RUN_END = "record run end"  # the operation's outcome on record, its listeners told
     CANCEL_RUN = "cancel run"  # cancel the operation's task and wait for it to stop
     CANCEL_HOMING = "cancel homing"  # stop the start-up or the move to the safe position
-    CLOSE_GATE = "close gate"  # hold the operation at its next checkpoint
+    HOLD = "hold"  # gate closed, valve closed and robot stopped at once; wait for the run to hold
     RECORD_FAULT = "record fault"  # the fault on record; the first since a reset is the stop reason
     CHANGE_STATE = "change state"  # the new state, in history, journal and on the bus
     NOTE_READY = "note ready"  # a device reported ready; SYSTEM_READY once all have
@@ -56,7 +60,7 @@ class Action(StrEnum):
 
 
 EXIT_ACTIONS: Final = frozenset(
-    {Action.HALT, Action.RECORD_RUN_END, Action.CANCEL_RUN, Action.CANCEL_HOMING}
+    {Action.HALT, Action.RECORD_RUN_END, Action.CANCEL_RUN, Action.CANCEL_HOMING, Action.HOLD}
 )
 
 
@@ -90,9 +94,9 @@ def actions_of(row: Transition) -> tuple[Action, ...]:
             actions.append(Action.HALT)
     if row.source is State.IDLE and row.target is not State.IDLE:
         actions.append(Action.CANCEL_HOMING)
+    if row.target is State.PAUSED and changes_state:
+        actions.append(Action.HOLD)
     # the change
-    if row.event is Event.PAUSE_REQUESTED:
-        actions.append(Action.CLOSE_GATE)
     if row.target is State.ERROR:
         actions.append(Action.RECORD_FAULT)
     if changes_state:

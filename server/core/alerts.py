@@ -60,6 +60,14 @@ class Alerts:
         )
         self.recorder.warning(code, message, component, current_event_id.get() or "", state)
 
+    def halt_incomplete(self, errors: Iterable[str]) -> None:
+        """A safe halt a device did not confirm: pushed on /ws (the halt logged it)."""
+        for error in errors:
+            component = error.split(":", 1)[0]
+            self.bus.publish(
+                "error", {"code": "HALT_INCOMPLETE", "message": error, "component": component}
+            )
+
     def of_completed_run(
         self, operation: str, seconds: float, warnings: Iterable[OperationWarning]
     ) -> None:

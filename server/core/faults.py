@@ -54,6 +54,7 @@ RECOMMENDED_ACTION = {
     "reset, then run calibrate-robot",
     "PLANNING_TIMEOUT": "coarsen the part's fill spacing or simplify its outline "
     "(PUT /workpieces/{id}), or raise planning_timeout, then reset",
+    "PAUSE_NOT_HELD": "check the named device answers (valve closed, robot still), then reset",
 }
 
 

@@ -21,10 +21,16 @@ from collections.abc import Callable
 from typing import Any
 
 from server.core.clock import SYSTEM_CLOCK, Clock
-from server.core.context import FaultRecord, RunningOperation, TransitionRecord
+from server.core.context import (
+    FaultRecord,
+    MachineContext,
+    RunningOperation,
+    TransitionRecord,
+)
 from server.core.event_queue import Envelope
 from server.core.events import Outcome
 from server.core.snapshot import SnapshotFile
+from server.drivers.base import DeviceFault
 from server.storage.journal import Journal, Record, records
 
 log = logging.getLogger(__name__)
@@ -38,13 +44,15 @@ class Recorder:
     def __init__(
         self,
         journal: Journal,
-        on_write_failure: Callable[[str], None],
+        post_fault: Callable[[DeviceFault], None],
+        ctx: MachineContext,
         snapshot_file: SnapshotFile | None = None,
         clock: Clock = SYSTEM_CLOCK,
     ) -> None:
         self.journal = journal
         self.snapshot_file = snapshot_file  # the state to show after a restart, if kept
-        self._on_write_failure = on_write_failure  # e.g. fault the cell: records are missing
+        self._post_fault = post_fault  # a write that failed stops the cell
+        self._ctx = ctx
         self._clock = clock
         self._pending: list[Record] = []
 
@@ -155,9 +163,23 @@ class Recorder:
             if written.cancelled() or written.exception() is not None:
                 problem = "cancelled" if written.cancelled() else written.exception()
                 log.critical("event %s decided but not journaled: %s", outcome.event_id, problem)
-                self._on_write_failure(str(problem))
+                self._write_failed(str(problem))
                 future.set_result(outcome.with_note(f" (journal write failed: {problem})"))
             else:
                 future.set_result(outcome)
 
         durable.add_done_callback(settle)
+
+    def _write_failed(self, problem: str) -> None:
+        """The record is not on disk: stop the cell, once, and say so."""
+        stop_reason = self._ctx.stop_reason
+        if stop_reason is not None and stop_reason.code == "JOURNAL_WRITE_FAILED":
+            return
+        self._post_fault(
+            DeviceFault(
+                "journal",
+                "JOURNAL_WRITE_FAILED",
+                f"the journal could not be written ({problem}); records may "
+                "be missing: check the disk under the data directory",
+            )
+        )

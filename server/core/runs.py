@@ -2,10 +2,10 @@
 
 One run at a time. A run starts with the transition into an operational state
 (START_RUN), lives across EXECUTING_TRAJECTORY and PAUSED (its pause gate is
-closed and opened by CLOSE_GATE / OPEN_GATE), and ends with the transition out
-(RECORD_RUN_END, CANCEL_RUN). Its outcome reaches the machine only as an
-OPERATION_COMPLETED or OPERATION_FAILED event posted back to the worker, so
-every change of state stays in the worker's loop.
+closed by HOLD, which waits until the run holds, and opened by OPEN_GATE), and
+ends with the transition out (RECORD_RUN_END, CANCEL_RUN). Its outcome reaches
+the machine only as an OPERATION_COMPLETED or OPERATION_FAILED event posted
+back to the worker, so every change of state stays in the worker's loop.
 """
 
 from __future__ import annotations
@@ -45,6 +45,14 @@ log = logging.getLogger(__name__)
 # How a run ended, by the event that ended it (anything else: it failed).
 RUN_OUTCOME = {Event.OPERATION_COMPLETED: "completed", Event.CANCEL_REQUESTED: "cancelled"}
 PostOutcome = Callable[[Event, Payload], None]
+
+
+class PauseNotHeld(Exception):
+    """A pause whose hold was not confirmed: the pause is refused and the cell stops."""
+
+    def __init__(self, component: str, problems: list[str]) -> None:
+        self.component = component
+        super().__init__("; ".join(problems))
 
 
 class Runs:
@@ -167,10 +175,47 @@ class Runs:
             },
         )
 
+    async def hold_now(self) -> None:
+        """Pause: valve closed and robot stopped at once, as a halt, and the run held.
+
+        Why the devices are commanded here rather than left to the run: the
+        commands leave on the loop's next turn, whatever the run is awaiting.
+        The run, told by its gate, then stops its own move, closes the valve
+        again (an open it had queued may land after this close) and holds;
+        PAUSED is entered only once both devices answered and the run holds.
+        Raises PauseNotHeld when either is not confirmed.
+        """
+        halt = self.devices.start_halt(self.settings.emergency_stop_timeout)
+        self.hold()
+        report = await halt
+        if report.errors:
+            component = report.errors[0].split(":", 1)[0]
+            raise PauseNotHeld("glue" if component.startswith("glue") else "robot", report.errors)
+        limit = self.settings.pause_hold_timeout
+        if not await self.settled(limit):
+            problem = f"the run did not hold within {limit:g} s (pause_hold_timeout)"
+            raise PauseNotHeld("operation", [problem])
+
     def hold(self) -> None:
-        """Close the gate: the operation holds at its next checkpoint."""
+        """Close the gate: the operation stops where it is (a move under way is
+        interrupted) and holds until the gate opens."""
         if self._gate is not None:
             self._gate.pause()
+
+    async def settled(self, timeout: float) -> bool:
+        """Wait (at most `timeout` s) until the run holds: no step of it in progress, or
+        its task ended. False when it did not in time."""
+        gate, task = self._gate, self._task
+        if gate is None or not gate.in_step or task is None or task.done():
+            return True  # nothing in progress: settled without a task
+        waiter = asyncio.ensure_future(gate.settled())
+        try:
+            done, _ = await asyncio.wait(
+                {waiter, task}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED
+            )
+        finally:
+            waiter.cancel()
+        return bool(done)
 
     def release(self) -> None:
         """Open the gate: a held operation continues."""

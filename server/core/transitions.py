@@ -22,9 +22,10 @@ state and spelling them out per state would invite a typo:
 * OPERATION_FAILED leads to ERROR from every state that runs an operation.
 
 Operational states run an operation (a background task) while the cell is in
-them. A trajectory run spans EXECUTING_TRAJECTORY *and* PAUSED: pausing holds
-the run at its next waypoint, resuming continues it, so the task lives across
-both states and is cancelled only when the cell leaves that pair.
+them. A trajectory run spans EXECUTING_TRAJECTORY *and* PAUSED: pausing stops
+the arm where it is with the valve closed (PAUSED once both are confirmed),
+resuming continues the interrupted segment from there, so the task lives
+across both states and is cancelled only when the cell leaves that pair.
 
 Commands are the operator's names for the request events (`start`,
 `calibrate-robot`, ...). They are what the HTTP API, the CLI and the
@@ -127,7 +128,7 @@ _ROWS: Final[tuple[Transition, ...]] = (
     Transition(State.EXECUTING_TRAJECTORY, Event.PAUSE_REQUESTED, State.PAUSED),
     Transition(State.PAUSED, Event.RESUME_REQUESTED, State.EXECUTING_TRAJECTORY),
     Transition(State.PAUSED, Event.CANCEL_REQUESTED, State.IDLE),
-    # A pause that comes during the last segment: the run ends while held.
+    # A pause as the run finishes its last move: the run ends while held.
     Transition(State.PAUSED, Event.OPERATION_COMPLETED, State.IDLE),
     # Calibrations and workpiece creation: finish or cancel.
     Transition(State.CALIBRATING_ROBOT, Event.OPERATION_COMPLETED, State.IDLE),

@@ -77,7 +77,7 @@ class CellView:
 
     def _available_commands(self) -> list[str]:
         commands = available_commands(self._ctx.state, self._worker.facts())
-        if self._worker.reset_under_way:  # one reset is probed at a time
+        if self._worker.reset_probes.under_way:  # one reset is probed at a time
             commands = [name for name in commands if name != Command.RESET]
         return commands
 
@@ -88,7 +88,7 @@ class CellView:
         guards), then what the command needs besides (server/core/preconditions.py).
         """
         event = COMMANDS[command]
-        under_way = self._worker.reset_under_way
+        under_way = self._worker.reset_probes.under_way
         if command is Command.RESET and under_way:
             return False, f"reset is refused: {under_way}"
         allowed, reason = check(self._ctx.state, event, self._worker.facts())

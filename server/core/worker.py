@@ -9,16 +9,8 @@ what it caused are durable in the journal (`recorder.py`).
 
 Operations and devices talk back only by posting events (OPERATION_COMPLETED,
 OPERATION_FAILED, ERROR_OCCURRED), which keeps every change of state in this
-one loop.
-
-A reset is decided when the devices have answered its live probe, without
-holding the loop meanwhile: the worker starts the probe as a task, goes on
-draining the queue (an e-stop or a fault is decided at once, as always), and
-the probe puts the reset's own envelope back in the queue with what it found.
-Decided then, in order with everything else, the reset passes only if no
-e-stop and no fault was decided while the devices were probed ("overtaken"
-otherwise: the cell stays in ERROR and says why). One reset is probed at a
-time; another sent meanwhile is refused.
+one loop. A reset is decided when the devices have answered its live probe,
+which runs without holding the loop (`reset_probe.py`).
 
 Running operations is `runs.py`; start-up and homing `startup.py`; warnings
 and the ERROR-timeout alert `alerts.py`.
@@ -32,7 +24,6 @@ import logging
 import secrets
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field
 
 from server.config import Settings
 from server.core.actions import EXIT_ACTIONS, Action
@@ -54,7 +45,8 @@ from server.core.events import (
 from server.core.operations.base import Operation
 from server.core.preconditions import Preconditions
 from server.core.recorder import Recorder
-from server.core.runs import Runs
+from server.core.reset_probe import RESET_OVERTAKEN, RESET_UNDER_WAY, ResetProbes
+from server.core.runs import PauseNotHeld, Runs
 from server.core.snapshot import SnapshotFile
 from server.core.startup import Activities
 from server.core.transitions import OPERATION_OF_STATE, READINESS_EVENTS, Event, State, event_label
@@ -69,23 +61,7 @@ log = logging.getLogger(__name__)
 
 COMPLETION_EVENTS = frozenset({Event.OPERATION_COMPLETED, Event.OPERATION_FAILED})
 OVERTAKEN = "overtaken by an emergency stop while it was being decided; nothing was changed"
-RESET_OVERTAKEN = (
-    "overtaken by an emergency stop or a fault while the devices were probed; "
-    "still in ERROR, nothing was changed: reset again"
-)
-RESET_UNDER_WAY = "a reset is already probing the devices; wait for its answer"
 Handler = Callable[[Decision, Envelope], Awaitable[None] | None]
-
-
-@dataclass(slots=True)
-class ResetProbe:
-    """A reset waiting for the devices' live answers, and what was decided since it began."""
-
-    envelope: Envelope
-    estops: int  # Worker._estops when the probe began
-    faults: int  # Worker._faults when the probe began
-    found: list[str] = field(default_factory=list)  # the faults the probe found
-    task: asyncio.Task[None] | None = None
 
 
 class Worker:
@@ -112,7 +88,7 @@ class Worker:
         self.ctx = MachineContext(history_size=settings.history_size)
         self.queue = EventQueue(settings.event_queue_size)
         self.stats = ProcessingStats(settings.performance_history_size)
-        self.recorder = Recorder(journal, self._journal_failed, snapshot_file, clock)
+        self.recorder = Recorder(journal, self._post_fault, self.ctx, snapshot_file, clock)
         self.alerts = Alerts(settings, self.ctx, bus, self.recorder, clock)
         self.runs = Runs(
             settings=settings,
@@ -129,9 +105,7 @@ class Worker:
         self.activities = Activities(
             settings, devices, self._halt, self._post_ready, self._post_fault
         )
-        self.preconditions = Preconditions(
-            stores, settings
-        )  # what a command needs besides the state
+        self.preconditions = Preconditions(stores, settings)  # what a command needs first
         self.view = CellView(self)  # what the API, the hub and metrics read
         self._ready: set[str] = set()
         self._boot = secrets.token_hex(3)
@@ -140,13 +114,15 @@ class Worker:
         self._task: asyncio.Task[None] | None = None
         self._estops = 0  # e-stops requested so far; see _handle
         self._faults = 0  # faults recorded so far; a reset probed meanwhile is overtaken
-        self._reset_probe: ResetProbe | None = None  # the reset whose probe is under way
+        self.reset_probes = ResetProbes(
+            devices, settings.reset_probe_timeout, lambda e: self.queue.put(e, bounded=False)
+        )
         self._handlers: dict[Action, Handler] = {
             Action.HALT: lambda _d, _e: self._halt(),
             Action.RECORD_RUN_END: lambda d, e: self.runs.record_end(d.event, e.payload),
             Action.CANCEL_RUN: lambda _d, _e: self.runs.cancel(),
             Action.CANCEL_HOMING: lambda _d, _e: self.activities.cancel(),
-            Action.CLOSE_GATE: lambda _d, _e: self.runs.hold(),
+            Action.HOLD: lambda _d, _e: self.runs.hold_now(),
             Action.RECORD_FAULT: self._record_fault,
             Action.CHANGE_STATE: self._change_state,
             Action.NOTE_READY: self._note_ready,
@@ -171,19 +147,16 @@ class Worker:
         """Stop draining; every waiting sender gets WorkerStopped, never a hang."""
         if self._task is not None:
             self._task.cancel()
-        probe, self._reset_probe = self._reset_probe, None
-        probing = probe.task if probe is not None else None
-        if probing is not None:
-            probing.cancel()
         self.alerts.stop()
-        await asyncio.gather(
-            *(t for t in (self._task, probing) if t is not None),
+        stopped = await asyncio.gather(
+            *(t for t in (self._task,) if t is not None),
+            self.reset_probes.stop(),
             self.runs.stop(),
             self.activities.stop(),
             return_exceptions=True,
         )
-        waiting = self.queue.drain() + ([probe.envelope] if probe is not None else [])
-        for envelope in waiting:
+        probing = next((r for r in stopped if isinstance(r, list)), [])
+        for envelope in self.queue.drain() + probing:
             if envelope.future is not None and not envelope.future.done():
                 envelope.future.set_exception(WorkerStopped("the server is shutting down"))
         self.devices.set_fault_listener(None)
@@ -260,13 +233,8 @@ class Worker:
             priority=Priority.FAULT,
             bounded=False,
         )
-        log.error(
-            "device fault: %s %s: %s (event %s)",
-            fault.device,
-            fault.code,
-            fault.message,
-            envelope.event_id,
-        )
+        what = (fault.device, fault.code, fault.message, envelope.event_id)
+        log.error("device fault: %s %s: %s (event %s)", *what)
 
     def _post_ready(self, event: Event, device: str) -> None:
         self.submit(event, source=device, bounded=False)
@@ -274,24 +242,6 @@ class Worker:
     def _post_outcome(self, event: Event, payload: Payload) -> None:
         priority = Priority.REQUEST if event is Event.OPERATION_COMPLETED else Priority.FAULT
         self.submit(event, source="operation", payload=payload, priority=priority, bounded=False)
-
-    def _journal_failed(self, problem: str) -> None:
-        """The record is not on disk: stop the cell, once, and say so."""
-        if self.ctx.stop_reason is not None and self.ctx.stop_reason.code == "JOURNAL_WRITE_FAILED":
-            return
-        self._post_fault(
-            DeviceFault(
-                "journal",
-                "JOURNAL_WRITE_FAILED",
-                f"the journal could not be written ({problem}); records may "
-                "be missing: check the disk under the data directory",
-            )
-        )
-
-    @property
-    def reset_under_way(self) -> str | None:
-        """Why a reset is refused now because another one's probe is running, or None."""
-        return RESET_UNDER_WAY if self._reset_probe is not None else None
 
     def facts(self) -> Facts:
         """Guard facts from what is known without asking the devices (a reset probes them)."""
@@ -339,17 +289,16 @@ class Worker:
             return self._refuse(envelope, f"{event.value} of a run that already ended; ignored")
         facts = self.facts()
         estops = self._estops
-        probe = self._reset_probe
-        if probe is not None and probe.envelope is envelope:  # back from its probe
-            self._reset_probe = None
-            if self._estops != probe.estops or self._faults != probe.faults:
+        probe = self.reset_probes.returned(envelope)
+        if probe is not None:  # a reset back from its probe
+            if (self._estops, self._faults) != probe.stops:
                 return self._refuse(envelope, RESET_OVERTAKEN)
             facts = Facts(ready_devices=facts.ready_devices, active_faults=tuple(probe.found))
-            estops = probe.estops
+            estops = probe.stops[0]
         elif event is Event.RESET_REQUESTED and state is State.ERROR:
-            if probe is not None:
+            if self.reset_probes.under_way:
                 return self._refuse(envelope, RESET_UNDER_WAY)
-            self._start_reset_probe(envelope)
+            self.reset_probes.start(envelope, (self._estops, self._faults))
             return None
         try:
             decision = step(state, event, facts)
@@ -364,25 +313,15 @@ class Worker:
                 if self._estops != estops:
                     return self._refuse(envelope, OVERTAKEN)
                 overtakable = False
-            pending = self._handlers[action](decision, envelope)
-            if pending is not None:
-                await pending
+            try:
+                pending = self._handlers[action](decision, envelope)
+                if pending is not None:
+                    await pending
+            except PauseNotHeld as exc:
+                self._post_fault(DeviceFault(exc.component, "PAUSE_NOT_HELD", str(exc)))
+                return self._refuse(envelope, f"pause not confirmed: {exc}; the cell stops")
         message = f"{event_label(event)} accepted: {state.value} → {decision.target.value}"
         return self._outcome(envelope, True, message)
-
-    def _start_reset_probe(self, envelope: Envelope) -> None:
-        probe = ResetProbe(envelope, self._estops, self._faults)
-        probe.task = asyncio.create_task(self._probe_for_reset(probe), name="reset-probe")
-        self._reset_probe = probe
-
-    async def _probe_for_reset(self, probe: ResetProbe) -> None:
-        """Probe the devices (bounded by reset_probe_timeout), then queue the reset again."""
-        try:
-            probe.found = await self.devices.probe_faults(self.settings.reset_probe_timeout)
-        except Exception as exc:  # the sender must get an answer whatever went wrong
-            log.exception("the reset probe failed")
-            probe.found = [f"the reset probe failed: {exc}"]
-        self.queue.put(probe.envelope, bounded=False)
 
     def _outcome(
         self, envelope: Envelope, accepted: bool, message: str, field: str | None = None
@@ -390,13 +329,8 @@ class Worker:
         return Outcome(accepted, envelope.event_id, envelope.event, self.ctx.state, message, field)
 
     def _refuse(self, envelope: Envelope, message: str, field: str | None = None) -> Outcome:
-        log.info(
-            "refused %s (%s) from %s: %s",
-            envelope.event.value,
-            envelope.event_id,
-            envelope.source,
-            message,
-        )
+        who = (envelope.event.value, envelope.event_id, envelope.source, message)
+        log.info("refused %s (%s) from %s: %s", *who)
         return self._outcome(envelope, False, message, field)
 
     def _is_current_run(self, envelope: Envelope) -> bool:
@@ -407,11 +341,7 @@ class Worker:
 
     async def _halt(self) -> None:
         report = await self.devices.safe_halt(self.settings.emergency_stop_timeout)
-        for error in report.errors:
-            self.bus.publish(
-                "error",
-                {"code": "HALT_INCOMPLETE", "message": error, "component": error.split(":", 1)[0]},
-            )
+        self.alerts.halt_incomplete(report.errors)
 
     def _record_fault(self, decision: Decision, envelope: Envelope) -> None:
         fault = FaultRecord.of(
@@ -421,30 +351,26 @@ class Worker:
         self._faults += 1
         self.recorder.fault(fault, decision.target.value)
         running = self.ctx.operation
+        context = running.fault_context() if running else {"operation": None}
+        where = (fault.code, fault.component, self.ctx.state.value, envelope.event_id)
         log.error(
             "fault %s from %s in %s state (%s)",
-            fault.code,
-            fault.component,
-            self.ctx.state.value,
-            envelope.event_id,
-            extra={
-                "error": fault.message,
-                "context": running.fault_context() if running else {"operation": None},
-            },
+            *where,
+            extra={"error": fault.message, "context": context},
         )
         self.bus.publish("error", {**fault.as_dict(), "state": decision.target.value})
 
     def _change_state(self, decision: Decision, envelope: Envelope) -> None:
         now = self.clock.time()
         record = self.ctx.enter(decision.target, decision.event.value, envelope.event_id, now)
-        log.info(
-            "%s → %s on %s (%s, from %s)",
+        what = (
             record.old_state,
             record.new_state,
             record.event,
             envelope.event_id,
             envelope.source,
         )
+        log.info("%s → %s on %s (%s, from %s)", *what)
         self.recorder.transition(record)
         snapshot = self.view.snapshot()
         self.recorder.save_snapshot(snapshot, self.ctx.operation)

@@ -180,7 +180,7 @@ async def test_pause_then_resume_finishes_the_same_run(cell, api, glue_reader) -
         run_id = start.json()["event_id"]
         await messages_until(ws, lambda m: m["type"] == "progress" and m.get("waypoint") == 3)
         assert (await api.post("/pause")).json()["state"] == "PAUSED"
-        await asyncio.sleep(0.5)  # holds at the next waypoint
+        await asyncio.sleep(0.5)  # holds where it stopped
         held = (await api.get("/state")).json()
         assert held["state"] == "PAUSED"
         assert (await glue_reader.read_status()).valve_open is False

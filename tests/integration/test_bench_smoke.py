@@ -23,6 +23,7 @@ from bench import (
     engine_throughput,
     estop_latency,
     memory,
+    pause_latency,
     planning,
     reset_probe,
     rest_throughput,
@@ -130,6 +131,14 @@ def test_reset_probe_measures_every_condition(results_in_tmp: Path) -> None:
     for row in rows:
         assert_ordered_latencies(row)
     assert written_rows(results_in_tmp, "reset_probe") == rows
+
+
+def test_pause_latency_reports_each_measure(results_in_tmp: Path) -> None:
+    rows = pause_latency.main(["--trials", "3"])
+    assert [row["measure"] for row in rows] == ["total", "valve_closed", "robot_still", "answered"]
+    for row in rows:
+        assert row["n"] == 3 and row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
+    assert rows[0]["p50_ms"] > 0
 
 
 def test_memory_and_scaling_report_every_point(results_in_tmp: Path) -> None:

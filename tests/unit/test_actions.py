@@ -85,6 +85,22 @@ def test_nothing_moves_or_sprays_on_the_way_into_error(state, event):
     assert not {Action.START_RUN, Action.START_HOMING, Action.OPEN_GATE} & set(decision.actions)
 
 
+@pytest.mark.parametrize(("state", "event"), PAIRS)
+def test_paused_is_entered_only_after_the_valve_is_closed_and_the_robot_held(state, event):
+    """Every way into PAUSED holds first (valve closed, robot stopped, the run holding),
+    and nothing into PAUSED opens the gate or starts motion."""
+    decision = _decided(state, event)
+    if decision is None:
+        return
+    actions = list(decision.actions)
+    if decision.target is State.PAUSED and decision.changes_state:
+        assert actions[0] is Action.HOLD, f"{state} on {event}: {actions}"
+        assert actions.index(Action.HOLD) < actions.index(Action.CHANGE_STATE)
+        assert not {Action.OPEN_GATE, Action.START_RUN, Action.START_HOMING} & set(actions)
+    else:
+        assert Action.HOLD not in actions, f"{state} on {event}: {actions}"
+
+
 def test_a_run_is_started_exactly_when_an_operational_state_is_entered_from_outside() -> None:
     for state, event in PAIRS:
         decision = _decided(state, event)

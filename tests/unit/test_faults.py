@@ -45,6 +45,7 @@ EXPECTED = {
     "VALVE_STUCK_OPEN": "critical",
     "CAPTURE_FAILED": "critical",
     "SAFE_POSITION_FAILED": "critical",
+    "PAUSE_NOT_HELD": "critical",
     "HALT_INCOMPLETE": "critical",
     "JOURNAL_WRITE_FAILED": "critical",
     "INTERRUPTED": "critical",

@@ -94,7 +94,7 @@ def test_operation_lifecycle_actions() -> None:
     resume = step(S.PAUSED, E.RESUME_REQUESTED)
     for decision in (pause, resume):  # one run spans EXECUTING and PAUSED
         assert A.START_RUN not in decision.actions and A.CANCEL_RUN not in decision.actions
-    assert A.CLOSE_GATE in pause.actions and A.OPEN_GATE in resume.actions
+    assert A.HOLD in pause.actions and A.OPEN_GATE in resume.actions
     for state in OPERATIONAL:
         assert A.CANCEL_RUN in step(state, E.EMERGENCY_STOP).actions
     assert not step(S.ERROR, E.ERROR_OCCURRED).changes_state

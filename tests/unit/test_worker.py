@@ -144,7 +144,7 @@ async def test_estop_mid_run_closes_the_valve_and_stops_the_robot(make_worker) -
     assert worker.ctx.operation is None
 
 
-async def test_pause_holds_at_the_next_waypoint_and_resume_finishes_the_same_run(
+async def test_pause_stops_the_run_where_it_is_and_resume_finishes_the_same_run(
     make_worker,
 ) -> None:
     glue, robot = FakeGlue(), FakeRobot(speed_factor=5)
@@ -153,7 +153,9 @@ async def test_pause_holds_at_the_next_waypoint_and_resume_finishes_the_same_run
     async with asyncio.timeout(10):
         while not worker.ctx.operation.progress.get("waypoint"):
             await asyncio.sleep(0.002)
-    await worker.request(Event.PAUSE_REQUESTED, source="test")
+    paused = await worker.request(Event.PAUSE_REQUESTED, source="test")
+    # PAUSED is answered only once the valve is closed and the arm stands still.
+    assert paused.state is State.PAUSED and glue.valve_open is False and not robot.moving
     async with asyncio.timeout(10):
         while not worker.runs._gate.holding:
             await asyncio.sleep(0.002)
@@ -170,6 +172,24 @@ async def test_pause_holds_at_the_next_waypoint_and_resume_finishes_the_same_run
     planned = [tuple(w["pose"]) for w in worker.runs.trajectory["planned_path"]]
     assert [tuple(m) for m in robot.moves if tuple(m) in planned] == planned
     assert started.event_id == worker.ctx.history[-4].event_id
+
+
+async def test_a_pause_the_valve_does_not_confirm_is_refused_and_the_cell_stops(
+    make_worker,
+) -> None:
+    glue, robot = FakeGlue(), FakeRobot(speed_factor=2)
+    worker = await make_worker(glue=glue, robot=robot)
+    await worker.request(Event.START_REQUESTED, source="test", payload=START_PAYLOAD)
+    async with asyncio.timeout(10):
+        while not glue.valve_open:
+            await asyncio.sleep(0.002)
+    glue.silent = True  # the close gets no answer: the hold cannot be confirmed
+    refused = await worker.request(Event.PAUSE_REQUESTED, source="test")
+    assert not refused.accepted and "pause not confirmed" in refused.message
+    assert refused.state is State.EXECUTING_TRAJECTORY  # never reported PAUSED
+    await wait_for_state(worker, State.ERROR)
+    assert worker.ctx.stop_reason.component == "glue"
+    assert State.PAUSED.value not in [r.new_state for r in worker.ctx.history]
 
 
 async def test_a_failing_operation_ends_in_error_with_its_reason(make_worker) -> None:

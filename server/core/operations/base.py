@@ -15,7 +15,8 @@ may hold for a pause (`ctx.gate.checkpoint`).
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable
+import contextlib
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -76,17 +77,30 @@ class QuietListener:
 
 
 class PauseGate:
-    """Lets a running operation hold at a safe point while the cell is PAUSED.
+    """Lets a running operation hold where it is while the cell is PAUSED.
 
-    The worker closes the gate on PAUSE and opens it on RESUME; the operation
-    calls `checkpoint()` where stopping is safe (between waypoints).
+    The worker closes the gate on PAUSE and opens it on RESUME. An operation
+    marks the stretches that command the devices as *steps* (`async with
+    gate.step():`); inside one it runs each move as a task registered with
+    `interrupting(task)`, which `pause()` cancels on the spot (a move that was
+    about to send its motion command never sends it; one under way makes the
+    driver send `stop`); the operation then stops the robot where it is,
+    closes the valve and leaves the step. `settled()` is what the worker waits for before it
+    reports PAUSED: no step in progress, so nothing the operation sent can
+    still move the arm or open the valve. Outside a step an operation commands
+    nothing, so a pause there is settled at once; the next step waits at the
+    gate. `checkpoint()` is the plain form: hold here while paused.
     """
 
     def __init__(self, clock: Clock = SYSTEM_CLOCK) -> None:
         self._clock = clock
         self._open = asyncio.Event()
         self._open.set()
-        self.holding = False  # the operation is waiting at a checkpoint
+        self._interruptible: set[asyncio.Future[Any]] = set()
+        self._no_step = asyncio.Event()
+        self._no_step.set()
+        self._steps = 0
+        self.holding = False  # the operation is waiting at the gate
         self._paused_at: float | None = None
         self._paused_total = 0.0
 
@@ -98,6 +112,8 @@ class PauseGate:
         if self._paused_at is None:
             self._paused_at = self._clock.monotonic()
         self._open.clear()
+        for move in list(self._interruptible):
+            move.cancel()
 
     def resume(self) -> None:
         if self._paused_at is not None:
@@ -111,6 +127,24 @@ class PauseGate:
         current = now - self._paused_at if self._paused_at is not None else 0.0
         return self._paused_total + current
 
+    @contextlib.contextmanager
+    def interrupting(self, move: asyncio.Future[Any]) -> Iterator[None]:
+        """While inside, a pause cancels `move` at once (synchronously, in `pause()`)."""
+        self._interruptible.add(move)
+        try:
+            yield
+        finally:
+            self._interruptible.discard(move)
+
+    @property
+    def in_step(self) -> bool:
+        """A step is in progress: the run may be commanding the devices."""
+        return self._steps > 0
+
+    async def settled(self) -> None:
+        """Return once no step is in progress: the run commands nothing until the gate opens."""
+        await self._no_step.wait()
+
     async def checkpoint(self, on_hold: Callable[[], Awaitable[None]] | None = None) -> bool:
         """Wait here while paused; run `on_hold` (e.g. close the valve) first. True if it held."""
         if not self.paused:
@@ -123,6 +157,23 @@ class PauseGate:
         finally:
             self.holding = False
         return True
+
+    @contextlib.asynccontextmanager
+    async def step(
+        self, on_hold: Callable[[], Awaitable[None]] | None = None
+    ) -> AsyncIterator[None]:
+        """A stretch that commands the devices: entered once the gate is open, and
+        counted until it ends, so `settled()` waits for it (see the class doc)."""
+        while await self.checkpoint(on_hold):
+            pass  # paused again between the resume and this task running
+        self._steps += 1
+        self._no_step.clear()
+        try:
+            yield
+        finally:
+            self._steps -= 1
+            if self._steps == 0:
+                self._no_step.set()
 
 
 @dataclass

@@ -13,6 +13,7 @@ import asyncio
 
 from server.config import Settings
 from server.core.operations.base import OperationContext
+from server.core.operations.motion import pausable_move
 from server.drivers.base import Pose
 from server.errors import OperationError
 
@@ -40,17 +41,25 @@ def safe_pose(settings: Settings) -> Pose:
 
 
 async def move_to_safe_position(ctx: OperationContext) -> None:
-    """The first step of a run: travel to the safe position, checked before any motion."""
+    """The first step of a run: travel to the safe position, checked before any motion.
+
+    A pause during the move stops the robot where it is; resume sends it on.
+    """
     settings = ctx.settings
     pose = safe_pose(settings)
-    try:
-        await asyncio.wait_for(
-            ctx.robot.move_linear(pose, settings.travel_speed_mm_s, settings.acceleration_mm_s2),
-            settings.safe_position_timeout,
-        )
-    except TimeoutError as exc:
-        limit = settings.safe_position_timeout
-        raise OperationError(
-            "SAFE_POSITION_FAILED",
-            f"the robot did not reach its safe position within {limit:g} s (safe_position_timeout)",
-        ) from exc
+    while True:
+        async with ctx.gate.step():
+            try:
+                stopped = await asyncio.wait_for(
+                    pausable_move(ctx, pose, settings.travel_speed_mm_s),
+                    settings.safe_position_timeout,
+                )
+            except TimeoutError as exc:
+                limit = settings.safe_position_timeout
+                raise OperationError(
+                    "SAFE_POSITION_FAILED",
+                    f"the robot did not reach its safe position within {limit:g} s "
+                    "(safe_position_timeout)",
+                ) from exc
+            if stopped is None:
+                return

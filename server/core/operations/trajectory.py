@@ -3,7 +3,9 @@
 The whole path is planned first (every workpiece, from its spray settings)
 and checked against the workspace before the robot moves at all, so a
 violation never leaves a half-sprayed part. During the run the valve is open
-only on spraying segments; it is closed before the robot holds for a pause and
+only on spraying segments. A pause stops the robot where it is, mid-segment
+(`motion.pausable_move`), and the valve is closed before the run holds; resume
+re-approaches that point and sprays the rest of the segment. It is closed
 whenever the run ends, however it ends.
 
 Planning is bounded and stoppable. It runs on a thread of its own
@@ -34,6 +36,7 @@ import numpy as np
 
 from server.config import Settings
 from server.core.operations.base import OperationContext, OperationResult
+from server.core.operations.motion import at, pausable_move
 from server.core.operations.safe_position import workspace_problem
 from server.core.operations.workpieces import Target, locate_workpieces
 from server.drivers.base import Pose
@@ -219,20 +222,36 @@ async def execute_trajectory(ctx: OperationContext) -> OperationResult:
             valve_open = False
 
     try:
-        for index, waypoint in enumerate(path, start=1):
-            await ctx.gate.checkpoint(on_hold=close_valve)
-            if waypoint.spray and waypoint.flow_rate_ml_min != flow:
-                flow = waypoint.flow_rate_ml_min
-                await glue.set_flow_rate(flow)
-            if waypoint.spray != valve_open:
-                # Counted open from the moment the command may be on the line, so a
-                # cancellation in flight still closes it in `finally`.
-                valve_open = valve_open or waypoint.spray
-                await glue.set_valve(waypoint.spray)
-                valve_open = waypoint.spray
-            await ctx.robot.move_linear(
-                waypoint.pose, waypoint.speed, ctx.settings.acceleration_mm_s2
-            )
+        index = 0
+        resume_at: Pose | None = None  # where a pause stopped the robot inside path[index]
+        while index < len(path):
+            waypoint = path[index]
+            async with ctx.gate.step(on_hold=close_valve):
+                if resume_at is not None:
+                    # Back to where the pause stopped the arm, valve closed, then the rest
+                    # of the same segment with glue: no gap, nothing sprayed twice.
+                    if not at(await ctx.robot.get_position(), resume_at):
+                        back = await pausable_move(ctx, resume_at, ctx.settings.travel_speed_mm_s)
+                        if back is not None:
+                            continue  # paused again on the way back: same point next time
+                    resume_at = None
+                if waypoint.spray and waypoint.flow_rate_ml_min != flow:
+                    flow = waypoint.flow_rate_ml_min
+                    await glue.set_flow_rate(flow)
+                if waypoint.spray != valve_open and not ctx.gate.paused:
+                    # Counted open from the moment the command may be on the line, so a
+                    # cancellation in flight still closes it in `finally`.
+                    valve_open = valve_open or waypoint.spray
+                    await glue.set_valve(waypoint.spray)
+                    valve_open = waypoint.spray
+                resume_at = await pausable_move(ctx, waypoint.pose, waypoint.speed)
+                if ctx.gate.paused:
+                    # The valve closed by the run itself too, before the step ends: an open
+                    # it had queued may have landed after the worker's close.
+                    await close_valve()
+                if resume_at is not None:
+                    continue  # stopped mid-segment: resume continues it from there
+            index += 1
             ctx.report(
                 {
                     "waypoint": index,

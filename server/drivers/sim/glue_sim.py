@@ -16,7 +16,9 @@ setpoint (time constant 100 ms); temperature drifts slowly around 25 °C; flow,
 pressure and temperature carry a little noise. `speed_factor` > 1 makes the
 dynamics faster, like the cell's `simulation_speed_factor`. `close_commanded_at`
 is the time.time() of the last write of "closed" to the valve command; `valve_closed_at`
-is the time.time() of the last open → closed transition, for latency benchmarks.
+is the time.time() of the last open → closed transition, for latency benchmarks;
+`valve_log` lists every change as (time.time(), open), so a test can tell
+which stretch of the robot's executed path was sprayed.
 
 Fault injection, in-process: `inject_no_reply(seconds=None)` (requests are
 read and dropped, the connection stays open), `set_alarm(name)` /
@@ -46,6 +48,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
 import contextlib
 import json
 import logging
@@ -73,6 +76,7 @@ AMBIENT_C = 25.0
 _HOLDING_FCS = {3, 6, 16}
 _INPUT_FCS = {4}
 _CONTROL_LINE_LIMIT = 64 * 1024
+VALVE_LOG_SIZE = 10_000
 
 
 class GlueSimulator:
@@ -113,6 +117,10 @@ class GlueSimulator:
         self._last_update = self._started
         self.valve_closed_at: float | None = None
         self.valve_opened_at: float | None = None
+        # (time.time(), open) per valve change, the last VALVE_LOG_SIZE of them
+        self.valve_log: collections.deque[tuple[float, bool]] = collections.deque(
+            maxlen=VALVE_LOG_SIZE
+        )
         self.close_commanded_at: float | None = None
         # faults
         self._alarm_bits = 0
@@ -335,8 +343,10 @@ class GlueSimulator:
             now_open = bool(raw)
             if self._valve_open and not now_open:
                 self.valve_closed_at = time.time()
+                self.valve_log.append((self.valve_closed_at, False))
             elif now_open and not self._valve_open:
                 self.valve_opened_at = time.time()
+                self.valve_log.append((self.valve_opened_at, True))
             self._valve_open = now_open
         elif register is regs.FLOW_SETPOINT:
             self._flow_sp = value

@@ -1,0 +1,83 @@
+"""A move a pause can interrupt: the robot stops where it is, and the run knows where.
+
+Why not just hold between moves: a spray segment lasts up to a second or
+more, and a pause that waited for its end would leave the arm moving with the
+valve open after PAUSED was reported. So a move inside a pause-gate step runs
+as a task the pause cancels on the spot (the driver sends `stop`; a move that
+had not sent `moveL` yet never sends it, so nothing starts after the
+worker's stop), the robot is confirmed still and its pose is read; the
+operation then closes the valve, leaves the step, holds, and on resume
+re-approaches that pose and continues the same segment from there.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+from server.core.operations.base import OperationContext
+from server.drivers.base import Pose
+from server.errors import OperationError
+
+ARRIVED_MM = 0.5  # a move stopped this close to its target counts as finished
+STILL_POLL_S = 0.005
+
+
+async def pausable_move(ctx: OperationContext, target: Pose, speed: float) -> Pose | None:
+    """Move linearly to `target`: None once there, or the pose where a pause stopped it.
+
+    Call it inside `ctx.gate.step()`. A pause already requested stops the
+    robot without starting the move. A move that failed while a pause was
+    being made is taken as stopped by the pause (the worker's own stop makes
+    the driver report an interrupted move); whether the robot really answers
+    is then found by `stop_here`, whose failure fails the run.
+    """
+    gate = ctx.gate
+    if gate.paused:
+        return await stop_here(ctx, target)
+    move = asyncio.ensure_future(
+        ctx.robot.move_linear(target, speed, ctx.settings.acceleration_mm_s2)
+    )
+    with gate.interrupting(move):  # a pause cancels it at once; the driver then sends stop
+        try:
+            await asyncio.wait({move})
+        except asyncio.CancelledError:
+            move.cancel()
+            await asyncio.gather(move, return_exceptions=True)
+            raise
+    if not gate.paused:
+        move.result()  # finished (or failed: the fault is the run's)
+        return None
+    if not move.cancelled():
+        move.exception()  # stopped by the worker's own stop: taken as the pause's
+    return await stop_here(ctx, target)
+
+
+async def stop_here(ctx: OperationContext, target: Pose) -> Pose | None:
+    """Stop the robot, wait until it is still, and say where it is (None: at `target`).
+
+    Bounded by pause_hold_timeout: a robot that does not confirm it is still
+    fails the run (PAUSE_NOT_HELD), which sends the cell to ERROR and halts it.
+    """
+    robot = ctx.robot
+    limit = ctx.settings.pause_hold_timeout
+    try:
+        async with asyncio.timeout(limit):
+            await robot.stop()
+            while True:  # a real arm decelerates; the stop's answer is not the standstill
+                if not await robot.is_moving():
+                    break
+                await asyncio.sleep(STILL_POLL_S)
+            pose = await robot.get_position()
+    except TimeoutError:
+        raise OperationError(
+            "PAUSE_NOT_HELD",
+            f"the robot did not confirm it stood still within {limit:g} s of the pause "
+            "(pause_hold_timeout)",
+        ) from None
+    return None if math.dist(pose[:3], target[:3]) <= ARRIVED_MM else pose
+
+
+def at(pose: Pose, other: Pose) -> bool:
+    """Two poses the same point for the purpose of a re-approach."""
+    return math.dist(pose[:3], other[:3]) <= ARRIVED_MM
