@@ -324,6 +324,11 @@ class ModbusGlueDispenser:
         # Counted open from before the command may reach the line: a reply lost on
         # the way leaves a valve that may well be open.
         self._valve_may_be_open = True
+        # Each opening has its transient: the flow and the low pressure are judged from
+        # this opening on, never summed over short openings a poll did not see closed
+        # (a pause and a resume between two polls).
+        self._flow_off_since = None
+        self._pressure_low_since = None
         self._opening += 1
         try:
             await self._call(what, COMMAND, body)

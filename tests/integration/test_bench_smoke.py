@@ -164,7 +164,7 @@ def test_device_feed_reports_ages_and_the_silence_detection(results_in_tmp: Path
     rows = device_feed.main(["--runs", "1", "--silences", "2"])
     assert [row["measure"].split(":")[0] for row in rows[:3]] == ["device message"] * 3
     for row in rows:
-        assert_ordered_latencies(row)
+        assert 0 <= row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]  # a fresh pose is 0 ms old
     assert "VALVE_UNCONFIRMED" in rows[3]["measure"] and rows[3]["n"] == 2
     assert written_rows(results_in_tmp, "device_feed") == rows
 

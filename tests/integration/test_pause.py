@@ -118,7 +118,8 @@ async def pause_now(rig: Rig) -> dict | None:
     run had already ended (nothing to pause)."""
     response = await rig.api.post("/pause")
     if response.status_code == 409:
-        assert (await rig.state())["state"] == "IDLE", response.json()
+        state = await rig.state()
+        assert state["state"] == "IDLE", (response.json(), state["stop_reason"])
         return None
     assert response.status_code == 202, response.json()
     answered = response.json()
