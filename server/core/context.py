@@ -11,13 +11,11 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+from server.core.events import FaultPayload, Payload, RunFailedPayload, StopPayload
 from server.core.faults import classify, recommended_action
 from server.core.transitions import State
-
-if TYPE_CHECKING:
-    from server.core.events import Payload
 
 
 @dataclass(slots=True)
@@ -85,14 +83,12 @@ class FaultRecord:
     @classmethod
     def of(cls, payload: Payload, source: str, event_id: str, at: float) -> FaultRecord:
         """The fault an event into ERROR reports: an e-stop, a device fault or a failed run."""
-        reason = getattr(payload, "reason", None)
-        code = getattr(payload, "code", None)
-        if code is None:  # the e-stop: who pressed it and why
+        if isinstance(payload, FaultPayload | RunFailedPayload):
+            code, message, component = payload.code, payload.message, payload.component
+        else:  # the e-stop: who pressed it and why
             code, message, component = "EMERGENCY_STOP", f"emergency stop by {source}", source
-            if reason:
-                message += f": {reason}"
-        else:
-            message, component = payload.message, payload.component  # type: ignore[union-attr]
+            if isinstance(payload, StopPayload) and payload.reason:
+                message += f": {payload.reason}"
         return cls(code, message, component, event_id, at, classify(code), recommended_action(code))
 
     def as_dict(self) -> dict[str, Any]:

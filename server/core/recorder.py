@@ -1,13 +1,12 @@
 """The worker's record keeping: what one event caused goes to the journal in one commit.
 
-(And the state snapshot a restart reads, `snapshot.py`, saved on each change.)
-
 Why a separate piece: the worker decides, the recorder remembers. Each record
 the handling of an event produces (the transition, the fault, a run started
 or ended) is collected while the event is handled and committed together with
 the event's own row; the sender is answered only once that commit is durable,
 so an acknowledged command is never lost to a crash. Progress, retries and
-warnings are written without waiting: they are not acknowledgements.
+warnings are written without waiting: they are not acknowledgements. The
+state snapshot a restart reads (`snapshot.py`) is saved here too, on each change.
 
 The recorder speaks in the cell's terms (a transition, a fault, a run); the
 SQL behind each record lives in storage (`server.storage.journal`).

@@ -148,14 +148,13 @@ class Worker:
         if self._task is not None:
             self._task.cancel()
         self.alerts.stop()
-        stopped = await asyncio.gather(
+        probing = await self.reset_probes.stop()  # a reset waiting for its probe's answer
+        await asyncio.gather(
             *(t for t in (self._task,) if t is not None),
-            self.reset_probes.stop(),
             self.runs.stop(),
             self.activities.stop(),
             return_exceptions=True,
         )
-        probing = next((r for r in stopped if isinstance(r, list)), [])
         for envelope in self.queue.drain() + probing:
             if envelope.future is not None and not envelope.future.done():
                 envelope.future.set_exception(WorkerStopped("the server is shutting down"))

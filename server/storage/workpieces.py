@@ -207,8 +207,18 @@ class WorkpieceLibrary:
             return False
 
     def is_empty(self) -> bool:
-        """No readable part: a library of damaged files matches nothing."""
-        return not self.list()
+        """No readable part: a library of damaged files matches nothing.
+
+        Reads files only until the first good one: this is asked before every
+        start with contour matching, on the event loop.
+        """
+        for path in self.directory.glob("*.json"):
+            try:
+                Workpiece.model_validate(read_json(path))
+            except (ValueError, ValidationError):
+                continue
+            return False
+        return True
 
     def get(self, workpiece_id: str) -> Workpiece:
         """The workpiece; KeyError when there is none, DamagedEntry when its file is unreadable."""
