@@ -228,7 +228,8 @@ def _fail(options: Options, error: CellError) -> NoReturn:
         EXIT_TIMEOUT: "timeout",
         EXIT_FAULTED: "fault",
     }.get(code, "error")
-    typer.echo(f"gluectl: {label}: {error}", err=True)
+    reason = str(error).removeprefix(f"{label}: ")  # the server's 422 says it already
+    typer.echo(f"gluectl: {label}: {reason}", err=True)
     if isinstance(error, Unauthorized):  # which token was it, if any?
         typer.echo(f"gluectl: token: {options.token_source}", err=True)
     if isinstance(error, Busy):
