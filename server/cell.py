@@ -172,7 +172,12 @@ def find_interruption(journal: Journal, previous: dict[str, Any] | None) -> str 
         if state in {s.value for s in OPERATIONAL_STATES}:
             return f"interrupted during {state}; the server stopped before the operation ended"
         if state == State.ERROR.value:  # ERROR is latched: only a person's reset ends it
-            reason = ((previous or {}).get("stop_reason") or {}).get("message", "unknown")
+            first = (previous or {}).get("stop_reason") or {}
+            if first.get("code") == "INTERRUPTED" and first.get("message"):
+                # Already an earlier restart's account of the first fault: say it once,
+                # not wrapped one level deeper on every restart.
+                return str(first["message"])
+            reason = first.get("message", "unknown")
             return f"the cell was in ERROR when the server stopped (first fault: {reason})"
         return None
     journal.mark_interrupted([op["run_id"] for op in unfinished], time.time())

@@ -183,3 +183,24 @@ async def test_last_error_is_the_last_write_failure_until_a_write_succeeds(tmp_p
     await journal.append([records.event("e1", time.time(), "X", "t", {}, "accepted", "", "IDLE")])
     assert journal.last_error is None
     journal.stop()
+
+
+async def test_restarting_in_error_again_and_again_keeps_the_first_fault_as_it_was(
+    tmp_path,
+) -> None:
+    """Each restart in ERROR says so once: the reason does not grow by one level per restart."""
+    cell = await started(tmp_path)
+    await cell.command(Command.ESTOP, source="test", payload=StopPayload("guard door"))
+    await asyncio.sleep(0.1)  # the snapshot is written behind the state change
+    await cell.stop()
+    messages = []
+    for _ in range(3):
+        cell = await started(tmp_path)
+        assert cell.worker.ctx.state is State.ERROR
+        messages.append(cell.worker.ctx.stop_reason.message)
+        await asyncio.sleep(0.1)
+        await cell.stop()
+    assert messages[0].startswith("the cell was in ERROR when the server stopped")
+    assert "guard door" in messages[0]
+    assert messages[0].count("the cell was in ERROR") == 1
+    assert messages[1] == messages[0] and messages[2] == messages[0], messages
