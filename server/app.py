@@ -21,6 +21,7 @@ from server.api import (
     analytics,
     audit,
     commands,
+    methods,
     metrics,
     openapi_doc,
     queries,
@@ -79,6 +80,9 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     ):
         app.include_router(router)
     app.state.metrics = metrics.Metrics(app)
+    # HEAD and OPTIONS, once the gate has let them through (each as its route needs).
+    app.state.route_methods = methods.RouteMethods(app)
+    app.add_middleware(methods.HttpManners, methods=app.state.route_methods)
     # Every HTTP request, before routing: the policy in server/security/policy.py.
     app.add_middleware(access.AccessGate, access=app.state.access)
     app.add_middleware(
@@ -123,6 +127,7 @@ def _install_error_handlers(app: FastAPI) -> None:
         return JSONResponse(body, status_code=503, headers={"Retry-After": str(RETRY_AFTER_S)})
 
     app.add_exception_handler(EventQueueFull, try_again_later)
+    app.add_exception_handler(405, methods.method_not_allowed)
     app.add_exception_handler(WorkerStopped, try_again_later)
 
     @app.exception_handler(RequestValidationError)

@@ -89,14 +89,37 @@ _TEMPLATED: Final = tuple(
 )
 
 
+def _least(roles: list[Role | None]) -> Role | None:
+    """The least of some roles, None (open) below every role; ADMIN of none."""
+    if not roles:
+        return Role.ADMIN
+    return None if None in roles else min(role for role in roles if role is not None)
+
+
+def _options_role(path: str) -> Role | None:
+    """OPTIONS tells which methods a path answers: it needs the least of their roles.
+
+    So whoever may use one of the path's methods may ask which there are, and
+    nobody learns more of a path than a method they may use would show.
+    """
+    if path.startswith(OPEN_PREFIXES):
+        return None
+    roles = [role for (_, entry), role in _EXACT.items() if entry == path]
+    roles += [role for _, pattern, role in _TEMPLATED if pattern.match(path)]
+    return _least(roles)
+
+
 def role_for_request(method: str, path: str) -> Role | None:
     """The role a request needs, from its concrete path (None: open).
 
     The gate checks before routing, so it matches the path itself: exact paths
     by lookup, templated ones by their regex. A path no entry matches needs
     ADMIN (the app then answers 404 or 405): new routes stay closed until the
-    table names them.
+    table names them. HEAD needs what GET needs; OPTIONS, the least of what the
+    path's methods need.
     """
+    if method == "OPTIONS":
+        return _options_role(path)
     method = "GET" if method == "HEAD" else method
     if (method, path) in _EXACT:
         return _EXACT[(method, path)]

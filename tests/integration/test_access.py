@@ -239,3 +239,67 @@ async def test_the_audit_trail_filters_and_exports(server) -> None:
     export = await server.get("/audit.csv", params={"outcome": "refused (401)"}, headers=admin)
     assert export.status_code == 200 and export.text.startswith("seq,time,principal")
     assert "POST /start" in export.text
+
+
+def methods_by_path() -> dict[str, set[str]]:
+    """Each route path's methods, as a client should be told them in Allow."""
+    found: dict[str, set[str]] = {}
+    for method, path in app_routes():
+        found.setdefault(path, {"OPTIONS"}).add(method)
+        if method == "GET":
+            found[path].add("HEAD")
+    return found
+
+
+def allow_of(response: httpx.Response) -> set[str]:
+    return {m.strip() for m in response.headers["allow"].split(",")}
+
+
+async def test_head_answers_every_get_route_as_get_would_without_a_body(server) -> None:
+    """HEAD needs what GET needs, and answers GET's status and headers with no body."""
+    for method, path in app_routes():
+        if method != "GET" or path == "/camera/frame":  # the frame: a new one each time
+            continue
+        url, needed = example_path(path), required_role("GET", path)
+        if needed is not None:
+            assert (await server.head(url)).status_code == 401, path
+        if needed is not None and needed > Role.VIEWER:
+            viewer = await server.head(url, headers=auth(server.tokens["viewer"]))
+            assert viewer.status_code == 403, path
+        headers = auth(server.tokens["admin"])
+        got, head = await server.get(url, headers=headers), await server.head(url, headers=headers)
+        assert head.status_code == got.status_code, (path, head.status_code, got.status_code)
+        assert head.content == b"", path
+        assert head.headers.get("content-type") == got.headers.get("content-type"), path
+
+
+async def test_options_answers_each_paths_methods_in_allow(server) -> None:
+    for path, methods in methods_by_path().items():
+        url = example_path(path)
+        answer = await server.options(url, headers=auth(server.tokens["admin"]))
+        assert answer.status_code == 204, (path, answer.status_code, answer.text)
+        assert allow_of(answer) == methods, path
+    # OPTIONS needs no more than the least a path's methods need, and no less.
+    assert (await server.options("/health")).status_code == 204
+    assert (await server.options("/state")).status_code == 401
+    viewer = auth(server.tokens["viewer"])
+    assert allow_of(await server.options("/workpieces/demo", headers=viewer)) == {
+        "GET",
+        "HEAD",
+        "OPTIONS",
+        "PUT",
+        "DELETE",
+    }
+    assert (await server.options("/tokens", headers=viewer)).status_code == 403
+    unknown = await server.options("/no-such-path", headers=auth(server.tokens["admin"]))
+    assert unknown.status_code == 404
+
+
+async def test_a_method_a_path_does_not_answer_is_405_with_every_method_in_allow(server) -> None:
+    admin = auth(server.tokens["admin"])
+    refused = await server.patch("/workpieces", json={}, headers=admin)
+    assert refused.status_code == 405
+    assert allow_of(refused) == {"GET", "HEAD", "OPTIONS", "POST"}
+    assert "PATCH" in refused.json()["detail"] and "/workpieces" in refused.json()["detail"]
+    deleted = await server.delete("/state", headers=admin)
+    assert deleted.status_code == 405 and allow_of(deleted) == {"GET", "HEAD", "OPTIONS"}
