@@ -63,6 +63,10 @@ def uvicorn_options(settings: Settings) -> dict[str, Any]:
         "ws_ping_interval": settings.ws_ping_interval,
         "ws_ping_timeout": settings.ws_ping_interval,
         "timeout_graceful_shutdown": 5,
+        # uvicorn would otherwise replace a loopback peer's address with whatever its
+        # X-Forwarded-For says, before the app sees it. The app reads forwarded
+        # addresses itself, from trusted_proxies only (server/security/forwarded.py).
+        "proxy_headers": False,
     }
 
 

@@ -14,6 +14,7 @@ path as a real cell.
 
 from __future__ import annotations
 
+import ipaddress
 import itertools
 import json
 import math
@@ -132,6 +133,17 @@ class Settings(BaseSettings):
     # Access
     trusted_networks: list[str] = Field(
         default_factory=list, description="if set, only clients from these networks (CIDR)"
+    )
+    trusted_proxies: list[str] = Field(
+        default_factory=list,
+        max_length=256,
+        description="proxies (CIDR or address) whose forwarded_header is believed; none by "
+        "default: the client is the peer, whatever a request's headers say",
+    )
+    forwarded_header: Literal["x-forwarded-for", "forwarded"] = Field(
+        "x-forwarded-for",
+        description="the header the trusted_proxies set (X-Forwarded-For or RFC 7239 "
+        "Forwarded); the other one is never read",
     )
     cors_allowed_origins: list[str] = Field(default_factory=list, description="closed if empty")
     max_request_bytes: int = Field(1024 * 1024, ge=1024, le=64 * 1024 * 1024)
@@ -295,6 +307,19 @@ class Settings(BaseSettings):
     simulation_speed_factor: float = Field(
         1.0, gt=0, le=1000, description="simulated devices run this many times faster"
     )
+
+    @field_validator("trusted_proxies")
+    @classmethod
+    def _proxy_networks(cls, value: list[str]) -> list[str]:
+        """A typo here would silently trust nobody (or the wrong host): refuse it at load."""
+        for entry in value:
+            try:
+                ipaddress.ip_network(entry.strip(), strict=False)
+            except ValueError:
+                raise ValueError(
+                    f"trusted_proxies: {entry!r} is not an IP address or network (CIDR)"
+                ) from None
+        return value
 
     @field_validator("glue_pressure_range_psi")
     @classmethod

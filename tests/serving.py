@@ -7,6 +7,7 @@ import contextlib
 import socket
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import uvicorn
 
@@ -28,8 +29,8 @@ def free_port() -> int:
 
 
 @contextlib.asynccontextmanager
-async def serve(cell: Cell) -> AsyncIterator[str]:
-    """Serve `cell` over HTTP; yields the base URL and shuts down cleanly."""
+async def serve(cell: Cell, **uvicorn_overrides: Any) -> AsyncIterator[str]:
+    """Serve `cell` over HTTP as `python -m server` does (unless overridden); yields the URL."""
     port = free_port()
     config = uvicorn.Config(
         create_app(cell=cell),
@@ -37,7 +38,7 @@ async def serve(cell: Cell) -> AsyncIterator[str]:
         port=port,
         log_level="warning",
         lifespan="on",
-        **uvicorn_options(cell.settings),
+        **{**uvicorn_options(cell.settings), **uvicorn_overrides},
     )
     server = uvicorn.Server(config)
     server.install_signal_handlers = lambda: None  # type: ignore[method-assign]

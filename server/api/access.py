@@ -12,6 +12,7 @@ same gate in openapi.json, from the same table.
 from __future__ import annotations
 
 import ipaddress
+import logging
 
 from fastapi import WebSocket
 from fastapi.responses import JSONResponse
@@ -19,19 +20,36 @@ from starlette.requests import HTTPConnection
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from server.config import Settings
+from server.security.forwarded import (
+    UNKNOWN,
+    client_address,
+    parse_networks,
+    peer_of,
+    rewritten_by_server,
+)
 from server.security.policy import WEBSOCKET_ROLE, role_for_request
 from server.security.tickets import TicketBook
 from server.security.tokens import Principal, TokenStore
 
+log = logging.getLogger(__name__)
+REWRITTEN = (
+    "the server in front of the app replaced this request's address with one from its "
+    "X-Forwarded-For, which cannot be checked; serve the app with proxy headers off "
+    "(python -m server does; uvicorn: --no-proxy-headers) and name the proxies in "
+    "trusted_proxies"
+)
+
 
 class Access:
-    """The app's token store, tickets and network allowlist."""
+    """The app's token store, tickets, network allowlist and trusted proxies."""
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.tokens = TokenStore(settings.data_path)
         self.tickets = TicketBook()
-        self.networks = [ipaddress.ip_network(n, strict=False) for n in settings.trusted_networks]
+        self.networks = parse_networks(settings.trusted_networks)
+        self.proxies = parse_networks(settings.trusted_proxies)
+        self._rewrite_logged = False
 
     def address_allowed(self, host: str | None) -> bool:
         if not self.networks:
@@ -41,6 +59,23 @@ class Access:
         except ValueError:
             return False
         return any(address in network for network in self.networks)
+
+    def screen(self, scope: Scope) -> tuple[str, str | None]:
+        """The client's address (what the audit records) and why it is refused, if it is.
+
+        The address is the peer's, or what a trusted proxy forwarded
+        (server/security/forwarded.py); a request whose address the server in
+        front already rewrote from X-Forwarded-For is refused, never believed.
+        """
+        if rewritten_by_server(scope):
+            if not self._rewrite_logged:
+                self._rewrite_logged = True
+                log.error("refusing requests: %s", REWRITTEN)
+            return UNKNOWN, f"{REWRITTEN} (peer given as {peer_of(scope)})"[:300]
+        host = client_address(scope, self.proxies, self.settings.forwarded_header)
+        if not self.address_allowed(host):
+            return host or UNKNOWN, f"requests from {host} are not allowed (trusted_networks)"
+        return host or UNKNOWN, None
 
 
 def access_of(connection: HTTPConnection) -> Access:
@@ -92,10 +127,10 @@ class AccessGate:
     def _check(self, scope: Scope) -> tuple[int, str] | None:
         """None if the request may pass, else the status and the reason."""
         access = self.access
-        client = scope.get("client")
-        host = client[0] if client else None
-        if not access.address_allowed(host):
-            return 403, f"requests from {host} are not allowed (trusted_networks)"
+        host, refusal = access.screen(scope)
+        scope.setdefault("state", {})["client_address"] = host
+        if refusal is not None:
+            return 403, refusal
         needed = role_for_request(scope["method"], scope["path"])
         if needed is None:
             return None
@@ -117,7 +152,7 @@ class AccessGate:
 def authenticate_websocket(websocket: WebSocket) -> Principal | None:
     """A WebSocket's principal from its one-shot ticket or bearer token, if allowed."""
     access = access_of(websocket)
-    if not access.address_allowed(websocket.client.host if websocket.client else None):
+    if access.screen(websocket.scope)[1] is not None:
         return None
     ticket = websocket.query_params.get("ticket")
     token = bearer_token(websocket.scope)

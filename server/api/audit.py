@@ -34,8 +34,10 @@ def audit_observer(journal_of: Callable[[Scope], Journal | None]) -> Observer:
         who = principal.describe() if principal else "anonymous"
         outcome = "accepted" if status < 400 else f"refused ({status})"
         detail = state.get("audit_reason", "") or ""
-        client = scope.get("client")
-        host = client[0] if client else "unknown"
+        host = state.get("client_address")  # the gate's: the peer, or a trusted proxy's word
+        if host is None:
+            client = scope.get("client")
+            host = client[0] if client else "unknown"
         journal.append(
             [records.audit(time.time(), who, host, f"{method} {scope['path']}", outcome, detail)],
             durable=False,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import stat
 import time
@@ -303,3 +304,92 @@ async def test_a_method_a_path_does_not_answer_is_405_with_every_method_in_allow
     assert "PATCH" in refused.json()["detail"] and "/workpieces" in refused.json()["detail"]
     deleted = await server.delete("/state", headers=admin)
     assert deleted.status_code == 405 and allow_of(deleted) == {"GET", "HEAD", "OPTIONS"}
+
+
+@contextlib.asynccontextmanager
+async def served(settings: Settings, **uvicorn_overrides):
+    """A client of the app on fakes with `settings`, served as `python -m server` serves it."""
+    demo_stores(settings.data_path)
+    cell = Cell(settings, devices=CellDevices(FakeRobot(50), FakeGlue(), FakeCamera()))
+    async with (
+        serve(cell, **uvicorn_overrides) as url,
+        httpx.AsyncClient(base_url=url, timeout=10) as client,
+    ):
+        client.admin = admin_headers(settings.data_path)  # type: ignore[attr-defined]
+        yield client
+
+
+async def audited_addresses(client: httpx.AsyncClient, action: str) -> list[str]:
+    async with asyncio.timeout(10):
+        while True:
+            rows = await client.get("/audit", params={"action": action}, headers=client.admin)
+            addresses = [row["address"] for row in rows.json()["audit"]]
+            if addresses:
+                return addresses
+            await asyncio.sleep(0.05)  # audit rows are written behind the answer
+
+
+FORGED = ({"X-Forwarded-For": "10.1.2.3"}, {"Forwarded": "for=10.1.2.3"})
+
+
+async def test_a_forwarded_address_cannot_walk_past_trusted_networks(fast_settings) -> None:
+    settings = fast_settings.model_copy(update={"trusted_networks": ["10.0.0.0/8"]})
+    async with served(settings) as client:
+        for forged in FORGED:
+            response = await client.get("/state", headers={**client.admin, **forged})
+            assert response.status_code == 403, (forged, response.status_code)
+            assert "127.0.0.1" in response.json()["detail"]
+        url = str(client.base_url).replace("http", "ws") + "/ws"
+        headers = {**client.admin, **FORGED[0]}
+        async with websockets.connect(url, additional_headers=headers) as ws:
+            with pytest.raises(websockets.ConnectionClosed) as closed:
+                await asyncio.wait_for(ws.recv(), 5)
+        assert closed.value.rcvd.code == 4401
+
+
+async def test_the_audit_records_the_peer_not_the_address_a_client_wrote(server) -> None:
+    await server.post("/start", headers={"X-Forwarded-For": "203.0.113.9"})  # refused: 401
+    await server.post("/pause", headers={"Forwarded": "for=203.0.113.9"})
+    server.admin = auth(server.tokens["admin"])
+    assert await audited_addresses(server, "POST /start") == ["127.0.0.1"]
+    assert await audited_addresses(server, "POST /pause") == ["127.0.0.1"]
+
+
+async def test_a_trusted_proxy_is_believed_up_to_the_rightmost_hop_it_does_not_trust(
+    fast_settings,
+) -> None:
+    settings = fast_settings.model_copy(
+        update={
+            "trusted_networks": ["10.0.0.0/8", "127.0.0.0/8"],
+            "trusted_proxies": ["127.0.0.1", "192.0.2.0/24"],
+        }
+    )
+    async with served(settings) as client:
+        # The client wrote 10.1.1.1 itself; the proxies saw 203.0.113.5.
+        chain = {"X-Forwarded-For": "10.1.1.1, 203.0.113.5, 192.0.2.7"}
+        refused = await client.get("/state", headers={**client.admin, **chain})
+        assert refused.status_code == 403 and "203.0.113.5" in refused.json()["detail"]
+        chain = {"X-Forwarded-For": "203.0.113.5, 10.1.1.1, 192.0.2.7"}
+        assert (await client.get("/state", headers={**client.admin, **chain})).status_code == 200
+        await client.post("/start", headers={"X-Forwarded-For": "10.2.2.2"})
+        assert await audited_addresses(client, "POST /start") == ["10.2.2.2"]
+        # Only the configured header: a Forwarded the proxy passed through is the client's word.
+        passed = {"Forwarded": "for=10.3.3.3", "X-Forwarded-For": "10.4.4.4"}
+        await client.post("/pause", headers=passed)
+        assert await audited_addresses(client, "POST /pause") == ["10.4.4.4"]
+
+
+async def test_forwarded_addresses_stay_unbelieved_when_the_server_rewrites_them(
+    fast_settings,
+) -> None:
+    """Served by uvicorn with its default proxy headers (loopback trusted), as a bare
+    `uvicorn` command would: the rewritten address is refused, not believed."""
+    settings = fast_settings.model_copy(update={"trusted_networks": ["10.0.0.0/8"]})
+    async with served(settings, proxy_headers=True, forwarded_allow_ips="127.0.0.1") as client:
+        forged = await client.get("/state", headers={**client.admin, **FORGED[0]})
+        assert forged.status_code == 403, forged.status_code
+        assert "X-Forwarded-For" in forged.json()["detail"]
+    settings = fast_settings.model_copy(update={"trusted_networks": []})
+    async with served(settings, proxy_headers=True, forwarded_allow_ips="127.0.0.1") as client:
+        await client.post("/start", headers={"X-Forwarded-For": "10.9.9.9:4444"})
+        assert "10.9.9.9" not in await audited_addresses(client, "POST /start")
