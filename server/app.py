@@ -67,8 +67,14 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     )
     app.state.cell = cell
     app.state.settings = settings
-    app.state.ws_hub = ws.WebSocketHub(settings.max_broadcast_clients, settings.ws_client_buffer)
+    app.state.ws_hub = ws.WebSocketHub(
+        settings.max_broadcast_clients,
+        settings.ws_client_buffer,
+        per_token=settings.max_broadcast_clients_per_token,
+        reserved=settings.broadcast_clients_reserved,
+    )
     app.state.access = access.Access(settings)
+    app.state.access.revocation_listeners.append(app.state.ws_hub.views.revoke)
     # The most polled route's router first: the router tries routes in order.
     for router in (
         queries.router,

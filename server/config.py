@@ -115,6 +115,20 @@ class Settings(BaseSettings):
     broadcast_enabled: bool = True
     broadcast_port: int = Field(8000, ge=1, le=65535)
     max_broadcast_clients: int = Field(100, ge=1, le=100_000)
+    max_broadcast_clients_per_token: int = Field(
+        10,
+        ge=1,
+        le=100_000,
+        description="live views (/ws) one token may hold open at once, so one token "
+        "cannot take every slot",
+    )
+    broadcast_clients_reserved: int = Field(
+        5,
+        ge=0,
+        le=100_000,
+        description="of max_broadcast_clients, the slots only maintenance and admin may "
+        "use (at most all but one)",
+    )
     ws_client_buffer: int = Field(256, ge=8, le=100_000, description="messages queued per client")
     ws_ping_interval: float = Field(20.0, gt=0)
 

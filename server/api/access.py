@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ipaddress
 import logging
+from collections.abc import Callable
 
 from fastapi import WebSocket
 from fastapi.responses import JSONResponse
@@ -29,7 +30,7 @@ from server.security.forwarded import (
 )
 from server.security.policy import WEBSOCKET_ROLE, role_for_request
 from server.security.tickets import TicketBook
-from server.security.tokens import Principal, TokenStore
+from server.security.tokens import Principal, TokenEntry, TokenStore
 
 log = logging.getLogger(__name__)
 REWRITTEN = (
@@ -50,6 +51,20 @@ class Access:
         self.networks = parse_networks(settings.trusted_networks)
         self.proxies = parse_networks(settings.trusted_proxies)
         self._rewrite_logged = False
+        # Told of every revocation (the WebSocket hub closes the token's live views).
+        self.revocation_listeners: list[Callable[[str], object]] = []
+
+    def revoke(self, token_id: str) -> TokenEntry:
+        """Revoke a token everywhere at once; KeyError for an unknown id.
+
+        Its next request is refused (the store), its unused tickets are void,
+        and every listener hears of it: its open /ws views are closed.
+        """
+        entry = self.tokens.revoke(token_id)
+        self.tickets.forget(token_id)
+        for listener in self.revocation_listeners:
+            listener(token_id)
+        return entry
 
     def address_allowed(self, host: str | None) -> bool:
         if not self.networks:

@@ -82,7 +82,7 @@ async def create_token(request: Request, body: TokenRequest) -> dict[str, Any]:
 async def revoke_token(request: Request, token_id: str) -> Response:
     """Revoke a token at once."""
     try:
-        entry = access_of(request).tokens.revoke(token_id)
+        entry = access_of(request).revoke(token_id)
     except KeyError:
         raise HTTPException(404, f"no token {token_id!r}") from None
     request.state.audit_reason = f"revoked token {entry.id} ({entry.name})"

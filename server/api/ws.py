@@ -32,9 +32,12 @@ Close codes (also in docs/api.md):
         without boot or boot without after_seq, after_seq beyond this
         server's last seq, unknown types)
   1009  the client sent a message over the size limit (enforced by the server)
-  1013  too many clients (max_broadcast_clients); try again later
+  1013  too many clients (max_broadcast_clients), too many for this token
+        (max_broadcast_clients_per_token), or only the slots kept for maintenance
+        and admin are left (broadcast_clients_reserved); try again later
   4001  slow consumer: the client fell behind and was dropped
-  4401  unauthorized: no valid one-shot ticket (POST /ws-ticket) or bearer token
+  4401  unauthorized: no valid one-shot ticket (POST /ws-ticket) or bearer token,
+        or the token was revoked while the view was open (server/api/live_views.py)
   1012  the server is restarting or shutting down (sent by uvicorn)
 
 Client → server messages (JSON): `{"type": "subscribe", "types": [...]}`
@@ -59,6 +62,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.datastructures import QueryParams
 
 from server.api.access import authenticate_websocket
+from server.api.live_views import CLOSE_UNAUTHORIZED, REVOKED_REASON, LiveViews
 from server.core.bus import Bus, BusMessage, Subscription, SubscriptionClosed
 from server.core.view import CellView
 
@@ -74,7 +78,6 @@ MAX_BOOT_LENGTH = 64
 CLOSE_INVALID = 1003
 CLOSE_TOO_MANY = 1013
 CLOSE_SLOW = 4001
-CLOSE_UNAUTHORIZED = 4401
 
 Close = tuple[int | None, str]  # (close code or None for "just end", reason)
 
@@ -129,14 +132,27 @@ class Resume:
 
 
 class WebSocketHub:
-    """Counts clients, enforces max_broadcast_clients, and encodes each message once."""
+    """Holds the live views (their limits, their revocation) and encodes each message once."""
 
-    def __init__(self, max_clients: int, buffer: int) -> None:
-        self.max_clients = max_clients
+    def __init__(
+        self, max_clients: int, buffer: int, per_token: int = 10, reserved: int = 0
+    ) -> None:
+        self.views = LiveViews(max_clients, per_token, reserved)
         self.buffer = buffer
-        self.client_count = 0
         self._encoded: OrderedDict[int, str] = OrderedDict()
         self._newest = 0
+
+    @property
+    def client_count(self) -> int:
+        return self.views.count
+
+    @property
+    def max_clients(self) -> int:
+        return self.views.max_clients
+
+    @max_clients.setter
+    def max_clients(self, value: int) -> None:
+        self.views.max_clients = value
 
     def encode(self, message: BusMessage) -> str:
         """The message's JSON text, shared by every client (clients lag by a few at most)."""
@@ -199,10 +215,15 @@ async def live(websocket: WebSocket) -> None:
     except InvalidQuery as invalid:
         await websocket.close(CLOSE_INVALID, str(invalid)[:120])
         return
-    if hub.client_count >= hub.max_clients:
-        await websocket.close(CLOSE_TOO_MANY, f"too many clients (max {hub.max_clients})")
+    refusal = hub.views.refusal(principal)
+    if refusal is not None:
+        await websocket.close(CLOSE_TOO_MANY, refusal[:120])
         return
-    hub.client_count += 1
+    view = hub.views.open(principal)
+    if view.ended.done():  # its token was revoked during the handshake
+        hub.views.close(view)
+        await websocket.close(CLOSE_UNAUTHORIZED, REVOKED_REASON)
+        return
     # Subscribe, take the snapshot and read the ring in one turn of the loop (no
     # await in between): the subscription receives every message after the
     # snapshot's seq, the ring holds every one up to it, so nothing falls between.
@@ -219,11 +240,14 @@ async def live(websocket: WebSocket) -> None:
             _send_loop(websocket, subscription, hub, replay, snapshot["seq"])
         )
         receiver = asyncio.create_task(_receive_loop(websocket, subscription))
-        done, pending = await asyncio.wait({sender, receiver}, return_when=asyncio.FIRST_COMPLETED)
+        # `view.ended` is a plain future, set when the view's token is revoked.
+        done, pending = await asyncio.wait(
+            {sender, receiver, view.ended}, return_when=asyncio.FIRST_COMPLETED
+        )
         for task in pending:
             task.cancel()
         await asyncio.gather(*pending, return_exceptions=True)
-        close_code, reason = next(iter(done)).result()
+        close_code, reason = (view.ended if view.ended in done else next(iter(done))).result()
         if close_code is not None:
             # Bounded: a client that stopped reading may never take the close frame,
             # and must not hold its place among max_broadcast_clients (or a shutdown)
@@ -235,7 +259,7 @@ async def live(websocket: WebSocket) -> None:
         pass
     finally:
         subscription.close("client gone")
-        hub.client_count -= 1
+        hub.views.close(view)
 
 
 async def _send(websocket: WebSocket, hub: WebSocketHub, message: BusMessage) -> Close | None:

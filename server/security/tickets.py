@@ -40,6 +40,11 @@ class TicketBook:
             return None
         return entry[0]
 
+    def forget(self, token_id: str) -> None:
+        """Void the unused tickets of a token (it was revoked)."""
+        for ticket in [t for t, (p, _) in self._tickets.items() if p.token_id == token_id]:
+            del self._tickets[ticket]
+
     def _expire(self) -> None:
         now = time.monotonic()
         for ticket in [t for t, (_, expires) in self._tickets.items() if expires < now]:

@@ -393,3 +393,100 @@ async def test_forwarded_addresses_stay_unbelieved_when_the_server_rewrites_them
     async with served(settings, proxy_headers=True, forwarded_allow_ips="127.0.0.1") as client:
         await client.post("/start", headers={"X-Forwarded-For": "10.9.9.9:4444"})
         assert "10.9.9.9" not in await audited_addresses(client, "POST /start")
+
+
+def ws_url(client: httpx.AsyncClient) -> str:
+    return str(client.base_url).replace("http", "ws") + "/ws"
+
+
+async def closed_code(ws: websockets.ClientConnection) -> int | None:
+    """The close code the server ends `ws` with (whatever it sent before); fails on a timeout."""
+    async with asyncio.timeout(10):
+        with pytest.raises(websockets.ConnectionClosed) as closed:
+            while True:
+                await ws.recv()
+    return closed.value.rcvd.code if closed.value.rcvd else None
+
+
+async def opened(ws: websockets.ClientConnection) -> bool:
+    """Whether the server let `ws` in: it sends the snapshot first, else closes."""
+    try:
+        first = await asyncio.wait_for(ws.recv(), 10)
+    except websockets.ConnectionClosed:
+        return False
+    assert '"type":"snapshot"' in str(first)
+    return True
+
+
+async def test_revoking_a_token_closes_its_live_views_and_voids_its_tickets(server) -> None:
+    url, viewer = ws_url(server), auth(server.tokens["viewer"])
+    used = (await server.post("/ws-ticket", headers=viewer)).json()["ticket"]
+    unused = (await server.post("/ws-ticket", headers=viewer)).json()["ticket"]
+    listed = (await server.get("/tokens", headers=auth(server.tokens["admin"]))).json()["tokens"]
+    token_id = next(t["id"] for t in listed if t["name"] == "viewer")
+    async with (
+        websockets.connect(url, additional_headers=viewer) as by_token,
+        websockets.connect(f"{url}?ticket={used}") as by_ticket,
+        websockets.connect(url, additional_headers=auth(server.tokens["operator"])) as other,
+    ):
+        assert all([await opened(by_token), await opened(by_ticket), await opened(other)])
+        revoked = await server.delete(f"/tokens/{token_id}", headers=auth(server.tokens["admin"]))
+        assert revoked.status_code == 204
+        assert await closed_code(by_token) == 4401
+        assert await closed_code(by_ticket) == 4401
+        await other.send('{"type": "ping"}')  # another token's view goes on
+        async with asyncio.timeout(10):
+            while '"pong"' not in str(await other.recv()):
+                pass
+    async with websockets.connect(f"{url}?ticket={unused}") as late:
+        assert not await opened(late)
+        assert late.close_code == 4401
+
+
+async def test_one_token_cannot_take_every_live_view_slot(fast_settings) -> None:
+    settings = fast_settings.model_copy(
+        update={
+            "max_broadcast_clients": 6,
+            "max_broadcast_clients_per_token": 2,
+            "broadcast_clients_reserved": 2,
+        }
+    )
+    async with served(settings) as client, contextlib.AsyncExitStack() as stack:
+        headers = {"admin": client.admin}
+        for name in ("viewer", "viewer2", "operator", "maintenance"):
+            role = name.rstrip("2")
+            created = await client.post(
+                "/tokens", json={"name": name, "role": role}, headers=client.admin
+            )
+            headers[name] = auth(created.json()["token"])
+
+        async def connect(name: str) -> websockets.ClientConnection:
+            return await stack.enter_async_context(
+                websockets.connect(ws_url(client), additional_headers=headers[name])
+            )
+
+        first = await connect("viewer")
+        assert await opened(first) and await opened(await connect("viewer"))
+        third = await connect("viewer")
+        assert not await opened(third)
+        assert third.close_code == 1013 and "per_token" in (third.close_reason or "")
+        assert await opened(await connect("viewer2")) and await opened(await connect("viewer2"))
+        # Four of six slots are taken by viewers and operators; two are kept.
+        operator = await connect("operator")
+        assert not await opened(operator)
+        assert operator.close_code == 1013 and "maintenance and admin" in operator.close_reason
+        assert await opened(await connect("maintenance"))
+        assert await opened(await connect("admin"))
+        full = await connect("admin")
+        assert not await opened(full) and full.close_code == 1013
+        await first.close()
+        async with asyncio.timeout(10):  # the server counts the slot free once it sees the close
+            while not await opened(again := await connect("viewer")):
+                await asyncio.sleep(0.05)
+        assert again.close_code is None
+
+
+def test_live_view_limits_default_to_ten_per_token_and_some_kept() -> None:
+    settings = Settings()
+    assert settings.max_broadcast_clients_per_token == 10
+    assert 0 < settings.broadcast_clients_reserved < settings.max_broadcast_clients
