@@ -13,6 +13,7 @@ from server.app import create_app
 from server.config import Settings
 from server.logging_setup import configure as configure_logging
 from server.runtime import limit_malloc_arenas, raise_open_file_limit, tune_garbage_collection
+from server.storage.permissions import private_directory
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -35,7 +36,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     overrides = {"data_path": args.data_dir} if args.data_dir else {}
     settings = Settings(**overrides)
-    settings.data_path.mkdir(parents=True, exist_ok=True)
+    private_directory(settings.data_path)  # 0700; a looser one is tightened by the cell
     log_file = configure_logging(settings)
     logging.getLogger(__name__).info("logging to %s", log_file)
     app = create_app(settings)

@@ -30,8 +30,10 @@ from server.core.transitions import (
 )
 from server.core.view import CellView
 from server.core.worker import Worker
+from server.logging_setup import log_path
 from server.storage import CellStores
 from server.storage.journal import Journal
+from server.storage.permissions import tighten_data_directory
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +92,8 @@ class Cell:
         settings = self.settings
         for note in settings.compatibility_notes():
             log.warning("setting ignored: %s", note)
+        # The data directory for the cell's user only, however the server was started.
+        await asyncio.to_thread(tighten_data_directory, settings.data_path, [log_path(settings)])
         self.stores = CellStores.open(settings.data_path)
         self.journal = Journal(
             settings.data_file(settings.analytics_database, "journal.db"),

@@ -14,13 +14,16 @@ and are deleted after log_retention_days.
 from __future__ import annotations
 
 import contextvars
+import io
 import logging
 import logging.handlers
+import os
 import re
 import time
 from pathlib import Path
 
 from server.config import Settings
+from server.storage.permissions import LOG_FILE_MODE, private_directory
 
 current_event_id: contextvars.ContextVar[str | None] = contextvars.ContextVar(
     "current_event_id", default=None
@@ -82,10 +85,16 @@ class RetainingFileHandler(logging.handlers.RotatingFileHandler):
     """Size-based rotation that also deletes rotated files older than the retention."""
 
     def __init__(self, path: Path, max_bytes: int, retention_days: int) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        private_directory(path.parent)
         super().__init__(path, maxBytes=max_bytes, backupCount=1000, encoding="utf-8")
         self.retention_s = retention_days * 86_400
         self.prune()
+
+    def _open(self) -> io.TextIOWrapper:
+        """The log file, 0640 whatever the umask (server/storage/permissions.py)."""
+        stream = super()._open()
+        os.fchmod(stream.fileno(), LOG_FILE_MODE)
+        return stream
 
     def doRollover(self) -> None:
         super().doRollover()
@@ -99,9 +108,14 @@ class RetainingFileHandler(logging.handlers.RotatingFileHandler):
                 rotated.unlink(missing_ok=True)
 
 
+def log_path(settings: Settings) -> Path:
+    """Where the log file is (log_file_path, by default under the data directory)."""
+    return settings.data_file(settings.log_file_path, "logs/glue_cell.log")
+
+
 def configure(settings: Settings) -> Path:
     """Console and file logging at the configured level; the log file's path."""
-    path = settings.data_file(settings.log_file_path, "logs/glue_cell.log")
+    path = log_path(settings)
     formatter = SpecFormatter(FORMAT, DATE_FORMAT)
     event_filter = EventIdFilter()
     console = logging.StreamHandler()

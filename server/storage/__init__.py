@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from server.storage.calibration import CalibrationStore
+from server.storage.permissions import private_directory
 from server.storage.workpieces import WorkpieceLibrary
 
 
@@ -18,5 +19,5 @@ class CellStores:
 
     @classmethod
     def open(cls, data_path: Path) -> CellStores:
-        data_path.mkdir(parents=True, exist_ok=True)
+        private_directory(data_path)
         return cls(CalibrationStore(data_path), WorkpieceLibrary(data_path))

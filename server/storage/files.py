@@ -12,10 +12,13 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from server.storage.permissions import private_directory
+
 
 def write_bytes_atomic(path: Path, data: bytes) -> None:
     """Replace `path` with `data` atomically (same directory, fsync, rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    private_directory(path.parent)
+    # mkstemp makes the file 0600 (server/storage/permissions.py): the cell's user only.
     descriptor, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
         with os.fdopen(descriptor, "wb") as handle:

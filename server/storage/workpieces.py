@@ -28,6 +28,7 @@ from pydantic import (
 )
 
 from server.storage.files import read_json, write_bytes_atomic, write_json_atomic
+from server.storage.permissions import private_directory
 from server.vision.paths import fill_size
 
 log = logging.getLogger(__name__)
@@ -162,7 +163,7 @@ class WorkpieceLibrary:
 
     def __init__(self, data_path: Path) -> None:
         self.directory = data_path / "workpieces"
-        self.directory.mkdir(parents=True, exist_ok=True)
+        private_directory(self.directory)
         self._lock = threading.RLock()  # create() allocates an id and writes under one hold
 
     def _path(self, workpiece_id: str) -> Path:

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import sqlite3
+import stat
 import time
 from pathlib import Path
 
@@ -204,3 +206,26 @@ async def test_restarting_in_error_again_and_again_keeps_the_first_fault_as_it_w
     assert "guard door" in messages[0]
     assert messages[0].count("the cell was in ERROR") == 1
     assert messages[1] == messages[0] and messages[2] == messages[0], messages
+
+
+async def test_a_looser_data_directory_is_tightened_at_start_and_said_so(tmp_path, caplog) -> None:
+    """However the cell is started (here: embedded, no `python -m server`)."""
+    data = tmp_path / "data"
+    cell = await started(data)
+    await cell.stop()
+    loose = [data, data / "workpieces", data / "journal.db", data / "state.json"]
+    (data / "journal.db-wal").write_bytes(b"")  # as a crash may leave them
+    (data / "journal.db-shm").write_bytes(b"")
+    loose += [data / "journal.db-wal", data / "journal.db-shm"]
+    for path in loose:
+        path.chmod(0o777 if path.is_dir() else 0o666)
+    with caplog.at_level(logging.WARNING, logger="server.storage.permissions"):
+        cell = await started(data)
+    try:
+        for path in loose:
+            mode = stat.S_IMODE(path.stat().st_mode)
+            assert mode == (0o700 if path.is_dir() else 0o600), (path, oct(mode))
+        said = [r.getMessage() for r in caplog.records if "tightened" in r.getMessage()]
+        assert len(said) == 1 and "journal.db 666 -> 600" in said[0], said
+    finally:
+        await cell.stop()

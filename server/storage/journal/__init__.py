@@ -29,6 +29,7 @@ from server.storage.journal.reader import Cursor, Reader
 from server.storage.journal.records import Record
 from server.storage.journal.schema import FILTERS, SCHEMA, TABLES, Filter, filter_columns
 from server.storage.journal.writer import WriteFailure, Writer, prune
+from server.storage.permissions import private_file
 
 __all__ = [
     "FILTERS",
@@ -76,6 +77,7 @@ class Journal(Reader):
             log.error(
                 "journal %s is damaged (%s); kept as %s, starting a new one", self.path, exc, aside
             )
+        private_file(self.path)  # 0600 before SQLite opens it; its -wal and -shm take its mode
         connection = self._connect()
         connection.executescript(SCHEMA)
         connection.commit()
