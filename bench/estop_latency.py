@@ -239,6 +239,7 @@ async def run(trials: int, queue_size: int, ws_clients: int) -> list[dict[str, A
         glue_controller_port=f"tcp://127.0.0.1:{witness.glue_port}",
         event_queue_size=queue_size,
         max_broadcast_clients=ws_clients + 10,
+        max_broadcast_clients_per_token=ws_clients + 10,  # the crowd shares one token
         emergency_stop_timeout=1.0,
         data_path=Path(tempfile.mkdtemp(prefix="bench-cell-")),
     )

@@ -8,7 +8,8 @@ How:
 - The server is the production entry point, `python -m server`, in its own
   process (so its event loop is not the clients' loop), simulated devices,
   a fresh data directory, and max_broadcast_clients raised through
-  GLUE_APP_MAX_BROADCAST_CLIENTS so that 1000+ clients are allowed. Every
+  GLUE_APP_MAX_BROADCAST_CLIENTS so that 1000+ clients are allowed (and
+  max_broadcast_clients_per_token with it: every client uses one token). Every
   other setting is the default, including INFO logging of each transition.
 - The clients are `websockets` connections in this process's loop (uvloop
   when installed), authenticated with the admin bearer token. Like browsers,
@@ -307,7 +308,11 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     counts = [int(c) for c in args.clients.split(",")]
     fd_limit = raise_fd_limit(FDS_PER_CLIENT * max(counts) + SPARE_FDS)
     port = free_port()
-    env = {"GLUE_APP_MAX_BROADCAST_CLIENTS": str(max(counts) + 10)}
+    allowed = str(max(counts) + 10)  # every client uses the admin token: raise its limit too
+    env = {
+        "GLUE_APP_MAX_BROADCAST_CLIENTS": allowed,
+        "GLUE_APP_MAX_BROADCAST_CLIENTS_PER_TOKEN": allowed,
+    }
     with (
         tempfile.TemporaryDirectory(prefix="bench-ws-") as tmp,
         server_process(port, Path(tmp), env=env) as process,

@@ -258,7 +258,10 @@ async def test_churn_leaves_no_subscription_behind_and_one_client_sees_everythin
     tmp_path: Path,
 ) -> None:
     async with open_rig(
-        tmp_path, ws_client_buffer=WS_BUFFER, max_broadcast_clients=MAX_CLIENTS
+        tmp_path,
+        ws_client_buffer=WS_BUFFER,
+        max_broadcast_clients=MAX_CLIENTS,
+        max_broadcast_clients_per_token=MAX_CLIENTS,  # every client here uses one token
     ) as rig:
         url, headers, bus = ws_url(rig), auth(rig), rig.cell.bus
         before = bus.subscriber_count  # the server's own subscribers (metrics)
