@@ -123,7 +123,7 @@ class Settings(BaseSettings):
         "cannot take every slot",
     )
     broadcast_clients_reserved: int = Field(
-        5,
+        2,
         ge=0,
         le=100_000,
         description="of max_broadcast_clients, the slots only maintenance and admin may "
