@@ -25,7 +25,6 @@ from server.security.forwarded import (
     UNKNOWN,
     client_address,
     parse_networks,
-    peer_of,
     rewritten_by_server,
 )
 from server.security.policy import WEBSOCKET_ROLE, role_for_request
@@ -86,7 +85,7 @@ class Access:
             if not self._rewrite_logged:
                 self._rewrite_logged = True
                 log.error("refusing requests: %s", REWRITTEN)
-            return UNKNOWN, f"{REWRITTEN} (peer given as {peer_of(scope)})"[:300]
+            return UNKNOWN, REWRITTEN
         host = client_address(scope, self.proxies, self.settings.forwarded_header)
         if not self.address_allowed(host):
             return host or UNKNOWN, f"requests from {host} are not allowed (trusted_networks)"

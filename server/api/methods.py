@@ -101,7 +101,12 @@ class HttpManners:
             await send({"type": "http.response.body", "body": b""})
             return
         if method == "HEAD" and "GET" in allowed:
-            await self.app({**scope, "method": "GET"}, receive, _without_body(send))
+            as_get = {**scope, "method": "GET"}  # a copy: the server's scope stays HEAD
+            try:
+                await self.app(as_get, receive, _without_body(send))
+            finally:
+                if "route" in as_get:  # for the metrics' route label
+                    scope["route"] = as_get["route"]
             return
         await self.app(scope, receive, send)
 
