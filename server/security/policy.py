@@ -31,7 +31,12 @@ POLICY: Final = MappingProxyType(
         ("GET", "/operations"): VIEW,
         ("GET", "/errors"): VIEW,
         ("GET", "/events"): VIEW,
-        ("GET", "/export/{table}.csv"): VIEW,
+        # one CSV route per journal table, each with that table's own filters
+        ("GET", "/export/events.csv"): VIEW,
+        ("GET", "/export/transitions.csv"): VIEW,
+        ("GET", "/export/operations.csv"): VIEW,
+        ("GET", "/export/errors.csv"): VIEW,
+        ("GET", "/export/recoveries.csv"): VIEW,
         ("GET", "/kpis"): VIEW,
         ("GET", "/metrics"): VIEW,
         ("GET", "/calibration"): VIEW,
