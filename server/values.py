@@ -15,15 +15,30 @@ JSON integer is still a valid float.
 from __future__ import annotations
 
 import re
-from typing import Annotated
+from typing import Annotated, Any
 
-from pydantic import AfterValidator, AllowInfNan, Field, Strict
+from pydantic import AfterValidator, AllowInfNan, BeforeValidator, Field, Strict
 
 # A number as JSON has it: never a string or a boolean, never Infinity or NaN.
 # Bounds are the field's own: `Annotated[FiniteNumber, Field(ge=..., le=...)]`.
 FiniteNumber = Annotated[float, Strict(), AllowInfNan(False)]
-# A whole number: never 2.0, "2" or true.
-WholeNumber = Annotated[int, Strict()]
+
+
+def _integral(value: object) -> object:
+    """2.0 is the integer 2 (JSON Schema says so); 2.5, "2" and true are left to be refused."""
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
+
+
+def whole_number(*constraints: Any) -> Any:
+    """A whole number within `constraints`, written 2 or 2.0: never 2.5, "2" or true.
+
+    A function, not a type: the bounds must come before the step that reads 2.0 as 2,
+    or openapi.json would not state them as `minimum`/`maximum` (a pydantic quirk).
+    """
+    return Annotated[int, Strict(), *constraints, BeforeValidator(_integral)]
+
 
 # What a name may not hold (first and last code point of each range): C0 and C1
 # control characters (NUL, line breaks, escape sequences that repaint a terminal),

@@ -14,9 +14,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Annotated, Any
 
-from pydantic import AllowInfNan, BaseModel, ConfigDict, Field, Strict, create_model
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, create_model
 
 from server.config import Settings
+from server.values import FiniteNumber, whole_number
 
 RUNTIME_SETTINGS = (
     "error_state_timeout",
@@ -31,6 +32,17 @@ RUNTIME_SETTINGS = (
 )
 
 
+def _strict(kind: Any, constraints: list[Any]) -> Any:
+    """The strict form of a setting's type (server/values.py), with its bounds."""
+    if kind is float:
+        return Annotated[FiniteNumber, *constraints]
+    if kind is int:
+        return whole_number(*constraints)
+    if kind is bool:
+        return StrictBool
+    return Annotated[kind, *constraints] if constraints else kind  # a Literal: exact already
+
+
 def _without_defaults(schema: dict[str, Any]) -> None:
     """A PATCH has no defaults: a setting left out keeps its value (GET /settings shows it)."""
     for field in schema.get("properties", {}).values():
@@ -41,11 +53,7 @@ def _change_model() -> type[BaseModel]:
     fields: dict[str, Any] = {}
     for name in RUNTIME_SETTINGS:
         declared = Settings.model_fields[name]
-        kind = declared.annotation
-        exact = [Strict()] if kind in (bool, int, float) else []  # the others are Literals
-        finite = [AllowInfNan(False)] if kind is float else []
-        constraints = [*exact, *finite, *declared.metadata]
-        annotation = Annotated[kind, *constraints] if constraints else kind
+        annotation = _strict(declared.annotation, declared.metadata)
         fields[name] = (annotation, Field(None, description=declared.description))
     return create_model(
         "SettingsChange",

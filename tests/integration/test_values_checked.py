@@ -85,10 +85,14 @@ async def test_settings_refuse_strings_and_booleans_for_numbers(api, body) -> No
     assert _fields(await api.patch("/settings", json=body)) == [key]
 
 
-async def test_a_whole_number_is_a_valid_float_setting(api) -> None:
-    changed = await api.patch("/settings", json={"shift_hours": 12})
-    assert changed.status_code == 200
-    assert changed.json()["changed"]["shift_hours"] == {"old": 8.0, "new": 12.0}
+async def test_numbers_are_read_as_json_schema_reads_them(api) -> None:
+    """12 is a valid decimal and 4.0 a valid whole number, as openapi.json's types say."""
+    changed = await api.patch("/settings", json={"shift_hours": 12, "error_recovery_attempts": 4.0})
+    assert changed.status_code == 200, changed.text
+    assert changed.json()["changed"] == {
+        "shift_hours": {"old": 8.0, "new": 12.0},
+        "error_recovery_attempts": {"old": 3, "new": 4},
+    }
 
 
 @pytest.mark.parametrize(
