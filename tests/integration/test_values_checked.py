@@ -164,3 +164,12 @@ async def test_an_estop_is_never_refused_over_its_query(api) -> None:
     """The one route whose answer matters more than its input: it stops the cell anyway."""
     stopped = await api.post("/estop", params={"reason": "typed in the wrong place"})
     assert stopped.status_code == 202 and stopped.json()["state"] == "ERROR"
+
+
+async def test_kpis_since_a_time_still_to_come_is_an_empty_shift(api) -> None:
+    """Valid by the document (since alone, within its bounds), so answered: nothing yet."""
+    response = await api.get("/kpis", params={"since": 9e10})
+    assert response.status_code == 200, response.text
+    report = response.json()
+    assert report["window"]["start"] == 9e10 and report["window"]["hours"] == 8.0
+    assert report["operations_ended"] == 0 and report["available_time_s"] == 0.0
