@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 from pathlib import Path
 from typing import Any
 
 import uvicorn
+from pydantic import ValidationError
 
 from server.app import create_app
 from server.config import Settings
+from server.errors import ConfigurationError
 from server.logging_setup import configure as configure_logging
 from server.runtime import limit_malloc_arenas, raise_open_file_limit, tune_garbage_collection
 from server.storage.permissions import private_directory
@@ -35,11 +38,22 @@ def main(argv: list[str] | None = None) -> None:
     limit_malloc_arenas()  # before any thread allocates
     args = parse_args(argv)
     overrides = {"data_path": args.data_dir} if args.data_dir else {}
-    settings = Settings(**overrides)
+    try:
+        settings = Settings(**overrides)
+    except ValidationError as exc:  # before logging is set up: straight to stderr
+        print(
+            f"glue-server: cannot start: invalid settings: {_first_problem(exc)}", file=sys.stderr
+        )
+        raise SystemExit(2) from None
     private_directory(settings.data_path)  # 0700; a looser one is tightened by the cell
     log_file = configure_logging(settings)
-    logging.getLogger(__name__).info("logging to %s", log_file)
-    app = create_app(settings)
+    log = logging.getLogger(__name__)
+    log.info("logging to %s", log_file)
+    try:
+        app = create_app(settings)
+    except ConfigurationError as exc:  # one line, on the console and in the log file
+        log.critical("cannot start: %s", exc)
+        raise SystemExit(2) from None
     files = raise_open_file_limit()
     logging.getLogger(__name__).info("open-file limit %d", files)
     tune_garbage_collection()
@@ -69,6 +83,14 @@ def uvicorn_options(settings: Settings) -> dict[str, Any]:
         # addresses itself, from trusted_proxies only (server/security/forwarded.py).
         "proxy_headers": False,
     }
+
+
+def _first_problem(exc: ValidationError) -> str:
+    """One line for a technician: the first setting that is wrong, and how many more are."""
+    first = exc.errors()[0]
+    where = ".".join(str(part) for part in first["loc"]) or "settings"
+    more = exc.error_count() - 1
+    return f"{where}: {first['msg']}" + (f" (and {more} more)" if more else "")
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import AliasChoices, Field, field_validator, model_validator
 from pydantic_settings import (
@@ -30,6 +30,13 @@ from pydantic_settings import (
 )
 
 SIMULATED = "sim"
+
+# Coordinates and angles in the robot's base frame. Why these bounds: a cell's robot
+# reaches a metre or two; ten metres is a typo caught, not a cell refused.
+Millimetres = Annotated[float, Field(ge=-10_000, le=10_000)]
+Degrees = Annotated[float, Field(ge=-360, le=360)]
+Psi = Annotated[float, Field(ge=0, le=150)]  # the dispenser's pressure register's span
+Celsius = Annotated[float, Field(ge=-40, le=150)]
 
 # Robot positions (mm, robot base frame, on the table plane z=0) of ArUco markers 0-8.
 DEFAULT_MARKER_POSITIONS_MM: list[tuple[float, float]] = [
@@ -75,13 +82,21 @@ class JsonFileSource(PydanticBaseSettingsSource):
 class Settings(BaseSettings):
     """Every tunable of the cell server, with the specification's names."""
 
+    # allow_inf_nan=False: no setting is ever Infinity or NaN, from any source (an
+    # infinite timeout disables its limit; an infinite cycle time made /kpis a 500).
     model_config = SettingsConfigDict(
-        env_prefix="GLUE_APP_", extra="forbid", populate_by_name=True, validate_default=True
+        env_prefix="GLUE_APP_",
+        extra="forbid",
+        populate_by_name=True,
+        validate_default=True,
+        allow_inf_nan=False,
     )
 
     # Core state machine
     event_queue_size: int = Field(1000, ge=1, le=1_000_000)
-    processing_timeout: float = Field(60.0, gt=0, description="seconds an operation may run")
+    processing_timeout: float = Field(
+        60.0, gt=0, le=3600, description="seconds an operation may run"
+    )
     max_concurrent_operations: int = Field(
         1, ge=1, le=64, description="accepted for compatibility; the cell runs one at a time"
     )
@@ -89,12 +104,12 @@ class Settings(BaseSettings):
 
     # Error handling
     error_recovery_attempts: int = Field(3, ge=0, le=100)
-    error_recovery_delay: float = Field(2.0, ge=0)
+    error_recovery_delay: float = Field(2.0, ge=0, le=600)
     auto_recovery_enabled: bool = False
 
     # Performance monitoring
     performance_monitoring: bool = True
-    metrics_collection_interval: float = Field(10.0, gt=0)
+    metrics_collection_interval: float = Field(10.0, gt=0, le=3600)
     performance_history_size: int = Field(1000, ge=10, le=1_000_000)
 
     # Logging
@@ -103,13 +118,13 @@ class Settings(BaseSettings):
     )
     log_file_path: str | None = Field(None, description="default <data>/logs/glue_cell.log")
     log_rotation_size: str = "10MB"
-    log_retention_days: int = Field(30, ge=1)
+    log_retention_days: int = Field(30, ge=1, le=3650)
 
     # Persistence
     data_path: Path = Field(Path("data"), description="where state, journal and tokens live")
     state_persistence: bool = True
     persistence_file: str | None = Field(None, description="default <data>/state.json")
-    persistence_interval: float = Field(30.0, gt=0)
+    persistence_interval: float = Field(30.0, gt=0, le=3600)
 
     # Broadcasting (/ws is always served on the HTTP port: see `compatibility_notes`)
     broadcast_enabled: bool = True
@@ -130,18 +145,18 @@ class Settings(BaseSettings):
         "use (at most all but one)",
     )
     ws_client_buffer: int = Field(256, ge=8, le=100_000, description="messages queued per client")
-    ws_ping_interval: float = Field(20.0, gt=0)
+    ws_ping_interval: float = Field(20.0, gt=0, le=600)
 
     # Analytics and the journal
     analytics_enabled: bool = True
     analytics_database: str | None = Field(None, description="default <data>/journal.db")
-    analytics_retention_days: int = Field(90, ge=1)
+    analytics_retention_days: int = Field(90, ge=1, le=3650)
     journal_synchronous: Literal["OFF", "NORMAL", "FULL"] = Field(
         "FULL", description="SQLite synchronous level: FULL survives power loss"
     )
     shift_hours: float = Field(8.0, gt=0, le=24 * 31, description="default KPI window")
     design_cycle_time_s: float = Field(
-        30.0, gt=0, description="ideal time of one trajectory run, for OEE performance"
+        30.0, gt=0, le=3600, description="ideal time of one trajectory run, for OEE performance"
     )
 
     # Access
@@ -163,12 +178,12 @@ class Settings(BaseSettings):
     max_request_bytes: int = Field(1024 * 1024, ge=1024, le=64 * 1024 * 1024)
 
     # Hardware timeouts (seconds)
-    robot_communication_timeout: float = Field(10.0, gt=0)
-    vision_processing_timeout: float = Field(5.0, gt=0)
-    glue_system_timeout: float = Field(15.0, gt=0)
+    robot_communication_timeout: float = Field(10.0, gt=0, le=300)
+    vision_processing_timeout: float = Field(5.0, gt=0, le=300)
+    glue_system_timeout: float = Field(15.0, gt=0, le=300)
 
     # Safety (seconds)
-    emergency_stop_timeout: float = Field(1.0, gt=0)
+    emergency_stop_timeout: float = Field(1.0, gt=0, le=10)
     pause_hold_timeout: float = Field(
         2.0,
         gt=0,
@@ -176,14 +191,14 @@ class Settings(BaseSettings):
         description="a pause must have the valve closed and the robot confirmed still "
         "within this; otherwise it is refused and the cell goes to ERROR (PAUSE_NOT_HELD)",
     )
-    safe_position_timeout: float = Field(30.0, gt=0)
+    safe_position_timeout: float = Field(30.0, gt=0, le=600)
     planning_timeout: float = Field(
         10.0,
         gt=0,
         le=600,
         description="seconds a run may spend planning its path (PLANNING_TIMEOUT past it)",
     )
-    error_state_timeout: float = Field(300.0, gt=0)
+    error_state_timeout: float = Field(300.0, gt=0, le=86_400)
     reset_probe_timeout: float = Field(
         2.0,
         gt=0,
@@ -211,7 +226,7 @@ class Settings(BaseSettings):
     )
     glue_modbus_device_id: int = Field(1, ge=1, le=247)
     # Glue supervision (docs/hardware.md says where each default comes from)
-    glue_pressure_range_psi: tuple[float, float] = Field(
+    glue_pressure_range_psi: tuple[Psi, Psi] = Field(
         (20.0, 60.0),
         description="measured glue pressure above high PSI is a fault at any time, below low "
         "PSI while the valve is open (the dispenser's own alarms apply too); default: the "
@@ -231,7 +246,7 @@ class Settings(BaseSettings):
         description="how long a flow deviation may last (the valve's opening transient is "
         "shorter); 0.5 s is 50 mm of bead at the default spray speed",
     )
-    glue_temperature_range_c: tuple[float, float] = Field(
+    glue_temperature_range_c: tuple[Celsius, Celsius] = Field(
         (10.0, 40.0),
         description="glue temperature outside [low, high] degC is a fault at any time; the "
         "default suits a room-temperature adhesive, set it for a heated one",
@@ -259,7 +274,7 @@ class Settings(BaseSettings):
     )
 
     # Cell geometry and motion
-    safe_position: tuple[float, float, float, float, float, float] = (
+    safe_position: tuple[Millimetres, Millimetres, Millimetres, Degrees, Degrees, Degrees] = (
         400.0,
         0.0,
         200.0,
@@ -267,15 +282,15 @@ class Settings(BaseSettings):
         0.0,
         0.0,
     )
-    spray_height_mm: float = Field(20.0, ge=0)
+    spray_height_mm: float = Field(20.0, ge=0, le=500)
     travel_speed_mm_s: float = Field(250.0, gt=0, le=2000)
     spray_speed_mm_s: float = Field(100.0, gt=0, le=2000)
     acceleration_mm_s2: float = Field(1000.0, gt=0, le=20000)
     default_flow_rate_ml_min: float = Field(30.0, ge=0, le=1000)
     default_pressure_psi: float = Field(40.0, ge=0, le=150)
-    workspace_min_mm: tuple[float, float, float] = (100.0, -400.0, -5.0)
-    workspace_max_mm: tuple[float, float, float] = (800.0, 400.0, 500.0)
-    marker_positions_mm: list[tuple[float, float]] = Field(
+    workspace_min_mm: tuple[Millimetres, Millimetres, Millimetres] = (100.0, -400.0, -5.0)
+    workspace_max_mm: tuple[Millimetres, Millimetres, Millimetres] = (800.0, 400.0, 500.0)
+    marker_positions_mm: list[tuple[Millimetres, Millimetres]] = Field(
         default_factory=lambda: list(DEFAULT_MARKER_POSITIONS_MM),
         description="robot (x, y) mm on the table of the centres of ArUco markers 0-8; "
         "the default is the simulated table's grid, so a real camera needs it set",
@@ -373,6 +388,19 @@ class Settings(BaseSettings):
         if len(value) != 9:
             raise ValueError("marker_positions_mm needs the robot positions of markers 0-8 (nine)")
         return value
+
+    @model_validator(mode="after")
+    def _workspace_ordered(self) -> Settings:
+        """An empty workspace would refuse every move with a message about the move."""
+        for axis, low, high in zip(
+            "xyz", self.workspace_min_mm, self.workspace_max_mm, strict=True
+        ):
+            if not low < high:
+                raise ValueError(
+                    f"workspace_min_mm must be below workspace_max_mm on every axis; "
+                    f"{axis}: {low:g} is not below {high:g}"
+                )
+        return self
 
     @model_validator(mode="after")
     def _marker_layout(self) -> Settings:

@@ -14,6 +14,15 @@ class CellError(Exception):
     """Root of every deliberate error in the cell server."""
 
 
+class ConfigurationError(CellError, ValueError):
+    """A file or setting the server reads at start-up is invalid: the server does not start.
+
+    The message is one line naming the file, the entry and the field, because it is
+    all a technician sees when the service will not come up. A ValueError too, for
+    callers that caught the plain ValueError these checks used to raise.
+    """
+
+
 # --- the state machine -----------------------------------------------------
 
 

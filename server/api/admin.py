@@ -14,27 +14,20 @@ import logging
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from fastapi.exceptions import RequestValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from server.api.access import access_of
 from server.api.analytics import csv_export
+from server.api.declared_query import DeclaredQueryRoute
+from server.api.runtime_settings import SettingsChange, apply_change
 from server.api.schemas import ErrorView
-from server.config import Settings
+from server.api.time_window import Since, Until, time_window
 from server.security.tokens import Role
 from server.storage.journal import Journal
+from server.values import Name
 
-router = APIRouter(tags=["access"])
-RUNTIME_SETTINGS = (
-    "error_state_timeout",
-    "auto_recovery_enabled",
-    "error_recovery_attempts",
-    "error_recovery_delay",
-    "calibration_max_error_mm",
-    "design_cycle_time_s",
-    "shift_hours",
-    "processing_timeout",
-    "logging_level",
-)
+router = APIRouter(tags=["access"], route_class=DeclaredQueryRoute)
 
 
 class TicketView(BaseModel):
@@ -45,7 +38,7 @@ class TicketView(BaseModel):
 class TokenRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    name: str = Field(min_length=1, max_length=100)
+    name: Name
     role: Literal["viewer", "operator", "maintenance", "admin"]
 
 
@@ -102,8 +95,8 @@ def _audit_filters(
 @router.get("/audit")
 async def get_audit(
     request: Request,
-    since: float | None = Query(None, ge=0, le=1e11, allow_inf_nan=False),
-    until: float | None = Query(None, ge=0, le=1e11, allow_inf_nan=False),
+    since: Since = None,
+    until: Until = None,
     principal: AuditText = None,
     action: AuditText = None,
     outcome: AuditText = None,
@@ -111,6 +104,7 @@ async def get_audit(
     offset: int = Query(0, ge=0, le=10_000_000),
 ) -> dict[str, Any]:
     """Who did what, when, from where, with what outcome; newest first, filterable."""
+    window = time_window(since, until)
     journal: Journal = request.app.state.cell.journal
     await journal.caught_up()
     filters = _audit_filters(principal, action, outcome)
@@ -118,13 +112,15 @@ async def get_audit(
         asyncio.to_thread(
             journal.query,
             "audit",
-            since=since,
-            until=until,
+            since=window.since,
+            until=window.until,
             filters=filters,
             limit=limit,
             offset=offset,
         ),
-        asyncio.to_thread(journal.count, "audit", since=since, until=until, filters=filters),
+        asyncio.to_thread(
+            journal.count, "audit", since=window.since, until=window.until, filters=filters
+        ),
     )
     return {"audit": rows, "total": total, "limit": limit, "offset": offset}
 
@@ -132,18 +128,19 @@ async def get_audit(
 @router.get("/audit.csv", response_class=Response, responses={200: {"content": {"text/csv": {}}}})
 async def export_audit(
     request: Request,
-    since: float | None = Query(None, ge=0, le=1e11, allow_inf_nan=False),
-    until: float | None = Query(None, ge=0, le=1e11, allow_inf_nan=False),
+    since: Since = None,
+    until: Until = None,
     principal: AuditText = None,
     action: AuditText = None,
     outcome: AuditText = None,
 ) -> Response:
     """The audit trail as CSV, oldest first."""
+    window = time_window(since, until)
     return await csv_export(
         request.app.state.cell.journal,
         "audit",
-        since,
-        until,
+        window.since,
+        window.until,
         _audit_filters(principal, action, outcome),
     )
 
@@ -155,31 +152,20 @@ async def get_settings(request: Request) -> dict[str, Any]:
 
 
 @router.patch("/settings")
-async def patch_settings(request: Request, body: dict[str, Any]) -> dict[str, Any]:
-    """Change settings that apply at once (RUNTIME_SETTINGS); audited with old and new values."""
-    settings: Settings = request.app.state.settings
-    unknown = sorted(set(body) - set(RUNTIME_SETTINGS))
-    if unknown:
-        raise HTTPException(
-            422,
-            f"not changeable at run time: {', '.join(unknown)}; "
-            f"changeable: {', '.join(RUNTIME_SETTINGS)}",
-        )
+async def patch_settings(request: Request, body: SettingsChange) -> dict[str, Any]:
+    """Change settings that apply at once; audited with old and new values.
+
+    Each keeps its type and bounds from the settings model (GET /settings shows the
+    values in force); any other key is refused, as it takes effect only at a restart.
+    """
     try:
-        merged = Settings.model_validate({**settings.model_dump(), **body})
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"])
-        raise HTTPException(422, f"invalid setting {where}: {first['msg']}") from None
-    changes = {
-        k: (getattr(settings, k), getattr(merged, k))
-        for k in body
-        if getattr(settings, k) != getattr(merged, k)
-    }
-    for key, (_, new) in changes.items():
-        setattr(settings, key, new)
+        changes = apply_change(request.app.state.settings, body)
+    except ValidationError as exc:  # a rule across settings
+        raise RequestValidationError(
+            [{**error, "loc": ("body", *error["loc"])} for error in exc.errors()]
+        ) from None
     if "logging_level" in changes:
-        logging.getLogger().setLevel(settings.logging_level)
+        logging.getLogger().setLevel(request.app.state.settings.logging_level)
     request.state.audit_reason = "; ".join(
         f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items()
     )

@@ -21,23 +21,17 @@ import time
 from collections.abc import Awaitable, Callable, Iterator
 from typing import Annotated, Any, Literal, get_args
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request
-from fastapi.exceptions import RequestValidationError
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
-from server.api.schemas import ErrorView
+from server.api.declared_query import DeclaredQueryRoute
+from server.api.time_window import Since, TimeWindow, Until, time_window
 from server.cell import Cell
 from server.core.kpis import Window, compute_kpis
-from server.storage.journal import FILTERS, TABLES, Cursor, Journal, filter_columns
+from server.storage.journal import FILTERS, TABLES, Cursor, Journal
 
-router = APIRouter(tags=["analytics"])
+router = APIRouter(tags=["analytics"], route_class=DeclaredQueryRoute)
 
-Since = Annotated[
-    float | None, Query(ge=0, le=1e11, allow_inf_nan=False, description="Unix time, inclusive")
-]
-Until = Annotated[
-    float | None, Query(ge=0, le=1e11, allow_inf_nan=False, description="Unix time, exclusive")
-]
 Limit = Annotated[int, Query(ge=1, le=10_000)]
 Offset = Annotated[int, Query(ge=0, le=10_000_000)]
 TEXT_MAX_LENGTH = 64
@@ -60,12 +54,12 @@ def _journal(request: Request) -> Journal:
 async def _page(
     request: Request,
     table: str,
-    since: float | None,
-    until: float | None,
+    window: TimeWindow,
     limit: int,
     offset: int,
     **filters: str | None,
 ) -> dict[str, Any]:
+    since, until = window.since, window.until
     journal = _journal(request)
     await journal.caught_up()
     wanted = {k: v for k, v in filters.items() if v is not None}
@@ -117,7 +111,8 @@ def _table_route(table: str, name: str, doc: str) -> Callable[..., Awaitable[dic
         offset: int,
         **filters: Any,
     ) -> dict[str, Any]:
-        return await _page(request, table, since, until, limit, offset, **filters)
+        window = time_window(since, until)
+        return await _page(request, table, window, limit, offset, **filters)
 
     endpoint.__name__ = endpoint.__qualname__ = name
     endpoint.__doc__ = doc
@@ -171,70 +166,50 @@ for _path, _table, _name, _doc in TABLE_ROUTES:
     router.add_api_route(_path, _table_route(_table, _name, _doc), methods=["GET"], name=_name)
 
 
-def _export_filters() -> Callable[..., dict[str, Any]]:
-    """A dependency taking every export table's filters as query parameters; each is
-    documented with what it means in each table that has it. Returns those given."""
-    tables: dict[str, list[str]] = {}  # column -> its meaning in each table
-    types: dict[str, type] = {}  # one parameter per column: its type must agree
-    for table in EXPORT_TABLES:
-        for f in FILTERS[table]:
-            tables.setdefault(f.column, []).append(f"{f.meaning} ({table})")
-            if types.setdefault(f.column, f.type) is not f.type:
-                raise TypeError(f"filter {f.column} has different types in different tables")
-
-    def given(**filters: Any) -> dict[str, Any]:
-        return {column: value for column, value in filters.items() if value is not None}
-
-    given.__signature__ = inspect.Signature(  # type: ignore[attr-defined]
-        [
-            _filter_parameter(column, types[column], "; ".join(meanings))
-            for column, meanings in tables.items()
-        ],
-        return_annotation=dict[str, Any],
-    )
-    return given
-
-
-ExportFilters = Annotated[dict[str, Any], Depends(_export_filters())]
-
-
-@router.get(
-    "/export/{table}.csv",
-    response_class=Response,
-    responses={200: {"content": {"text/csv": {}}}, 404: {"model": ErrorView}},
-)
-async def export_csv(
-    request: Request,
-    table: ExportTable,
-    filters: ExportFilters,  # its query parameters follow `until` in the schema
-    since: Since = None,
-    until: Until = None,
-) -> Response:
-    """A whole table as CSV, oldest first, for spreadsheets and reports.
+EXPORT_DOC = """The {table} table as CSV, oldest first, for spreadsheets and reports.
 
     Every matching row, with no row limit: streamed page by page, so a long table is
-    never cut short (docs/api.md says what the file holds). Takes the equality
-    filters of that table (its JSON route's; transitions also `event_id`); each
-    parameter says what it means in each table that has it. A filter on another
-    table's column is a 422 naming it: ignored, it would give a file holding more
-    than was asked for.
+    never cut short (docs/api.md says what the file holds). Takes the time window and
+    the equality filters of this table (those of its JSON route, and for transitions
+    also `event_id`); any other query parameter is a 422 naming it: ignored, it would
+    give a file holding more than was asked for.
     """
-    allowed = filter_columns(table)
-    misplaced = [column for column in filters if column not in allowed]
-    if misplaced:
-        raise RequestValidationError(
-            [
-                {
-                    "type": "value_error",
-                    "loc": ("query", column),
-                    "msg": f"{table} cannot be filtered by {column} "
-                    f"(its filters: {', '.join(allowed)})",
-                    "input": filters[column],
-                }
-                for column in misplaced
-            ]
-        )
-    return await csv_export(_journal(request), table, since, until, filters)
+
+
+def _export_route(table: str) -> Callable[..., Awaitable[Response]]:
+    """The CSV route of one journal table: its own path, so that openapi.json lists exactly
+    the filters this table takes (one route for every table could only list them all)."""
+
+    async def endpoint(
+        request: Request, since: float | None, until: float | None, **filters: Any
+    ) -> Response:
+        window = time_window(since, until)
+        given = {column: value for column, value in filters.items() if value is not None}
+        return await csv_export(_journal(request), table, window.since, window.until, given)
+
+    endpoint.__name__ = endpoint.__qualname__ = f"export_{table}_csv"
+    endpoint.__doc__ = EXPORT_DOC.format(table=table)
+    endpoint.__signature__ = inspect.Signature(  # type: ignore[attr-defined]
+        [
+            inspect.Parameter("request", KEYWORD_ONLY, annotation=Request),
+            inspect.Parameter("since", KEYWORD_ONLY, default=None, annotation=Since),
+            inspect.Parameter("until", KEYWORD_ONLY, default=None, annotation=Until),
+            *(_filter_parameter(f.column, f.type, f.meaning) for f in FILTERS[table]),
+        ],
+        return_annotation=Response,
+    )
+    return endpoint
+
+
+for _table in EXPORT_TABLES:
+    router.add_api_route(
+        f"/export/{_table}.csv",
+        _export_route(_table),
+        methods=["GET"],
+        name=f"export_{_table}_csv",
+        response_class=Response,
+        responses={200: {"content": {"text/csv": {}}}},
+    )
 
 
 async def csv_export(
@@ -308,13 +283,23 @@ def _drain(buffer: io.StringIO) -> str:
 
 @router.get("/kpis")
 async def get_kpis(request: Request, since: Since = None, until: Until = None) -> dict[str, Any]:
-    """KPIs and OEE over a window (default: the current shift, the last shift_hours)."""
+    """KPIs and OEE over a window (default: the current shift, the last shift_hours).
+
+    `until` defaults to now, `since` to one shift before `until`. A `since` still to
+    come without an `until` is a shift that has not begun: the window is the shift
+    from `since` and holds nothing yet.
+    """
     cell: Cell = request.app.state.cell
     now = time.time()
-    end = until if until is not None else now
-    start = since if since is not None else end - cell.settings.shift_hours * 3600
-    if start >= end:
-        raise HTTPException(422, "since must be before until")
+    shift_s = cell.settings.shift_hours * 3600
+    time_window(since, until)  # since before until
+    if until is not None:
+        end = until
+    elif since is not None and since >= now:
+        end = since + shift_s
+    else:
+        end = now
+    start = since if since is not None else end - shift_s
     journal = _journal(request)
     await journal.caught_up()
 

@@ -16,6 +16,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Request
 from fastapi.responses import JSONResponse
 
+from server.api.declared_query import IGNORES_UNKNOWN_QUERY, DeclaredQueryRoute
 from server.api.schemas import (
     CommandResult,
     CreateWorkpieceRequest,
@@ -33,7 +34,7 @@ from server.core.events import (
 )
 from server.core.transitions import Command
 
-router = APIRouter(tags=["commands"])
+router = APIRouter(tags=["commands"], route_class=DeclaredQueryRoute)
 
 RESPONSES: dict[int | str, dict[str, Any]] = {
     202: {"model": CommandResult, "description": "accepted: the machine changed state"},
@@ -140,7 +141,14 @@ async def cancel(request: Request) -> JSONResponse:
     return await _run(request, Command.CANCEL)
 
 
-@router.post("/estop", status_code=202, responses=RESPONSES, response_model=CommandResult)
+@router.post(
+    "/estop",
+    status_code=202,
+    responses=RESPONSES,
+    response_model=CommandResult,
+    # A stop is never refused over a query parameter it does not read.
+    openapi_extra={IGNORES_UNKNOWN_QUERY: True},
+)
 async def estop(
     request: Request, body: Annotated[EstopRequest | None, Body()] = None
 ) -> JSONResponse:

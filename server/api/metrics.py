@@ -26,11 +26,12 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 from starlette.types import Scope
 
+from server.api.declared_query import DeclaredQueryRoute
 from server.cell import Cell
 from server.core.bus import SubscriptionClosed
 from server.core.transitions import State
 
-router = APIRouter(tags=["queries"])
+router = APIRouter(tags=["queries"], route_class=DeclaredQueryRoute)
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5)
 OPERATION_BUCKETS = (1, 5, 10, 30, 60, 120, 300, 600, 1800)
 

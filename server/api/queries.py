@@ -8,6 +8,7 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, Request, Response
 from fastapi.responses import FileResponse
 
+from server.api.declared_query import DeclaredQueryRoute
 from server.api.schemas import (
     AllowedView,
     ErrorView,
@@ -18,7 +19,7 @@ from server.cell import Cell
 from server.core.transitions import Command, normalize_command
 from server.core.view import CellView
 
-router = APIRouter(tags=["queries"])
+router = APIRouter(tags=["queries"], route_class=DeclaredQueryRoute)
 
 
 def _cell(request: Request) -> Cell:

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
 from server.storage.workpieces import IDENTIFIER, SpraySettings
+from server.values import Name
 
 
 class Strict(BaseModel):
@@ -19,9 +20,22 @@ class Strict(BaseModel):
 
 
 class StartRequest(Strict):
-    """Body of POST /start (all fields optional)."""
+    """Body of POST /start (all fields optional).
 
-    contour_matching: bool = Field(
+    Without contour matching, `workpiece_id` is required: the cell refuses the start
+    otherwise (422 naming it). The schema states that rule (`anyOf`) for clients.
+    """
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "anyOf": [
+                {"properties": {"contour_matching": {"const": True}}},
+                {"required": ["workpiece_id"], "properties": {"workpiece_id": {"type": "string"}}},
+            ]
+        }
+    )
+
+    contour_matching: StrictBool = Field(
         True, description="find the workpiece in a fresh frame and match it to the library"
     )
     workpiece_id: str | None = Field(
@@ -32,7 +46,7 @@ class StartRequest(Strict):
 class CreateWorkpieceRequest(Strict):
     """Body of POST /create-workpiece (optional)."""
 
-    name: str | None = Field(None, min_length=1, max_length=100)
+    name: Name | None = None
     workpiece_id: str | None = Field(
         None, pattern=IDENTIFIER, description="store under this id (default: the next wp-NNNN)"
     )

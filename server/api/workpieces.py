@@ -13,6 +13,7 @@ from fastapi import APIRouter, HTTPException, Path, Request, Response
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
+from server.api.declared_query import DeclaredQueryRoute
 from server.api.schemas import ErrorView
 from server.cell import Cell
 from server.storage.workpieces import (
@@ -24,7 +25,7 @@ from server.storage.workpieces import (
     WorkpieceLibrary,
 )
 
-router = APIRouter(tags=["workpieces"])
+router = APIRouter(tags=["workpieces"], route_class=DeclaredQueryRoute)
 WorkpieceId = Annotated[str, Path(pattern=IDENTIFIER, description="workpiece identifier")]
 NOT_FOUND: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorView, "description": "no such workpiece"}

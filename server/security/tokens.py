@@ -27,6 +27,8 @@ from enum import IntEnum
 from pathlib import Path
 from typing import Any
 
+from server.errors import ConfigurationError
+from server.security.token_file import read_entries
 from server.storage.files import write_bytes_atomic
 
 log = logging.getLogger(__name__)
@@ -101,11 +103,13 @@ class TokenStore:
         except FileNotFoundError:
             return
         except ValueError as exc:
-            raise ValueError(
+            raise ConfigurationError(
                 f"{self.path} is not valid JSON ({exc}); restore it or remove it "
                 "to start with a new admin token"
             ) from exc
-        self._entries = {e["id"]: TokenEntry(**e) for e in document.get("tokens", [])}
+        roles = [role.label for role in Role]
+        entries = read_entries(self.path, document, roles)  # each checked: see token_file.py
+        self._entries = {e.id: TokenEntry(**e.model_dump()) for e in entries}
 
     def _save(self) -> None:
         data = json.dumps({"tokens": [asdict(e) for e in self._entries.values()]}, indent=2)

@@ -15,13 +15,14 @@ import re
 import threading
 import time
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import Annotated, ClassVar, Literal
 
 import numpy as np
 from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    StrictBool,
     ValidationError,
     ValidationInfo,
     field_validator,
@@ -29,6 +30,7 @@ from pydantic import (
 
 from server.storage.files import read_json, write_bytes_atomic, write_json_atomic
 from server.storage.permissions import private_directory
+from server.values import FiniteNumber, Name
 from server.vision.paths import fill_size
 
 log = logging.getLogger(__name__)
@@ -50,16 +52,19 @@ class SpraySettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    outline: bool = Field(True, description="spray along the outline")
-    outline_offset_mm: float = Field(0.0, ge=-50, le=50, description=">0 outside, <0 inside")
+    outline: StrictBool = Field(True, description="spray along the outline")
+    outline_offset_mm: FiniteNumber = Field(0.0, ge=-50, le=50, description=">0 outside, <0 inside")
     fill: Literal["none", "zigzag", "raster"] = "none"
-    fill_spacing_mm: float = Field(10.0, ge=1, le=200)
-    fill_angle_deg: float = Field(0.0, ge=-180, le=180)
-    speed_mm_s: float = Field(100.0, gt=0, le=1000)
-    flow_rate_ml_min: float = Field(30.0, ge=0, le=1000)
+    fill_spacing_mm: FiniteNumber = Field(10.0, ge=1, le=200)
+    fill_angle_deg: FiniteNumber = Field(0.0, ge=-180, le=180)
+    speed_mm_s: FiniteNumber = Field(100.0, gt=0, le=1000)
+    flow_rate_ml_min: FiniteNumber = Field(30.0, ge=0, le=1000)
 
 
-Point = tuple[float, float]
+# Table-frame millimetres: far beyond any table, so only a typo or garbage is refused.
+OUTLINE_LIMIT_MM = 5000
+Coordinate = Annotated[FiniteNumber, Field(ge=-OUTLINE_LIMIT_MM, le=OUTLINE_LIMIT_MM)]
+Point = tuple[Coordinate, Coordinate]
 
 
 class WorkpieceIn(BaseModel):
@@ -70,17 +75,13 @@ class WorkpieceIn(BaseModel):
     # Why a ClassVar: a stored entry keeps being readable under tighter edit limits.
     edit_limits: ClassVar[bool] = True
 
-    name: str = Field(min_length=1, max_length=100)
-    outline_mm: list[Point] = Field(min_length=3, max_length=MAX_OUTLINE_POINTS)
+    name: Name
+    outline_mm: list[Point] = Field(
+        min_length=3,
+        max_length=MAX_OUTLINE_POINTS,
+        description=f"(x, y) mm in the table frame, each within ±{OUTLINE_LIMIT_MM} mm",
+    )
     spray: SpraySettings = Field(default_factory=SpraySettings)
-
-    @field_validator("outline_mm")
-    @classmethod
-    def _finite_and_bounded(cls, points: list[Point]) -> list[Point]:
-        for x, y in points:
-            if not (-5000 <= x <= 5000 and -5000 <= y <= 5000):
-                raise ValueError("outline points must lie within ±5000 mm")
-        return points
 
     @field_validator("spray")
     @classmethod
@@ -123,6 +124,8 @@ class Workpiece(WorkpieceIn):
     """A library entry."""
 
     edit_limits: ClassVar[bool] = False
+    # Why looser than WorkpieceIn: a file stored before a limit was tightened stays readable.
+    name: str = Field(min_length=1, max_length=100)
     outline_mm: list[Point] = Field(min_length=3, max_length=STORED_MAX_POINTS)
     id: str = Field(pattern=IDENTIFIER)
     created_at: float

@@ -306,6 +306,21 @@ async def test_a_method_a_path_does_not_answer_is_405_with_every_method_in_allow
     assert deleted.status_code == 405 and allow_of(deleted) == {"GET", "HEAD", "OPTIONS"}
 
 
+async def test_a_method_no_route_answers_needs_only_what_the_paths_own_methods_need(
+    server,
+) -> None:
+    """The 405 tells what OPTIONS tells, so it needs no more (not ADMIN's 403)."""
+    traced = await server.request("TRACE", "/health")  # /health is open
+    assert traced.status_code == 405 and allow_of(traced) == {"GET", "HEAD", "OPTIONS"}
+    viewer = auth(server.tokens["viewer"])
+    deleted = await server.delete("/state", headers=viewer)
+    assert deleted.status_code == 405 and allow_of(deleted) == {"GET", "HEAD", "OPTIONS"}
+    anonymous = await server.delete("/state")
+    assert anonymous.status_code == 401  # /state needs a viewer: so does learning its methods
+    unknown = await server.request("TRACE", "/no-such-path", headers=viewer)
+    assert unknown.status_code == 403  # a path the table does not know needs ADMIN
+
+
 @contextlib.asynccontextmanager
 async def served(settings: Settings, **uvicorn_overrides):
     """A client of the app on fakes with `settings`, served as `python -m server` serves it."""

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 from pydantic import ValidationError
 
 from server.config import Settings
+from tests.schema_bounds import unbounded_numbers
 
 
 def test_defaults_start_the_simulated_cell() -> None:
@@ -170,3 +172,81 @@ def test_glue_supervision_that_would_trip_every_run_is_refused() -> None:
         Settings(glue_link_timeout=0.1, glue_poll_interval=0.2)
     with pytest.raises(ValidationError, match="glue_temperature_range_c"):
         Settings(glue_temperature_range_c=(40.0, 10.0))
+
+
+def test_every_numeric_setting_has_both_bounds() -> None:
+    """Infinity and 1e400 got in where a setting had no maximum (issue 14)."""
+    schema = Settings.model_json_schema()
+    assert unbounded_numbers(schema, schema) == []
+
+
+@pytest.mark.parametrize("value", ["inf", "-inf", "nan", "1e400", "Infinity"])
+def test_a_non_finite_setting_is_refused_from_the_environment(monkeypatch, value) -> None:
+    monkeypatch.setenv("GLUE_APP_PROCESSING_TIMEOUT", value)
+    with pytest.raises(ValidationError, match="processing_timeout"):
+        Settings()
+
+
+def test_a_non_finite_setting_is_refused_from_the_config_file(tmp_path, monkeypatch) -> None:
+    config = tmp_path / "config.json"
+    config.write_text(
+        '{"error_state_timeout": Infinity, "safe_position": [400, 0, 1e400, 180, 0, 0]}'
+    )
+    monkeypatch.setenv("GLUE_APP_CONFIG_PATH", str(config))
+    with pytest.raises(ValidationError) as refused:
+        Settings()
+    assert {error["loc"] for error in refused.value.errors()} == {
+        ("error_state_timeout",),
+        ("safe_position", 2),
+    }
+
+
+def test_the_specifications_defaults_lie_inside_the_bounds() -> None:
+    """Each bound added keeps Appendix A's values and this server's own defaults valid."""
+    Settings(**SPECIFICATION_PRODUCTION_CONFIG)
+    Settings()
+
+
+def test_an_empty_workspace_is_refused_naming_the_axis() -> None:
+    with pytest.raises(ValidationError, match="z: 500 is not below 100"):
+        Settings(workspace_min_mm=(100.0, -400.0, 500.0), workspace_max_mm=(800.0, 400.0, 100.0))
+
+
+def _accepted(bounds: dict) -> str:
+    """A schema's range as README's settings table writes it."""
+
+    def number(value: float) -> str:
+        return str(int(value)) if float(value).is_integer() else f"{value:g}"
+
+    low = (
+        f"> {number(bounds['exclusiveMinimum'])}"
+        if "exclusiveMinimum" in bounds
+        else number(bounds["minimum"])
+    )
+    high = (
+        f"< {number(bounds['exclusiveMaximum'])}"
+        if "exclusiveMaximum" in bounds
+        else number(bounds["maximum"])
+    )
+    return f"{low} .. {high}"
+
+
+def test_readmes_settings_table_states_every_numeric_bound() -> None:
+    """The bounds an operator reads are the ones the model enforces."""
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text(encoding="utf-8")
+    rows = {
+        cells[0].strip("` "): cells[2].strip()
+        for line in readme.splitlines()
+        if line.startswith("| `")
+        for cells in [line.strip("|").split("|")]
+    }
+    schema = Settings.model_json_schema()
+    for name, field in schema["properties"].items():
+        for option in field.get("anyOf", [field]):
+            if option.get("type") in ("number", "integer"):
+                assert rows.get(name) == _accepted(option), name
+            elif option.get("type") == "array":
+                items = option.get("prefixItems") or option.get("items", {}).get("prefixItems")
+                if items and all(i.get("type") in ("number", "integer") for i in items):
+                    ranges = " / ".join(dict.fromkeys(_accepted(i) for i in items))
+                    assert rows.get(name) == f"each {ranges}", name
