@@ -5,9 +5,10 @@ requests (schemathesis' coverage phase plus MAX_EXAMPLES Hypothesis examples,
 positive and negative) against the real app under uvicorn on loopback, on
 in-process fake devices, twice: once with the admin bearer token and once
 without any credentials. Every check schemathesis registers runs on every
-answer (ALL_CHECKS): no 5xx, a 405 with Allow for a method a path lacks, every answer as documented, and the document exact about
-inputs: what it calls invalid is refused, what it calls valid is accepted (or
-refused for the state of the cell: 404, 409). The admin run authenticates
+answer (ALL_CHECKS): no 5xx, a 405 with Allow for a method a path lacks,
+every answer as documented, and the document exact about inputs: what it
+calls invalid is refused, what it calls valid is accepted (or refused for the
+state of the cell: 404, 409). The admin run authenticates
 through schemathesis' own auth (`AdminToken`), so the cases that test a
 missing or wrong token really are sent without it.
 
