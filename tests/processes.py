@@ -109,8 +109,7 @@ def server_process(
         while True:
             if process.poll() is not None:
                 raise RuntimeError(
-                    f"server exited with {process.returncode}: "
-                    f"{log_path.read_text()[-2000:]}"
+                    f"server exited with {process.returncode}: {log_path.read_text()[-2000:]}"
                 )
             try:
                 httpx.get(f"http://127.0.0.1:{port}/health", timeout=1).raise_for_status()

@@ -3,8 +3,10 @@
 Who may call them is not decided here: the gate (server/api/access.py) has
 already checked every request against the policy table
 (server/security/policy.py) and left its `principal` in the request's state.
-A route that changes something says what in `request.state.audit_reason`, and
-the audit observer (server/api/audit.py) writes it with the outcome.
+A route that changes something puts it on record first and then makes it
+(server/api/audit.py: `record_before_change`, then `save` for a file): a
+journal that cannot write refuses the change (503), a file that cannot be
+written leaves it unapplied (507).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from server.api import audit
 from server.api.access import access_of
 from server.api.analytics import csv_export
 from server.api.schemas import ErrorView
@@ -65,11 +68,14 @@ async def list_tokens(request: Request) -> dict[str, Any]:
     return {"tokens": access_of(request).tokens.list()}
 
 
-@router.post("/tokens", status_code=201)
+@router.post("/tokens", status_code=201, responses=audit.STORAGE_REFUSALS)
 async def create_token(request: Request, body: TokenRequest) -> dict[str, Any]:
     """A new token; its secret is shown once, in this answer only."""
-    entry, token = access_of(request).tokens.create(body.name, Role.parse(body.role))
-    request.state.audit_reason = f"created token {entry.id} ({body.name}, {body.role})"
+    tokens = access_of(request).tokens
+    entry, token = tokens.mint(body.name, Role.parse(body.role))
+    what = f"created token {entry.id} ({body.name}, {body.role})"
+    await audit.record_before_change(request, what)
+    await audit.save(request, what, lambda: tokens.add(entry))
     return {**entry.public(), "token": token}
 
 
@@ -77,15 +83,18 @@ async def create_token(request: Request, body: TokenRequest) -> dict[str, Any]:
     "/tokens/{token_id}",
     status_code=204,
     response_class=Response,
-    responses={404: {"model": ErrorView, "description": "no such token"}},
+    responses={404: {"model": ErrorView, "description": "no such token"}, **audit.STORAGE_REFUSALS},
 )
 async def revoke_token(request: Request, token_id: str) -> Response:
-    """Revoke a token at once."""
+    """Revoke a token at once (once saved: a revocation that cannot be saved is refused)."""
+    tokens = access_of(request).tokens
     try:
-        entry = access_of(request).tokens.revoke(token_id)
+        entry = tokens.get(token_id)
     except KeyError:
         raise HTTPException(404, f"no token {token_id!r}") from None
-    request.state.audit_reason = f"revoked token {entry.id} ({entry.name})"
+    what = f"revoked token {entry.id} ({entry.name})"
+    await audit.record_before_change(request, what)
+    await audit.save(request, what, lambda: tokens.revoke(token_id))
     return Response(status_code=204)
 
 
@@ -154,7 +163,7 @@ async def get_settings(request: Request) -> dict[str, Any]:
     return request.app.state.settings.model_dump(mode="json")
 
 
-@router.patch("/settings")
+@router.patch("/settings", responses={503: audit.STORAGE_REFUSALS[503]})
 async def patch_settings(request: Request, body: dict[str, Any]) -> dict[str, Any]:
     """Change settings that apply at once (RUNTIME_SETTINGS); audited with old and new values."""
     settings: Settings = request.app.state.settings
@@ -176,11 +185,12 @@ async def patch_settings(request: Request, body: dict[str, Any]) -> dict[str, An
         for k in body
         if getattr(settings, k) != getattr(merged, k)
     }
+    # On record before it applies; settings live in memory only, so nothing can fail after.
+    await audit.record_before_change(
+        request, "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items())
+    )
     for key, (_, new) in changes.items():
         setattr(settings, key, new)
     if "logging_level" in changes:
         logging.getLogger().setLevel(settings.logging_level)
-    request.state.audit_reason = "; ".join(
-        f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items()
-    )
     return {"changed": {k: {"old": old, "new": new} for k, (old, new) in changes.items()}}

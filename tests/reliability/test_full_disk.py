@@ -51,7 +51,9 @@ def cell_factory(tmp_path: Path) -> Iterator[Callable[..., Cell]]:
         disk = stack.enter_context(small_disk(tmp_path / "disk", size))
         data = disk.path / "data"
         demo_stores(data)
-        robot = stack.enter_context(simulator("server.drivers.sim.robot_sim", "--speed-factor", "4"))
+        robot = stack.enter_context(
+            simulator("server.drivers.sim.robot_sim", "--speed-factor", "4")
+        )
         glue = stack.enter_context(simulator("server.drivers.sim.glue_sim"))
         env = {
             "ROBOT_IP": "127.0.0.1",
@@ -67,9 +69,7 @@ def cell_factory(tmp_path: Path) -> Iterator[Callable[..., Cell]]:
         def start_server() -> Iterator[httpx.Client]:
             port = free_port()
             log = tmp_path / "server.log"
-            with server_process(
-                port, data, env, log_path=log, preexec_fn=disk.preexec()
-            ) as server:
+            with server_process(port, data, env, log_path=log, preexec_fn=disk.preexec()) as server:
                 disk.attach(server.pid)
                 with httpx.Client(
                     base_url=f"http://127.0.0.1:{port}", timeout=30, headers=admin_headers(data)
@@ -242,4 +242,3 @@ def test_a_fresh_server_starts_on_a_2_mb_disk(tmp_path: Path) -> None:
             assert client.post("/home").status_code == 202
             client.close()
     assert "simulated cell not commissioned" in log.read_text()
-
