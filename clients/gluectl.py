@@ -20,7 +20,7 @@ Exit codes, stable for scripts (the reason is printed on stderr):
     4  unauthorized or forbidden (401/403): no valid token, or the role is too low
     5  unreachable: no connection, or no answer in time
     6  invalid request (422), or not found (404)
-    7  busy (503): the event queue is full; nothing changed, retry shortly
+    7  busy (503): the event queue is full or the journal cannot write; retry shortly
     8  timeout in `wait`
     9  `wait`: the cell is in ERROR, which only a reset leaves (even if it was
        already there); --no-fail-on-error waits through it for someone's reset

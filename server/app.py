@@ -31,11 +31,10 @@ from server.api import (
 from server.api.dashboard import mount_dashboard
 from server.api.limits import BodySizeLimit
 from server.api.observe import ResponseObservers
+from server.api.schemas import RETRY_AFTER_S
 from server.cell import Cell
 from server.config import Settings
-from server.errors import EventQueueFull, WorkerStopped
-
-RETRY_AFTER_S = 1
+from server.errors import ChangeNotSaved, EventQueueFull, JournalUnavailable, WorkerStopped
 
 
 def create_app(settings: Settings | None = None, *, cell: Cell | None = None) -> FastAPI:
@@ -123,7 +122,9 @@ def _install_error_handlers(app: FastAPI) -> None:
         return cell.view.state.value if cell.started else "INITIALIZING"
 
     async def try_again_later(request: Request, exc: Exception) -> JSONResponse:
-        """503 for a full event queue or a worker shutting down: nothing was changed."""
+        """503 for a full event queue, a worker shutting down or a journal that cannot
+        write: nothing was changed."""
+        request.state.audit_reason = str(exc)  # for the refusal's audit row
         body = {
             "accepted": False,
             "state": current_state(request),
@@ -135,6 +136,12 @@ def _install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(EventQueueFull, try_again_later)
     app.add_exception_handler(405, methods.method_not_allowed)
     app.add_exception_handler(WorkerStopped, try_again_later)
+    app.add_exception_handler(JournalUnavailable, try_again_later)
+
+    @app.exception_handler(ChangeNotSaved)
+    async def not_saved(request: Request, exc: ChangeNotSaved) -> JSONResponse:
+        """507 (no room) or 503: the change was on record but could not be written; not applied."""
+        return JSONResponse({"detail": str(exc)}, status_code=exc.status)
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -16,7 +16,7 @@ from typing import Any
 from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
-from server.core.events import Outcome, Payload, StopPayload
+from server.core.events import AuditNote, Outcome, Payload, StopPayload
 from server.core.live import DeviceFeed
 from server.core.operations import Operation, default_operations
 from server.core.snapshot import SnapshotFile
@@ -153,15 +153,23 @@ class Cell:
             self._release = None
 
     async def command(
-        self, command: Command, *, source: str, payload: Payload | None = None
+        self,
+        command: Command,
+        *,
+        source: str,
+        payload: Payload | None = None,
+        audit: AuditNote | None = None,
     ) -> Outcome:
-        """Run an operator command (start, pause, estop, ...) with its typed payload."""
+        """Run an operator command (start, pause, estop, ...) with its typed payload.
+
+        `audit` says who sent it: its row is committed with the event, before the answer.
+        """
         assert self.worker is not None, "the cell is not started"
         event = COMMANDS[command]
         if event is Event.EMERGENCY_STOP:
             stop = payload if isinstance(payload, StopPayload) else StopPayload()
-            return await self.worker.emergency_stop(source=source, payload=stop)
-        return await self.worker.request(event, source=source, payload=payload)
+            return await self.worker.emergency_stop(source=source, payload=stop, audit=audit)
+        return await self.worker.request(event, source=source, payload=payload, audit=audit)
 
 
 def find_interruption(journal: Journal, previous: dict[str, Any] | None) -> str | None:

@@ -51,6 +51,37 @@ class WorkerStopped(CellError):
     """The worker shut down before deciding on the event; nothing was changed."""
 
 
+# --- storage ---------------------------------------------------------------
+
+
+class JournalUnavailable(CellError):
+    """The journal cannot write (a full disk, most often): the request was refused,
+    nothing was changed. Every change must be on record before it is made."""
+
+    def __init__(self, problem: str) -> None:
+        self.problem = problem
+        super().__init__(
+            f"the journal cannot write ({problem}): nothing was changed; free space under "
+            "the data directory, then try again"
+        )
+
+
+class ChangeNotSaved(CellError):
+    """A change could not be written to its file (no space, most often); it was not applied.
+
+    `status` is the HTTP answer: 507 when the disk had no room, 503 otherwise.
+    """
+
+    def __init__(self, what: str, problem: str, status: int = 507) -> None:
+        self.what = what
+        self.problem = problem
+        self.status = status
+        super().__init__(
+            f"{what} could not be saved ({problem}): nothing was changed; free space under "
+            "the data directory, then try again"
+        )
+
+
 # --- devices ---------------------------------------------------------------
 
 

@@ -9,7 +9,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,10 +80,21 @@ def stop(process: subprocess.Popen[str]) -> None:
 
 @contextlib.contextmanager
 def server_process(
-    port: int, data_dir: Path, env: dict[str, str] | None = None, timeout: float = 60.0
+    port: int,
+    data_dir: Path,
+    env: dict[str, str] | None = None,
+    timeout: float = 60.0,
+    *,
+    log_path: Path | None = None,
+    preexec_fn: Callable[[], None] | None = None,
 ) -> Iterator[subprocess.Popen[str]]:
-    """Run `python -m server` on `port`; wait until GET /state answers."""
-    log = (data_dir / "server.log").open("w")
+    """Run `python -m server` on `port`; wait until GET /state answers.
+
+    Its output goes to `log_path` (default `<data_dir>/server.log`); `preexec_fn`
+    runs in the child before the server (e.g. to set a resource limit).
+    """
+    log_path = log_path or data_dir / "server.log"
+    log = log_path.open("w")
     process = subprocess.Popen(
         [sys.executable, "-m", "server", "--port", str(port), "--data-dir", str(data_dir)],
         stdout=log,
@@ -91,14 +102,14 @@ def server_process(
         text=True,
         env=_env(env),
         cwd=ROOT,
+        preexec_fn=preexec_fn,
     )
     try:
         deadline = time.monotonic() + timeout
         while True:
             if process.poll() is not None:
                 raise RuntimeError(
-                    f"server exited with {process.returncode}: "
-                    f"{(data_dir / 'server.log').read_text()[-2000:]}"
+                    f"server exited with {process.returncode}: {log_path.read_text()[-2000:]}"
                 )
             try:
                 httpx.get(f"http://127.0.0.1:{port}/health", timeout=1).raise_for_status()

@@ -89,7 +89,8 @@ class NotFound(InvalidRequest):
 
 
 class Busy(CellError):
-    """503: the event queue is full (nothing was changed); retry after `retry_after` s."""
+    """503: the event queue is full or the journal cannot write (the message says which);
+    retry after `retry_after` s."""
 
     def __init__(
         self, message: str, *, retry_after: float = 1.0, status_code: int = 503, body: Any = None

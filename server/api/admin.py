@@ -3,8 +3,10 @@
 Who may call them is not decided here: the gate (server/api/access.py) has
 already checked every request against the policy table
 (server/security/policy.py) and left its `principal` in the request's state.
-A route that changes something says what in `request.state.audit_reason`, and
-the audit observer (server/api/audit.py) writes it with the outcome.
+A route that changes something puts it on record first and then makes it
+(server/api/audit.py: `record_before_change`, then `save` for a file): a
+journal that cannot write refuses the change (503), a file that cannot be
+written leaves it unapplied (507).
 """
 
 from __future__ import annotations
@@ -17,12 +19,14 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, ValidationError
 
+from server.api import audit
 from server.api.access import access_of
 from server.api.analytics import csv_export
 from server.api.declared_query import DeclaredQueryRoute
-from server.api.runtime_settings import SettingsChange, apply_change
+from server.api.runtime_settings import SettingsChange, plan_change
 from server.api.schemas import ErrorView
 from server.api.time_window import Since, Until, time_window
+from server.config import Settings
 from server.security.tokens import Role
 from server.storage.journal import Journal
 from server.values import Name
@@ -58,11 +62,14 @@ async def list_tokens(request: Request) -> dict[str, Any]:
     return {"tokens": access_of(request).tokens.list()}
 
 
-@router.post("/tokens", status_code=201)
+@router.post("/tokens", status_code=201, responses=audit.STORAGE_REFUSALS)
 async def create_token(request: Request, body: TokenRequest) -> dict[str, Any]:
     """A new token; its secret is shown once, in this answer only."""
-    entry, token = access_of(request).tokens.create(body.name, Role.parse(body.role))
-    request.state.audit_reason = f"created token {entry.id} ({body.name}, {body.role})"
+    tokens = access_of(request).tokens
+    entry, token = tokens.mint(body.name, Role.parse(body.role))
+    what = f"created token {entry.id} ({body.name}, {body.role})"
+    await audit.record_before_change(request, what)
+    await audit.save(request, what, lambda: tokens.add(entry))
     return {**entry.public(), "token": token}
 
 
@@ -70,15 +77,19 @@ async def create_token(request: Request, body: TokenRequest) -> dict[str, Any]:
     "/tokens/{token_id}",
     status_code=204,
     response_class=Response,
-    responses={404: {"model": ErrorView, "description": "no such token"}},
+    responses={404: {"model": ErrorView, "description": "no such token"}, **audit.STORAGE_REFUSALS},
 )
 async def revoke_token(request: Request, token_id: str) -> Response:
-    """Revoke a token at once."""
+    """Revoke a token at once (once saved: a revocation that cannot be saved is refused)."""
+    tokens = access_of(request).tokens
     try:
-        entry = access_of(request).revoke(token_id)
+        entry = tokens.get(token_id)
     except KeyError:
         raise HTTPException(404, f"no token {token_id!r}") from None
-    request.state.audit_reason = f"revoked token {entry.id} ({entry.name})"
+    what = f"revoked token {entry.id} ({entry.name})"
+    await audit.record_before_change(request, what)
+    # Saved first, then its tickets void and its live views closed (server/api/access.py).
+    await audit.save(request, what, lambda: access_of(request).revoke(token_id))
     return Response(status_code=204)
 
 
@@ -151,22 +162,26 @@ async def get_settings(request: Request) -> dict[str, Any]:
     return request.app.state.settings.model_dump(mode="json")
 
 
-@router.patch("/settings")
+@router.patch("/settings", responses={503: audit.STORAGE_REFUSALS[503]})
 async def patch_settings(request: Request, body: SettingsChange) -> dict[str, Any]:
     """Change settings that apply at once; audited with old and new values.
 
     Each keeps its type and bounds from the settings model (GET /settings shows the
     values in force); any other key is refused, as it takes effect only at a restart.
     """
+    settings: Settings = request.app.state.settings
     try:
-        changes = apply_change(request.app.state.settings, body)
+        changes = plan_change(settings, body)
     except ValidationError as exc:  # a rule across settings
         raise RequestValidationError(
             [{**error, "loc": ("body", *error["loc"])} for error in exc.errors()]
         ) from None
-    if "logging_level" in changes:
-        logging.getLogger().setLevel(request.app.state.settings.logging_level)
-    request.state.audit_reason = "; ".join(
-        f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items()
+    # On record before it applies; settings live in memory only, so nothing can fail after.
+    await audit.record_before_change(
+        request, "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items())
     )
+    for name, (_, new) in changes.items():
+        setattr(settings, name, new)
+    if "logging_level" in changes:
+        logging.getLogger().setLevel(settings.logging_level)
     return {"changed": {k: {"old": old, "new": new} for k, (old, new) in changes.items()}}

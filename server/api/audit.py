@@ -1,46 +1,145 @@
 """The audit trail: every command, every admin action and every refused attempt.
 
-Written to the journal's audit table from the response, by one observer of
-server/api/observe.py (no task per request): who (the principal the gate left
-in the request's state, else "anonymous"), from where, what, outcome, and the
-reason a route or the gate (server/api/access.py) gave. Reads are not audited,
-unless they were refused. The rows are served by `GET /audit` (server/api/admin.py).
+Each row says who (the principal the gate left in the request's state, else
+"anonymous"), from where, what (method and path), the outcome and the reason.
+The rows are served by `GET /audit` (server/api/admin.py).
+
+An action is on record before it is answered, so a crash at the answer cannot
+leave a change nobody is named for:
+
+- a command's row goes into the commit of its event (`note`: the worker's
+  recorder writes it with the event and everything the event caused, and the
+  answer waits for that commit);
+- a change to a file or a setting (tokens, settings, the workpiece library) is
+  recorded first, durably, as its gate (`record_before_change`): if the
+  journal cannot write, the change is refused (503) and nothing is touched;
+  then the file is written (`save`), and if that fails (a full disk) the
+  answer is 507, memory is left as it was, and the failure gets its own row.
+
+What is left, the refusals (401/403 from the gate, 422 and the like) and the
+few requests that change nothing kept (a WebSocket ticket), is written by an
+observer of server/api/observe.py once the answer has gone, without waiting
+for the disk. Reads are not audited, unless they were refused.
 """
 
 from __future__ import annotations
 
+import asyncio
+import errno
+import logging
 import time
 from collections.abc import Callable
+from typing import Any, TypeVar
 
+from fastapi import Request
 from starlette.types import Scope
 
 from server.api.observe import Observer
+from server.api.schemas import ErrorView, QueueFullResult
+from server.core.events import AuditNote, Outcome
+from server.errors import ChangeNotSaved, JournalUnavailable
 from server.security.tokens import Principal
-from server.storage.journal import Journal, records
+from server.storage.journal import Journal, Record, records
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+# What `record_before_change` and `save` may answer, for the routes' documentation.
+STORAGE_REFUSALS: dict[int | str, dict[str, Any]] = {
+    503: {
+        "model": QueueFullResult,
+        "description": "the journal cannot write (a full disk): nothing was changed",
+    },
+    507: {
+        "model": ErrorView,
+        "description": "the change could not be saved (no room on the disk): nothing was "
+        "changed; the failure is in the audit trail",
+    },
+}
+
+# A write that failed for want of room: 507 Insufficient Storage (any other failure: 503).
+NO_ROOM = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+
+
+def _who(scope: Scope) -> tuple[str, str, str]:
+    """The principal, the client's address and the action (method and path) of a request."""
+    state = scope.get("state") or {}  # request.state, as the gate and the routes left it
+    principal: Principal | None = state.get("principal")
+    address = state.get("client_address")  # the gate's: the peer, or a trusted proxy's word
+    if address is None:
+        client = scope.get("client")
+        address = client[0] if client else "unknown"
+    return (
+        principal.describe() if principal else "anonymous",
+        address,
+        f"{scope['method']} {scope['path']}",
+    )
+
+
+def row(scope: Scope, outcome: str, detail: str) -> Record:
+    """The audit row of a request."""
+    principal, address, action = _who(scope)
+    return records.audit(time.time(), principal, address, action, outcome, detail)
+
+
+def _journal(request: Request) -> Journal:
+    journal: Journal | None = request.app.state.cell.journal
+    assert journal is not None, "the cell is not started"
+    return journal
+
+
+def note(request: Request, label: Callable[[Outcome], str]) -> AuditNote:
+    """Who sends this command, for the row committed with its event."""
+    principal, address, action = _who(request.scope)
+    return AuditNote(principal, address, action, label)
+
+
+async def record_before_change(request: Request, detail: str) -> None:
+    """Put the change on record, durably, before it is made; JournalUnavailable if not possible.
+
+    The observer then leaves the request alone: its row is written.
+    """
+    written = _journal(request).append([row(request.scope, "accepted", detail)])
+    if written is not None:
+        try:
+            await written
+        except Exception as exc:
+            raise JournalUnavailable(str(exc)) from exc
+    request.state.audited = True
+
+
+async def save(request: Request, what: str, write: Callable[[], T]) -> T:
+    """Write a change already on record (off the loop); ChangeNotSaved if the disk refuses it.
+
+    `write` must leave memory as it was when it fails (write the file first). The
+    failure gets its own audit row beside the one that recorded the change.
+    """
+    try:
+        return await asyncio.to_thread(write)
+    except OSError as exc:
+        status = 507 if exc.errno in NO_ROOM else 503
+        problem = exc.strerror or str(exc)
+        log.error("%s could not be saved: %s", what, exc)
+        failure = row(request.scope, f"failed ({status})", f"{what}: not saved: {problem}")
+        _journal(request).append([failure], durable=False)
+        raise ChangeNotSaved(what, problem, status) from exc
 
 
 def audit_observer(journal_of: Callable[[Scope], Journal | None]) -> Observer:
-    """Record commands, admin actions and refused attempts in the journal."""
+    """Record what no route put on record itself: refusals, and changes kept nowhere."""
 
     def observe(scope: Scope, status: int, seconds: float) -> None:
         method = scope["method"]
         if method in ("GET", "HEAD", "OPTIONS") and status not in (401, 403):
             return
+        state = scope.get("state") or {}
+        if state.get("audited"):  # committed before the answer, with the action
+            return
         journal = journal_of(scope)
         if journal is None:
             return
-        state = scope.get("state") or {}  # request.state, as the routes left it
-        principal: Principal | None = state.get("principal")
-        who = principal.describe() if principal else "anonymous"
         outcome = "accepted" if status < 400 else f"refused ({status})"
         detail = state.get("audit_reason", "") or ""
-        host = state.get("client_address")  # the gate's: the peer, or a trusted proxy's word
-        if host is None:
-            client = scope.get("client")
-            host = client[0] if client else "unknown"
-        journal.append(
-            [records.audit(time.time(), who, host, f"{method} {scope['path']}", outcome, detail)],
-            durable=False,
-        )
+        journal.append([row(scope, outcome, detail)], durable=False)
 
     return observe

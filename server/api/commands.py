@@ -4,9 +4,12 @@
 needs first is missing (a calibration, a part in the library), with what to do;
 422 naming the field when the request itself is wrong (start without contour
 matching names no workpiece); 503 with Retry-After when the event queue is
-full. A refusal changes nothing and is journaled and audited like any command.
+full, or when the journal cannot write: an answer is never a 202 for what is
+not on record. A refusal changes nothing and is journaled and audited like any
+command; the audit row is committed with the event, before the answer.
 The e-stop route does not queue behind anything: it halts the devices first,
-then posts the event ahead of everything waiting.
+then posts the event ahead of everything waiting; it is a 202 once the cell
+has stopped, even when the journal could not record it (the message says so).
 """
 
 from __future__ import annotations
@@ -16,8 +19,10 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Request
 from fastapi.responses import JSONResponse
 
+from server.api import audit
 from server.api.declared_query import IGNORES_UNKNOWN_QUERY, DeclaredQueryRoute
 from server.api.schemas import (
+    RETRY_AFTER_S,
     CommandResult,
     CreateWorkpieceRequest,
     EstopRequest,
@@ -32,7 +37,7 @@ from server.core.events import (
     StartPayload,
     StopPayload,
 )
-from server.core.transitions import Command
+from server.core.transitions import Command, Event
 
 router = APIRouter(tags=["commands"], route_class=DeclaredQueryRoute)
 
@@ -43,7 +48,11 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
         "description": "refused: not allowed in the current state, or what the command needs "
         "first is missing (the message says what to do); nothing changed",
     },
-    503: {"model": QueueFullResult, "description": "the event queue is full; retry later"},
+    503: {
+        "model": QueueFullResult,
+        "description": "the event queue is full, or the journal cannot write (a full disk: "
+        "then a command already decided stops the cell, JOURNAL_WRITE_FAILED); retry later",
+    },
 }
 
 
@@ -56,8 +65,41 @@ def _client(request: Request) -> str:
     return f"api:{host}"
 
 
+_UNRECORDED_ADVICE = {
+    True: "a command must be on record, so the cell stops (JOURNAL_WRITE_FAILED): free space "
+    "under the data directory, then reset",
+    False: "nothing was changed: free space under the data directory, then try again",
+}
+
+
+def _status(outcome: Outcome) -> int:
+    """The HTTP status of the worker's answer; the audit row says the same."""
+    if outcome.journal_problem is not None and outcome.event is not Event.EMERGENCY_STOP:
+        return 503  # not on record: never a 202 (the e-stop has stopped the cell regardless)
+    if outcome.accepted:
+        return 202
+    return 422 if outcome.field is not None else 409
+
+
+def _audit_label(outcome: Outcome) -> str:
+    status = _status(outcome)
+    return "accepted" if status < 400 else f"refused ({status})"
+
+
 def _answer(outcome: Outcome) -> JSONResponse:
-    if not outcome.accepted and outcome.field is not None:
+    status = _status(outcome)
+    if status == 503:
+        unrecorded = {
+            "accepted": outcome.accepted,
+            "event_id": outcome.event_id,
+            "state": outcome.state.value,
+            "message": f"{outcome.message}; {_UNRECORDED_ADVICE[outcome.accepted]}",
+            "retry_after": RETRY_AFTER_S,
+        }
+        return JSONResponse(
+            unrecorded, status_code=503, headers={"Retry-After": str(RETRY_AFTER_S)}
+        )
+    if status == 422:
         # The request names something wrong: a 422 like any invalid field, with the
         # cell's answer beside it (nothing changed).
         problem = {"field": outcome.field, "message": outcome.message, "type": "precondition"}
@@ -75,13 +117,20 @@ def _answer(outcome: Outcome) -> JSONResponse:
         state=outcome.state.value,
         message=outcome.message,
     )
-    return JSONResponse(body.model_dump(), status_code=202 if outcome.accepted else 409)
+    return JSONResponse(body.model_dump(), status_code=status)
 
 
 async def _run(request: Request, command: Command, payload: Payload | None = None) -> JSONResponse:
-    outcome = await _cell(request).command(command, source=_client(request), payload=payload)
-    # The audit row says why, and which event to look up in the journal and the logs.
-    request.state.audit_reason = f"event {outcome.event_id}: {outcome.message}"
+    outcome = await _cell(request).command(
+        command,
+        source=_client(request),
+        payload=payload,
+        audit=audit.note(request, _audit_label),
+    )
+    if outcome.journal_problem is None:
+        request.state.audited = True  # its row was committed with the event
+    else:  # not on record: the observer tries once more, with why
+        request.state.audit_reason = f"event {outcome.event_id}: {outcome.message}"
     return _answer(outcome)
 
 

@@ -70,19 +70,17 @@ else:
     SettingsChange = _change_model()
 
 
-def apply_change(settings: Settings, change: BaseModel) -> dict[str, tuple[Any, Any]]:
-    """Apply the fields `change` was given to `settings`; (old, new) of each that changed.
+def plan_change(settings: Settings, change: BaseModel) -> dict[str, tuple[Any, Any]]:
+    """(old, new) of each field `change` was given that differs from `settings`.
 
-    The merged whole is validated first, so a rule across settings holds too; a
-    ValidationError leaves `settings` untouched.
+    The merged whole is validated, so a rule across settings holds too
+    (ValidationError); nothing is applied here: the caller puts the change on
+    record first, then sets each new value.
     """
     given = change.model_dump(include=change.model_fields_set)
     merged = Settings.model_validate({**settings.model_dump(), **given})
-    changes = {
+    return {
         name: (getattr(settings, name), getattr(merged, name))
         for name in given
         if getattr(settings, name) != getattr(merged, name)
     }
-    for name, (_, new) in changes.items():
-        setattr(settings, name, new)
-    return changes

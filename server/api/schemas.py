@@ -68,10 +68,17 @@ class CommandResult(BaseModel):
     message: str
 
 
+RETRY_AFTER_S = 1  # what a 503 (QueueFullResult) asks the client to wait
+
+
 class QueueFullResult(BaseModel):
-    """503: the event queue is full; retry after `retry_after` seconds."""
+    """503: the event queue is full, or the journal cannot write (the message says which);
+    retry after `retry_after` seconds."""
 
     accepted: bool = False
+    event_id: str | None = Field(
+        None, description="a command decided but not journaled: its event id (see `message`)"
+    )
     state: str
     message: str
     retry_after: int

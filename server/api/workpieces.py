@@ -1,7 +1,9 @@
 """The workpiece library over HTTP: list, read, create, replace, delete, thumbnail.
 
 File writes run off the event loop. Identifiers are validated before they
-reach the file system.
+reach the file system. Each edit is on record before its file is written
+(server/api/audit.py): 503 when the journal cannot write, 507 when the file
+cannot be, and the library is left as it was.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from fastapi import APIRouter, HTTPException, Path, Request, Response
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
+from server.api import audit
 from server.api.declared_query import DeclaredQueryRoute
 from server.api.schemas import ErrorView
 from server.cell import Cell
@@ -29,6 +32,9 @@ router = APIRouter(tags=["workpieces"], route_class=DeclaredQueryRoute)
 WorkpieceId = Annotated[str, Path(pattern=IDENTIFIER, description="workpiece identifier")]
 NOT_FOUND: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorView, "description": "no such workpiece"}
+}
+TAKEN: dict[int | str, dict[str, Any]] = {
+    409: {"model": ErrorView, "description": "the id chosen was taken meanwhile; retry"}
 }
 DAMAGED: dict[int | str, dict[str, Any]] = {
     409: {
@@ -72,10 +78,26 @@ async def list_workpieces(request: Request) -> WorkpieceList:
     return WorkpieceList(workpieces=parts, damaged=damaged)
 
 
-@router.post("/workpieces", response_model=Workpiece, status_code=201)
+@router.post(
+    "/workpieces",
+    response_model=Workpiece,
+    status_code=201,
+    responses={**TAKEN, **audit.STORAGE_REFUSALS},
+)
 async def create_workpiece_from_outline(request: Request, body: WorkpieceIn) -> Workpiece:
     """Add a workpiece from a given outline (mm, table frame) and spray settings."""
-    return await asyncio.to_thread(_library(request).create, body)
+    library = _library(request)
+    workpiece_id = await asyncio.to_thread(library.new_id)
+    what = f"created workpiece {workpiece_id} ({body.name})"
+    await audit.record_before_change(request, what)
+    try:
+        return await audit.save(
+            request, what, lambda: library.create(body, workpiece_id=workpiece_id)
+        )
+    except FileExistsError:  # another creation took the id since it was chosen
+        raise HTTPException(
+            409, f"workpiece {workpiece_id!r} was created meanwhile: retry"
+        ) from None
 
 
 @router.get(
@@ -90,19 +112,31 @@ async def get_workpiece(request: Request, workpiece_id: WorkpieceId) -> Workpiec
         raise _damaged(damage) from None
 
 
-@router.put("/workpieces/{workpiece_id}", response_model=Workpiece)
+@router.put(
+    "/workpieces/{workpiece_id}", response_model=Workpiece, responses=audit.STORAGE_REFUSALS
+)
 async def put_workpiece(
     request: Request, workpiece_id: WorkpieceId, body: WorkpieceIn
 ) -> Workpiece:
     """Create or replace the workpiece under this identifier (repairs a damaged file)."""
-    return await asyncio.to_thread(_library(request).put, workpiece_id, body)
+    library = _library(request)
+    what = f"stored workpiece {workpiece_id} ({body.name})"
+    await audit.record_before_change(request, what)
+    return await audit.save(request, what, lambda: library.put(workpiece_id, body))
 
 
-@router.delete("/workpieces/{workpiece_id}", status_code=204, responses=NOT_FOUND)
+@router.delete(
+    "/workpieces/{workpiece_id}", status_code=204, responses={**NOT_FOUND, **audit.STORAGE_REFUSALS}
+)
 async def delete_workpiece(request: Request, workpiece_id: WorkpieceId) -> Response:
+    library = _library(request)
+    if not library.exists(workpiece_id):
+        raise _missing(workpiece_id)
+    what = f"deleted workpiece {workpiece_id}"
+    await audit.record_before_change(request, what)
     try:
-        await asyncio.to_thread(_library(request).delete, workpiece_id)
-    except KeyError:
+        await audit.save(request, what, lambda: library.delete(workpiece_id))
+    except KeyError:  # deleted meanwhile
         raise _missing(workpiece_id) from None
     return Response(status_code=204)
 

@@ -23,7 +23,7 @@ from server.core.transitions import Event
 from server.errors import EventQueueFull
 
 if TYPE_CHECKING:
-    from server.core.events import Outcome, Payload
+    from server.core.events import AuditNote, Outcome, Payload
 
 
 class Priority(IntEnum):
@@ -46,6 +46,7 @@ class Envelope:
     enqueued_at: float = field(default_factory=time.perf_counter)
     timestamp: float = field(default_factory=time.time)
     future: asyncio.Future[Outcome] | None = None
+    audit: AuditNote | None = None  # who sent it: its audit row goes into the event's commit
 
 
 class EventQueue:

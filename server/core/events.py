@@ -9,7 +9,7 @@ agree on its fields by construction rather than by agreed dict keys.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any, Final
 
@@ -27,6 +27,8 @@ class Outcome:
     state: State
     message: str
     field: str | None = None  # a refusal because this field of the request is wrong (HTTP 422)
+    # Why the journal could not record this event (then it must not be answered as done).
+    journal_problem: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -39,8 +41,30 @@ class Outcome:
 
     def with_note(self, note: str) -> Outcome:
         """The same answer with `note` added to its message."""
-        message = f"{self.message}{note}"
-        return Outcome(self.accepted, self.event_id, self.event, self.state, message, self.field)
+        return replace(self, message=f"{self.message}{note}")
+
+    def not_journaled(self, problem: str) -> Outcome:
+        """The same decision, marked as not on record because the journal could not write."""
+        if self.journal_problem is not None:
+            return self
+        return replace(
+            self, message=f"{self.message} (not journaled: {problem})", journal_problem=problem
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class AuditNote:
+    """Who sent a command, for the audit row the recorder commits with its event.
+
+    `label` turns the worker's outcome into the row's outcome as the sender was
+    answered ("accepted", "refused (409)"): the API knows its status codes, the
+    core does not.
+    """
+
+    principal: str
+    address: str
+    action: str  # method and path, e.g. "POST /start"
+    label: Callable[[Outcome], str]
 
 
 @dataclass(frozen=True, slots=True)

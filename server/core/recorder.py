@@ -30,6 +30,7 @@ from server.core.event_queue import Envelope
 from server.core.events import Outcome
 from server.core.snapshot import SnapshotFile
 from server.drivers.base import DeviceFault
+from server.errors import JournalUnavailable
 from server.storage.journal import Journal, Record, records
 
 log = logging.getLogger(__name__)
@@ -59,6 +60,30 @@ class Recorder:
     def behind(self) -> bool:
         """The disk is too far behind to take more requests (refuse, never drop)."""
         return self.journal.backlog > BACKLOG_LIMIT
+
+    @property
+    def write_problem(self) -> str | None:
+        """Why the journal's last write failed, or None: while set, commands are refused."""
+        failure = self.journal.last_error
+        return failure.message if failure else None
+
+    async def ensure_writable(self) -> None:
+        """Raise JournalUnavailable unless the journal can write.
+
+        Why a real write: while the last write failed, nothing else tells the cell
+        that the disk has space again (the commands that would write are refused),
+        so each command asks with one small durable write; it clears `write_problem`
+        when it succeeds.
+        """
+        if self.journal.last_error is None:
+            return
+        written = self.journal.append([records.write_check(self._clock.time())])
+        if written is None:  # the writer is not started: nothing to ask
+            return
+        try:
+            await written
+        except Exception as exc:
+            raise JournalUnavailable(str(exc)) from exc
 
     def journal_health(self) -> dict[str, Any]:
         """The write side's figures for /health: the backlog and the last write failure."""
@@ -131,8 +156,21 @@ class Recorder:
     # --- the event itself, and its answer ----------------------------------
 
     def commit(self, envelope: Envelope, outcome: Outcome) -> asyncio.Future[None] | None:
-        """The event's row and everything it caused, in one write; the future marks it durable."""
+        """The event's row, its audit row and everything it caused, in one write; the
+        future marks it durable (so no command is answered without who sent it on record)."""
         pending, self._pending = self._pending, []
+        note = envelope.audit
+        if note is not None:
+            detail = f"event {envelope.event_id}: {outcome.message}"
+            row = records.audit(
+                self._clock.time(),
+                note.principal,
+                note.address,
+                note.action,
+                note.label(outcome),
+                detail,
+            )
+            pending.append(row)
         event = records.event(
             envelope.event_id,
             envelope.timestamp,
@@ -163,7 +201,7 @@ class Recorder:
                 problem = "cancelled" if written.cancelled() else written.exception()
                 log.critical("event %s decided but not journaled: %s", outcome.event_id, problem)
                 self._write_failed(str(problem))
-                future.set_result(outcome.with_note(f" (journal write failed: {problem})"))
+                future.set_result(outcome.not_journaled(str(problem)))
             else:
                 future.set_result(outcome)
 

@@ -24,6 +24,7 @@ import logging
 import secrets
 import time
 from collections.abc import Awaitable, Callable
+from dataclasses import replace
 
 from server.config import Settings
 from server.core.actions import EXIT_ACTIONS, Action
@@ -35,6 +36,7 @@ from server.core.devices import CellDevices
 from server.core.engine import REQUIRED_DEVICES, Decision, Facts, step
 from server.core.event_queue import Envelope, EventQueue, Priority
 from server.core.events import (
+    AuditNote,
     FaultPayload,
     Outcome,
     Payload,
@@ -49,7 +51,14 @@ from server.core.reset_probe import RESET_OVERTAKEN, RESET_UNDER_WAY, ResetProbe
 from server.core.runs import PauseNotHeld, Runs
 from server.core.snapshot import SnapshotFile
 from server.core.startup import Activities
-from server.core.transitions import OPERATION_OF_STATE, READINESS_EVENTS, Event, State, event_label
+from server.core.transitions import (
+    COMMANDS,
+    OPERATION_OF_STATE,
+    READINESS_EVENTS,
+    Event,
+    State,
+    event_label,
+)
 from server.core.view import CellView
 from server.drivers.base import DeviceFault
 from server.errors import EventQueueFull, TransitionNotAllowed, WorkerStopped
@@ -61,6 +70,9 @@ log = logging.getLogger(__name__)
 
 COMPLETION_EVENTS = frozenset({Event.OPERATION_COMPLETED, Event.OPERATION_FAILED})
 OVERTAKEN = "overtaken by an emergency stop while it was being decided; nothing was changed"
+# A person's commands, each answered only once on record: refused while the journal cannot
+# write. The e-stop is not among them: it stops the cell whatever the disk says.
+JOURNALED_COMMANDS = frozenset(COMMANDS.values()) - {Event.EMERGENCY_STOP}
 Handler = Callable[[Decision, Envelope], Awaitable[None] | None]
 
 
@@ -170,6 +182,7 @@ class Worker:
         payload: Payload | None = None,
         priority: Priority = Priority.REQUEST,
         bounded: bool = True,
+        audit: AuditNote | None = None,
     ) -> Envelope:
         """Queue an event (loop thread only). Raises EventQueueFull when `bounded` and full."""
         payload = payload_of(event, payload)
@@ -183,19 +196,32 @@ class Worker:
             payload=payload,
             priority=priority,
             future=loop.create_future(),
+            audit=audit,
         )
         self.queue.put(envelope, bounded=bounded)
         return envelope
 
     async def request(
-        self, event: Event, *, source: str, payload: Payload | None = None
+        self,
+        event: Event,
+        *,
+        source: str,
+        payload: Payload | None = None,
+        audit: AuditNote | None = None,
     ) -> Outcome:
-        """Queue a request and wait for the worker's decision."""
-        envelope = self.submit(event, source=source, payload=payload)
+        """Queue a request and wait for the worker's decision.
+
+        Raises JournalUnavailable when the journal's last write failed and it still
+        cannot write: nothing is decided that could not be put on record.
+        """
+        await self.recorder.ensure_writable()
+        envelope = self.submit(event, source=source, payload=payload, audit=audit)
         assert envelope.future is not None
         return await envelope.future
 
-    async def emergency_stop(self, *, source: str, payload: StopPayload | None = None) -> Outcome:
+    async def emergency_stop(
+        self, *, source: str, payload: StopPayload | None = None, audit: AuditNote | None = None
+    ) -> Outcome:
         """Halt the devices now, without queueing, then have the machine go to ERROR.
 
         The valve-close and robot-stop commands leave before the event is even
@@ -209,6 +235,7 @@ class Worker:
             payload=payload or StopPayload(),
             priority=Priority.EMERGENCY,
             bounded=False,
+            audit=audit,
         )
         assert envelope.future is not None
         report = await asyncio.shield(halt)
@@ -289,6 +316,10 @@ class Worker:
         facts = self.facts()
         estops = self._estops
         probe = self.reset_probes.returned(envelope)
+        problem = self.recorder.write_problem if event in JOURNALED_COMMANDS else None
+        if problem is not None:  # queued before the journal failed: decide nothing now
+            refusal = self._refuse(envelope, f"refused: the journal cannot write ({problem})")
+            return replace(refusal, journal_problem=problem)
         if probe is not None:  # a reset back from its probe
             if (self._estops, self._faults) != probe.stops:
                 return self._refuse(envelope, RESET_OVERTAKEN)

@@ -22,7 +22,7 @@ import re
 import secrets
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from enum import IntEnum
 from pathlib import Path
 from typing import Any
@@ -111,8 +111,9 @@ class TokenStore:
         entries = read_entries(self.path, document, roles)  # each checked: see token_file.py
         self._entries = {e.id: TokenEntry(**e.model_dump()) for e in entries}
 
-    def _save(self) -> None:
-        data = json.dumps({"tokens": [asdict(e) for e in self._entries.values()]}, indent=2)
+    def _save(self, entries: dict[str, TokenEntry]) -> None:
+        """Write `entries` as the file; the caller applies them in memory only afterwards."""
+        data = json.dumps({"tokens": [asdict(e) for e in entries.values()]}, indent=2)
         write_bytes_atomic(self.path, data.encode("utf-8"))
         os.chmod(self.path, 0o600)
 
@@ -130,28 +131,51 @@ class TokenStore:
         return self.admin_token_path
 
     def create(self, name: str, role: Role) -> tuple[TokenEntry, str]:
-        """A new token; the secret is returned once and never stored."""
+        """A new token, saved; the secret is returned once and never stored."""
+        entry, token = self.mint(name, role)
+        self.add(entry)
+        return entry, token
+
+    @staticmethod
+    def mint(name: str, role: Role) -> tuple[TokenEntry, str]:
+        """A new token and its entry, not yet stored (`add` stores it)."""
         token_id = secrets.token_hex(4)
         secret = secrets.token_urlsafe(32)
         token = f"gc_{token_id}_{secret}"
-        entry = TokenEntry(token_id, name, role.label, _digest(token), time.time())
+        return TokenEntry(token_id, name, role.label, _digest(token), time.time()), token
+
+    def add(self, entry: TokenEntry) -> None:
+        """Store a minted entry: in the file first, then in memory (OSError: neither)."""
         with self._lock:
-            self._entries[token_id] = entry
-            self._save()
-        return entry, token
+            entries = {**self._entries, entry.id: entry}
+            self._save(entries)
+            self._entries = entries
+
+    def get(self, token_id: str) -> TokenEntry:
+        """The entry of `token_id`; KeyError for an unknown id."""
+        with self._lock:
+            return self._entries[token_id]
 
     def list(self) -> list[dict[str, Any]]:
         with self._lock:
             return [e.public() for e in self._entries.values()]
 
     def revoke(self, token_id: str) -> TokenEntry:
-        """Revoke at once; KeyError for an unknown id."""
+        """Revoke at once; KeyError for an unknown id.
+
+        The file is written first and memory changed only once it is: a revocation
+        that could not be saved (OSError) is not applied, or it would come back at
+        the next start.
+        """
         with self._lock:
             entry = self._entries[token_id]
-            if entry.revoked_at is None:
-                entry.revoked_at = time.time()
-                self._save()
-            return entry
+            if entry.revoked_at is not None:
+                return entry
+            revoked = replace(entry, revoked_at=time.time())
+            entries = {**self._entries, token_id: revoked}
+            self._save(entries)
+            self._entries = entries
+            return revoked
 
     def verify(self, token: str) -> Principal | None:
         """The principal of a valid, unrevoked token, else None."""

@@ -181,7 +181,7 @@ async def test_the_audit_trail_records_commands_admin_actions_and_refusals(serve
     await server.post("/calibrate-robot", headers=auth(server.tokens["operator"]))  # 403
     await server.post("/pause", headers=auth(server.tokens["operator"]))  # 409
     await server.patch("/settings", json={"error_state_timeout": 120}, headers=admin)
-    await asyncio.sleep(0.2)  # audit rows are written behind the answer
+    await asyncio.sleep(0.2)  # the gate's refusals are written behind the answer
     rows = (await server.get("/audit", headers=admin)).json()["audit"]
     by_action = {(r["action"], r["outcome"]): r for r in rows}
     anonymous = by_action[("POST /start", "refused (401)")]
@@ -195,6 +195,42 @@ async def test_the_audit_trail_records_commands_admin_actions_and_refusals(serve
     assert change["detail"] == "error_state_timeout: 300.0 -> 120.0"
     created = [r for r in rows if r["action"] == "POST /tokens"]
     assert created and all("gc_" not in r["detail"] for r in created)  # secrets never written
+
+
+async def test_each_action_has_one_audit_row_and_the_observer_adds_none(server) -> None:
+    """Commands and admin changes write their row before the answer; the observer, which
+    writes the refusals, must not add a second one."""
+    admin = auth(server.tokens["admin"])
+    token = await server.post("/tokens", json={"name": "once", "role": "viewer"}, headers=admin)
+    token_id = token.json()["id"]
+    assert (await server.delete(f"/tokens/{token_id}", headers=admin)).status_code == 204
+    assert (await server.patch("/settings", json={"shift_hours": 7}, headers=admin)).is_success
+    part = {"name": "once", "outline_mm": [[0, 0], [10, 0], [10, 10]]}
+    assert (await server.put("/workpieces/once", json=part, headers=admin)).is_success
+    assert (await server.delete("/workpieces/once", headers=admin)).status_code == 204
+    home = (await server.post("/home", headers=admin)).json()
+    paused = (await server.post("/pause", headers=admin)).json()  # refused: 409
+    await asyncio.sleep(0.2)  # anything the observer would add goes out behind the answer
+    rows = (await server.get("/audit", params={"limit": 1000}, headers=admin)).json()["audit"]
+
+    def rows_of(action: str, fragment: str) -> list[tuple[str, str]]:
+        return [
+            (r["outcome"], r["detail"])
+            for r in rows
+            if r["action"] == action and fragment in r["detail"]
+        ]
+
+    assert rows_of("POST /tokens", token_id) == [
+        ("accepted", f"created token {token_id} (once, viewer)")
+    ]
+    assert rows_of(f"DELETE /tokens/{token_id}", "") == [
+        ("accepted", f"revoked token {token_id} (once)")
+    ]
+    assert rows_of("PATCH /settings", "shift_hours") == [("accepted", "shift_hours: 8.0 -> 7.0")]
+    assert rows_of("PUT /workpieces/once", "") == [("accepted", "stored workpiece once (once)")]
+    assert rows_of("DELETE /workpieces/once", "") == [("accepted", "deleted workpiece once")]
+    assert [o for o, _ in rows_of("POST /home", home["event_id"])] == ["accepted"]
+    assert [o for o, _ in rows_of("POST /pause", paused["event_id"])] == ["refused (409)"]
 
 
 async def test_settings_changes_are_validated_and_limited(server) -> None:

@@ -116,3 +116,8 @@ def audit(
         "VALUES (?,?,?,?,?,?)",
         (at, principal, address, action, outcome, detail),
     )
+
+
+def write_check(at: float) -> Record:
+    """A real write that leaves nothing behind but its time: does the journal write again?"""
+    return Record("INSERT OR REPLACE INTO write_check (id, time) VALUES (1, ?)", (at,))

@@ -43,6 +43,8 @@ CREATE INDEX IF NOT EXISTS transitions_time ON transitions(time);
 CREATE INDEX IF NOT EXISTS operations_started ON operations(started_at);
 CREATE INDEX IF NOT EXISTS errors_time ON errors(time);
 CREATE INDEX IF NOT EXISTS recoveries_time ON recoveries(time);
+-- One row, rewritten by each write that checks a failing journal can write again.
+CREATE TABLE IF NOT EXISTS write_check (id INTEGER PRIMARY KEY CHECK (id = 1), time REAL NOT NULL);
 """
 
 # Per table: its time column (ranges, order, retention) and its columns, in the
