@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -150,6 +151,8 @@ def _install_error_handlers(app: FastAPI) -> None:
             where = ".".join(str(part) for part in error["loc"] if part != "body") or "body"
             problems.append({"field": where, "message": error["msg"], "type": error["type"]})
         summary = "; ".join(f"{p['field']}: {p['message']}" for p in problems)
-        return JSONResponse(
-            {"detail": f"invalid request: {summary}", "errors": problems}, status_code=422
-        )
+        body: dict[str, Any] = {"detail": f"invalid request: {summary}", "errors": problems}
+        if commands.is_estop(request):
+            # A stop is never refused over its body: it is made, and the 422 says so.
+            body.update(await commands.stop_anyway(request))
+        return JSONResponse(body, status_code=422)

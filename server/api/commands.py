@@ -14,6 +14,7 @@ has stopped, even when the journal could not record it (the message says so).
 
 from __future__ import annotations
 
+import json
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Request
@@ -207,6 +208,25 @@ async def estop(
     remains the cell's safety stop.
     """
     return await _run(request, Command.ESTOP, StopPayload(body.reason if body else None))
+
+
+def is_estop(request: Request) -> bool:
+    """Whether this is the e-stop route (its body, when unreadable, must not stop the stop)."""
+    return request.method == "POST" and request.url.path == "/estop"
+
+
+async def stop_anyway(request: Request) -> dict[str, Any]:
+    """Make the e-stop whose body was invalid (no reason recorded); the cell's answer.
+
+    The gate has let the request through (the role is checked before routing),
+    so only the optional reason was wrong: refusing the stop over it would be
+    the wrong way round. The answer stays a 422 (the request was invalid), with
+    what the cell did beside it.
+    """
+    response = await _run(request, Command.ESTOP, StopPayload(None))
+    answer = json.loads(bytes(response.body))
+    answer["message"] = f"the stop was made without its reason: {answer.get('message', '')}"
+    return {k: answer[k] for k in ("accepted", "event_id", "state", "message") if k in answer}
 
 
 @router.post("/reset", status_code=202, responses=RESPONSES, response_model=CommandResult)

@@ -67,6 +67,26 @@ async def test_an_invalid_body_gets_422_naming_the_field(api, body, field) -> No
     assert field in response.json()["detail"]
 
 
+@pytest.mark.parametrize(
+    ("body", "field"),
+    [({"reason": "x" * 201}, "reason"), ({"why": "jammed"}, "why"), (b"{not json", "1")],
+)
+async def test_an_estop_with_an_invalid_body_still_stops_the_cell(api, body, field) -> None:
+    """A stop is never refused over its optional reason: it is made, and the 422 says so."""
+    assert (await api.post("/start", json=START)).status_code == 202
+    if isinstance(body, bytes):
+        sent = await api.post("/estop", content=body, headers={"content-type": "application/json"})
+    else:
+        sent = await api.post("/estop", json=body)
+    assert sent.status_code == 422
+    answer = sent.json()
+    assert answer["errors"][0]["field"] == field
+    assert answer["accepted"] is True and answer["state"] == "ERROR" and answer["event_id"]
+    assert "stop was made" in answer["message"]
+    assert (await api.get("/state")).json()["state"] == "ERROR"
+    assert api.cell.devices.glue.valve_open is False
+
+
 async def test_malformed_json_is_a_422_not_a_500(api) -> None:
     response = await api.post(
         "/start", content=b"{not json", headers={"content-type": "application/json"}
