@@ -274,10 +274,13 @@ async def test_an_invalid_field_is_an_invalid_request_naming_it(aclient: AsyncCe
         await aclient.start(workpiece_id="../etc/passwd")
     assert invalid.value.status_code == 422 and "workpiece_id" in str(invalid.value)
     assert invalid.value.errors[0]["field"] == "workpiece_id"
+    assert (await aclient.state())["state"] == "IDLE"
     with pytest.raises(InvalidRequest) as too_long:
         await aclient.estop(reason="x" * 201)
     assert too_long.value.errors[0]["field"] == "reason"
-    assert (await aclient.state())["state"] == "IDLE"
+    # A stop is never refused over its reason: it is made, and the error says so.
+    assert "stop was made" in str(too_long.value)
+    assert (await aclient.state())["state"] == "ERROR"
 
 
 async def test_an_unknown_operation_is_not_found(aclient: AsyncCellClient) -> None:
