@@ -15,7 +15,10 @@ from pathlib import Path
 
 import pytest
 
+from bench import journal_verify
+from bench.report import RESULTS_ENV
 from server.storage.journal import SCHEMA, Journal, records
+from server.storage.journal.check import main as check_main
 from server.storage.journal.commit_chain import LastCommitFile
 from server.storage.journal.verify import verify
 
@@ -160,6 +163,20 @@ async def test_a_row_rewritten_on_disk_is_found(tmp_path) -> None:
     assert damage.kept_as and (journal.path.parent / damage.kept_as).is_file()
 
 
+async def test_a_commit_row_rewritten_on_disk_is_found(tmp_path) -> None:
+    journal = await a_journal(tmp_path / "journal.db")
+    await commit_events(journal, 4)
+    journal.stop()
+    with sqlite3.connect(journal.path) as connection:
+        connection.execute("UPDATE commits SET rows = 'not counts' WHERE seq = 2")
+
+    reopened = Journal(journal.path)
+    reopened.open()
+    [damage] = reopened.damage
+    assert (damage.first_commit, damage.last_commit) == (2, 2)
+    assert "rewritten" in damage.message
+
+
 async def test_commits_and_rows_missing_in_between_are_named(tmp_path) -> None:
     journal = await a_journal(tmp_path / "journal.db")
     await commit_events(journal, 6)
@@ -189,6 +206,22 @@ async def test_rows_missing_before_the_digested_window_are_counted(tmp_path) -> 
         assert verify(connection, noted, window=2).damage[0].missing_rows == {"transitions": 1}
         full = verify(connection, noted, window=None).damage
     assert [(d.first_commit, d.last_commit) for d in full] == [(1, 1)]
+
+
+async def test_a_commit_chain_that_does_not_read_is_started_again(tmp_path) -> None:
+    journal = await a_journal(tmp_path / "journal.db")
+    await commit_events(journal, 3)
+    journal.stop()
+    with sqlite3.connect(journal.path) as connection:
+        connection.execute("UPDATE commits SET rows = 'not counts' WHERE seq = 3")
+
+    journal = await a_journal(journal.path)  # starts all the same
+    [damage] = journal.damage
+    assert "commit chain is unreadable" in damage.message and damage.last_commit == 3
+    await commit_events(journal, 2)
+    journal.stop()
+    assert (await a_journal(journal.path)).damage == []
+    assert count(journal.path, "events") == 5
 
 
 async def test_retention_is_not_damage(tmp_path) -> None:
@@ -247,3 +280,21 @@ async def test_a_journal_file_gone_with_its_record_left_is_damage(tmp_path) -> N
     [damage] = journal.damage
     assert (damage.first_commit, damage.last_commit) == (1, 2)
     assert damage.missing_rows == {"events": 2, "transitions": 2}
+
+
+async def test_the_full_check_names_the_damage_from_the_command_line(tmp_path, capsys) -> None:
+    journal = await a_journal(tmp_path / "journal.db")
+    await commit_events(journal, 3)
+    journal.stop()
+    assert check_main([str(journal.path)]) == 0
+    assert capsys.readouterr().out.startswith("ok: commits up to 3, 3 digested again")
+    with sqlite3.connect(journal.path) as connection:
+        connection.execute("UPDATE transitions SET new_state = 'IDLE' WHERE commit_seq = 2")
+    assert check_main([str(journal.path)]) == 1
+    assert "the rows of commit 2 in events, transitions" in capsys.readouterr().out
+
+
+def test_the_check_benchmark_builds_a_sound_journal(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv(RESULTS_ENV, str(tmp_path))
+    rows = journal_verify.main(["--rows", "3000"])
+    assert [row["commits_digested"] for row in rows] == [0, 1000, 1000]

@@ -7,6 +7,7 @@
 - `commit_chain`: each commit numbered, its rows digested, the last one noted
   beside the journal; `verify` checks that at start-up and `inspection` decides
   what to do with a damaged journal (kept readable, or set aside: see there);
+  `check` is the same check by hand (`python -m server.storage.journal.check`);
 - `reader`: queries, counts, export pages, and the restart's view of
   unfinished operations.
 
@@ -39,7 +40,7 @@ from server.storage.journal.schema import (
     filter_columns,
 )
 from server.storage.journal.verify import Damage
-from server.storage.journal.writer import WriteFailure, Writer, prune
+from server.storage.journal.writer import WriteFailure, Writer, note_chain_start, prune
 
 __all__ = [
     "FILTERS",
@@ -87,6 +88,8 @@ class Journal(Reader):
         connection = self._connect()
         connection.executescript(SCHEMA)
         add_commit_seq(connection)
+        if found.restarted:
+            note_chain_start(connection, found.head)
         connection.commit()
         connection.close()
         connection = self._connect()

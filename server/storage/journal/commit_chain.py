@@ -10,8 +10,9 @@ of `commits`:
 - `rows`: how many rows have been appended to each sealed table so far
   (cumulative, so a missing range says how many rows of which table it held);
 - `digest`: of the previous commit's digest, this commit's number, time and
-  counts, and every sealed row it appended as SQLite stored it (each such row
-  carries `commit_seq`, so the rows of a commit can be found and digested again).
+  counts, and every sealed row it appended, read back as SQLite stored it
+  (each such row carries `commit_seq`, so the rows of a commit can be found
+  and digested again, and read back the same way).
 
 After the commit, the same facts are written to a small file beside the journal
 (`<journal>.last-commit`), outside the database: a journal whose last commits
@@ -39,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from server.storage.journal.records import Record
+from server.storage.journal.schema import TABLES
 
 log = logging.getLogger(__name__)
 
@@ -56,10 +58,9 @@ class Head:
     digest: str
 
     def as_json(self) -> str:
-        return json.dumps(
-            {"seq": self.seq, "time": self.time, "rows": self.rows, "digest": self.digest},
-            sort_keys=True,
-            separators=(",", ":"),
+        return (
+            f'{{"digest":"{self.digest}","rows":{rows_json(self.rows)},'
+            f'"seq":{self.seq:d},"time":{self.time!r}}}'
         )
 
     @classmethod
@@ -91,9 +92,9 @@ def head_of(row: Sequence[Any]) -> Head:
 class Appended:
     """The sealed rows one commit appends, per table, in the order written."""
 
-    rows: dict[str, list[Sequence[Any]]] = field(default_factory=dict)
+    rows: dict[str, list[tuple[Any, ...]]] = field(default_factory=dict)
 
-    def add(self, table: str, row: Sequence[Any]) -> None:
+    def add(self, table: str, row: tuple[Any, ...]) -> None:
         self.rows.setdefault(table, []).append(row)
 
     def count(self, table: str) -> int:
@@ -101,8 +102,9 @@ class Appended:
 
 
 def rows_json(rows: dict[str, int]) -> str:
-    """The `rows` column: cumulative counts per table, canonical JSON."""
-    return json.dumps(rows, sort_keys=True, separators=(",", ":"))
+    """The `rows` column: cumulative counts per table, canonical JSON (the table names
+    are the journal's own, so they need no escaping; spelt out, as it is per commit)."""
+    return "{" + ",".join(f'"{table}":{rows[table]:d}' for table in sorted(rows)) + "}"
 
 
 def digest(previous: str, seq: int, at: float, rows: str, appended: Appended) -> str:
@@ -110,16 +112,8 @@ def digest(previous: str, seq: int, at: float, rows: str, appended: Appended) ->
     h = hashlib.blake2b(digest_size=16)
     h.update(f"{previous}|{seq}|{at!r}|{rows}".encode())
     for table in sorted(appended.rows):
-        for row in appended.rows[table]:
-            h.update(repr((table, *map(_canonical, row))).encode("utf-8", "surrogatepass"))
+        h.update(repr((table, appended.rows[table])).encode("utf-8", "surrogatepass"))
     return h.hexdigest()
-
-
-def _canonical(value: Any) -> Any:
-    """A stored value as it reads back: SQLite may hand 2.0 for 2 (REAL affinity, RETURNING)."""
-    if isinstance(value, float) and value.is_integer():
-        return int(value)
-    return value
 
 
 def cumulative(before: dict[str, int], appended: Appended) -> dict[str, int]:
@@ -155,7 +149,7 @@ class LastCommitFile:
         if self._fd is None:
             self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
             self._size = max(self._size, os.fstat(self._fd).st_size)
-        data = (head.as_json() + "\n").encode()
+        data = (head.as_json() + "\n").encode()  # hex, digits and names: ASCII
         self._size = max(self._size, len(data))
         os.pwrite(self._fd, data.ljust(self._size, b" "), 0)
 
@@ -183,7 +177,7 @@ class CommitChain:
     ) -> Head | None:
         """Execute `records`, then the commit's own row; None when there was nothing to write."""
         seq = self.head.seq + 1
-        appended = Appended()
+        first: dict[str, int] = {}  # the rowid of each sealed table's first new row
         written = 0
         for record in records:
             params = tuple(_clean(p) for p in record.params)
@@ -191,9 +185,18 @@ class CommitChain:
             if record.sealed is None:
                 connection.execute(record.sql, params)
                 continue
-            stored = connection.execute(record.sealed.sql, (*params, seq)).fetchall()
-            for row in stored:
-                appended.add(record.sealed.table, row)
+            cursor = connection.execute(record.sealed.sql, (*params, seq))
+            if record.sealed.table not in first and cursor.lastrowid is not None:
+                first[record.sealed.table] = cursor.lastrowid
+        appended = Appended()
+        for table, rowid in first.items():
+            # Read back as verification will: the values SQLite stored, in rowid order
+            # (a later row gets a larger rowid, and this thread is the only writer).
+            appended.rows[table] = connection.execute(
+                f"SELECT {', '.join(TABLES[table][1])} FROM {table} WHERE rowid >= ? "
+                "ORDER BY rowid",
+                (rowid,),
+            ).fetchall()
         if not written:
             return None
         rows = cumulative(self.head.rows, appended)

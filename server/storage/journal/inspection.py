@@ -42,14 +42,27 @@ COMPANIONS = ("", "-wal", "-shm", LAST_COMMIT_SUFFIX)
 
 @dataclass(frozen=True, slots=True)
 class Inspection:
-    """Where the commit chain goes on, and what was found wrong (empty when nothing)."""
+    """Where the commit chain goes on, and what was found wrong (empty when nothing).
+
+    `restarted`: the chain could not be read, so it starts again after `head`
+    (an anchor the journal must note, as retention does, before it writes).
+    """
 
     head: Head
     damage: list[Damage]
+    restarted: bool = False
+
+
+class Unreadable(sqlite3.DatabaseError):
+    """SQLite's own check of the journal failed."""
 
 
 def inspect(path: Path, last_commit: LastCommitFile, window: int | None = WINDOW) -> Inspection:
-    """Check the journal at `path` before anything writes to it; keep what is damaged."""
+    """Check the journal at `path` before anything writes to it; keep what is damaged.
+
+    Raises sqlite3.Error only when the journal cannot be opened at all (locked by
+    another process, no permission, an I/O error): that is no damage to set aside.
+    """
     found_at = time.time()
     damage: list[Damage] = []
     try:
@@ -62,12 +75,15 @@ def inspect(path: Path, last_commit: LastCommitFile, window: int | None = WINDOW
                 f"unreadable ({exc}): whether its last commits are all there cannot be told"
             )
         )
+    restarted = False
     if not path.exists():
-        verdict_head, found = GENESIS, _absent(noted)
+        head, found = GENESIS, _absent(noted)
     else:
         try:
-            verdict_head, found = _read(path, noted, window)
+            head, found = _read(path, noted, window)
         except sqlite3.DatabaseError as exc:
+            if not _damaged(exc):
+                raise
             aside = _move(path, "corrupt")
             found_aside = Damage(
                 f"journal damaged: SQLite cannot read {path.name} ({exc}); set aside as "
@@ -75,23 +91,52 @@ def inspect(path: Path, last_commit: LastCommitFile, window: int | None = WINDOW
                 kept_as=aside.name,
             )
             return _reported(Inspection(GENESIS, [found_aside]), found_at)
+        except Exception as exc:  # SQLite reads it, the chain in it does not make sense
+            head, restarted = _restart_point(path), True
+            found = [
+                Damage(
+                    f"journal damaged: its commit chain is unreadable ({exc}); the journal is "
+                    f"kept and its chain starts again after commit {head.seq}",
+                    last_commit=head.seq,
+                )
+            ]
     damage += found
     if damage and path.exists():
         copy = _copy(path, "damaged")
         damage = [replace(d, kept_as=copy.name if copy else None) for d in damage]
-    return _reported(Inspection(verdict_head, damage), found_at)
+    return _reported(Inspection(head, damage, restarted), found_at)
 
 
 def _read(path: Path, noted: Head | None, window: int | None) -> tuple[Head, list[Damage]]:
-    connection = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
+    connection = _read_only(path)
     try:
         result = connection.execute("PRAGMA quick_check").fetchone()
         if result is None or result[0] != "ok":
-            raise sqlite3.DatabaseError(f"quick_check: {result}")
+            raise Unreadable(f"quick_check: {result}")
         verdict = verify(connection, noted, window=window)
     finally:
         connection.close()
     return verdict.head, verdict.damage
+
+
+def _read_only(path: Path) -> sqlite3.Connection:
+    return sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
+
+
+def _damaged(exc: sqlite3.DatabaseError) -> bool:
+    """The file itself is damaged (not merely locked, forbidden or on a failing read)."""
+    codes = (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB)
+    return isinstance(exc, Unreadable) or getattr(exc, "sqlite_errorcode", None) in codes
+
+
+def _restart_point(path: Path) -> Head:
+    """Where a chain that cannot be read starts again: after its highest commit number."""
+    connection = _read_only(path)
+    try:
+        found = connection.execute("SELECT MAX(seq) FROM commits").fetchone()
+    finally:
+        connection.close()
+    return Head(int(found[0] or 0), time.time(), {}, "")
 
 
 def _absent(noted: Head | None) -> list[Damage]:
@@ -116,7 +161,7 @@ def _reported(inspection: Inspection, found_at: float) -> Inspection:
         if finding.kept_as and finding.kept_as not in finding.message:
             kept = f"; the files as found are kept as {finding.kept_as}"
         log.critical("%s%s", finding.message, kept)
-    return Inspection(inspection.head, damage)
+    return replace(inspection, damage=damage)
 
 
 def _free_name(path: Path, label: str) -> Path:

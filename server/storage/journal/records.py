@@ -11,14 +11,13 @@ import json
 from dataclasses import dataclass
 from typing import Any
 
-from server.storage.journal.schema import COMMIT_SEQ, TABLES
+from server.storage.journal.schema import COMMIT_SEQ
 
 
 @dataclass(frozen=True, slots=True)
 class Sealed:
     """How the writer appends a row the commit chain seals (`commit_chain.py`): `sql`
-    takes the commit's sequence number as one more parameter and returns the row as
-    SQLite stored it (TABLES' columns), which goes into the commit's digest."""
+    takes the commit's sequence number as one more parameter."""
 
     table: str
     sql: str
@@ -42,10 +41,7 @@ def _appended(
     """A row of a sealed `table`: `values` for `columns`."""
     verb = "INSERT OR REPLACE" if replace else "INSERT"
     placeholders = ",".join("?" * len(columns))
-    sealed = (
-        f"{verb} INTO {table} ({', '.join(columns)}, {COMMIT_SEQ}) VALUES ({placeholders},?) "
-        f"RETURNING {', '.join(TABLES[table][1])}"
-    )
+    sealed = f"{verb} INTO {table} ({', '.join(columns)}, {COMMIT_SEQ}) VALUES ({placeholders},?)"
     return Record(
         f"{verb} INTO {table} ({', '.join(columns)}) VALUES ({placeholders})",
         values,

@@ -11,21 +11,18 @@ What it can tell, from the commit chain (`commit_chain.py`):
   give its digest (the newest `window` commits), or a table holds fewer rows
   than its commits appended (every commit, counted in SQL).
 
-It only reads, on the caller's connection: deciding what to do is `Journal.open`'s.
-Bounded at start-up: the counts are one pass of SQLite over each table, the
-digests cover only the newest `window` commits (`python -m bench.journal_verify`
-measures both on a journal of a million rows); `python -m
-server.storage.journal.verify <journal.db> --all` digests every commit.
+It only reads, on the caller's connection: deciding what to do is
+`inspection.py`'s. Bounded at start-up: the counts are one pass of SQLite over
+each table, the digests cover only the newest `window` commits (`python -m
+bench.journal_verify` measures both on a journal of a million rows); `python -m
+server.storage.journal.check <journal.db>` digests every commit, on demand.
 """
 
 from __future__ import annotations
 
-import argparse
 import sqlite3
-import sys
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from server.storage.journal.commit_chain import (
@@ -33,7 +30,6 @@ from server.storage.journal.commit_chain import (
     GENESIS,
     Appended,
     Head,
-    LastCommitFile,
     digest,
     head_of,
     rows_json,
@@ -117,9 +113,9 @@ def _commits(first: int, last: int) -> str:
 
 
 def _rows(counts: dict[str, int]) -> str:
-    """E.g. "6 events, 6 transitions, 2 audit rows"."""
-    named = ", ".join(f"{n} {table}" for table, n in sorted(counts.items()) if n)
-    return f"{named} rows" if named else "no rows"
+    """E.g. "rows of audit 2, events 6, transitions 6"."""
+    named = ", ".join(f"{table} {n}" for table, n in sorted(counts.items()) if n)
+    return f"rows of {named}" if named else "no rows"
 
 
 def _difference(after: dict[str, int], before: dict[str, int]) -> dict[str, int]:
@@ -135,22 +131,22 @@ def _cut_short(head: Head, noted: Head | None, beyond: dict[str, int]) -> list[D
     first, last = head.seq + 1, noted.seq
     lost = {t: n - beyond.get(t, 0) for t, n in _difference(noted.rows, head.rows).items()}
     lost = {t: n for t, n in lost.items() if n > 0}
-    last_ones = "commit" if first == last else f"{last - first + 1} commits"
+    if first == last:
+        what = f"its last commit ({first}, made {_local(noted.time)}) is missing, with its"
+    else:
+        what = (
+            f"its last {last - first + 1} commits ({first} to {last}, made until "
+            f"{_local(noted.time)}) are missing, with their"
+        )
     return [
         Damage(
-            f"journal damaged: its last {last_ones} ({_span(first, last)}, made until "
-            f"{_local(noted.time)}) are missing: {_rows(lost)} lost. SQLite drops "
-            "without a word whatever follows a damaged frame of journal.db-wal, or a "
-            "lost one",
+            f"journal damaged: {what} {_rows(lost)}. SQLite drops without a word "
+            "whatever follows a damaged frame of journal.db-wal, or a lost one",
             first,
             last,
             lost,
         )
     ]
-
-
-def _span(first: int, last: int) -> str:
-    return str(first) if first == last else f"{first} to {last}"
 
 
 def _local(at: float) -> str:
@@ -208,7 +204,7 @@ def _gaps(connection: sqlite3.Connection, anchor: Head, head: Head) -> list[Dama
         found.append(
             Damage(
                 f"journal damaged: {_commits(first, last)} of {head.seq} "
-                f"{'is' if first == last else 'are'} missing: {_rows(lost)} lost",
+                f"{'is' if first == last else 'are'} missing, with their {_rows(lost)}",
                 first,
                 last,
                 lost,
@@ -261,11 +257,12 @@ def _rows_from(
             f"WHERE rowid > ? AND {COMMIT_SEQ} IS NOT NULL ORDER BY rowid",
             (older[0] if older else 0,),
         )
-        for seq, *row in rows:
+        for row in rows:
+            seq = row[0]
             if seq > last:
                 beyond[table] = beyond.get(table, 0) + 1
-            else:
-                found.setdefault(int(seq), Appended()).add(table, row)
+            else:  # the row as the writer read it back: a tuple of TABLES' columns
+                found.setdefault(int(seq), Appended()).add(table, row[1:])
     return found, beyond
 
 
@@ -276,25 +273,31 @@ def _digests(
     start: int,
     rows: dict[int, Appended],
 ) -> list[Damage]:
-    """The commits from `start` whose rows no longer give their digest, in ranges."""
-    commits = {
-        int(row[0]): head_of(row)
-        for row in connection.execute(
+    """The commits from `start` whose rows no longer give their digest, in ranges.
+
+    Each commit is digested from the previous one's stored digest, so one bad
+    commit is one finding, not every commit after it.
+    """
+    stored: dict[int, tuple[float, str, str]] = {
+        int(seq): (float(at), str(counts), str(commit_digest))
+        for seq, at, counts, commit_digest in connection.execute(
             f"SELECT {COMMIT_COLUMNS} FROM commits WHERE seq >= ? ORDER BY seq", (start - 1,)
         )
     }
-    commits.setdefault(anchor.seq, anchor)
+    stored[anchor.seq] = (anchor.time, rows_json(anchor.rows), anchor.digest)
     bad: list[tuple[int, dict[str, int], list[str]]] = []
     for seq in range(start, head.seq + 1):
-        commit, previous = commits.get(seq), commits.get(seq - 1)
+        commit, previous = stored.get(seq), stored.get(seq - 1)
         if commit is None or previous is None:
             continue  # a gap: reported as missing commits
+        at, counts, commit_digest = commit
         appended = rows.get(seq, Appended())
-        if digest(previous.digest, seq, commit.time, rows_json(commit.rows), appended) == (
-            commit.digest
-        ):
+        if digest(previous[2], seq, at, counts, appended) == commit_digest:
             continue
-        expected = _difference(commit.rows, previous.rows)
+        try:
+            expected = _difference(head_of((seq, *commit)).rows, head_of((seq - 1, *previous)).rows)
+        except ValueError:  # its counts are what was rewritten
+            expected = {}
         lost = {t: n - appended.count(t) for t, n in expected.items() if n > appended.count(t)}
         bad.append((seq, lost, sorted(set(expected) | set(appended.rows))))
     return [_rewritten(run) for run in _runs(bad)]
@@ -341,35 +344,9 @@ def _counts(connection: sqlite3.Connection, anchor: Head, head: Head) -> list[Da
     return [
         Damage(
             f"journal damaged: {_rows(lost)} appended by {_commits(anchor.seq + 1, head.seq)} "
-            "are missing (python -m server.storage.journal.verify names the commits)",
+            "missing (python -m server.storage.journal.check names the commits)",
             anchor.seq + 1,
             head.seq,
             lost,
         )
     ]
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Check a journal file, every commit by default; print what is wrong (exit 1) or ok."""
-    parser = argparse.ArgumentParser(description=main.__doc__)
-    parser.add_argument("journal", type=Path, help="the journal, e.g. data/journal.db")
-    parser.add_argument("--window", type=int, default=None, help="digest only the newest N commits")
-    args = parser.parse_args(argv)
-    if not args.journal.is_file():
-        print(f"no journal at {args.journal}", file=sys.stderr)
-        return 2
-    noted = LastCommitFile(args.journal).read()
-    connection = sqlite3.connect(f"{args.journal.resolve().as_uri()}?mode=ro", uri=True)
-    try:
-        verdict = verify(connection, noted, window=args.window)
-    finally:
-        connection.close()
-    for damage in verdict.damage:
-        print(damage.message)
-    if not verdict.damage:
-        print(f"ok: commits up to {verdict.head.seq}, {verdict.digested} digested again")
-    return 1 if verdict.damage else 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

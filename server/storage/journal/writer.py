@@ -62,12 +62,17 @@ def prune(connection: sqlite3.Connection, retention_days: float) -> None:
                 connection.execute(f"DELETE FROM {table} WHERE {time_column} < ?", (cutoff,))
             if cut is not None:
                 connection.execute("DELETE FROM commits WHERE seq <= ?", (cut.seq,))
-                connection.execute(
-                    "INSERT OR REPLACE INTO journal_meta (key, value) VALUES ('pruned', ?)",
-                    (cut.as_json(),),
-                )
-    except sqlite3.Error as exc:
+                note_chain_start(connection, cut)
+    except (sqlite3.Error, ValueError) as exc:  # ValueError: a commit row that does not read
         log.error("journal retention pruning failed: %s", exc)
+
+
+def note_chain_start(connection: sqlite3.Connection, anchor: Head) -> None:
+    """Where the commit chain now starts: verification checks only the commits after it."""
+    connection.execute(
+        "INSERT OR REPLACE INTO journal_meta (key, value) VALUES ('pruned', ?)",
+        (anchor.as_json(),),
+    )
 
 
 def _chain_cut(connection: sqlite3.Connection, cutoff: float) -> Head | None:
@@ -87,6 +92,9 @@ def _chain_cut(connection: sqlite3.Connection, cutoff: float) -> Head | None:
             ).fetchone()[0]
         )
     through = max((int(c) for c in candidates if c is not None), default=0)
+    start = connection.execute("SELECT value FROM journal_meta WHERE key = 'pruned'").fetchone()
+    if start is not None and through <= Head.from_json(str(start[0])).seq:
+        return None  # never back: the chain may have been started again after that
     row = connection.execute(
         f"SELECT {COMMIT_COLUMNS} FROM commits WHERE seq <= ? ORDER BY seq DESC LIMIT 1",
         (through,),
