@@ -12,7 +12,14 @@ server (the e-stop and the cell work without a history) and is never silent.
   readable journal is kept and goes on from its last readable commit; a copy
   of the files as found, `journal.db.damaged-<time>` (and `-wal`, ...), is kept
   first, since the lost transactions may still lie in the WAL past the
-  damaged frame and SQLite overwrites them at the next commit.
+  damaged frame and SQLite overwrites them at the next commit (no room for
+  the copy: logged, and the journal is kept all the same).
+- SQLite reads it but the chain itself does not read (a commit's row
+  rewritten into nonsense): said so, the journal kept and copied, and the
+  chain started again after its highest commit.
+- SQLite cannot open it at all (locked by another process, no permission, an
+  I/O error): that is not damage, nothing is moved, and the error stops the
+  start as any failure to open the journal does.
 
 Either way each finding is a CRITICAL log line naming what is missing (which
 commits, how many rows of which table) and where the files went; the journal
@@ -185,14 +192,19 @@ def _move(path: Path, label: str) -> Path:
 
 
 def _copy(path: Path, label: str) -> Path | None:
-    """A copy of the journal and its companions as found (None, logged, when it fails)."""
+    """A copy of the journal and its companions as found (None, logged, when it fails:
+    what was copied is removed, so a full disk is not left fuller)."""
+    made: list[Path] = []
     try:
         copy = _free_name(path, label)
         for suffix in COMPANIONS:
             source = Path(f"{path}{suffix}")
             if source.exists():
-                shutil.copy2(source, Path(f"{copy}{suffix}"))
+                made.append(Path(f"{copy}{suffix}"))
+                shutil.copy2(source, made[-1])
     except OSError as exc:
+        for target in made:
+            target.unlink(missing_ok=True)
         log.error("could not keep a copy of the damaged journal %s: %s", path, exc)
         return None
     return copy

@@ -5,7 +5,8 @@ refuse any other column, and the HTTP routes (server/api/analytics.py) build
 their query parameters, with type and description, from it.
 
 `commits` and `journal_meta` hold the commit chain (`commit_chain.py`): one row
-per transaction the writer committed, and where retention last cut it.
+per transaction the writer committed, and where the chain now starts (after
+retention cut it, or after it could not be read).
 """
 
 from __future__ import annotations

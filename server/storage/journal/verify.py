@@ -98,13 +98,16 @@ def verify(
 
 
 def _anchor(connection: sqlite3.Connection) -> Head:
-    """Where retention last cut the chain (GENESIS when it never did)."""
+    """Where the chain starts: where retention last cut it, or where it was started
+    again after it could not be read (GENESIS when neither happened)."""
     has_meta = connection.execute(
         "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'journal_meta'"
     ).fetchone()
     if not has_meta:
         return GENESIS
-    found = connection.execute("SELECT value FROM journal_meta WHERE key = 'pruned'").fetchone()
+    found = connection.execute(
+        "SELECT value FROM journal_meta WHERE key = 'chain_start'"
+    ).fetchone()
     return GENESIS if found is None else Head.from_json(str(found[0]))
 
 

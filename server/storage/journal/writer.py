@@ -70,7 +70,7 @@ def prune(connection: sqlite3.Connection, retention_days: float) -> None:
 def note_chain_start(connection: sqlite3.Connection, anchor: Head) -> None:
     """Where the commit chain now starts: verification checks only the commits after it."""
     connection.execute(
-        "INSERT OR REPLACE INTO journal_meta (key, value) VALUES ('pruned', ?)",
+        "INSERT OR REPLACE INTO journal_meta (key, value) VALUES ('chain_start', ?)",
         (anchor.as_json(),),
     )
 
@@ -92,7 +92,9 @@ def _chain_cut(connection: sqlite3.Connection, cutoff: float) -> Head | None:
             ).fetchone()[0]
         )
     through = max((int(c) for c in candidates if c is not None), default=0)
-    start = connection.execute("SELECT value FROM journal_meta WHERE key = 'pruned'").fetchone()
+    start = connection.execute(
+        "SELECT value FROM journal_meta WHERE key = 'chain_start'"
+    ).fetchone()
     if start is not None and through <= Head.from_json(str(start[0])).seq:
         return None  # never back: the chain may have been started again after that
     row = connection.execute(
