@@ -28,6 +28,7 @@ BENCHMARKS = (
     ("scaling", []),
     ("vision", []),
     ("journal", []),
+    ("journal_verify", []),
     ("planning", []),
 )
 

@@ -212,6 +212,7 @@ class NullJournal:
 
     backlog = 0
     last_error = None
+    damage: tuple[Any, ...] = ()
 
     def append(self, records: list[Any], *, durable: bool = True) -> None:
         return None

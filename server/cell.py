@@ -17,6 +17,7 @@ from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
 from server.core.events import AuditNote, Outcome, Payload, StopPayload
+from server.core.faults import classify
 from server.core.live import DeviceFeed
 from server.core.operations import Operation, default_operations
 from server.core.snapshot import SnapshotFile
@@ -32,7 +33,7 @@ from server.core.view import CellView
 from server.core.worker import Worker
 from server.logging_setup import log_path
 from server.storage import CellStores
-from server.storage.journal import Journal
+from server.storage.journal import Journal, records
 from server.storage.permissions import tighten_data_directory
 
 log = logging.getLogger(__name__)
@@ -102,6 +103,7 @@ class Cell:
         )
         await asyncio.to_thread(self.journal.open)
         self.journal.start(asyncio.get_running_loop())
+        record_journal_damage(self.journal)
         snapshot_file = None
         previous = None
         if settings.state_persistence:
@@ -170,6 +172,23 @@ class Cell:
             stop = payload if isinstance(payload, StopPayload) else StopPayload()
             return await self.worker.emergency_stop(source=source, payload=stop, audit=audit)
         return await self.worker.request(event, source=source, payload=payload, audit=audit)
+
+
+def record_journal_damage(journal: Journal) -> None:
+    """What start-up found wrong with the journal, in its own `errors`: /health shows it
+    until the server stops, this row for as long as retention keeps it."""
+    code = "JOURNAL_DAMAGED"
+    for damage in journal.damage:
+        record = records.error(
+            damage.found_at,
+            code,
+            damage.message,
+            "journal",
+            classify(code),
+            "",
+            State.INITIALIZING.value,
+        )
+        journal.append([record], durable=False)
 
 
 def find_interruption(journal: Journal, previous: dict[str, Any] | None) -> str | None:

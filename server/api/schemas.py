@@ -143,14 +143,35 @@ class PerformanceView(BaseModel):
     queue_size: int
 
 
+class JournalDamageView(BaseModel):
+    """One thing start-up found wrong with the journal (also logged CRITICAL and recorded
+    in the journal's errors as JOURNAL_DAMAGED)."""
+
+    message: str = Field(description="what is wrong, what was lost, what was done")
+    first_commit: int | None = Field(None, description="the first commit concerned, if known")
+    last_commit: int | None = Field(None, description="the last commit concerned, if known")
+    missing_rows: dict[str, int] = Field(
+        default_factory=dict, description="rows lost per table, e.g. {'transitions': 8}"
+    )
+    kept_as: str | None = Field(
+        None, description="the file, beside the journal, the damaged journal was kept as"
+    )
+    found_at: float = Field(description="when start-up found it (Unix time)")
+
+
 class JournalHealthView(BaseModel):
-    """The journal's write side: what waits for the disk and the last write that failed."""
+    """The journal: what waits for the disk, the last write that failed, the damage found."""
 
     backlog: int = Field(description="records queued for the disk")
     last_error: str | None = Field(
         None, description="the last write failure, None once a later write succeeded"
     )
     last_error_at: float | None = Field(None, description="when it failed (Unix time)")
+    damage: list[JournalDamageView] = Field(
+        default_factory=list,
+        description="what start-up found wrong with the journal; empty when nothing; "
+        "kept until the server stops",
+    )
 
 
 class HealthView(BaseModel):

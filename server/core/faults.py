@@ -25,7 +25,9 @@ RECOVERABLE = frozenset(
         "VISION_TIMEOUT",
     }
 )
-WARNING = frozenset({"ERROR_STATE_TIMEOUT", "SLOW_OPERATION", "CALIBRATION_DEGRADING"})
+WARNING = frozenset(
+    {"ERROR_STATE_TIMEOUT", "SLOW_OPERATION", "CALIBRATION_DEGRADING", "JOURNAL_DAMAGED"}
+)
 
 RECOMMENDED_ACTION = {
     "EMERGENCY_STOP": "make sure the cell is clear, then reset",

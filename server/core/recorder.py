@@ -86,12 +86,14 @@ class Recorder:
             raise JournalUnavailable(str(exc)) from exc
 
     def journal_health(self) -> dict[str, Any]:
-        """The write side's figures for /health: the backlog and the last write failure."""
+        """The journal's figures for /health: the backlog, the last write failure, and
+        the damage start-up found."""
         failure = self.journal.last_error
         return {
             "backlog": self.journal.backlog,
             "last_error": failure.message if failure else None,
             "last_error_at": failure.at if failure else None,
+            "damage": [damage.as_dict() for damage in self.journal.damage],
         }
 
     # --- records committed with the event ----------------------------------

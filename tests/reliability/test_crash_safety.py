@@ -91,6 +91,8 @@ def test_sigkill_at_random_moments(tmp_path: Path) -> None:
                     assert connection.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
                     stored = {row[0] for row in connection.execute("SELECT id FROM events")}
                 assert acknowledged <= stored, f"lost: {sorted(acknowledged - stored)}"
+                # A kill is no damage: the commit chain found nothing missing or rewritten.
+                assert client.get("/health").json()["journal"]["damage"] == []
                 if cycle == KILLS:
                     break
                 # Died mid-operation (an operation never closed in the journal):

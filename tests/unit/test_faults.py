@@ -30,6 +30,7 @@ EXPECTED = {
     "ERROR_STATE_TIMEOUT": "warning",
     "SLOW_OPERATION": "warning",
     "CALIBRATION_DEGRADING": "warning",
+    "JOURNAL_DAMAGED": "warning",  # the cell works on; the record of the past is incomplete
     # critical: a person looks before the cell runs again
     "EMERGENCY_STOP": "critical",
     "COMM_LOST": "critical",

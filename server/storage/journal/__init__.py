@@ -4,6 +4,10 @@
 - `records`: one function per kind of row, each returning a `Record`;
 - `writer`: the writer thread (group commit; a future per append, resolved once
   committed: see there why), retention;
+- `commit_chain`: each commit numbered, its rows digested, the last one noted
+  beside the journal; `verify` checks that at start-up and `inspection` decides
+  what to do with a damaged journal (kept readable, or set aside: see there);
+  `check` is the same check by hand (`python -m server.storage.journal.check`);
 - `reader`: queries, counts, export pages, and the restart's view of
   unfinished operations.
 
@@ -19,16 +23,24 @@ then daily, so the database stays bounded.
 from __future__ import annotations
 
 import asyncio
-import logging
 import sqlite3
-import time
 from pathlib import Path
 
 from server.storage.journal import records
+from server.storage.journal.commit_chain import GENESIS, CommitChain, LastCommitFile
+from server.storage.journal.inspection import inspect
 from server.storage.journal.reader import Cursor, Reader
 from server.storage.journal.records import Record
-from server.storage.journal.schema import FILTERS, SCHEMA, TABLES, Filter, filter_columns
-from server.storage.journal.writer import WriteFailure, Writer, prune
+from server.storage.journal.schema import (
+    FILTERS,
+    SCHEMA,
+    TABLES,
+    Filter,
+    add_commit_seq,
+    filter_columns,
+)
+from server.storage.journal.verify import Damage
+from server.storage.journal.writer import WriteFailure, Writer, note_chain_start, prune
 from server.storage.permissions import private_file
 
 __all__ = [
@@ -36,6 +48,7 @@ __all__ = [
     "SCHEMA",
     "TABLES",
     "Cursor",
+    "Damage",
     "Filter",
     "Journal",
     "Record",
@@ -43,8 +56,6 @@ __all__ = [
     "filter_columns",
     "records",
 ]
-
-log = logging.getLogger(__name__)
 
 
 class Journal(Reader):
@@ -59,27 +70,28 @@ class Journal(Reader):
         super().__init__(path)
         self.synchronous = synchronous
         self.retention_days = retention_days
+        # What start-up found wrong with the journal (empty when nothing), for /health.
+        self.damage: list[Damage] = []
+        self._last_commit = LastCommitFile(path)
+        self._chain = CommitChain(GENESIS, self._last_commit)
         # `self._connect` is looked up here, so a subclass's override serves the writer.
-        self._writer = Writer(self._connect, self._prune)
+        self._writer = Writer(self._connect, self._prune, self._chain)
 
     # --- lifecycle ---------------------------------------------------------
 
     def open(self) -> None:
-        """Open (or create) the database; a damaged one is kept aside and a new one started."""
+        """Open (or create) the database, checked first: damage is logged and kept in
+        `damage`, never fatal (see `inspection.py` for what is done with the files)."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            _check(self.path)
-        except sqlite3.DatabaseError as exc:
-            aside = self.path.with_name(f"{self.path.name}.corrupt-{int(time.time())}")
-            self.path.replace(aside)
-            for suffix in ("-wal", "-shm"):
-                Path(f"{self.path}{suffix}").unlink(missing_ok=True)
-            log.error(
-                "journal %s is damaged (%s); kept as %s, starting a new one", self.path, exc, aside
-            )
+        found = inspect(self.path, self._last_commit)
+        self.damage = found.damage
+        self._chain.head = found.head
         private_file(self.path)  # 0600 before SQLite opens it; its -wal and -shm take its mode
         connection = self._connect()
         connection.executescript(SCHEMA)
+        add_commit_seq(connection)
+        if found.restarted:
+            note_chain_start(connection, found.head)
         connection.commit()
         connection.close()
         connection = self._connect()
@@ -128,16 +140,3 @@ class Journal(Reader):
 
     def _prune(self, connection: sqlite3.Connection) -> None:
         prune(connection, self.retention_days)
-
-
-def _check(path: Path) -> None:
-    """Raise sqlite3.DatabaseError when the database at `path` is damaged."""
-    if not path.exists():
-        return
-    connection = sqlite3.connect(path)
-    try:
-        result = connection.execute("PRAGMA quick_check").fetchone()
-        if result is None or result[0] != "ok":
-            raise sqlite3.DatabaseError(f"quick_check: {result}")
-    finally:
-        connection.close()

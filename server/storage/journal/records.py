@@ -11,13 +11,42 @@ import json
 from dataclasses import dataclass
 from typing import Any
 
+from server.storage.journal.schema import COMMIT_SEQ
+
+
+@dataclass(frozen=True, slots=True)
+class Sealed:
+    """How the writer appends a row the commit chain seals (`commit_chain.py`): `sql`
+    takes the commit's sequence number as one more parameter."""
+
+    table: str
+    sql: str
+
 
 @dataclass(frozen=True, slots=True)
 class Record:
-    """One SQL statement for the writer: `sql` with `params`."""
+    """One SQL statement for the writer: `sql` with `params` (also runnable as it is).
+
+    `sealed`, on a row of a sealed table, is the form the writer runs instead.
+    """
 
     sql: str
     params: tuple[Any, ...]
+    sealed: Sealed | None = None
+
+
+def _appended(
+    table: str, columns: tuple[str, ...], values: tuple[Any, ...], *, replace: bool = False
+) -> Record:
+    """A row of a sealed `table`: `values` for `columns`."""
+    verb = "INSERT OR REPLACE" if replace else "INSERT"
+    placeholders = ",".join("?" * len(columns))
+    sealed = f"{verb} INTO {table} ({', '.join(columns)}, {COMMIT_SEQ}) VALUES ({placeholders},?)"
+    return Record(
+        f"{verb} INTO {table} ({', '.join(columns)}) VALUES ({placeholders})",
+        values,
+        Sealed(table, sealed),
+    )
 
 
 def _json(value: Any) -> str:
@@ -35,18 +64,20 @@ def event(
     state: str,
 ) -> Record:
     """An event the worker decided (replaces a row of the same id)."""
-    return Record(
-        "INSERT OR REPLACE INTO events VALUES (?,?,?,?,?,?,?,?)",
+    return _appended(
+        "events",
+        ("id", "time", "type", "source", "data", "outcome", "message", "state"),
         (event_id, at, type_, source, _json(data), outcome, message, state),
+        replace=True,
     )
 
 
 def transition(row: dict[str, Any]) -> Record:
     """A transition, from its dict (timestamp, old_state, new_state, event, event_id,
     time_in_old_state)."""
-    return Record(
-        "INSERT INTO transitions (time, old_state, new_state, event, event_id, "
-        "time_in_old_state) VALUES (?,?,?,?,?,?)",
+    return _appended(
+        "transitions",
+        ("time", "old_state", "new_state", "event", "event_id", "time_in_old_state"),
         (
             row["timestamp"],
             row["old_state"],
@@ -92,17 +123,18 @@ def error(
     state: str,
 ) -> Record:
     """A fault."""
-    return Record(
-        "INSERT INTO errors (time, code, message, component, classification, event_id, "
-        "state) VALUES (?,?,?,?,?,?,?)",
+    return _appended(
+        "errors",
+        ("time", "code", "message", "component", "classification", "event_id", "state"),
         (at, code, message, component, classification, event_id, state),
     )
 
 
 def recovery(at: float, run_id: str, error_code: str, attempt: int, succeeded: bool) -> Record:
     """One in-place retry of a recoverable fault, and whether it succeeded."""
-    return Record(
-        "INSERT INTO recoveries (time, run_id, error_code, attempt, succeeded) VALUES (?,?,?,?,?)",
+    return _appended(
+        "recoveries",
+        ("time", "run_id", "error_code", "attempt", "succeeded"),
         (at, run_id, error_code, attempt, int(succeeded)),
     )
 
@@ -111,9 +143,9 @@ def audit(
     at: float, principal: str, address: str, action: str, outcome: str, detail: str
 ) -> Record:
     """Who did what, from where, with what outcome."""
-    return Record(
-        "INSERT INTO audit (time, principal, address, action, outcome, detail) "
-        "VALUES (?,?,?,?,?,?)",
+    return _appended(
+        "audit",
+        ("time", "principal", "address", "action", "outcome", "detail"),
         (at, principal, address, action, outcome, detail),
     )
 

@@ -3,10 +3,15 @@
 `FILTERS` is the one declaration of each table's equality filters: the readers
 refuse any other column, and the HTTP routes (server/api/analytics.py) build
 their query parameters, with type and description, from it.
+
+`commits` and `journal_meta` hold the commit chain (`commit_chain.py`): one row
+per transaction the writer committed, and where the chain now starts (after
+retention cut it, or after it could not be read).
 """
 
 from __future__ import annotations
 
+import sqlite3
 from dataclasses import dataclass
 
 SCHEMA = """
@@ -37,6 +42,10 @@ CREATE TABLE IF NOT EXISTS audit (
     seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, principal TEXT NOT NULL,
     address TEXT NOT NULL, action TEXT NOT NULL, outcome TEXT NOT NULL, detail TEXT NOT NULL
 );
+CREATE TABLE IF NOT EXISTS commits (
+    seq INTEGER PRIMARY KEY, time REAL NOT NULL, rows TEXT NOT NULL, digest TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS journal_meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE INDEX IF NOT EXISTS audit_time ON audit(time);
 CREATE INDEX IF NOT EXISTS events_time ON events(time);
 CREATE INDEX IF NOT EXISTS transitions_time ON transitions(time);
@@ -77,6 +86,22 @@ TABLES: dict[str, tuple[str, list[str]]] = {
     "recoveries": ("time", ["seq", "time", "run_id", "error_code", "attempt", "succeeded"]),
     "audit": ("time", ["seq", "time", "principal", "address", "action", "outcome", "detail"]),
 }
+
+# The tables whose rows are sealed: each row carries the sequence number of the
+# commit that appended it (`commit_seq`, added to older journals at open) and
+# is part of that commit's digest. Not `operations`: its rows are updated as a
+# run progresses and ends, so a digest taken when a row was appended would not
+# hold; the commits that change it are still numbered and chained.
+SEALED: tuple[str, ...] = ("events", "transitions", "errors", "recoveries", "audit")
+COMMIT_SEQ = "commit_seq"
+
+
+def add_commit_seq(connection: sqlite3.Connection) -> None:
+    """Give each sealed table its `commit_seq` column where an older journal lacks it."""
+    for table in SEALED:
+        columns = {row[1] for row in connection.execute(f"PRAGMA table_info({table})")}
+        if COMMIT_SEQ not in columns:
+            connection.execute(f"ALTER TABLE {table} ADD COLUMN {COMMIT_SEQ} INTEGER")
 
 
 @dataclass(frozen=True, slots=True)

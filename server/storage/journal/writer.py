@@ -23,8 +23,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from server.storage.journal.commit_chain import COMMIT_COLUMNS, CommitChain, Head, head_of
 from server.storage.journal.records import Record
-from server.storage.journal.schema import TABLES
+from server.storage.journal.schema import COMMIT_SEQ, SEALED, TABLES
 
 log = logging.getLogger(__name__)
 
@@ -45,27 +46,78 @@ class WriteFailure:
 
 
 def prune(connection: sqlite3.Connection, retention_days: float) -> None:
-    """Delete the rows older than `retention_days` from every table (errors logged)."""
+    """Delete the rows older than `retention_days` from every table (errors logged).
+
+    The commit chain is cut with them: the commits up to the last one that made
+    a row now deleted (or made before the cutoff) go, and the last of those is
+    kept in `journal_meta` as where the chain now starts; the rows of those
+    commits that are younger stay, no longer checked. So start-up's
+    verification never takes retention for damage.
+    """
     cutoff = time.time() - retention_days * DAY_S
     try:
         with connection:
+            cut = _chain_cut(connection, cutoff)
             for table, (time_column, _) in TABLES.items():
                 connection.execute(f"DELETE FROM {table} WHERE {time_column} < ?", (cutoff,))
-    except sqlite3.Error as exc:
+            if cut is not None:
+                connection.execute("DELETE FROM commits WHERE seq <= ?", (cut.seq,))
+                note_chain_start(connection, cut)
+    except (sqlite3.Error, ValueError) as exc:  # ValueError: a commit row that does not read
         log.error("journal retention pruning failed: %s", exc)
+
+
+def note_chain_start(connection: sqlite3.Connection, anchor: Head) -> None:
+    """Where the commit chain now starts: verification checks only the commits after it."""
+    connection.execute(
+        "INSERT OR REPLACE INTO journal_meta (key, value) VALUES ('chain_start', ?)",
+        (anchor.as_json(),),
+    )
+
+
+def _chain_cut(connection: sqlite3.Connection, cutoff: float) -> Head | None:
+    """The last commit retention removes (None when none is to go): the later of the
+    last one before the first made since `cutoff` and the last that made a row older
+    than `cutoff` (a row's time is its own, so a clock set back can make them differ)."""
+    first_kept = connection.execute(
+        "SELECT seq FROM commits WHERE time >= ? ORDER BY seq LIMIT 1", (cutoff,)
+    ).fetchone()
+    last = connection.execute("SELECT MAX(seq) FROM commits").fetchone()[0]
+    candidates = [last if first_kept is None else first_kept[0] - 1]
+    for table in SEALED:
+        time_column = TABLES[table][0]
+        candidates.append(
+            connection.execute(
+                f"SELECT MAX({COMMIT_SEQ}) FROM {table} WHERE {time_column} < ?", (cutoff,)
+            ).fetchone()[0]
+        )
+    through = max((int(c) for c in candidates if c is not None), default=0)
+    start = connection.execute(
+        "SELECT value FROM journal_meta WHERE key = 'chain_start'"
+    ).fetchone()
+    if start is not None and through <= Head.from_json(str(start[0])).seq:
+        return None  # never back: the chain may have been started again after that
+    row = connection.execute(
+        f"SELECT {COMMIT_COLUMNS} FROM commits WHERE seq <= ? ORDER BY seq DESC LIMIT 1",
+        (through,),
+    ).fetchone()
+    return None if row is None else head_of(row)
 
 
 class Writer:
     """One thread writing queued records, a transaction per wake-up, pruning daily.
 
     `connect` opens the thread's connection (called on the thread); `prune` is
-    given that connection once a day.
+    given that connection once a day. Each transaction goes through the commit
+    chain (`commit_chain.py`), which numbers it, digests its rows and notes it
+    beside the journal once committed.
     """
 
     def __init__(
         self,
         connect: Callable[[], sqlite3.Connection],
         prune: Callable[[sqlite3.Connection], None],
+        chain: CommitChain,
     ) -> None:
         self._connect = connect
         self._prune = prune
@@ -74,6 +126,7 @@ class Writer:
         self._stopping = False
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._chain = chain
         # The last write failure; None once a write succeeds (or when none failed).
         self.last_error: WriteFailure | None = None
 
@@ -140,15 +193,17 @@ class Writer:
                 last_prune = time.monotonic()
                 self._prune(connection)
         connection.close()
+        self._chain.close()
 
     def _write(self, connection: sqlite3.Connection, batch: Batch) -> None:
         error: Exception | None = None
         try:
             with connection:
-                for records, _ in batch:
-                    for record in records:
-                        connection.execute(record.sql, tuple(_clean(p) for p in record.params))
-            if any(records for records, _ in batch):  # not just read-your-writes markers
+                head = self._chain.write(
+                    connection, (record for records, _ in batch for record in records), time.time()
+                )
+            if head is not None:  # not just read-your-writes markers
+                self._chain.committed(head)
                 self.last_error = None
         except Exception as exc:  # never let the writer die: every waiting answer must come
             error = exc
@@ -160,13 +215,6 @@ class Writer:
         for _, future in batch:
             if future is not None:
                 loop.call_soon_threadsafe(_settle, future, error)
-
-
-def _clean(value: Any) -> Any:
-    """Text as SQLite can store it: unpaired surrogates (e.g. from a device) replaced."""
-    if isinstance(value, str):
-        return value.encode("utf-8", "replace").decode("utf-8")
-    return value
 
 
 def _settle(future: asyncio.Future[None], error: Exception | None) -> None:
