@@ -29,7 +29,13 @@ NOTE = AuditNote("maint (maintenance, token t1)", "10.0.0.5", "POST /home", labe
 
 
 async def fail_a_write(worker) -> None:
-    """Make the journal's last write a failed one."""
+    """Make the journal's last write a failed one.
+
+    The writer commits whatever is queued in one transaction, so the failing
+    statement must not share it with the start-up's own records (their commit
+    would fail too and fault the cell): everything queued before is written first.
+    """
+    await worker.recorder.journal.caught_up()
     failed = worker.recorder.journal.append([Record("INSERT INTO no_such_table VALUES (1)", ())])
     with pytest.raises(sqlite3.OperationalError):
         await failed

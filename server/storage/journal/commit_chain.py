@@ -147,7 +147,7 @@ class LastCommitFile:
 
     def write(self, head: Head) -> None:
         if self._fd is None:
-            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
             self._size = max(self._size, os.fstat(self._fd).st_size)
         data = (head.as_json() + "\n").encode()  # hex, digits and names: ASCII
         self._size = max(self._size, len(data))
