@@ -118,7 +118,10 @@ class DeviceFaultKind:
     stop_reaches_robot: bool = True
 
 
-DROP_REFUSAL_S = 3.0  # how long a dropped robot refuses reconnection (cleared earlier)
+# How long a dropped robot refuses reconnection: until the test clears the fault, which
+# it always does first (this only ends a forgotten one). A window that ran out by
+# itself would race the test's refused reset on a busy machine.
+DROP_REFUSAL_S = WAIT_S
 
 DEVICE_FAULTS: dict[str, DeviceFaultKind] = {
     kind.name: kind
