@@ -2,7 +2,7 @@
 # (the whole suite). Each sets itself up on a fresh clone: a virtualenv in .venv
 # with the pinned dependencies (constraints.txt). `make test-fast` runs the unit
 # tier alone, for the edit loop; `make test-loaded` the reliability tier on a busy
-# machine.
+# machine; `make soak` the long soak.
 
 PYTHON ?= python3
 VENV := .venv
@@ -13,8 +13,9 @@ PORT ?= 8000
 DATA ?= data
 
 LOADED_LIMIT ?= 30m
+SOAK ?= 30m
 
-.PHONY: run test test-fast test-loaded lint bench diagram openapi clean browser node
+.PHONY: run test test-fast test-loaded soak lint bench diagram openapi clean browser node
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -42,6 +43,14 @@ test-loaded: $(STAMP)
 	echo "test-loaded: $$cores busy loops beside the reliability tier (limit $(LOADED_LIMIT))"; \
 	timeout --foreground --signal=INT --kill-after=60 $(LOADED_LIMIT) \
 		$(PY) -m pytest tests/reliability -q
+
+# The soak (tests/reliability/soak.py) for SOAK (30m; SOAK=2h for longer). It ends a
+# hung cycle itself five minutes late; this bounds it to its duration and ten minutes.
+soak: $(STAMP)
+	@limit=$$($(PY) -c 'from tests.reliability.soak import parse_duration as d; \
+		print(int(d("$(SOAK)")) + 600)'); \
+	timeout --foreground --signal=INT --kill-after=60 $$limit \
+		$(PY) -m tests.reliability.soak --duration $(SOAK)
 
 # The browser tests drive Debian's Chromium through Playwright (never `playwright install`).
 browser:
