@@ -1,7 +1,8 @@
 # The two commands: `make run` (the server on the simulated cell) and `make test`
 # (the whole suite). Each sets itself up on a fresh clone: a virtualenv in .venv
 # with the pinned dependencies (constraints.txt). `make test-fast` runs the unit
-# tier alone, for the edit loop.
+# tier alone, for the edit loop; `make test-loaded` the reliability tier on a busy
+# machine; `make soak` the long soak.
 
 PYTHON ?= python3
 VENV := .venv
@@ -11,7 +12,10 @@ HOST ?= 127.0.0.1
 PORT ?= 8000
 DATA ?= data
 
-.PHONY: run test test-fast lint bench diagram openapi clean browser node
+LOADED_LIMIT ?= 30m
+SOAK ?= 30m
+
+.PHONY: run test test-fast test-loaded soak lint bench diagram openapi clean browser node
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -27,6 +31,26 @@ test: $(STAMP) lint browser node
 # The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
 test-fast: $(STAMP) node
 	$(PY) -m pytest -m unit -q
+
+# The reliability tier (tests/reliability) with every core kept busy by as many
+# busy loops, at the default priority as a CI runner's other jobs would be: what it
+# checks must not depend on a quiet machine. The loops end with the run, however it
+# ends; the run is bounded by LOADED_LIMIT (interrupted, so pytest still reports).
+test-loaded: $(STAMP)
+	@cores=$$(nproc); load=""; \
+	trap 'kill $$load 2>/dev/null' EXIT INT TERM; \
+	for i in $$(seq $$cores); do $(PY) -c 'while True: pass' & load="$$load $$!"; done; \
+	echo "test-loaded: $$cores busy loops beside the reliability tier (limit $(LOADED_LIMIT))"; \
+	timeout --foreground --signal=INT --kill-after=60 $(LOADED_LIMIT) \
+		$(PY) -m pytest tests/reliability -q
+
+# The soak (tests/reliability/soak.py) for SOAK (30m; SOAK=2h for longer). It ends a
+# hung cycle itself five minutes late; this bounds it to its duration and ten minutes.
+soak: $(STAMP)
+	@limit=$$($(PY) -c 'from tests.reliability.soak import parse_duration as d; \
+		print(int(d("$(SOAK)")) + 600)'); \
+	timeout --foreground --signal=INT --kill-after=60 $$limit \
+		$(PY) -m tests.reliability.soak --duration $(SOAK)
 
 # The browser tests drive Debian's Chromium through Playwright (never `playwright install`).
 browser:

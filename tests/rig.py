@@ -25,7 +25,17 @@ from server.drivers.sim.robot_sim import RobotSimulator
 from tests.serving import admin_headers, serve
 
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
-TIMEOUT = 1.0  # robot_communication_timeout and glue_system_timeout on the rig
+# The rig's device timeouts: robot_communication_timeout and glue_system_timeout, and
+# the glue link's. Short, so a stalled device is found in seconds; yet several times
+# the longest stall of this process's event loop (which runs the test, the server and
+# both simulators) seen with both cores kept busy by other processes (`make
+# test-loaded`: hundreds of milliseconds). A timeout within reach of such a stall turns
+# load into a spurious device fault: at 1 s, a robot never stalled went NO_ANSWER.
+TIMEOUT = 3.0
+GLUE_LINK_TIMEOUT = 1.5  # glue_link_timeout (0.5 s by default): a silent dispenser
+# Bounds on what the test waits for (the server up, a state reached): never performance
+# assertions, so generous enough for a machine that is busy with something else.
+WAIT_S = 60.0
 
 
 @dataclass
@@ -42,7 +52,7 @@ class Rig:
     async def state(self) -> dict:
         return (await self.api.get("/state")).json()
 
-    async def wait_state(self, state: str, timeout: float = 15) -> dict:
+    async def wait_state(self, state: str, timeout: float = WAIT_S) -> dict:
         async with asyncio.timeout(timeout):
             while (snapshot := await self.state())["state"] != state:
                 await asyncio.sleep(0.01)
@@ -50,7 +60,7 @@ class Rig:
 
     async def start_spraying(self) -> None:
         assert (await self.api.post("/start", json=SPRAY_DEMO)).status_code == 202
-        async with asyncio.timeout(15):
+        async with asyncio.timeout(WAIT_S):
             while not self.glue.valve_open:
                 await asyncio.sleep(0.005)
 
@@ -71,7 +81,7 @@ async def run(rig: Rig, command: str, body: dict | None = None) -> dict:
     """Send a command, wait for the operation to end; the final state snapshot."""
     response = await rig.api.post(f"/{command}", json=body)
     assert response.status_code == 202, response.text
-    async with asyncio.timeout(60):
+    async with asyncio.timeout(WAIT_S):
         while (snapshot := await rig.state())["state"] not in ("IDLE", "ERROR"):
             await asyncio.sleep(0.02)
     return snapshot
@@ -108,7 +118,10 @@ class DeviceFaultKind:
     stop_reaches_robot: bool = True
 
 
-DROP_REFUSAL_S = 3.0  # how long a dropped robot refuses reconnection (cleared earlier)
+# How long a dropped robot refuses reconnection: until the test clears the fault, which
+# it always does first (this only ends a forgotten one). A window that ran out by
+# itself would race the test's refused reset on a busy machine.
+DROP_REFUSAL_S = WAIT_S
 
 DEVICE_FAULTS: dict[str, DeviceFaultKind] = {
     kind.name: kind
@@ -186,6 +199,8 @@ async def open_rig(data_path, **overrides: Any) -> AsyncIterator[Rig]:
         defaults: dict[str, Any] = {
             "robot_communication_timeout": TIMEOUT,
             "glue_system_timeout": TIMEOUT,
+            "glue_link_timeout": GLUE_LINK_TIMEOUT,
+            "reset_probe_timeout": TIMEOUT * 2,  # a probe renders a camera frame too
             "emergency_stop_timeout": 0.5,
             "vision_processing_timeout": 10,
         }
@@ -199,7 +214,9 @@ async def open_rig(data_path, **overrides: Any) -> AsyncIterator[Rig]:
         cell = Cell(settings)
         async with (
             serve(cell) as url,
-            httpx.AsyncClient(base_url=url, timeout=10, headers=admin_headers(data_path)) as api,
+            httpx.AsyncClient(
+                base_url=url, timeout=WAIT_S, headers=admin_headers(data_path)
+            ) as api,
         ):
             rig = Rig(api, cell, robot, glue)
             await rig.wait_state("IDLE")

@@ -43,7 +43,9 @@ async def serve(cell: Cell, **uvicorn_overrides: Any) -> AsyncIterator[str]:
     server = uvicorn.Server(config)
     server.install_signal_handlers = lambda: None  # type: ignore[method-assign]
     task = asyncio.create_task(server.serve())
-    async with asyncio.timeout(20):
+    # Start-up commissions a fresh simulated cell (CPU-bound): a bound, not a performance
+    # assertion, so generous for a machine busy with other work.
+    async with asyncio.timeout(120):
         while not server.started:
             if task.done():
                 task.result()

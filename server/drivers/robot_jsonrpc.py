@@ -12,6 +12,13 @@ background reconnection with exponential backoff. Calls made while the link is
 down fail fast instead of queueing: a queued move replayed seconds later on a
 reconnected arm would be dangerous.
 
+`stop()` is the exception, because a stop can never be dangerous: it is written
+on whatever socket is open, a new link's still waiting for its connection
+probe included, never refused because the link is not confirmed yet. With no
+socket at all it fails (the halt reports it) and is owed: the next link sends
+it before its connection probe, and each attempt sends it again until one is
+answered.
+
 A quiet link is watched too: with `heartbeat_interval` set, a link that has
 carried no answer for that long is asked `getPosition`. A controller that stops
 answering while the cell is IDLE is then found within interval + timeout, not
@@ -151,6 +158,7 @@ class JsonRpcRobot:
         self._watch_task: asyncio.Task[None] | None = None
         self._last_answer = 0.0  # monotonic time of the last answer on any link
         self._silent = False  # a NO_ANSWER fault was reported and no answer came since
+        self._stop_owed = False  # a stop found no socket: the next link sends it first
 
     # --- lifecycle -------------------------------------------------------------
 
@@ -235,6 +243,10 @@ class JsonRpcRobot:
             self._read_loop(reader, self._generation), name=f"robot-reader-{self.port}"
         )
         try:
+            if self._stop_owed:  # a halt found no link: the arm hears it before anything else
+                await self._exchange("stop", None)
+                self._stop_owed = False
+                logger.warning("robot: sent the stop owed since the link was lost")
             await self._exchange("getPosition", None)
         except BaseException:
             self._teardown("the controller did not answer the connection probe")
@@ -479,7 +491,22 @@ class JsonRpcRobot:
         return result
 
     async def stop(self) -> None:
-        await self.call("stop")
+        """Stop the arm: written on any open socket, even one whose probe has not answered.
+
+        With no socket at all, DeviceDisconnected, and the stop is owed to the next link.
+        """
+        if self._writer is None:
+            self._stop_owed = True
+            raise DeviceDisconnected(
+                DEVICE,
+                f"stop: no link to the robot controller at {self.host}:{self.port}; "
+                "it is sent first when the link is back",
+            )
+        try:
+            await self._exchange("stop", None)
+        except DeviceDisconnected:  # the link died under it: owed all the same
+            self._stop_owed = True
+            raise
 
     async def move_linear(self, pose: Pose, speed: float, acceleration: float) -> None:
         target = _checked_pose(pose)
@@ -535,7 +562,7 @@ class JsonRpcRobot:
     async def _best_effort_stop(self, why: str) -> None:
         """Send stop, bounded by the timeout; failures are logged, never raised."""
         try:
-            await self.call("stop")
+            await self.stop()
             logger.warning("robot: stop sent because %s", why)
         except asyncio.CancelledError:
             raise

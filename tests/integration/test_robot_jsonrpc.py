@@ -267,6 +267,68 @@ async def test_drop_fails_the_pending_call_at_once_and_the_client_reconnects(
         await robot.close()
 
 
+async def test_a_stop_goes_out_through_a_stall_with_requests_pending(
+    robot: JsonRpcRobot, sim: RobotSimulator
+) -> None:
+    """A stalled controller swallows requests; the stop still reaches its socket at once.
+
+    The driver pipelines: nothing pending (polls, a heartbeat) holds the stop back,
+    so the halt's stop is on the wire before its own timeout starts to matter.
+    """
+    sim.inject_fault("stall")
+    pending = [asyncio.create_task(robot.get_position()) for _ in range(20)]
+    await wait_until(lambda: sim.ignored_while_stalled == 20, what="the requests swallowed")
+    stopping = asyncio.create_task(robot.stop())
+    await wait_until(lambda: sim.stop_received_count == 1, what="the stop received")
+    sim.clear_faults()
+    for task in [*pending, stopping]:
+        task.cancel()
+    await asyncio.gather(*pending, stopping, return_exceptions=True)
+
+
+async def test_a_stop_goes_out_on_a_link_whose_probe_has_not_answered(
+    sim: RobotSimulator,
+) -> None:
+    """Other calls wait for the connection probe; a stop is written on the new socket."""
+    robot = make_robot(sim.port, timeout=30.0)  # the probe stays pending for the whole test
+    await robot.connect()
+    try:
+        sim.inject_fault("stall")  # the reconnection's probe will be swallowed
+        sim.inject_fault("drop")
+        await wait_until(lambda: not robot.connected, what="the link lost")
+        await wait_until(lambda: sim.ignored_while_stalled >= 1, what="the probe swallowed")
+        assert not robot.connected  # still probing
+        with pytest.raises(DeviceDisconnected):  # an ordinary call waits for the probe
+            await robot.get_position()
+        stopping = asyncio.create_task(robot.stop())
+        await wait_until(lambda: sim.stop_received_count == 1, what="the stop on the new link")
+        stopping.cancel()  # swallowed by the stall like the probe: never answered
+        await asyncio.gather(stopping, return_exceptions=True)
+    finally:
+        sim.clear_faults()
+        await robot.close()
+
+
+async def test_a_stop_that_found_no_link_is_sent_first_on_the_next(sim: RobotSimulator) -> None:
+    robot = make_robot(sim.port)
+    await robot.connect()
+    try:
+        sim.inject_fault("drop", duration=0.5)  # and refuse reconnections for a while
+        await wait_until(lambda: not robot.connected, what="the link lost")
+        asked = sim.method_counts["getPosition"]
+        with pytest.raises(DeviceDisconnected):  # no link (or one refused under it)
+            await robot.stop()
+        assert sim.stop_received_count == 0
+        await wait_until(lambda: robot.connected, what="the background reconnection")
+        assert sim.stop_received_count == 1
+        # Sent before the probe: the probe's getPosition was answered after the stop.
+        assert sim.method_counts["getPosition"] > asked
+        await robot.get_position()
+        assert sim.stop_received_count == 1  # owed once, sent once
+    finally:
+        await robot.close()
+
+
 async def test_drop_during_a_move_fails_the_move(sim: RobotSimulator) -> None:
     robot = make_robot(sim.port)
     faults: list[DeviceFault] = []

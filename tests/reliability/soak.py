@@ -1,5 +1,6 @@
 """Soak: hours of operations, operator commands, device faults and resets against
-the real server and the simulators, then a verdict from the journal.
+the real server and the simulators, with WebSocket clients coming and going and
+bursts of concurrent commands all along, then a verdict from the journal.
 
 Why: the fault tests prove each path once; a long run proves they compose. Races
 between an operator's pause and a dispenser alarm, a reset during a reconnection,
@@ -11,15 +12,24 @@ and answered, not from what the soak believes it did:
 * no HTTP answer is a 5xx other than 503 (the documented "queue full, retry");
 * every event the server acknowledged (a 202 or 409 with its event_id) is in the journal;
 * every fault ends in ERROR naming the device, with the valve closed and the robot still,
-  a reset is refused while the fault lasts and the cell returns to IDLE once it is gone.
+  a reset is refused while the fault lasts and the cell returns to IDLE once it is gone;
+* nothing leaks: the open file descriptors at the end are those after the warm-up
+  (within soak_figures.FD_SLACK), and once the churning WebSocket clients have all
+  left, the server counts none; no churning client met anything but a documented
+  answer (soak_traffic.py).
 
-Memory growth (RSS of this process, which runs the server, from the end of a
-warm-up to the end) is reported, not judged. Every other cycle carries a device
-fault (tests/rig.py DEVICE_FAULTS) at a random point; the others run an operation
-with random pauses, resumes, cancels and emergency stops.
+Every other cycle carries a device fault (tests/rig.py DEVICE_FAULTS) at a random
+point; every fourth is a burst of concurrent commands from several clients
+(tests/reliability/test_storm.py's mix); the others run an operation with random
+pauses, resumes, cancels and emergency stops. Resources (memory, open files, the
+journal's size) are sampled at two quiet moments, after the warm-up and at the end,
+with the answer times of GET /state and of commands in the first and the last
+fifth of the run: reported, not judged, save the open files (soak_figures.py).
+This process runs the server, the simulators and the clients, so the figures are its.
 
 Run (from the repository root; the exit status is non-zero if anything above failed):
     python -m tests.reliability.soak --duration 30m [--seed N] [--data DIR] [--log-level LEVEL]
+or `make soak` (30 minutes; `make soak SOAK=2h` for longer), which also bounds it in time.
 Durations: 90s, 30m, 2h, 1h30m, or plain seconds. tests/reliability/test_soak.py runs the
 same loop for a few seconds in CI.
 """
@@ -43,7 +53,6 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import psutil
 
 from server.core.transitions import OPERATIONAL_STATES
 from server.runtime import limit_malloc_arenas
@@ -53,12 +62,25 @@ from tests.reliability._journal_checks import (
     missing_events,
     operation_outcomes,
 )
+from tests.reliability.soak_figures import FD_SLACK, Latencies, Percentiles, Sample, rss_mb
+from tests.reliability.soak_traffic import (
+    STORM_CLIENTS,
+    ChurnCounts,
+    StormCounts,
+    WsChurn,
+    command_burst,
+)
 from tests.rig import DEVICE_FAULTS, DROP_REFUSAL_S, TIMEOUT, DeviceFaultKind, Rig, open_rig
 
 OPERATIONAL = {state.value for state in OPERATIONAL_STATES}
 SETTLE_S = TIMEOUT * 3 + 5  # bound on a fault being noticed, or an operation ending
 RESET_ATTEMPTS = 5
-WARM_UP_CYCLES = 6  # RSS growth is counted from here: first renders and caches are not growth
+# The start sample is taken after this many cycles, or this share of the run if that
+# comes first: first renders and caches are not growth.
+WARM_UP_CYCLES = 6
+WARM_UP_SHARE = 0.25
+STORM_EVERY = 4  # every fourth cycle is a burst of concurrent commands
+OVERRUN_S = 300.0  # a cycle still running this long after the run's end: stuck
 # Operation → (path, body, weight, first guess of its duration in s).
 OPERATIONS: dict[str, tuple[str, dict[str, Any] | None, int, float]] = {
     "spray": ("/start", {"contour_matching": False, "workpiece_id": "demo"}, 4, 1.3),
@@ -99,8 +121,15 @@ class SoakReport:
     safety_findings: list[str] = field(default_factory=list)
     unexpected_errors: list[str] = field(default_factory=list)  # reported, not judged
     rss_start_mb: float = 0.0  # once the rig is up
-    rss_warm_mb: float = 0.0  # after WARM_UP_CYCLES (or at the end of a shorter run)
+    rss_warm_mb: float = 0.0  # after the warm-up (or at the end of a shorter run)
     rss_end_mb: float = 0.0
+    websocket: ChurnCounts = field(default_factory=ChurnCounts)
+    storm: StormCounts = field(default_factory=StormCounts)
+    start: Sample | None = None  # after the warm-up, at a quiet moment
+    end: Sample | None = None  # once every client has left
+    latency_start: dict[str, Percentiles] = field(default_factory=dict)  # first fifth
+    latency_end: dict[str, Percentiles] = field(default_factory=dict)  # last fifth
+    leaks: list[str] = field(default_factory=list)
 
     @property
     def rss_growth_mb(self) -> float:
@@ -113,7 +142,12 @@ class SoakReport:
     @property
     def ok(self) -> bool:
         return not (
-            self.invalid_transitions or self.http_5xx or self.lost_events or self.safety_findings
+            self.invalid_transitions
+            or self.http_5xx
+            or self.lost_events
+            or self.safety_findings
+            or self.leaks
+            or self.websocket.failures
         )
 
     def as_dict(self) -> dict[str, Any]:
@@ -121,6 +155,9 @@ class SoakReport:
             **asdict(self),
             "faults_injected": dict(self.faults_injected),
             "operator_commands": dict(self.operator_commands),
+            "websocket": self.websocket.as_dict(),
+            "storm": self.storm.as_dict(),
+            "fd_slack": FD_SLACK,
             "operations_completed": self.operations_completed,
             "rss_growth_mb": round(self.rss_growth_mb, 1),
             "ok": self.ok,
@@ -154,6 +191,16 @@ class SoakReport:
                 f"{self.rss_start_mb:.1f} / {self.rss_warm_mb:.1f} / {self.rss_end_mb:.1f} MB",
             ),
             ("RSS growth after warm-up", f"{self.rss_growth_mb:+.1f} MB"),
+            ("WebSocket clients churned", self.websocket.connections),
+            ("  messages they read", self.websocket.messages),
+            ("  refused as documented", _counts(self.websocket.refused)),
+            ("  failures", len(self.websocket.failures)),
+            (
+                "command bursts",
+                f"{self.storm.bursts} of {STORM_CLIENTS} clients, {self.storm.commands} commands",
+            ),
+            ("  answers", _counts(self.storm.answers)),
+            ("leaks", len(self.leaks)),
             ("verdict", "PASS" if self.ok else "FAIL"),
         ]
         width = max(len(name) for name, _ in rows)
@@ -163,9 +210,39 @@ class SoakReport:
             *(f"HTTP 5xx: {r}" for r in self.http_5xx[:20]),
             *(f"lost event: {e}" for e in self.lost_events[:20]),
             *(f"safety: {s}" for s in self.safety_findings[:20]),
+            *(f"leak: {e}" for e in self.leaks[:20]),
+            *(f"WebSocket failure: {e}" for e in self.websocket.failures[:20]),
             *(f"unexpected failure: {e}" for e in self.unexpected_errors[:20]),
         ]
-        return "\n".join(lines + details)
+        return "\n".join([*lines, "", *self.start_and_end(), *details])
+
+    def start_and_end(self) -> list[str]:
+        """Resources at the two quiet moments; answer times in the first and last fifth."""
+        start, end = self.start, self.end
+        if start is None or end is None:
+            return ["no start sample: the run ended before its warm-up did"]
+        rows = [
+            ("", f"start ({start.at_s:.0f} s)", f"end ({end.at_s:.0f} s)"),
+            ("RSS", f"{start.rss_mb:.1f} MB", f"{end.rss_mb:.1f} MB"),
+            (
+                "open file descriptors",
+                start.open_fds,
+                f"{end.open_fds} (judged: <= start + {FD_SLACK})",
+            ),
+            ("journal (db + WAL)", f"{start.journal_mb:.2f} MB", f"{end.journal_mb:.2f} MB"),
+            *(
+                (
+                    f"{kind} p50 / p99",
+                    self.latency_start.get(kind, "-"),
+                    self.latency_end.get(kind, "-"),
+                )
+                for kind in ("GET /state", "POST command")
+            ),
+            ("WebSocket clients counted", start.websocket_clients, end.websocket_clients),
+        ]
+        width = max(len(str(name)) for name, _, _ in rows)
+        first = max(len(str(value)) for _, value, _ in rows)
+        return [f"{name:<{width}}  {a!s:<{first}}  {b}" for name, a, b in rows]
 
     def json_line(self) -> str:
         return json.dumps(self.as_dict(), separators=(",", ":"), default=str)
@@ -173,10 +250,6 @@ class SoakReport:
 
 def _counts(counts: dict[str, int]) -> str:
     return ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) or "-"
-
-
-def _rss_mb() -> float:
-    return psutil.Process().memory_info().rss / 2**20
 
 
 class Soak:
@@ -188,6 +261,8 @@ class Soak:
         self.report = report
         self.acknowledged: set[str] = set()
         self.durations = {name: guess for name, (_, _, _, guess) in OPERATIONS.items()}
+        self.latencies = Latencies()
+        self.auth = {"Authorization": rig.api.headers["authorization"]}
         hooks = rig.api.event_hooks
         hooks["response"] = [*hooks["response"], self._on_response]
         rig.api.event_hooks = hooks
@@ -204,7 +279,9 @@ class Soak:
 
     async def command(self, path: str, body: dict[str, Any] | None = None) -> httpx.Response:
         """POST a command; an answered event's id is remembered as acknowledged."""
+        sent = time.monotonic()
         response = await self.rig.api.post(path, json=body)
+        self.latencies.add("POST command", sent, time.monotonic() - sent)
         if response.status_code in (202, 409):
             self.acknowledged.add(response.json()["event_id"])
         if response.status_code == 409:
@@ -212,11 +289,34 @@ class Soak:
         return response
 
     async def state(self) -> dict:
-        return await self.rig.state()
+        sent = time.monotonic()
+        snapshot = await self.rig.state()
+        self.latencies.add("GET /state", sent, time.monotonic() - sent)
+        return snapshot
+
+    async def websocket_clients(self) -> int:
+        return int((await self.rig.api.get("/health")).json()["websocket_clients"])
 
     # --- one cycle ---------------------------------------------------------------------
 
     async def cycle(self, number: int) -> None:
+        if number % STORM_EVERY == 0:
+            await self._storm()
+        else:
+            await self._operation_cycle(number)
+        await self.recover()
+        self.report.cycles += 1
+
+    async def _storm(self) -> None:
+        """Several clients' commands at once, wherever they lead the cell."""
+        base_url = str(self.rig.api.base_url)
+        storm = self.report.storm
+        answered = await command_burst(
+            base_url, self.auth, self.rng, self._on_response, self.latencies.add, storm
+        )
+        self.acknowledged |= answered
+
+    async def _operation_cycle(self, number: int) -> None:
         name = self._pick_operation()
         fault = self.rng.choice(list(DEVICE_FAULTS.values())) if number % 2 else None
         path, body, _, _ = OPERATIONS[name]
@@ -228,8 +328,6 @@ class Soak:
                 await self._fault_during(name, fault)
             else:
                 await self._operate(name, started)
-        await self.recover()
-        self.report.cycles += 1
 
     def _pick_operation(self) -> str:
         calibration = self.rig.cell.stores.calibration  # type: ignore[union-attr]
@@ -284,6 +382,12 @@ class Soak:
             await self._operator("pause")
         await asyncio.sleep(self.rng.uniform(0, self.durations[name]))
         stops = self.rig.robot.stop_received_count
+        before = self.rig.cell.worker.view.snapshot()  # in this process: no await before it
+        if before["state"] == "ERROR":  # a fault of its own came first: not this one's to judge
+            reason = (before["stop_reason"] or {}).get("message")
+            self.report.unexpected_errors.append(f"{name}, before {fault.name}: {reason}")
+            await self._check_halt(before, f"{name} failure")
+            return
         injected_at = time.monotonic()
         fault.inject(self.rig)
         self.report.faults_injected[fault.name] += 1
@@ -380,7 +484,8 @@ class Soak:
 
 
 async def run_soak(duration_s: float, seed: int, data_path: Path) -> SoakReport:
-    """Cycle for `duration_s` against a rig in `data_path`; the journal is judged at the end."""
+    """Cycle for `duration_s` against a rig in `data_path`, WebSocket clients churning
+    all along; the resources are judged at the end, then the journal."""
     report = SoakReport(seed=seed)
     rng = random.Random(seed)
     started = time.monotonic()
@@ -389,18 +494,20 @@ async def run_soak(duration_s: float, seed: int, data_path: Path) -> SoakReport:
         journal = rig.cell.journal
         assert journal is not None
         journal_path = journal.path
-        report.rss_start_mb = _rss_mb()
-        number = 0
+        report.rss_start_mb = rss_mb()
+        churn = WsChurn(str(rig.api.base_url), soak.auth, random.Random(seed), soak._on_response)
+        report.websocket = churn.counts
+        churn.start()
         try:
-            while time.monotonic() - started < duration_s:
-                number += 1
-                await soak.cycle(number)
-                if number == WARM_UP_CYCLES:
-                    report.rss_warm_mb = _rss_mb()
-        except SoakStuck as stuck:
-            report.safety_findings.append(f"stuck: {stuck}")
-        report.rss_end_mb = _rss_mb()
-        report.rss_warm_mb = report.rss_warm_mb or report.rss_end_mb
+            await _cycles(soak, churn, duration_s, started, journal_path)
+        finally:
+            await churn.stop()
+        report.end = await _quiet_sample(soak, churn, started, journal_path)
+        report.rss_end_mb = report.end.rss_mb
+        report.rss_warm_mb = (report.start or report.end).rss_mb
+        report.latency_start = soak.latencies.figures(0)
+        report.latency_end = soak.latencies.figures(1)
+        report.leaks = find_leaks(report.start, report.end)
     report.duration_s = time.monotonic() - started
     report.events_acknowledged = len(soak.acknowledged)
     report.transitions_checked = len(journaled_transitions(journal_path))
@@ -408,6 +515,55 @@ async def run_soak(duration_s: float, seed: int, data_path: Path) -> SoakReport:
     report.lost_events = sorted(missing_events(journal_path, soak.acknowledged))
     report.operation_outcomes = operation_outcomes(journal_path)
     return report
+
+
+async def _cycles(
+    soak: Soak, churn: WsChurn, duration_s: float, started: float, journal: Path
+) -> None:
+    """Cycles until `duration_s`; the start sample once warm. A hung cycle is a finding."""
+    report = soak.report
+    number = 0
+    try:
+        async with asyncio.timeout(duration_s + OVERRUN_S) as bound:
+            while time.monotonic() - started < duration_s:
+                number += 1
+                await soak.cycle(number)
+                warm = number >= WARM_UP_CYCLES
+                warm |= time.monotonic() - started >= duration_s * WARM_UP_SHARE
+                if warm and report.start is None:
+                    report.start = await _quiet_sample(soak, churn, started, journal)
+                    churn.resume()
+                    soak.latencies.open_windows(time.monotonic(), started + duration_s)
+    except SoakStuck as stuck:
+        report.safety_findings.append(f"stuck: {stuck}")
+    except TimeoutError:
+        if not bound.expired():
+            raise
+        report.safety_findings.append(f"stuck: cycle {number} still ran {OVERRUN_S:g} s late")
+
+
+async def _quiet_sample(soak: Soak, churn: WsChurn, started: float, journal: Path) -> Sample:
+    """Resources once every churning client has left (the churn stays paused) and the
+    server counts no WebSocket client (or the bound on that has passed)."""
+    await churn.pause()
+    deadline = time.monotonic() + SETTLE_S
+    while (clients := await soak.websocket_clients()) and time.monotonic() < deadline:
+        await asyncio.sleep(0.05)
+    return Sample.take(time.monotonic() - started, journal, clients)
+
+
+def find_leaks(start: Sample | None, end: Sample) -> list[str]:
+    """What the end shows leaked since the start: descriptors beyond FD_SLACK, or
+    WebSocket clients the server still counts after every one left."""
+    leaks = []
+    if end.websocket_clients:
+        leaks.append(f"{end.websocket_clients} WebSocket clients still counted after all left")
+    if start is not None and end.open_fds > start.open_fds + FD_SLACK:
+        leaks.append(
+            f"open file descriptors grew from {start.open_fds} to {end.open_fds} "
+            f"(more than {FD_SLACK})"
+        )
+    return leaks
 
 
 _NUMBER = r"\d+(?:\.\d+)?"

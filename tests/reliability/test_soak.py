@@ -1,5 +1,6 @@
 """The soak (tests/reliability/soak.py) in CI: a short run of the very code a long
-soak runs, through its command line, plus proof that its journal checks can fail.
+soak runs, through its command line, plus proof that its journal and leak checks
+can fail.
 
 The long run itself (`python -m tests.reliability.soak --duration 30m`) is too
 long for CI; this keeps its loop, its report and its verdict from rotting.
@@ -21,7 +22,8 @@ from tests.reliability._journal_checks import (
     missing_events,
     operation_outcomes,
 )
-from tests.reliability.soak import main, parse_duration
+from tests.reliability.soak import find_leaks, main, parse_duration
+from tests.reliability.soak_figures import FD_SLACK, Latencies, Sample
 
 CI_DURATION = "20s"
 CI_SEED = "20260517"
@@ -38,6 +40,41 @@ def test_a_short_soak_passes(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert report["transitions_checked"] > 0 and report["events_acknowledged"] > 0, out
     assert report["resets_accepted"] >= 2, out  # every fault ended in a reset
     assert (tmp_path / "journal.db").is_file()
+    # The crowd came: WebSocket clients churned and a burst of commands was answered.
+    assert report["websocket"]["connections"] >= 1 and report["websocket"]["messages"] >= 1, out
+    assert report["storm"]["bursts"] >= 1 and report["storm"]["commands"] >= 1, out
+    # Sampled at both ends, at quiet moments, and judged.
+    start, end = report["start"], report["end"]
+    assert start is not None and start["at_s"] < end["at_s"], out
+    assert end["websocket_clients"] == 0 and end["journal_mb"] > 0, out
+    assert report["latency_end"]["GET /state"]["count"] >= 1, out
+    assert report["leaks"] == [], out
+
+
+def _sample(fds: int) -> Sample:
+    return Sample(at_s=1.0, rss_mb=1.0, open_fds=fds, journal_mb=1.0, websocket_clients=0)
+
+
+def test_the_leak_checks_find_a_leak() -> None:
+    start = _sample(40)
+    assert find_leaks(start, _sample(40 + FD_SLACK)) == []
+    (grown,) = find_leaks(start, _sample(41 + FD_SLACK))
+    assert "grew from 40 to" in grown
+    stuck = Sample(at_s=2.0, rss_mb=1.0, open_fds=40, journal_mb=1.0, websocket_clients=3)
+    assert find_leaks(start, stuck) == ["3 WebSocket clients still counted after all left"]
+    assert find_leaks(None, stuck) == ["3 WebSocket clients still counted after all left"]
+
+
+def test_latencies_are_kept_for_the_first_and_last_fifth_only() -> None:
+    latencies = Latencies()
+    latencies.add("GET /state", 5.0, 1.0)  # before the warm-up ended: not kept
+    latencies.open_windows(warm_at=10.0, end_at=110.0)  # windows 10..30 and 90..
+    for at in (10.0, 29.9, 30.0, 89.9, 90.0, 200.0):
+        latencies.add("GET /state", at, at / 1000)
+    start, end = latencies.figures(0)["GET /state"], latencies.figures(1)["GET /state"]
+    assert (start.count, end.count) == (2, 2)
+    assert start.p50_ms == 19.95 and end.p99_ms >= 190.0
+    assert latencies.figures(0)["POST command"].count == 0
 
 
 def _journal(path: Path) -> Path:
