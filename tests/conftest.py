@@ -20,6 +20,7 @@ from server.core.events import StartPayload
 from server.core.operations import Operation, default_operations
 from server.core.transitions import State
 from server.core.worker import Worker
+from server.runtime import limit_malloc_arenas
 from server.storage import CellStores
 from server.storage.journal import Journal
 from server.storage.workpieces import WorkpieceIn
@@ -34,6 +35,17 @@ def _logging_enabled() -> Iterator[None]:
     """Undo a benchmark's `logging.disable` (the bench smoke tests call their mains in-process)."""
     yield
     logging.disable(logging.NOTSET)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Give this process the server's own allocator policy (server/runtime.py).
+
+    The rig runs the server in this process, and the memory checks (test_ws_churn,
+    the soak) read its RSS. Without the cap, the camera's freed frames stayed in the
+    arenas of the many threads earlier tests had started, and the RSS of a WebSocket
+    churn swung by two frames (47.5 MiB) either way on a busy machine.
+    """
+    limit_malloc_arenas()
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
