@@ -108,7 +108,9 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
             # provenance and how long to wait after a 503.
             expose_headers=["X-Frame-Time", "X-Frame-Source", "X-Frame-Run-Id", "Retry-After"],
         )
-    app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
+    app.add_middleware(
+        BodySizeLimit, max_bytes=settings.max_request_bytes, stop_paths=commands.STOP_PATHS
+    )
     app.include_router(ws.router)
     mount_dashboard(app)  # the operator dashboard at /, assets under /hmi/
     _install_error_handlers(app)

@@ -42,6 +42,9 @@ from server.core.transitions import Command, Event
 
 router = APIRouter(tags=["commands"], route_class=DeclaredQueryRoute)
 
+# Routes whose request is never refused over its body (server/api/limits.py).
+STOP_PATHS = ("/estop",)
+
 RESPONSES: dict[int | str, dict[str, Any]] = {
     202: {"model": CommandResult, "description": "accepted: the machine changed state"},
     409: {
@@ -207,21 +210,24 @@ async def estop(
     A supervisory stop, not a safety function: the hard-wired e-stop circuit
     remains the cell's safety stop.
     """
+    dropped = getattr(request.state, "body_dropped", None)
+    if dropped is not None:  # too large to read: the stop is made, the 413 says so
+        return JSONResponse({"detail": dropped, **await stop_anyway(request)}, status_code=413)
     return await _run(request, Command.ESTOP, StopPayload(body.reason if body else None))
 
 
 def is_estop(request: Request) -> bool:
     """Whether this is the e-stop route (its body, when unreadable, must not stop the stop)."""
-    return request.method == "POST" and request.url.path == "/estop"
+    return request.method == "POST" and request.url.path in STOP_PATHS
 
 
 async def stop_anyway(request: Request) -> dict[str, Any]:
-    """Make the e-stop whose body was invalid (no reason recorded); the cell's answer.
+    """Make the e-stop whose body was invalid or too large (no reason recorded).
 
     The gate has let the request through (the role is checked before routing),
     so only the optional reason was wrong: refusing the stop over it would be
-    the wrong way round. The answer stays a 422 (the request was invalid), with
-    what the cell did beside it.
+    the wrong way round. The answer stays a 4xx (the request was wrong: 422 or
+    413), with what the cell did beside it.
     """
     response = await _run(request, Command.ESTOP, StopPayload(None))
     answer = json.loads(bytes(response.body))

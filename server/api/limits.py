@@ -1,8 +1,14 @@
-"""A request body larger than max_request_bytes is refused with 413 before it is read whole."""
+"""A request body larger than max_request_bytes is refused with 413 before it is read whole.
+
+Except on a stop route: a stop is never refused over its body. There the body
+is dropped instead (the route sees none) and the route is told why, so it can
+make the stop and answer 413 beside it.
+"""
 
 from __future__ import annotations
 
 import json
+from collections.abc import Collection
 from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -11,13 +17,17 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 class BodySizeLimit:
     """ASGI middleware: checks Content-Length, and counts a streamed body as it arrives."""
 
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+    def __init__(self, app: ASGIApp, max_bytes: int, stop_paths: Collection[str] = ()) -> None:
         self.app = app
         self.max_bytes = max_bytes
+        self.stop_paths = frozenset(stop_paths)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
+            return
+        if scope["method"] == "POST" and scope["path"] in self.stop_paths:
+            await self.app(scope, self._dropping_oversized(scope, receive), send)
             return
         declared = dict(scope.get("headers") or []).get(b"content-length")
         if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
@@ -50,6 +60,43 @@ class BodySizeLimit:
                 await self._refuse(send)
 
         await self.app(scope, counting_receive, guarded_send)
+
+    def _dropping_oversized(self, scope: Scope, receive: Receive) -> Receive:
+        """The whole body, or none with `body_dropped` in the request's state if over the limit.
+
+        Read whole before the route sees any of it (bounded by the limit), so the
+        route gets either valid bytes or nothing, never a truncated document.
+        """
+        delivered = False
+
+        def dropped() -> Message:
+            why = f"request body over {self.max_bytes} bytes, not read"
+            scope.setdefault("state", {})["body_dropped"] = why
+            return {"type": "http.request", "body": b"", "more_body": False}
+
+        async def receive_whole() -> Message:
+            nonlocal delivered
+            if delivered:
+                return await receive()
+            delivered = True
+            declared = dict(scope.get("headers") or []).get(b"content-length")
+            if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
+                return dropped()
+            chunks: list[bytes] = []
+            size = 0
+            while True:
+                message = await receive()
+                if message["type"] != "http.request":
+                    return message
+                chunk = message.get("body", b"")
+                size += len(chunk)
+                if size > self.max_bytes:
+                    return dropped()
+                chunks.append(chunk)
+                if not message.get("more_body", False):
+                    return {"type": "http.request", "body": b"".join(chunks), "more_body": False}
+
+        return receive_whole
 
     async def _refuse(self, send: Send) -> None:
         body: dict[str, Any] = {"detail": f"request body over {self.max_bytes} bytes"}

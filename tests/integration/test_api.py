@@ -87,6 +87,37 @@ async def test_an_estop_with_an_invalid_body_still_stops_the_cell(api, body, fie
     assert api.cell.devices.glue.valve_open is False
 
 
+@pytest.mark.parametrize("streamed", [False, True])
+async def test_an_estop_with_an_oversized_body_still_stops_the_cell(api, streamed) -> None:
+    """Over max_request_bytes the body is not read, but the stop is made: 413 says both."""
+    assert (await api.post("/start", json=START)).status_code == 202
+    huge = json.dumps({"reason": "x" * 2_000_000}).encode()
+
+    async def chunks():
+        for start in range(0, len(huge), 65536):
+            yield huge[start : start + 65536]
+
+    sent = await api.post(
+        "/estop",
+        content=chunks() if streamed else huge,
+        headers={"content-type": "application/json"},
+    )
+    assert sent.status_code == 413
+    answer = sent.json()
+    assert "bytes" in answer["detail"]
+    assert answer["accepted"] is True and answer["state"] == "ERROR" and answer["event_id"]
+    assert (await api.get("/state")).json()["state"] == "ERROR"
+    assert api.cell.devices.glue.valve_open is False
+
+
+async def test_a_small_estop_body_is_read_whole(api) -> None:
+    """The stop route reads its body whole before the route sees it: the reason arrives."""
+    sent = await api.post("/estop", json={"reason": "jammed part"})
+    assert sent.status_code == 202
+    error = (await api.get("/state")).json()["error"]
+    assert "jammed part" in json.dumps(error)
+
+
 async def test_malformed_json_is_a_422_not_a_500(api) -> None:
     response = await api.post(
         "/start", content=b"{not json", headers={"content-type": "application/json"}
