@@ -451,6 +451,11 @@ class JsonRpcRobot:
             raise DeviceDisconnected(DEVICE, f"{method}: write failed: {exc}") from exc
         finally:
             self._pending.pop(request_id, None)
+            if future.done() and not future.cancelled():
+                # A teardown during this call (the failed write's own, or the reader's)
+                # failed the future too; this call has raised already, so that
+                # exception is retrieved here rather than logged as never retrieved.
+                future.exception()
         self._last_answer = time.monotonic()
         if session == self._session:  # a late answer of an older session proves nothing now
             self.health.record_ok(self._last_answer - started)

@@ -8,6 +8,7 @@ never performance assertions.
 from __future__ import annotations
 
 import asyncio
+import gc
 import itertools
 import json
 import math
@@ -631,4 +632,35 @@ async def test_any_request_that_times_out_marks_the_controller_silent(
         assert await robot.get_position() == HOME
         assert robot.health.active_faults == ()
     finally:
+        await robot.close()
+
+
+async def test_a_write_that_fails_leaves_no_unretrieved_future(sim: RobotSimulator) -> None:
+    """A call whose write fails raises DeviceDisconnected, and that is all it leaves behind.
+
+    The teardown the failure starts also fails the call's own pending future; nobody
+    awaits it any more, and asyncio used to log "Future exception was never
+    retrieved" for it when it was collected.
+    """
+    loop = asyncio.get_running_loop()
+    unhandled: list[str] = []
+    previous = loop.get_exception_handler()
+    loop.set_exception_handler(lambda _loop, context: unhandled.append(context["message"]))
+    robot = make_robot(sim.port)
+    await robot.connect()
+    try:
+        assert robot._writer is not None
+        robot._writer.transport.abort()  # the link breaks under the next write
+        try:
+            await robot.get_position()
+        except DeviceDisconnected:
+            pass
+        else:
+            pytest.fail("a call on a broken link answered")
+        await asyncio.sleep(0.05)
+        gc.collect()
+        await asyncio.sleep(0)
+        assert not [m for m in unhandled if "never retrieved" in m], unhandled
+    finally:
+        loop.set_exception_handler(previous)
         await robot.close()
