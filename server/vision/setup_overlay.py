@@ -43,6 +43,13 @@ def draw_setup_view(
         out = cv2.resize(
             out, (width, round(height * width / full_width)), interpolation=cv2.INTER_AREA
         )
+    # The numbers again, large enough to read at the stream's size (beside each marker).
+    factor = out.shape[1] / full_width
+    for marker_id, det in detections.items():
+        corners = np.asarray(det.corners, dtype=np.float64).reshape(4, 2) * factor
+        origin = (int(corners[:, 0].max()) + 4, int(corners[:, 1].min()) + 14)
+        for colour, weight in (((0, 0, 0), 4), ((60, 200, 60), 2)):
+            cv2.putText(out, str(marker_id), origin, cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, weight)
     line_height = 22
     band = 8 + line_height * len(lines)
     out[:band, : min(out.shape[1], 560)] //= 3  # darken, so the text reads on any table
