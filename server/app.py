@@ -21,6 +21,7 @@ from server.api import (
     admin,
     analytics,
     audit,
+    camera_preview,
     commands,
     methods,
     metrics,
@@ -35,6 +36,7 @@ from server.api.observe import ResponseObservers
 from server.api.schemas import RETRY_AFTER_S
 from server.cell import Cell
 from server.config import Settings
+from server.core.camera_preview import CameraPreview
 from server.errors import ChangeNotSaved, EventQueueFull, JournalUnavailable, WorkerStopped
 
 
@@ -52,6 +54,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
             yield
         finally:
             await app.state.metrics.detach()
+            await app.state.camera_preview.close()
             await cell.stop()
 
     app = FastAPI(
@@ -75,6 +78,8 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     )
     app.state.access = access.Access(settings)
     app.state.access.revocation_listeners.append(app.state.ws_hub.views.revoke)
+    app.state.camera_preview = CameraPreview(cell, settings)
+    app.state.access.revocation_listeners.append(app.state.camera_preview.revoke)
     # The most polled route's router first: the router tries routes in order.
     for router in (
         queries.router,
@@ -83,6 +88,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         analytics.router,
         metrics.router,
         admin.router,
+        camera_preview.router,
     ):
         app.include_router(router)
     app.state.metrics = metrics.Metrics(app)
@@ -112,6 +118,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         BodySizeLimit, max_bytes=settings.max_request_bytes, stop_paths=commands.STOP_PATHS
     )
     app.include_router(ws.router)
+    app.include_router(camera_preview.ws_router)
     mount_dashboard(app)  # the operator dashboard at /, assets under /hmi/
     _install_error_handlers(app)
     # The document says what the app really does: its 422 body and the gate's roles.

@@ -180,6 +180,21 @@ class Settings(BaseSettings):
     # Hardware timeouts (seconds)
     robot_communication_timeout: float = Field(10.0, gt=0, le=300)
     vision_processing_timeout: float = Field(5.0, gt=0, le=300)
+    camera_preview_fps: float = Field(
+        5.0,
+        ge=0.5,
+        le=15,
+        description="the camera set-up view (/camera/preview/ws) sends at most this many "
+        "annotated frames a second, whatever the number of clients; each costs a capture, "
+        "a marker detection and a JPEG, off the event loop",
+    )
+    camera_preview_clients: int = Field(
+        2,
+        ge=1,
+        le=10,
+        description="at most this many clients watch the camera set-up view at once; one "
+        "more is refused (503)",
+    )
     glue_system_timeout: float = Field(15.0, gt=0, le=300)
 
     # Safety (seconds)

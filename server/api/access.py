@@ -163,18 +163,24 @@ class AccessGate:
         return None
 
 
-def authenticate_websocket(websocket: WebSocket) -> Principal | None:
-    """A WebSocket's principal from its one-shot ticket or bearer token, if allowed."""
+def websocket_principal(websocket: WebSocket) -> Principal | None:
+    """A WebSocket's principal from its one-shot ticket or bearer token, whatever its role
+    (the caller checks the role it needs); None from a refused network or without either."""
     access = access_of(websocket)
     if access.screen(websocket.scope)[1] is not None:
         return None
     ticket = websocket.query_params.get("ticket")
     token = bearer_token(websocket.scope)
-    principal = (
+    return (
         access.tickets.redeem(ticket)
         if ticket
         else (access.tokens.verify(token) if token else None)
     )
+
+
+def authenticate_websocket(websocket: WebSocket) -> Principal | None:
+    """A /ws principal from its one-shot ticket or bearer token, if allowed."""
+    principal = websocket_principal(websocket)
     if principal is None or principal.role < WEBSOCKET_ROLE:
         return None
     return principal

@@ -59,6 +59,9 @@ POLICY: Final = MappingProxyType(
         ("POST", "/calibrate-camera"): MAINT,
         ("POST", "/reset"): MAINT,
         ("POST", "/home"): MAINT,
+        # the camera set-up view's status; its stream, WebSocket /camera/preview/ws, checks
+        # the same role at its handshake (server/api/camera_preview.py)
+        ("GET", "/camera/preview"): MAINT,
         ("POST", "/workpieces"): MAINT,
         ("PUT", "/workpieces/{workpiece_id}"): MAINT,
         ("DELETE", "/workpieces/{workpiece_id}"): MAINT,

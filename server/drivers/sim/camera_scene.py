@@ -125,6 +125,10 @@ class Scene:
     noise_sigma: float = 2.0  # sensor noise, grey levels
     vignetting: float = 0.12  # fractional brightness drop in the image corners
     light_gradient: float = 0.05  # fractional brightness change from left to right
+    # A camera set up badly, for the set-up view's figures: a lens out of focus (Gaussian
+    # blur, px) and the exposure (gain on the light reaching the sensor, 1 = as set up).
+    defocus_px: float = 0.0
+    exposure: float = 1.0
     seed: int = 0  # table texture, and sensor noise when no rng is given
 
     @classmethod
@@ -477,4 +481,8 @@ def render_table(
         float(snapshot.light_gradient),
     )
     clean = _frame_cache.get_or_build(key, lambda: _build_frame(snapshot, model))
+    if snapshot.defocus_px > 0:
+        clean = cv2.GaussianBlur(clean, (0, 0), float(snapshot.defocus_px))
+    if snapshot.exposure != 1.0:
+        clean = clean * np.float32(snapshot.exposure)
     return expose(clean, snapshot.noise_sigma, rng or np.random.default_rng(snapshot.seed))
