@@ -26,8 +26,9 @@ Exit codes, stable for scripts (the reason is printed on stderr):
        already there); --no-fail-on-error waits through it for someone's reset
 
 With --json every command prints one JSON document on stdout, errors too
-(`{"error": "Refused", "status_code": 409, "message": ...}`); `watch --json`
-prints one message per line.
+(`{"error": "Refused", "status_code": 409, "message": ...}`), usage errors
+included (`{"error": "UsageError", ...}`, exit 2); `watch --json` prints one
+message per line. `gluectl --version` prints the package's version.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
+from importlib import metadata
 from pathlib import Path
 from typing import Annotated, Any, NoReturn, TypeVar
 
@@ -118,10 +120,11 @@ def exit_code(error: CellError) -> int:
 app = typer.Typer(
     name="gluectl",
     help="Drive and watch the glue cell over its HTTP and WebSocket API.",
-    epilog=EXIT_CODES_HELP,
+    epilog="\b\n" + EXIT_CODES_HELP,  # \b: click keeps the lines as written
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
 
@@ -146,6 +149,20 @@ class Options:
 JsonFlag = Annotated[
     bool, typer.Option("--json", help="Machine-readable output (same as the global --json).")
 ]
+
+
+def package_version() -> str:
+    """The installed distribution's version (pyproject.toml), or why it is unknown."""
+    try:
+        return metadata.version("glue-cell-server")
+    except metadata.PackageNotFoundError:
+        return "(not installed: run from a checkout)"
+
+
+def _show_version(value: bool) -> None:
+    if value:
+        typer.echo(f"gluectl {package_version()}")
+        raise typer.Exit(EXIT_OK)
 
 
 @app.callback()
@@ -177,6 +194,12 @@ def main_options(
     timeout: Annotated[
         float, typer.Option("--http-timeout", min=0.1, help="Seconds to wait for each answer.")
     ] = 10.0,
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", is_eager=True, callback=_show_version, help="Print the version and exit."
+        ),
+    ] = False,
 ) -> None:
     """Drive and watch the glue cell over its HTTP and WebSocket API."""
     try:
@@ -638,7 +661,7 @@ class WatchView:
                 self.operation = {"name": message.get("operation"), "run_id": message.get("run_id")}
             self.progress = message
         elif kind == "error":
-            self.fault = message
+            self.fault = self.fault or message  # the first-out fault stays on show
         elif kind == "alert":
             self.notes.append(f"alert: {message.get('message', message)}")
 
@@ -648,7 +671,10 @@ class WatchView:
         self.operation = snapshot.get("operation")
         progress = (self.operation or {}).get("progress")
         self.progress = progress if self.operation else None
-        self.fault = snapshot.get("error")
+        # The server's `error` is the latest fault ever (history); the line shows why the
+        # cell is stopped, so only in ERROR, and the first-out fault as the dashboard does.
+        in_error = self.state == "ERROR"
+        self.fault = (snapshot.get("stop_reason") or snapshot.get("error")) if in_error else None
 
     def render(self) -> RenderableType:
         header = Text.assemble(
@@ -668,7 +694,7 @@ class WatchView:
                 Text(_progress(progress) or "starting"),
             )
             parts.append(bar)
-        if self.fault:
+        if self.fault and self.state == "ERROR":
             parts.append(Text(f"fault {_fault(self.fault)}", style="red"))
         parts.extend(Text(note, style="yellow") for note in self.notes)
         timeline = Table(title="timeline", title_justify="left", expand=False)
@@ -773,9 +799,33 @@ def watch(
         raise typer.Exit(EXIT_OK) from None
 
 
-def main() -> None:
-    """Console entry point (`gluectl`, `python -m clients.gluectl`)."""
-    app(prog_name="gluectl")
+def _wants_json(args: list[str]) -> bool:
+    """Whether --json is among the options (before a `--`), wherever the command is."""
+    return "--json" in (args[: args.index("--")] if "--" in args else args)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point (`gluectl`, `python -m clients.gluectl`).
+
+    With --json even a usage error (unknown option, bad value, missing argument)
+    is one JSON document on stdout, like every other error, so a script parses
+    one thing whatever went wrong. It is caught here, around the whole app, so
+    every subcommand, present or added later, answers the same way.
+    """
+    args = sys.argv[1:] if argv is None else argv
+    if not _wants_json(args):
+        app(args=args, prog_name="gluectl")
+        return
+    try:
+        code = app(args=args, prog_name="gluectl", standalone_mode=False)
+    except typer.TyperException as error:  # click's UsageError and its kind
+        message = error.format_message()
+        _print_json({"error": "UsageError", "status_code": None, "message": message})
+        typer.echo(f"gluectl: usage error: {message}", err=True)
+        sys.exit(EXIT_USAGE if error.exit_code == EXIT_USAGE else EXIT_ERROR)
+    except typer.Abort:
+        sys.exit(EXIT_ERROR)
+    sys.exit(code if isinstance(code, int) else EXIT_OK)
 
 
 if __name__ == "__main__":

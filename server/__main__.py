@@ -5,27 +5,43 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 import uvicorn
-from pydantic import ValidationError
 
 from server.app import create_app
 from server.config import Settings
 from server.errors import ConfigurationError
 from server.logging_setup import configure as configure_logging
 from server.runtime import limit_malloc_arenas, raise_open_file_limit, tune_garbage_collection
+from server.settings_load import SettingsRefused, load_settings, unknown_variables
 from server.storage.permissions import private_directory
+
+SETTINGS_HELP = """\
+settings, highest priority first:
+  the command line     --data-dir (data_path); --host and --port are only here
+  the environment      GLUE_APP_<NAME>, e.g. GLUE_APP_SHIFT_HOURS=12; lists
+                       and tuples as JSON; the hardware ones also as ROBOT_IP,
+                       VISION_CAMERA_ID, GLUE_CONTROLLER_PORT
+  a JSON file          named by GLUE_APP_CONFIG_PATH, keys as the names above
+  the defaults
+No .env file is read. Every setting, its variable, default and accepted values:
+docs/settings.md. A bad value stops the start (exit 2) with one line naming
+it; a GLUE_APP_ variable that names no setting is a warning."""
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="glue-server",
-        description="Control server for a glue-spraying robot cell. Without hardware "
-        "settings (ROBOT_IP, GLUE_CONTROLLER_PORT, VISION_CAMERA_ID) it starts the "
+        description="Control server for a glue-spraying robot cell. Without hardware\n"
+        "settings (ROBOT_IP, GLUE_CONTROLLER_PORT, VISION_CAMERA_ID) it starts the\n"
         "simulators on loopback and drives them through the real protocol clients.",
+        epilog=SETTINGS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=8000, help="HTTP port (default 8000)")
     parser.add_argument(
@@ -38,17 +54,20 @@ def main(argv: list[str] | None = None) -> None:
     limit_malloc_arenas()  # before any thread allocates
     args = parse_args(argv)
     overrides = {"data_path": args.data_dir} if args.data_dir else {}
+    misspelt = unknown_variables()
     try:
-        settings = Settings(**overrides)
-    except ValidationError as exc:  # before logging is set up: straight to stderr
-        print(
-            f"glue-server: cannot start: invalid settings: {_first_problem(exc)}", file=sys.stderr
-        )
+        settings = load_settings(overrides)
+    except SettingsRefused as exc:  # before logging is set up: straight to stderr
+        for warning in misspelt:  # the typo may be why the value is not the one meant
+            print(f"glue-server: warning: {warning}", file=sys.stderr)
+        print(f"glue-server: cannot start: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     private_directory(settings.data_path)  # 0700; a looser one is tightened by the cell
     log_file = configure_logging(settings)
     log = logging.getLogger(__name__)
     log.info("logging to %s", log_file)
+    for warning in misspelt:
+        log.warning("%s", warning)
     try:
         app = create_app(settings)
     except ConfigurationError as exc:  # one line, on the console and in the log file
@@ -85,12 +104,12 @@ def uvicorn_options(settings: Settings) -> dict[str, Any]:
     }
 
 
-def _first_problem(exc: ValidationError) -> str:
-    """One line for a technician: the first setting that is wrong, and how many more are."""
-    first = exc.errors()[0]
-    where = ".".join(str(part) for part in first["loc"]) or "settings"
-    more = exc.error_count() - 1
-    return f"{where}: {first['msg']}" + (f" (and {more} more)" if more else "")
+def package_version() -> str:
+    """The installed distribution's version (pyproject.toml), or why it is unknown."""
+    try:
+        return metadata.version("glue-cell-server")
+    except metadata.PackageNotFoundError:
+        return "(not installed: run from a checkout)"
 
 
 if __name__ == "__main__":

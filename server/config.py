@@ -29,6 +29,8 @@ from pydantic_settings import (
     SettingsConfigDict,
 )
 
+from server.errors import ConfigurationError
+
 SIMULATED = "sim"
 
 # Coordinates and angles in the robot's base frame. Why these bounds: a cell's robot
@@ -71,11 +73,15 @@ class JsonFileSource(PydanticBaseSettingsSource):
         try:
             data = json.loads(Path(path).read_text(encoding="utf-8"))
         except FileNotFoundError as exc:
-            raise ValueError(f"GLUE_APP_CONFIG_PATH names {path}, which does not exist") from exc
+            raise ConfigurationError(
+                f"GLUE_APP_CONFIG_PATH names {path}, which does not exist"
+            ) from exc
+        except OSError as exc:
+            raise ConfigurationError(f"config file {path} cannot be read: {exc}") from exc
         except json.JSONDecodeError as exc:
-            raise ValueError(f"config file {path} is not valid JSON: {exc}") from exc
+            raise ConfigurationError(f"config file {path} is not valid JSON: {exc}") from exc
         if not isinstance(data, dict):
-            raise ValueError(f"config file {path} must hold a JSON object of settings")
+            raise ConfigurationError(f"config file {path} must hold a JSON object of settings")
         return data
 
 
@@ -93,9 +99,14 @@ class Settings(BaseSettings):
     )
 
     # Core state machine
-    event_queue_size: int = Field(1000, ge=1, le=1_000_000)
+    event_queue_size: int = Field(
+        1000,
+        ge=1,
+        le=1_000_000,
+        description="requests waiting for the worker; more are refused (503)",
+    )
     processing_timeout: float = Field(
-        60.0, gt=0, le=3600, description="seconds an operation may run"
+        60.0, gt=0, le=3600, description="seconds one attempt of an operation may run"
     )
     max_concurrent_operations: int = Field(
         1, ge=1, le=64, description="accepted for compatibility; the cell runs one at a time"
@@ -103,33 +114,57 @@ class Settings(BaseSettings):
     history_size: int = Field(1000, ge=10, le=1_000_000, description="transitions kept in memory")
 
     # Error handling
-    error_recovery_attempts: int = Field(3, ge=0, le=100)
-    error_recovery_delay: float = Field(2.0, ge=0, le=600)
-    auto_recovery_enabled: bool = False
+    error_recovery_attempts: int = Field(
+        3, ge=0, le=100, description="retries of a recoverable fault, with auto_recovery_enabled"
+    )
+    error_recovery_delay: float = Field(
+        2.0, ge=0, le=600, description="seconds before a retry, times the attempt's number"
+    )
+    auto_recovery_enabled: bool = Field(
+        False, description="retry an operation that failed on a recoverable fault"
+    )
 
     # Performance monitoring
-    performance_monitoring: bool = True
-    metrics_collection_interval: float = Field(10.0, gt=0, le=3600)
-    performance_history_size: int = Field(1000, ge=10, le=1_000_000)
+    performance_monitoring: bool = Field(
+        True, description="accepted, no effect: metrics are always kept (GET /metrics)"
+    )
+    metrics_collection_interval: float = Field(
+        10.0, gt=0, le=3600, description="seconds; accepted, no effect (metrics read on demand)"
+    )
+    performance_history_size: int = Field(
+        1000, ge=10, le=1_000_000, description="processing-time samples kept for statistics"
+    )
 
     # Logging
     logging_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
-        "INFO", validation_alias=AliasChoices("logging_level", "GLUE_APP_LOG_LEVEL")
+        "INFO",
+        validation_alias=AliasChoices("logging_level", "GLUE_APP_LOG_LEVEL"),
+        description="least severity logged, on the console and in the log file",
     )
     log_file_path: str | None = Field(None, description="default <data>/logs/glue_cell.log")
-    log_rotation_size: str = "10MB"
-    log_retention_days: int = Field(30, ge=1, le=3650)
+    log_rotation_size: str = Field(
+        "10MB", description="the log file is rotated at this size (a number and KB, MB or GB)"
+    )
+    log_retention_days: int = Field(30, ge=1, le=3650, description="days rotated logs are kept")
 
     # Persistence
     data_path: Path = Field(Path("data"), description="where state, journal and tokens live")
-    state_persistence: bool = True
+    state_persistence: bool = Field(
+        True, description="save the state snapshot, to tell an interrupted run after a restart"
+    )
     persistence_file: str | None = Field(None, description="default <data>/state.json")
-    persistence_interval: float = Field(30.0, gt=0, le=3600)
+    persistence_interval: float = Field(
+        30.0, gt=0, le=3600, description="seconds between saves of the state snapshot"
+    )
 
-    # Broadcasting (/ws is always served on the HTTP port: see `compatibility_notes`)
-    broadcast_enabled: bool = True
-    broadcast_port: int = Field(8000, ge=1, le=65535)
-    max_broadcast_clients: int = Field(100, ge=1, le=100_000)
+    # Broadcasting (/ws is always served on the HTTP port, whatever broadcast_port says)
+    broadcast_enabled: bool = Field(True, description="accepted, no effect: /ws is always served")
+    broadcast_port: int = Field(
+        8000, ge=1, le=65535, description="accepted, no effect: /ws is on the HTTP port (--port)"
+    )
+    max_broadcast_clients: int = Field(
+        100, ge=1, le=100_000, description="live views (/ws) open at once, all tokens together"
+    )
     max_broadcast_clients_per_token: int = Field(
         10,
         ge=1,
@@ -145,16 +180,22 @@ class Settings(BaseSettings):
         "use (at most all but one)",
     )
     ws_client_buffer: int = Field(256, ge=8, le=100_000, description="messages queued per client")
-    ws_ping_interval: float = Field(20.0, gt=0, le=600)
+    ws_ping_interval: float = Field(
+        20.0, gt=0, le=600, description="seconds between pings of a /ws client; as long to answer"
+    )
 
     # Analytics and the journal
-    analytics_enabled: bool = True
+    analytics_enabled: bool = Field(
+        True, description="accepted, no effect: the journal is always written"
+    )
     analytics_database: str | None = Field(None, description="default <data>/journal.db")
-    analytics_retention_days: int = Field(90, ge=1, le=3650)
+    analytics_retention_days: int = Field(
+        90, ge=1, le=3650, description="days of journal rows kept"
+    )
     journal_synchronous: Literal["OFF", "NORMAL", "FULL"] = Field(
         "FULL", description="SQLite synchronous level: FULL survives power loss"
     )
-    shift_hours: float = Field(8.0, gt=0, le=24 * 31, description="default KPI window")
+    shift_hours: float = Field(8.0, gt=0, le=24 * 31, description="hours of the default KPI window")
     design_cycle_time_s: float = Field(
         30.0, gt=0, le=3600, description="ideal time of one trajectory run, for OEE performance"
     )
@@ -175,11 +216,17 @@ class Settings(BaseSettings):
         "Forwarded); the other one is never read",
     )
     cors_allowed_origins: list[str] = Field(default_factory=list, description="closed if empty")
-    max_request_bytes: int = Field(1024 * 1024, ge=1024, le=64 * 1024 * 1024)
+    max_request_bytes: int = Field(
+        1024 * 1024, ge=1024, le=64 * 1024 * 1024, description="largest request body, bytes"
+    )
 
     # Hardware timeouts (seconds)
-    robot_communication_timeout: float = Field(10.0, gt=0, le=300)
-    vision_processing_timeout: float = Field(5.0, gt=0, le=300)
+    robot_communication_timeout: float = Field(
+        10.0, gt=0, le=300, description="seconds for the robot controller to answer a request"
+    )
+    vision_processing_timeout: float = Field(
+        5.0, gt=0, le=300, description="seconds for the camera to deliver a frame"
+    )
     camera_preview_fps: float = Field(
         5.0,
         ge=0.5,
@@ -193,12 +240,16 @@ class Settings(BaseSettings):
         ge=1,
         le=10,
         description="at most this many clients watch the camera set-up view at once; one "
-        "more is refused (503)",
+        "more is refused",
     )
-    glue_system_timeout: float = Field(15.0, gt=0, le=300)
+    glue_system_timeout: float = Field(
+        15.0, gt=0, le=300, description="seconds for the glue dispenser to answer"
+    )
 
     # Safety (seconds)
-    emergency_stop_timeout: float = Field(1.0, gt=0, le=10)
+    emergency_stop_timeout: float = Field(
+        1.0, gt=0, le=10, description="seconds each device command of a software stop may take"
+    )
     pause_hold_timeout: float = Field(
         2.0,
         gt=0,
@@ -206,14 +257,18 @@ class Settings(BaseSettings):
         description="a pause must have the valve closed and the robot confirmed still "
         "within this; otherwise it is refused and the cell goes to ERROR (PAUSE_NOT_HELD)",
     )
-    safe_position_timeout: float = Field(30.0, gt=0, le=600)
+    safe_position_timeout: float = Field(
+        30.0, gt=0, le=600, description="seconds the move to the safe position may take"
+    )
     planning_timeout: float = Field(
         10.0,
         gt=0,
         le=600,
         description="seconds a run may spend planning its path (PLANNING_TIMEOUT past it)",
     )
-    error_state_timeout: float = Field(300.0, gt=0, le=86_400)
+    error_state_timeout: float = Field(
+        300.0, gt=0, le=86_400, description="seconds in ERROR before an alert is raised"
+    )
     reset_probe_timeout: float = Field(
         2.0,
         gt=0,
@@ -224,8 +279,14 @@ class Settings(BaseSettings):
     )
 
     # Hardware addresses: "sim" starts the simulator on loopback.
-    robot_ip: str = Field(SIMULATED, validation_alias=AliasChoices("robot_ip", "ROBOT_IP"))
-    robot_port: int = Field(30003, ge=0, le=65535)
+    robot_ip: str = Field(
+        SIMULATED,
+        validation_alias=AliasChoices("robot_ip", "ROBOT_IP"),
+        description="the robot controller's address (JSON-RPC over TCP); sim: the simulator",
+    )
+    robot_port: int = Field(
+        30003, ge=0, le=65535, description="the robot controller's TCP port (0: any, simulator)"
+    )
     robot_heartbeat_interval: float = Field(
         1.0,
         gt=0,
@@ -234,12 +295,16 @@ class Settings(BaseSettings):
         "within robot_communication_timeout is a fault, in IDLE too",
     )
     vision_camera_id: str = Field(
-        SIMULATED, validation_alias=AliasChoices("vision_camera_id", "VISION_CAMERA_ID")
+        SIMULATED,
+        validation_alias=AliasChoices("vision_camera_id", "VISION_CAMERA_ID"),
+        description="the camera: an OpenCV index or URL; sim: the simulated camera",
     )
     glue_controller_port: str = Field(
-        SIMULATED, validation_alias=AliasChoices("glue_controller_port", "GLUE_CONTROLLER_PORT")
+        SIMULATED,
+        validation_alias=AliasChoices("glue_controller_port", "GLUE_CONTROLLER_PORT"),
+        description="the dispenser's serial port (Modbus RTU) or tcp://host:port; sim: simulator",
     )
-    glue_modbus_device_id: int = Field(1, ge=1, le=247)
+    glue_modbus_device_id: int = Field(1, ge=1, le=247, description="the dispenser's Modbus unit")
     # Glue supervision (docs/hardware.md says where each default comes from)
     glue_pressure_range_psi: tuple[Psi, Psi] = Field(
         (20.0, 60.0),
@@ -289,22 +354,33 @@ class Settings(BaseSettings):
     )
 
     # Cell geometry and motion
-    safe_position: tuple[Millimetres, Millimetres, Millimetres, Degrees, Degrees, Degrees] = (
-        400.0,
-        0.0,
-        200.0,
-        180.0,
-        0.0,
-        0.0,
+    safe_position: tuple[Millimetres, Millimetres, Millimetres, Degrees, Degrees, Degrees] = Field(
+        (400.0, 0.0, 200.0, 180.0, 0.0, 0.0),
+        description="where `home` sends the robot: x, y, z mm and rx, ry, rz degrees",
     )
-    spray_height_mm: float = Field(20.0, ge=0, le=500)
-    travel_speed_mm_s: float = Field(250.0, gt=0, le=2000)
-    spray_speed_mm_s: float = Field(100.0, gt=0, le=2000)
-    acceleration_mm_s2: float = Field(1000.0, gt=0, le=20000)
-    default_flow_rate_ml_min: float = Field(30.0, ge=0, le=1000)
-    default_pressure_psi: float = Field(40.0, ge=0, le=150)
-    workspace_min_mm: tuple[Millimetres, Millimetres, Millimetres] = (100.0, -400.0, -5.0)
-    workspace_max_mm: tuple[Millimetres, Millimetres, Millimetres] = (800.0, 400.0, 500.0)
+    spray_height_mm: float = Field(20.0, ge=0, le=500, description="nozzle height over the part")
+    travel_speed_mm_s: float = Field(250.0, gt=0, le=2000, description="mm/s between beads")
+    spray_speed_mm_s: float = Field(100.0, gt=0, le=2000, description="mm/s along a bead")
+    acceleration_mm_s2: float = Field(1000.0, gt=0, le=20000, description="mm/s² of every move")
+    default_flow_rate_ml_min: float = Field(
+        30.0,
+        ge=0,
+        le=1000,
+        description="ml/min; accepted, no effect: each workpiece's spray settings set the flow",
+    )
+    default_pressure_psi: float = Field(
+        40.0,
+        ge=0,
+        le=150,
+        description="PSI pressure setpoint of every run; inside glue_pressure_range_psi",
+    )
+    workspace_min_mm: tuple[Millimetres, Millimetres, Millimetres] = Field(
+        (100.0, -400.0, -5.0),
+        description="x, y, z mm: no move goes below these; each below workspace_max_mm",
+    )
+    workspace_max_mm: tuple[Millimetres, Millimetres, Millimetres] = Field(
+        (800.0, 400.0, 500.0), description="x, y, z mm: no move goes above these"
+    )
     marker_positions_mm: list[tuple[Millimetres, Millimetres]] = Field(
         default_factory=lambda: list(DEFAULT_MARKER_POSITIONS_MM),
         description="robot (x, y) mm on the table of the centres of ArUco markers 0-8; "
@@ -318,7 +394,7 @@ class Settings(BaseSettings):
         "robot calibration checks its map's scale against it",
     )
     calibration_max_error_mm: float = Field(
-        1.0, gt=0, le=20, description="robot calibration fails above this mean marker error"
+        1.0, gt=0, le=20, description="robot calibration fails above this mean marker error (mm)"
     )
     calibration_max_scale_error_pct: float = Field(
         1.0,
@@ -336,8 +412,12 @@ class Settings(BaseSettings):
     )
     chessboard_cols: int = Field(9, ge=3, le=40, description="inner corners per row")
     chessboard_rows: int = Field(6, ge=3, le=40, description="inner corners per column")
-    chessboard_square_mm: float = Field(30.0, gt=0, le=500)
-    camera_calibration_views: int = Field(10, ge=5, le=100)
+    chessboard_square_mm: float = Field(
+        30.0, gt=0, le=500, description="side of one chessboard square as printed"
+    )
+    camera_calibration_views: int = Field(
+        10, ge=5, le=100, description="chessboard views a camera calibration takes"
+    )
     camera_calibration_view_interval_s: float | None = Field(
         None,
         ge=0,

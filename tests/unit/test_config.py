@@ -9,6 +9,7 @@ import pytest
 from pydantic import ValidationError
 
 from server.config import Settings
+from server.settings_reference import facts
 from tests.schema_bounds import unbounded_numbers
 
 
@@ -212,41 +213,21 @@ def test_an_empty_workspace_is_refused_naming_the_axis() -> None:
         Settings(workspace_min_mm=(100.0, -400.0, 500.0), workspace_max_mm=(800.0, 400.0, 100.0))
 
 
-def _accepted(bounds: dict) -> str:
-    """A schema's range as README's settings table writes it."""
-
-    def number(value: float) -> str:
-        return str(int(value)) if float(value).is_integer() else f"{value:g}"
-
-    low = (
-        f"> {number(bounds['exclusiveMinimum'])}"
-        if "exclusiveMinimum" in bounds
-        else number(bounds["minimum"])
-    )
-    high = (
-        f"< {number(bounds['exclusiveMaximum'])}"
-        if "exclusiveMaximum" in bounds
-        else number(bounds["maximum"])
-    )
-    return f"{low} .. {high}"
-
-
-def test_readmes_settings_table_states_every_numeric_bound() -> None:
-    """The bounds an operator reads are the ones the model enforces."""
+def test_readmes_short_settings_table_agrees_with_docs_settings() -> None:
+    """README lists the most used settings and points to docs/settings.md for the rest;
+    what it says of each (variable, default, accepted values) is what the model says."""
     readme = (Path(__file__).resolve().parents[2] / "README.md").read_text(encoding="utf-8")
-    rows = {
-        cells[0].strip("` "): cells[2].strip()
+    assert "docs/settings.md" in readme
+    rows = [
+        [cell.strip() for cell in line.strip("|").split("|")]
         for line in readme.splitlines()
         if line.startswith("| `")
-        for cells in [line.strip("|").split("|")]
-    }
-    schema = Settings.model_json_schema()
-    for name, field in schema["properties"].items():
-        for option in field.get("anyOf", [field]):
-            if option.get("type") in ("number", "integer"):
-                assert rows.get(name) == _accepted(option), name
-            elif option.get("type") == "array":
-                items = option.get("prefixItems") or option.get("items", {}).get("prefixItems")
-                if items and all(i.get("type") in ("number", "integer") for i in items):
-                    ranges = " / ".join(dict.fromkeys(_accepted(i) for i in items))
-                    assert rows.get(name) == f"each {ranges}", name
+    ]
+    settings = {setting.name: setting for setting in facts()}
+    listed = [row for row in rows if row[0].strip("`") in settings]
+    assert len(listed) >= 5
+    for name, variable, default, accepted in listed:
+        setting = settings[name.strip("`")]
+        assert variable.strip("`") in setting.variables, name
+        assert default in (f"`{setting.default}`", "the simulated table"), name
+        assert accepted == setting.accepted, name

@@ -9,6 +9,8 @@ import pytest
 
 from server.core.diagram import TARGET_FILES, diagram_block
 from server.openapi import generate
+from server.settings_doc import DEFAULT_PATH as SETTINGS_DOC
+from server.settings_doc import render as render_settings_doc
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -23,6 +25,13 @@ def test_openapi_json_matches_the_app() -> None:
     committed = json.loads((ROOT / "openapi.json").read_text(encoding="utf-8"))
     assert committed == json.loads(json.dumps(generate())), (
         "openapi.json is stale: run `make openapi`"
+    )
+
+
+def test_settings_doc_matches_the_settings_model() -> None:
+    committed = (ROOT / SETTINGS_DOC).read_text(encoding="utf-8")
+    assert committed == render_settings_doc(), (
+        f"{SETTINGS_DOC} is stale: run `python -m server.settings_doc --write`"
     )
 
 
