@@ -11,11 +11,13 @@ from typing import Any
 import uvicorn
 from pydantic import ValidationError
 
+from server import backup_cli
 from server.app import create_app
 from server.config import Settings
 from server.errors import ConfigurationError
 from server.logging_setup import configure as configure_logging
 from server.runtime import limit_malloc_arenas, raise_open_file_limit, tune_garbage_collection
+from server.storage.data_lock import DataDirectoryBusy, DataDirectoryLock
 from server.storage.permissions import private_directory
 
 
@@ -36,6 +38,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> None:
     limit_malloc_arenas()  # before any thread allocates
+    words = sys.argv[1:] if argv is None else argv
+    if words[:1] and words[0] in backup_cli.COMMANDS:  # glue-server backup|restore FILE
+        raise SystemExit(backup_cli.main(words))
     args = parse_args(argv)
     overrides = {"data_path": args.data_dir} if args.data_dir else {}
     try:
@@ -46,6 +51,11 @@ def main(argv: list[str] | None = None) -> None:
         )
         raise SystemExit(2) from None
     private_directory(settings.data_path)  # 0700; a looser one is tightened by the cell
+    try:  # held until the process ends: one server per data directory, no restore under it
+        lock = DataDirectoryLock(settings.data_path, "server").acquire()
+    except DataDirectoryBusy as exc:
+        print(f"glue-server: cannot start: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     log_file = configure_logging(settings)
     log = logging.getLogger(__name__)
     log.info("logging to %s", log_file)
@@ -65,6 +75,7 @@ def main(argv: list[str] | None = None) -> None:
         log_config=None,  # keep the cell's handlers: uvicorn logs through them
         **uvicorn_options(settings),
     )
+    lock.release()
 
 
 def uvicorn_options(settings: Settings) -> dict[str, Any]:

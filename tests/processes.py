@@ -127,3 +127,15 @@ def server_process(
     finally:
         stop(process)
         log.close()
+
+
+def run_module(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
+    """Run `python -m ARGS` to its end (a CLI such as `server backup`), output captured."""
+    return subprocess.run(
+        [sys.executable, "-m", *args],
+        capture_output=True,
+        text=True,
+        env=_env(None),
+        cwd=ROOT,
+        timeout=timeout,
+    )
