@@ -139,3 +139,9 @@ def run_module(*args: str, timeout: float = 120.0) -> subprocess.CompletedProces
         cwd=ROOT,
         timeout=timeout,
     )
+
+
+def environment(extra: dict[str, str] | None = None) -> dict[str, str]:
+    """The environment a test's child process gets: this checkout first on the path, no
+    cell settings inherited from the shell, then `extra`."""
+    return _env(extra)
