@@ -15,7 +15,7 @@ DATA ?= data
 LOADED_LIMIT ?= 30m
 SOAK ?= 30m
 
-.PHONY: run test test-fast test-loaded soak lint bench diagram openapi clean browser node
+.PHONY: run test test-fast test-loaded soak lint bench diagram openapi clean browser node deploy-tools
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml constraints.txt
 run: $(STAMP)
 	$(PY) -m server --host $(HOST) --port $(PORT) --data-dir $(DATA)
 
-test: $(STAMP) lint browser node
+test: $(STAMP) lint browser node deploy-tools
 	$(PY) -m pytest
 
 # The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
@@ -67,6 +67,15 @@ node:
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 		$$SUDO apt-get update -qq && \
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq nodejs; }
+
+# The deployment tests validate docker-compose.yml with Debian's docker-compose (no
+# engine needed) and the systemd unit with systemd-analyze.
+deploy-tools:
+	@command -v docker-compose >/dev/null && command -v systemd-analyze >/dev/null || { \
+		echo "installing Debian's docker-compose and systemd for the deployment tests"; \
+		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq docker-compose systemd; }
 
 # ruff, then mypy over server/ and clients/ (configured in pyproject.toml: [tool.mypy]).
 lint: $(STAMP)

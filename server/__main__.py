@@ -11,12 +11,14 @@ from typing import Any
 
 import uvicorn
 
+from server import backup_cli
 from server.app import create_app
 from server.config import Settings
 from server.errors import ConfigurationError
 from server.logging_setup import configure as configure_logging
 from server.runtime import limit_malloc_arenas, raise_open_file_limit, tune_garbage_collection
 from server.settings_load import SettingsRefused, load_settings, unknown_variables
+from server.storage.data_lock import DataDirectoryBusy, DataDirectoryLock
 from server.storage.permissions import private_directory
 
 SETTINGS_HELP = """\
@@ -37,7 +39,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         prog="glue-server",
         description="Control server for a glue-spraying robot cell. Without hardware\n"
         "settings (ROBOT_IP, GLUE_CONTROLLER_PORT, VISION_CAMERA_ID) it starts the\n"
-        "simulators on loopback and drives them through the real protocol clients.",
+        "simulators on loopback and drives them through the real protocol clients.\n"
+        "Also: glue-server backup FILE, glue-server restore FILE (see their --help).",
         epilog=SETTINGS_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -52,6 +55,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> None:
     limit_malloc_arenas()  # before any thread allocates
+    words = sys.argv[1:] if argv is None else argv
+    if words[:1] and words[0] in backup_cli.COMMANDS:  # glue-server backup|restore FILE
+        raise SystemExit(backup_cli.main(words))
     args = parse_args(argv)
     overrides = {"data_path": args.data_dir} if args.data_dir else {}
     misspelt = unknown_variables()
@@ -63,6 +69,11 @@ def main(argv: list[str] | None = None) -> None:
         print(f"glue-server: cannot start: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     private_directory(settings.data_path)  # 0700; a looser one is tightened by the cell
+    try:  # held until the process ends: one server per data directory, no restore under it
+        lock = DataDirectoryLock(settings.data_path, "server").acquire()
+    except DataDirectoryBusy as exc:
+        print(f"glue-server: cannot start: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     log_file = configure_logging(settings)
     log = logging.getLogger(__name__)
     log.info("logging to %s", log_file)
@@ -84,6 +95,7 @@ def main(argv: list[str] | None = None) -> None:
         log_config=None,  # keep the cell's handlers: uvicorn logs through them
         **uvicorn_options(settings),
     )
+    lock.release()
 
 
 def uvicorn_options(settings: Settings) -> dict[str, Any]:

@@ -127,3 +127,21 @@ def server_process(
     finally:
         stop(process)
         log.close()
+
+
+def run_module(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
+    """Run `python -m ARGS` to its end (a CLI such as `server backup`), output captured."""
+    return subprocess.run(
+        [sys.executable, "-m", *args],
+        capture_output=True,
+        text=True,
+        env=_env(None),
+        cwd=ROOT,
+        timeout=timeout,
+    )
+
+
+def environment(extra: dict[str, str] | None = None) -> dict[str, str]:
+    """The environment a test's child process gets: this checkout first on the path, no
+    cell settings inherited from the shell, then `extra`."""
+    return _env(extra)
