@@ -11,14 +11,16 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
 import httpx
 
+from server.bootstrap.devices import build_devices
 from server.cell import Cell
 from server.config import Settings
+from server.core.devices import CellDevices
 from server.drivers.camera import SimulatedCamera
 from server.drivers.sim.glue_sim import GlueSimulator
 from server.drivers.sim.robot_sim import RobotSimulator
@@ -191,10 +193,16 @@ DEVICE_FAULTS: dict[str, DeviceFaultKind] = {
 
 
 @contextlib.asynccontextmanager
-async def open_rig(data_path, **overrides: Any) -> AsyncIterator[Rig]:
+async def open_rig(
+    data_path, *, port: int | None = None, camera_stalled: bool = False, **overrides: Any
+) -> AsyncIterator[Rig]:
     """Simulators, cell and HTTP client; the cell commissioned in `data_path`.
 
-    `overrides` replace any setting, the rig's timeouts included."""
+    `overrides` replace any setting, the rig's timeouts included. `port`: the server's
+    (a free one by default). `camera_stalled`: the simulated camera stalls from the
+    start, so the cell stays INITIALIZING (for up to vision_processing_timeout) until the
+    test calls `rig.camera.clear_faults()`; the rig then does not wait for IDLE. Only for
+    a data directory commissioned already: commissioning needs the camera."""
     async with RobotSimulator(speed_factor=4) as robot, GlueSimulator() as glue:
         defaults: dict[str, Any] = {
             "robot_communication_timeout": TIMEOUT,
@@ -211,13 +219,24 @@ async def open_rig(data_path, **overrides: Any) -> AsyncIterator[Rig]:
             data_path=data_path,
             **{**defaults, **overrides},
         )
-        cell = Cell(settings)
+        cell = Cell(settings, device_factory=_stalled_camera if camera_stalled else None)
         async with (
-            serve(cell) as url,
+            serve(cell, port) as url,
             httpx.AsyncClient(
                 base_url=url, timeout=WAIT_S, headers=admin_headers(data_path)
             ) as api,
         ):
             rig = Rig(api, cell, robot, glue)
-            await rig.wait_state("IDLE")
+            if not camera_stalled:
+                await rig.wait_state("IDLE")
             yield rig
+
+
+async def _stalled_camera(
+    settings: Settings,
+) -> tuple[CellDevices, Callable[[], Awaitable[None]]]:
+    """The default devices, the simulated camera stalled before the cell opens it."""
+    devices, release = await build_devices(settings)
+    assert isinstance(devices.camera, SimulatedCamera)
+    devices.camera.inject_fault("stall")
+    return devices, release

@@ -29,9 +29,13 @@ def free_port() -> int:
 
 
 @contextlib.asynccontextmanager
-async def serve(cell: Cell, **uvicorn_overrides: Any) -> AsyncIterator[str]:
-    """Serve `cell` over HTTP as `python -m server` does (unless overridden); yields the URL."""
-    port = free_port()
+async def serve(
+    cell: Cell, port: int | None = None, **uvicorn_overrides: Any
+) -> AsyncIterator[str]:
+    """Serve `cell` over HTTP as `python -m server` does (unless overridden); yields the URL.
+
+    `port`: a free one unless given (a restarted server answers at the same address)."""
+    port = port or free_port()
     config = uvicorn.Config(
         create_app(cell=cell),
         host="127.0.0.1",

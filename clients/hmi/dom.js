@@ -35,6 +35,17 @@ export function duration(seconds) {
   return h ? `${h}:${two(m)}:${two(rest)}` : `${two(m)}:${two(rest)}`;
 }
 
+/** A span of time with its unit, for a figure that stands alone (a KPI tile):
+ * "52 s", "14 min", "3.5 h", "2.1 d". `duration`'s "00:52" does not say m:ss or h:mm. */
+export function span(seconds) {
+  if (typeof seconds !== "number" || !isFinite(seconds)) return "—";
+  const s = Math.max(0, seconds);
+  if (s < 90) return `${Math.round(s)} s`;
+  if (s < 90 * 60) return `${Math.round(s / 60)} min`;
+  if (s < 48 * 3600) return `${(s / 3600).toFixed(1)} h`;
+  return `${(s / 86400).toFixed(1)} d`;
+}
+
 export function clockTime(unixSeconds) {
   if (typeof unixSeconds !== "number") return "—";
   return new Date(unixSeconds * 1000).toLocaleTimeString([], { hour12: false });

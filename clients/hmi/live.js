@@ -26,7 +26,13 @@ import {
   WATCHDOG_DEAD_MS,
   WATCHDOG_PING_MS,
 } from "./store.js";
-import { drawTrajectory, refreshCalibration, refreshFrame, refreshTrajectory } from "./trajectory.js";
+import {
+  drawTrajectory,
+  forgetRuns,
+  refreshCalibration,
+  refreshFrame,
+  refreshTrajectory,
+} from "./trajectory.js";
 
 export async function connect() {
   clearTimeout(hmi.reconnectTimer);
@@ -113,6 +119,14 @@ function onMessage(message) {
 }
 
 function onSnapshot(snapshot) {
+  const restarted = hmi.boot !== null && snapshot.boot !== hmi.boot;
+  hmi.boot = snapshot.boot;
+  if (restarted) {
+    // The server restarted: the run, the plan and the frame on screen are of its last life.
+    hmi.progress = null;
+    forgetRuns();
+    refreshCalibration();
+  }
   hmi.lastSeq = snapshot.seq;
   hmi.attempts = 0;
   hmi.counters.connects += 1;
@@ -124,6 +138,7 @@ function onSnapshot(snapshot) {
   applyState(snapshot);
   refreshPanels(true);
   refreshTrajectory();
+  refreshFrame(); // one may have been captured, or the server forgot it, while not live
 }
 
 /** seq rises by one; a gap means something was missed: resynchronise from GET /state. */

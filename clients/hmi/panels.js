@@ -6,7 +6,7 @@
  * valve opened between two polls and showed "closed" while glue flowed. */
 
 import { AuthError, blobUrl, getJson } from "./api.js";
-import { $, clockTime, duration, element, facts, number, percent } from "./dom.js";
+import { $, clockTime, duration, element, facts, number, percent, span } from "./dom.js";
 import { HISTORY_ROWS, hmi, STATE_TONE } from "./store.js";
 
 let refreshing = false;
@@ -124,17 +124,21 @@ function renderKpis(kpis) {
     ["OEE", percent(oee.oee)],
     ["Availability", percent(oee.availability)],
     ["Utilization", percent(kpis.utilization)],
-    ["Workpieces", String(kpis.workpieces_processed ?? "—")],
-    ["Failed", String(kpis.workpieces_failed ?? "—")],
-    ["Operations", String(kpis.operations_completed ?? "—")],
-    ["MTBF", kpis.mtbf_s == null ? "—" : duration(kpis.mtbf_s)],
-    ["MTTR", kpis.mttr_s == null ? "—" : duration(kpis.mttr_s)],
-    ["Errors", String(kpis.errors_counted ?? "—")],
+    ["Workpieces", String(kpis.workpieces_processed ?? "—"), "workpieces completed",
+      "workpieces sprayed by completed runs"],
+    ["Failed", String(kpis.workpieces_failed ?? "—"), "workpieces failed",
+      "workpieces of runs that failed or were stopped"],
+    ["Operations", String(kpis.operations_completed ?? "—"), "operations completed",
+      "runs and calibrations that completed"],
+    ["MTBF", kpis.mtbf_s == null ? "—" : span(kpis.mtbf_s), "MTBF", "mean time between failures"],
+    ["MTTR", kpis.mttr_s == null ? "—" : span(kpis.mttr_s), "MTTR", "mean time to repair (in ERROR)"],
+    ["Errors", String(kpis.errors_counted ?? "—"), "errors", "faults that stopped the cell"],
   ];
   $("kpis").replaceChildren(
-    ...figures.map(([label, value]) => {
+    ...figures.map(([name, value, label = name, meaning = ""]) => {
       const tile = element("div", "kpi");
-      tile.dataset.kpi = label.toLowerCase();
+      tile.dataset.kpi = name.toLowerCase();
+      if (meaning) tile.title = meaning;
       tile.append(element("div", "kpi-value", value), element("div", "kpi-label", label));
       return tile;
     }),
@@ -152,11 +156,22 @@ function renderHistory(page) {
       [t.event, ""],
       [duration(t.time_in_old_state), "num"],
     ]) {
-      row.append(element("td", cls, text));
+      row.append(breakable(element("td", cls), text));
     }
     return row;
   });
   $("history").replaceChildren(...rows);
+}
+
+/** `text` in `cell`, with a line break allowed after each underscore (OPERATION_<wbr>COMPLETED):
+ * a narrow column wraps a name where it reads well, and copies it unchanged. */
+function breakable(cell, text) {
+  const parts = String(text).split("_");
+  parts.forEach((part, i) => {
+    if (i > 0) cell.append("_", document.createElement("wbr"));
+    cell.append(part);
+  });
+  return cell;
 }
 
 // --- workpiece library ------------------------------------------------------

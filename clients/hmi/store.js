@@ -39,6 +39,7 @@ export const hmi = {
   live: false,
   ws: null,
   lastSeq: null,
+  boot: null,            // the server process the snapshot came from (a restart changes it)
   lastMessageMs: 0,
   attempts: 0,
   reconnectTimer: null,

@@ -59,25 +59,46 @@ export async function refreshCalibration() {
   drawTrajectory();
 }
 
-/** The latest frame an operation captured (GET /camera/frame, 404 until one did). */
+let frameAsks = 0; // only the answer to the latest request is shown
+
+/** The latest frame an operation captured (GET /camera/frame, 404 until one did). A 404
+ * drops the frame shown: the server has none (it restarted), so the calibration image
+ * stands in rather than a picture of a run the server no longer knows. */
 export async function refreshFrame() {
+  const ask = ++frameAsks;
   try {
     const response = await api("GET", "/camera/frame");
-    if (!response.ok) return; // none yet: the calibration image stands in
-    const info = {
-      time: Number(response.headers.get("X-Frame-Time")),
-      source: response.headers.get("X-Frame-Source") || "",
-      run: response.headers.get("X-Frame-Run-Id") || "",
-    };
-    const shown = hmi.frameInfo;
-    if (shown && info.time <= shown.time) return; // the same one, or an answer overtaken
-    const image = await loadImage(URL.createObjectURL(await response.blob()));
-    if (!image || (hmi.frameInfo && info.time <= hmi.frameInfo.time)) return;
-    hmi.frame = image;
-    hmi.frameInfo = info;
+    if (ask !== frameAsks) return; // overtaken by a later request
+    if (response.status === 404) {
+      hmi.frame = null;
+      hmi.frameInfo = null;
+    } else if (response.ok) {
+      const info = {
+        time: Number(response.headers.get("X-Frame-Time")),
+        source: response.headers.get("X-Frame-Source") || "",
+        run: response.headers.get("X-Frame-Run-Id") || "",
+      };
+      const shown = hmi.frameInfo;
+      if (shown && info.time === shown.time && info.run === shown.run) return; // the same one
+      const image = await loadImage(URL.createObjectURL(await response.blob()));
+      if (!image || ask !== frameAsks) return;
+      hmi.frame = image;
+      hmi.frameInfo = info;
+    } else {
+      return; // a passing failure: keep the last one
+    }
   } catch {
     return; /* keep the last one */
   }
+  renderTrajectoryInfo();
+  drawTrajectory();
+}
+
+/** A new server process (another `boot`): its runs and frames are not the ones shown. */
+export function forgetRuns() {
+  hmi.trajectory = null;
+  hmi.frame = null;
+  hmi.frameInfo = null;
   renderTrajectoryInfo();
   drawTrajectory();
 }
