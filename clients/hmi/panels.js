@@ -71,11 +71,31 @@ function renderHealth(health) {
   status.textContent = health.status;
   status.dataset.kind = health.status === "ok" ? "ok" : "fault";
   const devices = $("devices");
+  const note = journalNote(health.journal);
   devices.replaceChildren(
     ...["robot", "glue", "camera"]
       .filter((name) => health.devices[name])
       .map((name) => deviceCard(name, health.devices[name])),
+    ...(note ? [note] : []),
   );
+}
+
+/** The journal, shown only when something is wrong with it: a write failing now (no
+ * command but STOP is accepted until it writes again), or damage start-up found. */
+function journalNote(journal) {
+  if (!journal) return null;
+  const problems = [];
+  if (journal.last_error) problems.push(`not writing: ${journal.last_error}`);
+  for (const damage of journal.damage || []) problems.push(`damaged: ${damage.message}`);
+  if (!problems.length) return null;
+  const card = element("div", "device journal");
+  card.dataset.device = "journal";
+  const state = element("span", "pill", journal.last_error ? "not writing" : "damaged");
+  state.dataset.kind = "fault";
+  const head = element("div", "device-head");
+  head.append(element("span", "device-name", "journal"), state);
+  card.append(head, ...problems.map((text) => element("div", "device-error", text)));
+  return card;
 }
 
 function deviceCard(name, device) {

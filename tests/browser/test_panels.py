@@ -12,11 +12,13 @@ test-artifacts/screenshots/panels/.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import re
 from pathlib import Path
 
 from playwright.async_api import Browser, Page, expect
 
+from server.storage.journal.commit_chain import LastCommitFile
 from tests.browser.test_dashboard import (
     COMMANDS,
     SHOTS,
@@ -273,3 +275,36 @@ async def test_the_page_loads_with_no_console_errors(
     await expect(page.locator(".workpiece[data-workpiece=demo] img")).to_be_visible()
     await page.wait_for_load_state("networkidle")
     assert (errors, failed) == ([], [])
+
+
+async def test_a_damaged_journal_shows_on_the_devices_card(
+    browser: Browser,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    """Damage start-up found in the journal is on /health; the technician sees it too.
+
+    The damage is a lost tail: the commit record outside the database names a commit
+    five past the last one the journal holds, as a disk that lost its last writes
+    would leave it.
+    """
+    data = tmp_path / "data"
+    async with open_rig(data) as rig:
+        assert (await rig.api.post("/home")).status_code == 202
+        await rig.wait_state("IDLE")
+    journal = data / "journal.db"
+    record = LastCommitFile(journal)
+    head = record.read()
+    assert head is not None
+    record.write(dataclasses.replace(head, seq=head.seq + 5))
+    record.close()
+    async with open_rig(data) as rig:
+        assert (await rig.api.get("/health")).json()["journal"]["damage"]
+        context = await browser.new_context(viewport={"width": 1280, "height": 800})
+        page = await context.new_page()
+        await page.goto(str(rig.api.base_url) + "/")
+        await log_in(page, admin_headers(data)["Authorization"].split()[1])
+        await expect_live(page)
+        note = page.locator('.device[data-device="journal"]')
+        await expect(note).to_contain_text("damaged")
+        await expect(note).to_contain_text("commit")
+        await context.close()
