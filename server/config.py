@@ -286,6 +286,19 @@ class Settings(BaseSettings):
     travel_speed_mm_s: float = Field(250.0, gt=0, le=2000)
     spray_speed_mm_s: float = Field(100.0, gt=0, le=2000)
     acceleration_mm_s2: float = Field(1000.0, gt=0, le=20000)
+    jog_max_step_mm: float = Field(
+        50.0,
+        gt=0,
+        le=200,
+        description="the longest step one jog may ask for along its axis (maintenance "
+        "teaching marker positions); a longer one is refused before anything moves",
+    )
+    jog_speed_mm_s: float = Field(
+        20.0,
+        gt=0,
+        le=250,
+        description="speed of a jog: slow, so a person beside the table can follow the arm",
+    )
     default_flow_rate_ml_min: float = Field(30.0, ge=0, le=1000)
     default_pressure_psi: float = Field(40.0, ge=0, le=150)
     workspace_min_mm: tuple[Millimetres, Millimetres, Millimetres] = (100.0, -400.0, -5.0)
