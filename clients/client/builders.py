@@ -201,7 +201,7 @@ def markers() -> Call[dict[str, Any]]:
 
 
 def teach_marker(marker: int) -> Call[dict[str, Any]]:
-    return Call("POST", f"/calibration/markers/{int(marker)}/teach", _json)
+    return Call("POST", f"/calibration/markers/draft/{int(marker)}/teach", _json)
 
 
 def apply_markers() -> Call[dict[str, Any]]:

@@ -3,8 +3,8 @@
  *
  * Self-contained: `mountMarkerLayout(section)` builds the panel inside
  * <section id="marker-layout"> and keeps it current from GET /calibration/markers.
- * Every change goes through the API (POST /jog, POST /calibration/markers/{n}/teach,
- * PUT /calibration/markers/{n}, POST /calibration/markers/apply); the server's
+ * Every change goes through the API (POST /jog, POST /calibration/markers/draft/{n}/teach,
+ * PUT /calibration/markers/draft/{n}, POST /calibration/markers/apply); the server's
  * refusals (409 not IDLE, 422 naming the marker and field) are shown as they come.
  */
 
@@ -118,7 +118,7 @@ class MarkerPanel {
       });
       const teach = element("button", "", "Teach");
       teach.dataset.teach = String(marker);
-      teach.addEventListener("click", () => this.act("POST", `${LAYOUT}/${marker}/teach`));
+      teach.addEventListener("click", () => this.act("POST", `${LAYOUT}/draft/${marker}/teach`));
       const cells = [
         element("td", "", String(marker)),
         element("td", "", `${number(x, 1)}, ${number(y, 1)}`),
@@ -140,7 +140,7 @@ class MarkerPanel {
   async type(marker, inputs) {
     const [x, y] = inputs.map((input) => input.value);
     if (x === "" || y === "") return; // both are needed; wait for the other one
-    await this.act("PUT", `${LAYOUT}/${marker}`, { x_mm: Number(x), y_mm: Number(y) });
+    await this.act("PUT", `${LAYOUT}/draft/${marker}`, { x_mm: Number(x), y_mm: Number(y) });
   }
 
   async jog(axis, sign) {

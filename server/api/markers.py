@@ -3,8 +3,8 @@
 Why these routes: `marker_positions_mm` (the robot positions of ArUco markers
 0-8 that the robot calibration maps to) used to be typed blind into the
 configuration. Now a technician jogs the tool over marker N (`POST /jog`) and
-records where it is (`POST /calibration/markers/{marker}/teach`), or types a
-position (`PUT /calibration/markers/{marker}`); both go into a draft kept under
+records where it is (`POST /calibration/markers/draft/{marker}/teach`), or types a
+position (`PUT /calibration/markers/draft/{marker}`); both go into a draft kept under
 the data directory (server/storage/marker_layout.py). `POST
 /calibration/markers/apply` puts the draft in force only when all nine are
 there and the whole layout passes the settings' own check (the same merge as
@@ -19,7 +19,7 @@ import re
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Request
-from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field, ValidationError
 
 from server.api import audit
@@ -42,10 +42,23 @@ REFUSED: dict[int | str, dict[str, Any]] = {
 
 
 class MarkerPosition(Strict):
-    """Body of PUT /calibration/markers/{marker}: its centre, robot frame, table plane."""
+    """Body of PUT /calibration/markers/draft/{marker}: its centre, robot frame, table plane."""
 
     x_mm: Coordinate
     y_mm: Coordinate
+
+
+class LayoutProblem(BaseModel):
+    field: str
+    message: str
+    type: str
+
+
+class LayoutRefusal(BaseModel):
+    """Why the draft cannot be applied: one error per marker at fault."""
+
+    detail: str
+    errors: list[LayoutProblem] = []
 
 
 class MarkerLayoutChange(BaseModel):
@@ -100,7 +113,9 @@ def _refuse_unless_still(cell: Cell, what: str) -> None:
         raise HTTPException(409, f"{what} is refused: the robot is still moving (home or a jog)")
 
 
-@router.post("/calibration/markers/{marker}/teach", responses={**REFUSED, **audit.STORAGE_REFUSALS})
+@router.post(
+    "/calibration/markers/draft/{marker}/teach", responses={**REFUSED, **audit.STORAGE_REFUSALS}
+)
 async def teach_marker(request: Request, marker: Marker) -> dict[str, Any]:
     """Record the tool's current x and y as marker `marker`'s position in the draft.
 
@@ -130,7 +145,7 @@ async def teach_marker(request: Request, marker: Marker) -> dict[str, Any]:
     return layout_view(settings, store, cell)
 
 
-@router.put("/calibration/markers/{marker}", responses=audit.STORAGE_REFUSALS)
+@router.put("/calibration/markers/draft/{marker}", responses=audit.STORAGE_REFUSALS)
 async def type_marker(request: Request, marker: Marker, body: MarkerPosition) -> dict[str, Any]:
     """Type marker `marker`'s position into the draft (a correction, or a measured value)."""
     detail = f"marker {marker} typed as ({body.x_mm:g}, {body.y_mm:g}) mm (draft)"
@@ -154,25 +169,45 @@ async def clear_draft(request: Request) -> dict[str, Any]:
 _MARKER_IN_MESSAGE = re.compile(r"\bmarkers? (\d)\b")
 
 
-def _layout_errors(exc: ValidationError) -> list[dict[str, Any]]:
+def _layout_errors(exc: ValidationError) -> list[LayoutProblem]:
     """The settings' layout refusals as field errors naming the marker (`markers.N`)."""
     errors = []
     for error in exc.errors():
         message = str(error["msg"]).removeprefix("Value error, ")
         named = _MARKER_IN_MESSAGE.search(message)
-        where = ("markers", named.group(1)) if named else ("marker_positions_mm",)
-        errors.append({"loc": where, "msg": message, "type": "layout"})
+        where = f"markers.{named.group(1)}" if named else "marker_positions_mm"
+        errors.append(LayoutProblem(field=where, message=message, type="layout"))
     return errors
 
 
-@router.post("/calibration/markers/apply", responses={**REFUSED, **audit.STORAGE_REFUSALS})
-async def apply_markers(request: Request) -> dict[str, Any]:
+def _refused(errors: list[LayoutProblem]) -> JSONResponse:
+    """409: the draft, not the request, is what is wrong (the request has no body)."""
+    summary = "; ".join(f"{e.field}: {e.message}" for e in errors)
+    body = LayoutRefusal(detail=f"the draft layout cannot be applied: {summary}", errors=errors)
+    return JSONResponse(body.model_dump(), status_code=409)
+
+
+@router.post(
+    "/calibration/markers/apply",
+    response_model=None,
+    responses={
+        409: {
+            "model": LayoutRefusal,
+            "description": "not now (a robot calibration runs), or the draft lacks a marker "
+            "or fails the layout check: each error's field names the marker (markers.N); "
+            "nothing changed",
+        },
+        **audit.STORAGE_REFUSALS,
+    },
+)
+async def apply_markers(request: Request) -> dict[str, Any] | JSONResponse:
     """Put the draft in force as marker_positions_mm, once all nine pass the layout check.
 
-    422 naming each marker still missing, or the marker the check refuses (outside
-    the workspace, overlapping, degenerate); nothing changes then. Refused while a
-    robot calibration runs (409). Audited with the old and new layout; kept in the
-    data directory, so a restart keeps it in force.
+    409 naming each marker still missing, or the marker the check refuses (outside
+    the workspace, overlapping, degenerate), as `errors[].field` `markers.N`;
+    nothing changes then. Refused while a robot calibration runs (409). Audited
+    with the old and new layout; kept in the data directory, so a restart keeps
+    it in force.
     """
     cell, settings = _cell(request), request.app.state.settings
     store = _store(request)
@@ -180,13 +215,13 @@ async def apply_markers(request: Request) -> dict[str, Any]:
         raise HTTPException(409, "apply is refused while the robot calibration runs")
     missing = store.missing()
     if missing:
-        raise RequestValidationError(
+        return _refused(
             [
-                {
-                    "loc": ("markers", str(i)),
-                    "msg": f"marker {i} has no position in the draft yet: teach it or type it",
-                    "type": "missing",
-                }
+                LayoutProblem(
+                    field=f"markers.{i}",
+                    message=f"marker {i} has no position in the draft yet: teach it or type it",
+                    type="missing",
+                )
                 for i in missing
             ]
         )
@@ -194,7 +229,7 @@ async def apply_markers(request: Request) -> dict[str, Any]:
     try:
         changes = plan_change(settings, MarkerLayoutChange(marker_positions_mm=layout))
     except ValidationError as exc:
-        raise RequestValidationError(_layout_errors(exc)) from None
+        return _refused(_layout_errors(exc))
     old = [list(p) for p in settings.marker_positions_mm]
     detail = f"marker_positions_mm: {old} -> {[list(p) for p in layout]} (taught layout applied)"
     await audit.record_before_change(request, detail)

@@ -58,8 +58,10 @@ class JogRequest(Strict):
 
     axis: Literal["x", "y", "z"] = Field(description="the axis to move along")
     distance_mm: FiniteNumber = Field(
+        ge=-200,
+        le=200,
         description="the step in mm, negative to go back; at most jog_max_step_mm either way "
-        "(GET /calibration/markers shows it), and the target must lie in the workspace"
+        "(GET /calibration/markers shows it), and the target must lie in the workspace",
     )
 
 

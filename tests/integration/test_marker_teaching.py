@@ -16,7 +16,7 @@ import pytest
 from server.config import DEFAULT_MARKER_POSITIONS_MM
 from tests.rig import WAIT_S, Rig, open_rig
 
-FAST_JOG = {"jog_speed_mm_s": 250.0, "jog_max_step_mm": 200.0}
+FAST_JOG = {"jog_speed_mm_s": 250.0, "jog_max_step_mm": 150.0}
 
 
 async def settled(rig: Rig) -> tuple[float, float, float]:
@@ -40,7 +40,7 @@ async def jog_to(rig: Rig, x: float, y: float) -> None:
     """Jog in steps no longer than the cap until the tool is over (x, y)."""
     for axis, index, goal in (("x", 0, x), ("y", 1, y)):
         while abs(gap := goal - (await settled(rig))[index]) > 1e-6:
-            await jog(rig, axis, max(-200.0, min(200.0, gap)))
+            await jog(rig, axis, max(-150.0, min(150.0, gap)))
 
 
 async def test_a_jog_moves_the_robot_by_its_step_and_nothing_else(tmp_path) -> None:
@@ -50,14 +50,14 @@ async def test_a_jog_moves_the_robot_by_its_step_and_nothing_else(tmp_path) -> N
         assert answer["state"] == "IDLE"
         assert (await settled(rig)) == pytest.approx((x + 12.5, y, z), abs=0.01)
 
-        too_long = await rig.api.post("/jog", json={"axis": "y", "distance_mm": 200.5})
+        too_long = await rig.api.post("/jog", json={"axis": "y", "distance_mm": 150.5})
         assert too_long.status_code == 422, too_long.text
         assert too_long.json()["errors"][0]["field"] == "distance_mm"
         assert "jog_max_step_mm" in too_long.json()["detail"]
 
         await jog_to(rig, 700.0, y)  # 800 mm is the workspace's x limit
         before = await settled(rig)
-        outside = await rig.api.post("/jog", json={"axis": "x", "distance_mm": 200.0})
+        outside = await rig.api.post("/jog", json={"axis": "x", "distance_mm": 150.0})
         assert outside.status_code == 422, outside.text
         assert outside.json()["errors"][0]["field"] == "distance_mm"
         assert "outside the workspace" in outside.json()["detail"]
@@ -72,7 +72,7 @@ async def test_a_jog_moves_the_robot_by_its_step_and_nothing_else(tmp_path) -> N
             "/jog", json={"axis": "x", "distance_mm": -1.0}, headers=operator
         )
         assert denied.status_code == 403
-        denied = await rig.api.post("/calibration/markers/0/teach", headers=operator)
+        denied = await rig.api.post("/calibration/markers/draft/0/teach", headers=operator)
         assert denied.status_code == 403
 
         assert (await rig.api.post("/estop")).status_code == 202
@@ -112,19 +112,19 @@ async def test_an_incomplete_or_invalid_layout_is_refused_naming_the_marker(tmp_
     async with open_rig(tmp_path / "data") as rig:
         in_force = (await rig.api.get("/calibration/markers")).json()["in_force"]
         missing = await rig.api.post("/calibration/markers/apply")
-        assert missing.status_code == 422
+        assert missing.status_code == 409
         assert [e["field"] for e in missing.json()["errors"]] == [f"markers.{i}" for i in range(9)]
         for i, (x, y) in enumerate(DEFAULT_MARKER_POSITIONS_MM):
             typed = {"x_mm": 900.0 if i == 7 else x, "y_mm": y}
-            response = await rig.api.put(f"/calibration/markers/{i}", json=typed)
+            response = await rig.api.put(f"/calibration/markers/draft/{i}", json=typed)
             assert response.status_code == 200, response.text
         refused = await rig.api.post("/calibration/markers/apply")
-        assert refused.status_code == 422, refused.text
+        assert refused.status_code == 409, refused.text
         assert refused.json()["errors"][0]["field"] == "markers.7"
         assert "marker 7" in refused.json()["detail"] and "workspace" in refused.json()["detail"]
-        bad_marker = await rig.api.put("/calibration/markers/9", json={"x_mm": 1, "y_mm": 1})
+        bad_marker = await rig.api.put("/calibration/markers/draft/9", json={"x_mm": 1, "y_mm": 1})
         assert bad_marker.status_code == 422 and "marker" in bad_marker.json()["detail"]
-        bad_value = await rig.api.put("/calibration/markers/3", json={"x_mm": "1", "y_mm": 1})
+        bad_value = await rig.api.put("/calibration/markers/draft/3", json={"x_mm": "1", "y_mm": 1})
         assert bad_value.status_code == 422 and "x_mm" in bad_value.json()["detail"]
         after = (await rig.api.get("/calibration/markers")).json()
         assert after["in_force"] == in_force and after["source"] == "settings"
@@ -141,7 +141,7 @@ async def test_a_taught_layout_is_applied_and_used_by_the_robot_calibration(tmp_
         shifted = [(x + 5.0, y) for x, y in DEFAULT_MARKER_POSITIONS_MM]
         for i, (x, y) in enumerate(shifted):
             await jog_to(rig, x, y)
-            taught = await rig.api.post(f"/calibration/markers/{i}/teach")
+            taught = await rig.api.post(f"/calibration/markers/draft/{i}/teach")
             assert taught.status_code == 200, taught.text
             entry = taught.json()["draft"][i]
             assert (entry["x_mm"], entry["y_mm"], entry["how"]) == (
