@@ -498,6 +498,64 @@ def home(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
     _command(ctx, json_flag, lambda c: c.home())
 
 
+@app.command()
+def jog(
+    ctx: typer.Context,
+    axis: Annotated[str, typer.Argument(help="x, y or z (robot base frame).")],
+    distance_mm: Annotated[
+        float, typer.Argument(help="The step in mm; a negative one after --: jog x -- -5.")
+    ],
+    json_flag: JsonFlag = False,
+) -> None:
+    """Move the robot one bounded step, in IDLE (maintenance role)."""
+    _command(ctx, json_flag, lambda c: c.jog(axis, distance_mm))
+
+
+def marker_table(layout: dict[str, Any]) -> Table:
+    """GET /calibration/markers: in force and draft, marker by marker."""
+    position = (layout.get("robot") or {}).get("position")
+    where = _value(position[:3] if isinstance(position, list) else None)
+    table = Table(title=f"markers ({layout.get('source')}); robot at {where}", title_justify="left")
+    for column in ("marker", "in force (mm)", "draft (mm)", "how"):
+        table.add_column(column, overflow="fold")
+    drafts = layout.get("draft") or []
+    for i, (x, y) in enumerate(layout.get("in_force") or []):
+        draft = drafts[i] if i < len(drafts) else None
+        typed = f"{_value(draft['x_mm'])}, {_value(draft['y_mm'])}" if draft else "—"
+        how = draft["how"] if draft else "missing"
+        table.add_row(*(Text(v) for v in (str(i), f"{_value(x)}, {_value(y)}", typed, how)))
+    return table
+
+
+marker_app = typer.Typer(help="The marker layout robot calibration uses, taught with the robot.")
+app.add_typer(marker_app, name="marker")
+
+
+@marker_app.command("list")
+def marker_list(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """The layout in force and the draft being taught."""
+    options = _options(ctx, json_flag)
+    _show(options, _call(options, lambda c: c.markers()), marker_table)
+
+
+@marker_app.command("teach")
+def marker_teach(
+    ctx: typer.Context,
+    marker: Annotated[int, typer.Argument(min=0, max=8, help="ArUco marker id, 0-8.")],
+    json_flag: JsonFlag = False,
+) -> None:
+    """Record the tool's current x, y as marker N in the draft (maintenance role)."""
+    options = _options(ctx, json_flag)
+    _show(options, _call(options, lambda c: c.teach_marker(marker)), marker_table)
+
+
+@marker_app.command("apply")
+def marker_apply(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """Put the draft in force once all nine pass the layout check (maintenance role)."""
+    options = _options(ctx, json_flag)
+    _show(options, _call(options, lambda c: c.apply_markers()), marker_table)
+
+
 @app.command("calibrate-robot")
 def calibrate_robot(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
     """Fit the image → robot map from ArUco markers 0-8 (maintenance role)."""

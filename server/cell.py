@@ -13,6 +13,8 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import Any
 
+from pydantic import ValidationError
+
 from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
@@ -96,6 +98,7 @@ class Cell:
         # The data directory for the cell's user only, however the server was started.
         await asyncio.to_thread(tighten_data_directory, settings.data_path, [log_path(settings)])
         self.stores = CellStores.open(settings.data_path)
+        restore_taught_layout(settings, self.stores.markers.applied)
         self.journal = Journal(
             settings.data_file(settings.analytics_database, "journal.db"),
             synchronous=settings.journal_synchronous,
@@ -172,6 +175,26 @@ class Cell:
             stop = payload if isinstance(payload, StopPayload) else StopPayload()
             return await self.worker.emergency_stop(source=source, payload=stop, audit=audit)
         return await self.worker.request(event, source=source, payload=payload, audit=audit)
+
+
+def restore_taught_layout(settings: Settings, taught: list[tuple[float, float]] | None) -> None:
+    """Put the marker layout last taught and applied (POST /calibration/markers/apply) in force.
+
+    Why it outranks the configured marker_positions_mm: it was measured on this table
+    by the robot itself, after the configuration was written. A taught layout the
+    settings now refuse (the workspace was changed since) is left out, loudly.
+    """
+    if taught is None or [tuple(p) for p in settings.marker_positions_mm] == taught:
+        return
+    merged = {**settings.model_dump(), "marker_positions_mm": taught}
+    try:
+        Settings.model_validate(merged)
+    except ValidationError as exc:
+        problem = "; ".join(error["msg"] for error in exc.errors())
+        log.error("the taught marker layout is not put in force: %s", problem)
+        return
+    settings.marker_positions_mm = list(taught)
+    log.info("marker layout in force: the one taught and applied (GET /calibration/markers)")
 
 
 def record_journal_damage(journal: Journal) -> None:

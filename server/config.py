@@ -381,6 +381,19 @@ class Settings(BaseSettings):
     workspace_max_mm: tuple[Millimetres, Millimetres, Millimetres] = Field(
         (800.0, 400.0, 500.0), description="x, y, z mm: no move goes above these"
     )
+    jog_max_step_mm: float = Field(
+        50.0,
+        gt=0,
+        le=200,
+        description="the longest step one jog may ask for along its axis (maintenance "
+        "teaching marker positions); a longer one is refused before anything moves",
+    )
+    jog_speed_mm_s: float = Field(
+        20.0,
+        gt=0,
+        le=250,
+        description="speed of a jog: slow, so a person beside the table can follow the arm",
+    )
     marker_positions_mm: list[tuple[Millimetres, Millimetres]] = Field(
         default_factory=lambda: list(DEFAULT_MARKER_POSITIONS_MM),
         description="robot (x, y) mm on the table of the centres of ArUco markers 0-8; "

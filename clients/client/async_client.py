@@ -91,6 +91,22 @@ class AsyncCellClient:
         """Send the robot to its safe position, in IDLE (maintenance role)."""
         return await self._send(builders.command("home"))
 
+    async def jog(self, axis: str, distance_mm: float) -> CommandResult:
+        """Move the robot one bounded step along x, y or z, in IDLE (maintenance role)."""
+        return await self._send(builders.jog(axis, distance_mm))
+
+    async def markers(self) -> dict[str, Any]:
+        """The marker layout in force, the draft being taught, the robot's last pose."""
+        return await self._send(builders.markers())
+
+    async def teach_marker(self, marker: int) -> dict[str, Any]:
+        """Record the tool's x, y as marker `marker` in the draft (maintenance role)."""
+        return await self._send(builders.teach_marker(marker))
+
+    async def apply_markers(self) -> dict[str, Any]:
+        """Put the draft layout in force once all nine pass the check (maintenance role)."""
+        return await self._send(builders.apply_markers())
+
     async def calibrate_robot(self) -> CommandResult:
         """Fit the image → robot map from the ArUco markers (maintenance role)."""
         return await self._send(builders.command("calibrate-robot"))

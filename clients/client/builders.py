@@ -159,6 +159,10 @@ def estop(reason: str | None) -> Call[CommandResult]:
     return command("estop", {"reason": reason} if reason else None)
 
 
+def jog(axis: str, distance_mm: float) -> Call[CommandResult]:
+    return command("jog", {"axis": axis, "distance_mm": distance_mm})
+
+
 def create_workpiece(name: str | None, workpiece_id: str | None) -> Call[CommandResult]:
     body = {k: v for k, v in (("name", name), ("workpiece_id", workpiece_id)) if v is not None}
     return command("create-workpiece", body or None)
@@ -190,6 +194,18 @@ def health() -> Call[dict[str, Any]]:
 
 def allowed(command: str) -> Call[dict[str, Any]]:
     return Call("GET", f"/operations/{quote(command, safe='')}/allowed", _json)
+
+
+def markers() -> Call[dict[str, Any]]:
+    return Call("GET", "/calibration/markers", _json)
+
+
+def teach_marker(marker: int) -> Call[dict[str, Any]]:
+    return Call("POST", f"/calibration/markers/draft/{int(marker)}/teach", _json)
+
+
+def apply_markers() -> Call[dict[str, Any]]:
+    return Call("POST", "/calibration/markers/apply", _json)
 
 
 def ws_ticket() -> Call[str]:

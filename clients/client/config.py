@@ -40,6 +40,7 @@ COMMANDS = (
     "estop",
     "reset",
     "home",
+    "jog",
 )
 USER_AGENT = "glue-cell-client/0.1"
 WS_MAX_MESSAGE_BYTES = 16 * 2**20

@@ -89,6 +89,22 @@ class CellClient:
         """Send the robot to its safe position, in IDLE (maintenance role)."""
         return self._send(builders.command("home"))
 
+    def jog(self, axis: str, distance_mm: float) -> CommandResult:
+        """Move the robot one bounded step along x, y or z, in IDLE (maintenance role)."""
+        return self._send(builders.jog(axis, distance_mm))
+
+    def markers(self) -> dict[str, Any]:
+        """The marker layout in force, the draft being taught, the robot's last pose."""
+        return self._send(builders.markers())
+
+    def teach_marker(self, marker: int) -> dict[str, Any]:
+        """Record the tool's x, y as marker `marker` in the draft (maintenance role)."""
+        return self._send(builders.teach_marker(marker))
+
+    def apply_markers(self) -> dict[str, Any]:
+        """Put the draft layout in force once all nine pass the check (maintenance role)."""
+        return self._send(builders.apply_markers())
+
     def calibrate_robot(self) -> CommandResult:
         """Fit the image → robot map from the ArUco markers (maintenance role)."""
         return self._send(builders.command("calibrate-robot"))

@@ -9,6 +9,7 @@
 
 import { api, errorText, getJson, tryToken, whenUnauthorized } from "./api.js";
 import { $, facts, number } from "./dom.js";
+import { mountMarkerLayout } from "./markers.js";
 import { TOKEN_KEY, hmi } from "./store.js";
 
 const view = { socket: null, image: null, figures: null, frames: 0 };
@@ -38,10 +39,13 @@ async function signIn(event) {
   start(token);
 }
 
+let unmountMarkers = null;
+
 function start(token) {
   hmi.token = token;
   $("login").hidden = true;
   $("app").hidden = false;
+  if (!unmountMarkers) unmountMarkers = mountMarkerLayout($("marker-layout"));
   openView();
 }
 
@@ -134,6 +138,8 @@ $("view-toggle").addEventListener("click", () => (view.socket ? closeView() : op
 whenUnauthorized((message) => {
   sessionStorage.removeItem(TOKEN_KEY);
   closeView();
+  if (unmountMarkers) unmountMarkers();
+  unmountMarkers = null;
   showLogin(message);
 });
 window.addEventListener("pagehide", closeView);

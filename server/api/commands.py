@@ -27,12 +27,14 @@ from server.api.schemas import (
     CommandResult,
     CreateWorkpieceRequest,
     EstopRequest,
+    JogRequest,
     QueueFullResult,
     StartRequest,
 )
 from server.cell import Cell
 from server.core.events import (
     CreateWorkpiecePayload,
+    JogPayload,
     Outcome,
     Payload,
     StartPayload,
@@ -249,3 +251,15 @@ async def home(request: Request) -> JSONResponse:
     a restart, the end of a run) moves it by itself.
     """
     return await _run(request, Command.HOME)
+
+
+@router.post("/jog", status_code=202, responses=RESPONSES, response_model=CommandResult)
+async def jog(request: Request, body: JogRequest) -> JSONResponse:
+    """Move the robot one bounded step along one axis, at jog speed (IDLE, stays IDLE).
+
+    For maintenance teaching marker positions. Refused unless IDLE (409); a step
+    longer than jog_max_step_mm or a target outside the workspace is a 422 naming
+    `distance_mm`, checked against the pose the worker reads before anything moves.
+    Answered once the step has begun, like home; the e-stop or a fault stops it.
+    """
+    return await _run(request, Command.JOG, JogPayload(body.axis, body.distance_mm))

@@ -7,12 +7,12 @@ option.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
 from server.storage.workpieces import IDENTIFIER, SpraySettings
-from server.values import Name
+from server.values import FiniteNumber, Name
 
 
 class Strict(BaseModel):
@@ -51,6 +51,18 @@ class CreateWorkpieceRequest(Strict):
         None, pattern=IDENTIFIER, description="store under this id (default: the next wp-NNNN)"
     )
     spray: SpraySettings | None = None
+
+
+class JogRequest(Strict):
+    """Body of POST /jog: one step along one axis of the robot's base frame."""
+
+    axis: Literal["x", "y", "z"] = Field(description="the axis to move along")
+    distance_mm: FiniteNumber = Field(
+        ge=-200,
+        le=200,
+        description="the step in mm, negative to go back; at most jog_max_step_mm either way "
+        "(GET /calibration/markers shows it), and the target must lie in the workspace",
+    )
 
 
 class EstopRequest(Strict):

@@ -55,6 +55,7 @@ class Action(StrEnum):
     NOTE_READY = "note ready"  # a device reported ready; SYSTEM_READY once all have
     ENTER_IDLE = "enter idle"  # keep the result, clear the run's data (and the fault on reset)
     START_HOMING = "start homing"  # send the robot to its safe position (the home command)
+    START_JOG = "start jog"  # read the pose, check the step's target, move one bounded step
     START_RUN = "start run"  # start the state's operation
     OPEN_GATE = "open gate"  # let a held operation continue
 
@@ -108,6 +109,8 @@ def actions_of(row: Transition) -> tuple[Action, ...]:
         actions.append(Action.ENTER_IDLE)  # never a move: the robot stays where it is
     if row.event is Event.HOME_REQUESTED:
         actions.append(Action.START_HOMING)
+    if row.event is Event.JOG_REQUESTED:
+        actions.append(Action.START_JOG)
     if starts_operation(row):
         actions.append(Action.START_RUN)
     if row.event is Event.RESUME_REQUESTED:

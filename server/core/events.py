@@ -100,6 +100,21 @@ class CreateWorkpiecePayload:
 
 
 @dataclass(frozen=True, slots=True)
+class JogPayload:
+    """JOG_REQUESTED: one step of `distance_mm` along `axis` ("x", "y" or "z"), robot frame.
+
+    A relative step, not a target: the target is the pose the worker reads when it
+    decides, so a step can never be taken from a stale position.
+    """
+
+    axis: str = "z"
+    distance_mm: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"axis": self.axis, "distance_mm": self.distance_mm}
+
+
+@dataclass(frozen=True, slots=True)
 class StopPayload:
     """EMERGENCY_STOP: why the stop was pressed, for the record."""
 
@@ -154,6 +169,7 @@ Payload = (
     NoPayload
     | StartPayload
     | CreateWorkpiecePayload
+    | JogPayload
     | StopPayload
     | FaultPayload
     | RunCompletedPayload
@@ -165,6 +181,7 @@ PAYLOAD_OF_EVENT: Final = MappingProxyType(
         **{event: NoPayload for event in Event},
         Event.START_REQUESTED: StartPayload,
         Event.CREATE_WORKPIECE_REQUESTED: CreateWorkpiecePayload,
+        Event.JOG_REQUESTED: JogPayload,
         Event.EMERGENCY_STOP: StopPayload,
         Event.ERROR_OCCURRED: FaultPayload,
         Event.OPERATION_COMPLETED: RunCompletedPayload,

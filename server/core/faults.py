@@ -50,13 +50,15 @@ RECOMMENDED_ACTION = {
     "WORKPIECE_EXISTS": "reset, then create the part under another id or edit it with PUT",
     "CALIBRATION_STALE": "reset, then run calibrate-robot again",
     "CALIBRATION_SCALE": "measure the markers' positions and printed side; correct "
-    "marker_positions_mm or marker_size_mm (a restart applies them), reset, then run "
+    "marker_positions_mm (teach it: GET /calibration/markers) or marker_size_mm, reset, then run "
     "calibrate-robot",
     "CALIBRATION_HOLDOUT": "check the named marker lies flat where marker_positions_mm says, "
     "reset, then run calibrate-robot",
     "PLANNING_TIMEOUT": "coarsen the part's fill spacing or simplify its outline "
     "(PUT /workpieces/{id}), or raise planning_timeout, then reset",
     "PAUSE_NOT_HELD": "check the named device answers (valve closed, robot still), then reset",
+    "JOG_FAILED": "check the robot controller (fault, protective stop) and the path of the "
+    "jog, then reset",
 }
 
 

@@ -18,7 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from server.config import Settings
-from server.core.events import CreateWorkpiecePayload, Payload, StartPayload
+from server.core.events import CreateWorkpiecePayload, JogPayload, Payload, StartPayload
+from server.core.jog import step_problem
 from server.core.operations.camera_frames import robot_calibration_problem
 from server.core.operations.safe_position import workspace_problem
 from server.core.transitions import Event
@@ -47,6 +48,9 @@ class Preconditions:
             return self._start(payload)
         if isinstance(payload, CreateWorkpiecePayload):
             return self._create_workpiece(payload)
+        if isinstance(payload, JogPayload):
+            wrong = step_problem(payload.axis, payload.distance_mm, self.settings)
+            return Refusal(wrong[1], field=wrong[0]) if wrong is not None else None
         if event is Event.HOME_REQUESTED:
             problem = workspace_problem(
                 Pose.from_sequence(self.settings.safe_position), self.settings

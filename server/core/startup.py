@@ -1,10 +1,10 @@
-"""Start-up and homing: the robot's moves and device links the cell makes by itself.
+"""Start-up, homing and jogging: the robot's moves and device links made outside operations.
 
 Bringing the devices up happens once, as the worker starts; the move to the
-safe position happens on entering IDLE. Both run as one background *activity*
-at a time, cancelled when the cell leaves IDLE (CANCEL_HOMING) so a move can
-never outlive the state that started it. Faults found here are posted like
-any device fault and decided by the worker.
+safe position on the `home` command, a jog's step on `jog` (both in IDLE). They
+run as one background *activity* at a time, cancelled when the cell leaves
+IDLE (CANCEL_HOMING) so a move can never outlive the state that started it.
+Faults found here are posted like any device fault and decided by the worker.
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ class Activities:
         self._post_ready = post_ready
         self._post_fault = post_fault
         self._task: asyncio.Task[None] | None = None
+        self.moves_started = 0  # homing and jog moves so far: a pose read across one is stale
 
     def device_timeouts(self) -> dict[str, float]:
         return {
@@ -54,6 +55,23 @@ class Activities:
     def go_home(self) -> None:
         """Send the robot to its safe position (in the background)."""
         self._replace(self._go_to_safe_position(), "homing")
+
+    def jog(self, target: Pose) -> None:
+        """Move the robot to `target` (one jog step, checked by the caller) at jog speed."""
+        self._replace(self._jog_to(target), "jog")
+
+    @property
+    def moving(self) -> bool:
+        """Whether a move to the safe position or a jog is still under way."""
+        return (
+            self._task is not None
+            and not self._task.done()
+            and self._task.get_name()
+            in (
+                "homing",
+                "jog",
+            )
+        )
 
     async def cancel(self) -> None:
         """Stop the activity and wait (bounded) for the robot's stop to be answered.
@@ -73,6 +91,8 @@ class Activities:
     def _replace(self, activity: Coroutine[Any, Any, None], name: str) -> None:
         if self._task is not None and not self._task.done():
             self._task.cancel()  # e.g. a start-up still connecting after an early fault
+        if name in ("homing", "jog"):
+            self.moves_started += 1
         self._task = asyncio.create_task(activity, name=name)
 
     async def _bring_up_devices(self, interruption: str | None) -> None:
@@ -127,4 +147,22 @@ class Activities:
                     "SAFE_POSITION_FAILED",
                     f"robot could not reach its safe position: {reason}",
                 )
+            )
+
+    async def _jog_to(self, target: Pose) -> None:
+        """One jog step; a failure is a fault like any other (ERROR, valve closed first).
+
+        No time limit of its own: the driver bounds every move by its expected
+        duration plus robot_communication_timeout.
+        """
+        settings = self.settings
+        try:
+            await self.devices.robot.move_linear(
+                target, settings.jog_speed_mm_s, settings.acceleration_mm_s2
+            )
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:
+            self._post_fault(
+                DeviceFault("robot", "JOG_FAILED", f"the robot's jog step failed: {exc}")
             )

@@ -73,6 +73,7 @@ class Event(StrEnum):
     EMERGENCY_STOP = "EMERGENCY_STOP"
     RESET_REQUESTED = "RESET_REQUESTED"
     HOME_REQUESTED = "HOME_REQUESTED"
+    JOG_REQUESTED = "JOG_REQUESTED"
 
 
 class Guard(StrEnum):
@@ -122,6 +123,8 @@ _ROWS: Final[tuple[Transition, ...]] = (
     Transition(State.IDLE, Event.CREATE_WORKPIECE_REQUESTED, State.CREATING_WORKPIECE),
     # A person sends the robot to its safe position; the cell stays IDLE while it moves.
     Transition(State.IDLE, Event.HOME_REQUESTED, State.IDLE),
+    # Maintenance moves the robot one bounded step (teaching marker positions); stays IDLE.
+    Transition(State.IDLE, Event.JOG_REQUESTED, State.IDLE),
     # Spraying: finish, cancel or pause.
     Transition(State.EXECUTING_TRAJECTORY, Event.OPERATION_COMPLETED, State.IDLE),
     Transition(State.EXECUTING_TRAJECTORY, Event.CANCEL_REQUESTED, State.IDLE),
@@ -175,6 +178,7 @@ class Command(StrEnum):
     ESTOP = "estop"
     RESET = "reset"
     HOME = "home"
+    JOG = "jog"
 
 
 # The event each command posts.
@@ -190,6 +194,7 @@ COMMANDS: Final = MappingProxyType(
         Command.ESTOP: Event.EMERGENCY_STOP,
         Command.RESET: Event.RESET_REQUESTED,
         Command.HOME: Event.HOME_REQUESTED,
+        Command.JOG: Event.JOG_REQUESTED,
     }
 )
 COMMAND_OF_EVENT: Final = MappingProxyType({event: name for name, event in COMMANDS.items()})

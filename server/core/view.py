@@ -100,6 +100,16 @@ class CellView:
         return True, reason
 
     @property
+    def robot_moving(self) -> bool:
+        """Whether a move outside operations (home, a jog) is under way."""
+        return self._worker.activities.moving
+
+    @property
+    def robot_moves_started(self) -> int:
+        """How many such moves have begun: a pose read across a change of it is stale."""
+        return self._worker.activities.moves_started
+
+    @property
     def error_message(self) -> str | None:
         return self._ctx.error_message
 

@@ -38,12 +38,14 @@ from server.core.event_queue import Envelope, EventQueue, Priority
 from server.core.events import (
     AuditNote,
     FaultPayload,
+    JogPayload,
     Outcome,
     Payload,
     RunCompletedPayload,
     StopPayload,
     payload_of,
 )
+from server.core.jog import JogRefused, jog_target
 from server.core.operations.base import Operation
 from server.core.preconditions import Preconditions
 from server.core.recorder import Recorder
@@ -126,6 +128,7 @@ class Worker:
         self._task: asyncio.Task[None] | None = None
         self._estops = 0  # e-stops requested so far; see _handle
         self._faults = 0  # faults recorded so far; a reset probed meanwhile is overtaken
+        self._faults_posted = 0  # faults reported so far, decided or still queued (see jog)
         self.reset_probes = ResetProbes(
             devices, settings.reset_probe_timeout, lambda e: self.queue.put(e, bounded=False)
         )
@@ -140,6 +143,7 @@ class Worker:
             Action.NOTE_READY: self._note_ready,
             Action.ENTER_IDLE: self._enter_idle,
             Action.START_HOMING: lambda _d, _e: self.activities.go_home(),
+            Action.START_JOG: self._start_jog,
             Action.START_RUN: self._start_run,
             Action.OPEN_GATE: lambda _d, _e: self.runs.release(),
         }
@@ -252,6 +256,7 @@ class Worker:
         loop.call_soon_threadsafe(self._post_fault, fault)
 
     def _post_fault(self, fault: DeviceFault) -> None:
+        self._faults_posted += 1
         envelope = self.submit(
             Event.ERROR_OCCURRED,
             source=fault.device,
@@ -347,6 +352,8 @@ class Worker:
                 pending = self._handlers[action](decision, envelope)
                 if pending is not None:
                     await pending
+            except JogRefused as refused:  # found once the pose was read: nothing moved
+                return self._refuse(envelope, refused.message, refused.field)
             except PauseNotHeld as exc:
                 self._post_fault(DeviceFault(exc.component, "PAUSE_NOT_HELD", str(exc)))
                 return self._refuse(envelope, f"pause not confirmed: {exc}; the cell stops")
@@ -421,6 +428,34 @@ class Worker:
         ctx.operation_data = {}
         if decision.event is Event.RESET_REQUESTED:
             ctx.clear_error()
+
+    async def _start_jog(self, decision: Decision, envelope: Envelope) -> None:
+        """Read the pose, check the step's target against the workspace, then move.
+
+        The pose is read here, in the worker, because the worker alone starts
+        moves outside operations: read while no move is under way, it is where
+        the step starts. The read is bounded by emergency_stop_timeout, so the
+        worker is never held long; an e-stop or a fault while it was read
+        refuses the jog before anything moves.
+        """
+        payload = envelope.payload
+        assert isinstance(payload, JogPayload)
+        if self.activities.moving:
+            raise JogRefused("the robot is still moving (home or a jog): jog once it stands")
+        estops, faults = self._estops, self._faults_posted
+        limit = self.settings.emergency_stop_timeout
+        try:
+            pose = await asyncio.wait_for(self.devices.robot.get_position(), limit)
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:
+            reason = f"no answer within {limit:g} s" if isinstance(exc, TimeoutError) else exc
+            message = f"the robot's position could not be read ({reason}); nothing moved"
+            raise JogRefused(message) from None
+        target = jog_target(pose, payload.axis, payload.distance_mm, self.settings)
+        if (self._estops, self._faults_posted) != (estops, faults) or self.facts().active_faults:
+            raise JogRefused("a stop or a fault came in while the jog was decided; nothing moved")
+        self.activities.jog(target)
 
     def _start_run(self, decision: Decision, envelope: Envelope) -> None:
         name = OPERATION_OF_STATE[decision.target]

@@ -41,6 +41,7 @@ POLICY: Final = MappingProxyType(
         ("GET", "/metrics"): VIEW,
         ("GET", "/calibration"): VIEW,
         ("GET", "/calibration/image"): VIEW,
+        ("GET", "/calibration/markers"): VIEW,
         ("GET", "/camera/frame"): VIEW,
         ("GET", "/trajectory"): VIEW,
         ("GET", "/workpieces"): VIEW,
@@ -62,6 +63,11 @@ POLICY: Final = MappingProxyType(
         # the camera set-up view's status; its stream, WebSocket /camera/preview/ws, checks
         # the same role at its handshake (server/api/camera_preview.py)
         ("GET", "/camera/preview"): MAINT,
+        ("POST", "/jog"): MAINT,
+        ("POST", "/calibration/markers/draft/{marker}/teach"): MAINT,
+        ("PUT", "/calibration/markers/draft/{marker}"): MAINT,
+        ("DELETE", "/calibration/markers/draft"): MAINT,
+        ("POST", "/calibration/markers/apply"): MAINT,
         ("POST", "/workpieces"): MAINT,
         ("PUT", "/workpieces/{workpiece_id}"): MAINT,
         ("DELETE", "/workpieces/{workpiece_id}"): MAINT,

@@ -1,4 +1,5 @@
-"""What the cell keeps on disk under the data directory: calibrations and the workpiece library."""
+"""What the cell keeps on disk under the data directory: calibrations, the marker layout
+being taught and the workpiece library."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from server.storage.calibration import CalibrationStore
+from server.storage.marker_layout import MarkerLayoutStore
 from server.storage.permissions import private_directory
 from server.storage.workpieces import WorkpieceLibrary
 
@@ -16,8 +18,11 @@ class CellStores:
 
     calibration: CalibrationStore
     workpieces: WorkpieceLibrary
+    markers: MarkerLayoutStore
 
     @classmethod
     def open(cls, data_path: Path) -> CellStores:
         private_directory(data_path)
-        return cls(CalibrationStore(data_path), WorkpieceLibrary(data_path))
+        return cls(
+            CalibrationStore(data_path), WorkpieceLibrary(data_path), MarkerLayoutStore(data_path)
+        )

@@ -413,3 +413,19 @@ async def test_help_documents_the_exit_codes() -> None:
     assert gluectl.__doc__ and "8  timeout in `wait`" in gluectl.__doc__
     usage = await gluectl_process("--no-such-option")
     assert usage.code == 2
+
+
+async def test_jog_and_marker_teach_list_apply(cli: Cli) -> None:
+    """The robot (a fake here) jogs one step; its pose is taught as a marker and listed."""
+    jogged = await cli("--json", "jog", "x", "--", "-5")
+    assert jogged.code == 0, jogged.stderr
+    assert jogged.json()["accepted"] is True  # type: ignore[index]
+    too_far = await cli("jog", "z", "190")
+    assert too_far.code != 0 and "jog_max_step_mm" in too_far.stderr
+    taught = await cli("--json", "marker", "teach", "4")
+    assert taught.code == 0, taught.stderr
+    assert taught.json()["draft"][4]["how"] == "taught"  # type: ignore[index]
+    listed = await cli("marker", "list")
+    assert listed.code == 0 and "taught" in listed.stdout and "missing" in listed.stdout
+    refused = await cli("marker", "apply")
+    assert refused.code != 0 and "markers.0" in refused.stderr

@@ -46,6 +46,7 @@ EXPECTED = {
     "VALVE_STUCK_OPEN": "critical",
     "CAPTURE_FAILED": "critical",
     "SAFE_POSITION_FAILED": "critical",
+    "JOG_FAILED": "critical",
     "PAUSE_NOT_HELD": "critical",
     "HALT_INCOMPLETE": "critical",
     "JOURNAL_WRITE_FAILED": "critical",
