@@ -20,6 +20,7 @@ class CommandResult:
     state: str  # the state after the decision
     message: str
     status_code: int
+    run_id: str | None = None  # the run the command started (start, calibrations, ...)
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
