@@ -52,7 +52,9 @@ class Refused(CellError):
         self.result = result
 
     def as_dict(self) -> dict[str, Any]:
-        return {**super().as_dict(), **self.result.as_dict()}
+        result = self.result.as_dict()
+        result.pop("run_id")  # a refused command started no run
+        return {**super().as_dict(), **result}
 
 
 class Unauthorized(CellError):
