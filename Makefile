@@ -3,11 +3,20 @@
 # with the pinned dependencies (constraints.txt). `make test-fast` runs the unit
 # tier alone, for the edit loop; `make test-loaded` the reliability tier on a busy
 # machine; `make soak` the long soak.
+#
+# Each target installs only what it needs, once: the server's own dependencies for
+# `make run` (about 310 MB), the test extra for the tests and lint, the bench extra
+# for the benchmarks (`make test` runs their smoke test too). One stamp per set, so
+# `make test` after `make run` adds only the extras; each is redone when
+# pyproject.toml or constraints.txt changes.
 
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
-STAMP := $(VENV)/.installed
+PIP := $(PY) -m pip install --quiet --disable-pip-version-check -c constraints.txt
+RUN_STAMP := $(VENV)/.installed-run
+TEST_STAMP := $(VENV)/.installed-test
+BENCH_STAMP := $(VENV)/.installed-bench
 HOST ?= 127.0.0.1
 PORT ?= 8000
 DATA ?= data
@@ -17,26 +26,37 @@ SOAK ?= 30m
 
 .PHONY: run test test-fast test-loaded soak lint bench diagram openapi clean browser node deploy-tools
 
-$(STAMP): pyproject.toml constraints.txt
-	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[test,bench]'
-	touch $(STAMP)
+$(PY):
+	$(PYTHON) -m venv $(VENV)
 
-run: $(STAMP)
+$(RUN_STAMP): pyproject.toml constraints.txt | $(PY)
+	$(PIP) -e .
+	touch $@
+
+$(TEST_STAMP): $(RUN_STAMP)
+	$(PIP) -e '.[test]'
+	touch $@
+
+$(BENCH_STAMP): $(RUN_STAMP)
+	$(PIP) -e '.[bench]'
+	touch $@
+
+run: $(RUN_STAMP)
 	$(PY) -m server --host $(HOST) --port $(PORT) --data-dir $(DATA)
 
-test: $(STAMP) lint browser node deploy-tools
+# The whole suite includes the benchmarks' smoke test (tests/integration/test_bench_smoke.py).
+test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools
 	$(PY) -m pytest
 
 # The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
-test-fast: $(STAMP) node
+test-fast: $(TEST_STAMP) node
 	$(PY) -m pytest -m unit -q
 
 # The reliability tier (tests/reliability) with every core kept busy by as many
 # busy loops, at the default priority as a CI runner's other jobs would be: what it
 # checks must not depend on a quiet machine. The loops end with the run, however it
 # ends; the run is bounded by LOADED_LIMIT (interrupted, so pytest still reports).
-test-loaded: $(STAMP)
+test-loaded: $(TEST_STAMP)
 	@cores=$$(nproc); load=""; \
 	trap 'kill $$load 2>/dev/null' EXIT INT TERM; \
 	for i in $$(seq $$cores); do $(PY) -c 'while True: pass' & load="$$load $$!"; done; \
@@ -46,7 +66,7 @@ test-loaded: $(STAMP)
 
 # The soak (tests/reliability/soak.py) for SOAK (30m; SOAK=2h for longer). It ends a
 # hung cycle itself five minutes late; this bounds it to its duration and ten minutes.
-soak: $(STAMP)
+soak: $(TEST_STAMP)
 	@limit=$$($(PY) -c 'from tests.reliability.soak import parse_duration as d; \
 		print(int(d("$(SOAK)")) + 600)'); \
 	timeout --foreground --signal=INT --kill-after=60 $$limit \
@@ -78,18 +98,18 @@ deploy-tools:
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq docker-compose systemd; }
 
 # ruff, then mypy over server/ and clients/ (configured in pyproject.toml: [tool.mypy]).
-lint: $(STAMP)
+lint: $(TEST_STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
 	$(PY) -m mypy
 
-bench: $(STAMP)
+bench: $(BENCH_STAMP)
 	$(PY) -m bench
 
-diagram: $(STAMP)
+diagram: $(RUN_STAMP)
 	$(PY) -m server.core.diagram --write
 
-openapi: $(STAMP)
+openapi: $(RUN_STAMP)
 	$(PY) -m server.openapi --write
 
 clean:

@@ -76,6 +76,7 @@ def command_result(response: httpx.Response, body: Any) -> CommandResult:
         state=str(data.get("state", "")),
         message=message_of(body, f"HTTP {response.status_code}"),
         status_code=response.status_code,
+        run_id=data.get("run_id"),
     )
 
 

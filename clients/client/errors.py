@@ -20,6 +20,7 @@ class CommandResult:
     state: str  # the state after the decision
     message: str
     status_code: int
+    run_id: str | None = None  # the run the command started (start, calibrations, ...)
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -51,7 +52,9 @@ class Refused(CellError):
         self.result = result
 
     def as_dict(self) -> dict[str, Any]:
-        return {**super().as_dict(), **self.result.as_dict()}
+        result = self.result.as_dict()
+        result.pop("run_id")  # a refused command started no run
+        return {**super().as_dict(), **result}
 
 
 class Unauthorized(CellError):

@@ -174,9 +174,11 @@ function onProgress(message) {
     startProgress(message.operation, message.run_id);
   }
   updateProgress(message);
-  if (message.operation === "trajectory" && hmi.trajectory?.run_id !== message.run_id) {
-    refreshTrajectory();
-  }
+  // A new run, or this run not planned yet when last asked (its plan comes after its
+  // first progress messages): ask again.
+  const shown = hmi.trajectory;
+  const stale = shown?.run_id !== message.run_id || shown?.planned === false;
+  if (message.operation === "trajectory" && stale) refreshTrajectory();
   renderProgress();
   drawTrajectory();
 }

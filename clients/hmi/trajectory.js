@@ -17,8 +17,13 @@ import { hmi } from "./store.js";
 
 const DONE_COLOUR = "#ff4fd8"; // the executed path: unlike anything on the camera frame
 
+/** Which plan is shown: a run's plan replaces its "not planned yet" placeholder. */
+function planKey(trajectory) {
+  return trajectory ? `${trajectory.run_id}:${trajectory.planned}` : null;
+}
+
 export async function refreshTrajectory() {
-  const previousRun = hmi.trajectory?.run_id;
+  const previousPlan = planKey(hmi.trajectory);
   try {
     const response = await api("GET", "/trajectory");
     hmi.trajectory = response.ok ? await response.json() : null;
@@ -30,15 +35,16 @@ export async function refreshTrajectory() {
     /* keep the last one */
   }
   // A new plan: its run has just looked at the table (with contour matching).
-  if (hmi.trajectory && hmi.trajectory.run_id !== previousRun) refreshFrame();
+  if (hmi.trajectory?.planned && planKey(hmi.trajectory) !== previousPlan) refreshFrame();
   renderTrajectoryInfo();
   drawTrajectory();
 }
 
 function renderTrajectoryInfo() {
   const path = hmi.trajectory?.planned_path || [];
+  const planned = hmi.trajectory?.planned ? `${path.length} waypoints` : "planning";
   const plan = hmi.trajectory
-    ? `run ${hmi.trajectory.run_id} · ${path.length} waypoints`
+    ? `run ${hmi.trajectory.run_id} · ${planned}`
     : "no trajectory planned yet";
   const info = hmi.frameInfo;
   let over = "";

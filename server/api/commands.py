@@ -122,6 +122,7 @@ def _answer(outcome: Outcome) -> JSONResponse:
         event_id=outcome.event_id,
         state=outcome.state.value,
         message=outcome.message,
+        run_id=outcome.run_id,
     )
     return JSONResponse(body.model_dump(), status_code=status)
 

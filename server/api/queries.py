@@ -3,19 +3,23 @@
 from __future__ import annotations
 
 import asyncio
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, Request, Response
-from fastapi.responses import FileResponse
+from fastapi import APIRouter, HTTPException, Query, Request, Response
+from fastapi.responses import FileResponse, JSONResponse
 
+from server.api.analytics import TEXT_MAX_LENGTH, TEXT_PATTERN
 from server.api.declared_query import DeclaredQueryRoute
 from server.api.schemas import (
+    FRAME_RETRY_AFTER_S,
     AllowedView,
     ErrorView,
+    FramePendingView,
     HealthView,
     StateView,
 )
 from server.cell import Cell
+from server.core.frames import Frame
 from server.core.transitions import Command, normalize_command
 from server.core.view import CellView
 
@@ -102,6 +106,18 @@ NO_FRAME = (
 )
 
 
+RunIdQuery = Annotated[
+    str | None,
+    Query(
+        max_length=TEXT_MAX_LENGTH,
+        pattern=TEXT_PATTERN,
+        description="the frame of this run only (the run_id of POST /start's 202): 409 with "
+        "Retry-After while that run is under way and has not captured it yet, 404 once it "
+        "is not kept",
+    ),
+]
+
+
 @router.get(
     "/camera/frame",
     response_class=Response,
@@ -111,13 +127,29 @@ NO_FRAME = (
             "description": "the latest frame, undistorted, as JPEG",
             "headers": FRAME_HEADERS,
         },
-        404: {"model": ErrorView, "description": "no frame captured yet"},
+        404: {
+            "model": ErrorView,
+            "description": "no frame captured yet, or none of the run asked for is kept",
+        },
+        409: {
+            "model": FramePendingView,
+            "description": "the run asked for has not captured its frame yet: retry",
+            "headers": {"Retry-After": {"schema": {"type": "integer", "example": 1}}},
+        },
     },
 )
-async def get_camera_frame(request: Request) -> Response:
-    """The latest frame an operation captured (undistorted, as measured on), as JPEG."""
+async def get_camera_frame(request: Request, run_id: RunIdQuery = None) -> Response:
+    """The latest frame an operation captured (undistorted, as measured on), as JPEG;
+    with `run_id`, only that run's.
+
+    Why `run_id`: right after POST /start the latest frame is still the previous run's;
+    a script that asks for its own run's frame is told to wait (409) or that it will
+    not come (404), never handed another run's picture.
+    """
     view = _view(request)
     frame = view.latest_frame()
+    if run_id is not None and (frame is None or frame.run_id != run_id):
+        return _frame_not_kept(view, run_id, frame)
     if frame is None:
         raise HTTPException(404, NO_FRAME)
     body = await asyncio.to_thread(view.frame_jpeg, frame)
@@ -128,6 +160,34 @@ async def get_camera_frame(request: Request) -> Response:
         "Cache-Control": "no-store",  # the next capture replaces it under the same URL
     }
     return Response(body, media_type="image/jpeg", headers=headers)
+
+
+def _frame_not_kept(view: CellView, run_id: str, latest: Frame | None) -> JSONResponse:
+    """409 (retry) while `run_id` is under way without its frame; 404 once it is over."""
+    if view.is_current_run(run_id):
+        pending = FramePendingView(
+            detail=f"run {run_id} has not captured its frame yet: retry after "
+            f"{FRAME_RETRY_AFTER_S} s (a trajectory run without contour matching captures "
+            "none)",
+            run_id=run_id,
+            retry_after=FRAME_RETRY_AFTER_S,
+        )
+        return JSONResponse(
+            pending.model_dump(),
+            status_code=409,
+            headers={"Retry-After": str(FRAME_RETRY_AFTER_S)},
+        )
+    kept = (
+        f"the latest is run {latest.run_id}'s ({latest.source})"
+        if latest is not None
+        else "none has been captured since the server started"
+    )
+    detail = (
+        f"no frame of run {run_id} is kept: {kept}. Only the latest frame is kept, and a run "
+        "captures one only when it looks at the table (contour matching, workpiece "
+        "creation, robot calibration)"
+    )
+    return JSONResponse({"detail": detail}, status_code=404)
 
 
 @router.get("/trajectory", responses={404: {"model": ErrorView}})

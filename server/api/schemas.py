@@ -78,6 +78,11 @@ class CommandResult(BaseModel):
     event_id: str | None = Field(None, description="the event's id in logs and the journal")
     state: str = Field(description="the state after the decision")
     message: str
+    run_id: str | None = Field(
+        None,
+        description="the run this command started (as in /trajectory, /operations, "
+        "/camera/frame?run_id=, the logs); null when it started none",
+    )
 
 
 RETRY_AFTER_S = 1  # what a 503 (QueueFullResult) asks the client to wait
@@ -199,3 +204,16 @@ class HealthView(BaseModel):
 
 class ErrorView(BaseModel):
     detail: str
+
+
+FRAME_RETRY_AFTER_S = 1  # what a 409 of GET /camera/frame?run_id= asks the client to wait
+
+
+class FramePendingView(BaseModel):
+    """409: the run asked for is under way and has not captured its frame yet (it may
+    never: a trajectory run without contour matching captures none); retry after
+    `retry_after` seconds, as the Retry-After header says."""
+
+    detail: str
+    run_id: str
+    retry_after: int

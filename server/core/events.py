@@ -29,6 +29,8 @@ class Outcome:
     field: str | None = None  # a refusal because this field of the request is wrong (HTTP 422)
     # Why the journal could not record this event (then it must not be answered as done).
     journal_problem: str | None = None
+    # The run this event started (its event id), so the sender can follow that run.
+    run_id: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {

@@ -103,6 +103,15 @@ class Runs:
         self.ctx.operation_data = dict(params)
         self.ctx.operation_result = None
         self.recorder.run_started(running)
+        if name == "trajectory":
+            # The last run's plan goes now, not when this one is planned: from the 202 on,
+            # GET /trajectory is this run's (not planned yet), never the last one as running.
+            self.trajectory = {
+                "run_id": run_id,
+                "planned": False,
+                "planned_path": [],
+                "workpieces": [],
+            }
         op_ctx = OperationContext(
             robot=self.devices.robot,
             glue=self.devices.glue,
@@ -155,6 +164,7 @@ class Runs:
         if self.is_current(run_id):
             self.trajectory = {
                 "run_id": run_id,
+                "planned": True,
                 "planned_path": plan.waypoints,
                 "workpieces": plan.workpieces,
             }

@@ -140,10 +140,13 @@ class CellView:
         if plan is None:
             return None
         running = self._ctx.operation
-        reached = None
-        if running is not None and running.run_id == plan["run_id"]:
-            reached = running.progress.get("waypoint")
-        return {**plan, "running": reached is not None or running is not None, "waypoint": reached}
+        current = running is not None and running.run_id == plan["run_id"]
+        reached = running.progress.get("waypoint") if running is not None and current else None
+        return {**plan, "running": current, "waypoint": reached}
+
+    def is_current_run(self, run_id: str) -> bool:
+        """Whether `run_id` is the operation running now (started, not yet ended)."""
+        return self._worker.runs.is_current(run_id)
 
     def latest_frame(self) -> Frame | None:
         """The last frame an operation measured on."""

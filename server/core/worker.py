@@ -358,7 +358,8 @@ class Worker:
                 self._post_fault(DeviceFault(exc.component, "PAUSE_NOT_HELD", str(exc)))
                 return self._refuse(envelope, f"pause not confirmed: {exc}; the cell stops")
         message = f"{event_label(event)} accepted: {state.value} → {decision.target.value}"
-        return self._outcome(envelope, True, message)
+        started = envelope.event_id if Action.START_RUN in decision.actions else None
+        return replace(self._outcome(envelope, True, message), run_id=started)
 
     def _outcome(
         self, envelope: Envelope, accepted: bool, message: str, field: str | None = None

@@ -186,7 +186,9 @@ def test_the_blocking_client_drives_a_whole_cycle(served: Served) -> None:
         assert started.accepted and started.status_code == 202 and started.event_id
         assert started.state == "EXECUTING_TRAJECTORY"
         assert started.message == "start accepted: IDLE → EXECUTING_TRAJECTORY"
-        assert client.pause().state == "PAUSED"
+        assert started.run_id == client.state()["operation"]["run_id"]
+        paused = client.pause()
+        assert paused.state == "PAUSED" and paused.run_id is None  # it started no run
         assert client.resume().state == "EXECUTING_TRAJECTORY"
         assert client.cancel().state == "IDLE"
 
