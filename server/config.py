@@ -30,6 +30,7 @@ from pydantic_settings import (
 )
 
 from server.errors import ConfigurationError
+from server.values import BYTE_SIZE_ACCEPTS, byte_size
 
 SIMULATED = "sim"
 
@@ -143,7 +144,9 @@ class Settings(BaseSettings):
     )
     log_file_path: str | None = Field(None, description="default <data>/logs/glue_cell.log")
     log_rotation_size: str = Field(
-        "10MB", description="the log file is rotated at this size (a number and KB, MB or GB)"
+        "10MB",
+        description="the log file is rotated at this size (a number and KB, MB or GB)",
+        json_schema_extra={"accepts": f"{BYTE_SIZE_ACCEPTS}, at least 1KB"},
     )
     log_retention_days: int = Field(30, ge=1, le=3650, description="days rotated logs are kept")
 
@@ -489,6 +492,15 @@ class Settings(BaseSettings):
                 f"glue_poll_interval ({self.glue_poll_interval:g} s)"
             )
         return self
+
+    @field_validator("log_rotation_size")
+    @classmethod
+    def _a_log_size(cls, value: str) -> str:
+        """Checked here, with the other settings: the log's set-up reads it before the cell
+        starts, and a bad size there was a traceback instead of one line."""
+        if byte_size(value) < 1024:
+            raise ValueError(f"{value!r} is below 1KB")
+        return value
 
     @field_validator("marker_positions_mm")
     @classmethod

@@ -18,37 +18,18 @@ import io
 import logging
 import logging.handlers
 import os
-import re
 import time
 from pathlib import Path
 
 from server.config import Settings
 from server.storage.permissions import LOG_FILE_MODE, private_directory
+from server.values import byte_size
 
 current_event_id: contextvars.ContextVar[str | None] = contextvars.ContextVar(
     "current_event_id", default=None
 )
 FORMAT = "%(asctime)s.%(msecs)03d [%(levelname)s] %(name)s: %(message)s%(event_suffix)s"
 DATE_FORMAT = "%Y-%m-%d %H:%M:%S"
-_SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([KMG]?B?)\s*$", re.IGNORECASE)
-_UNITS = {
-    "": 1,
-    "B": 1,
-    "K": 1024,
-    "KB": 1024,
-    "M": 1024**2,
-    "MB": 1024**2,
-    "G": 1024**3,
-    "GB": 1024**3,
-}
-
-
-def parse_size(text: str) -> int:
-    """'10MB' → bytes; ValueError naming the setting otherwise."""
-    match = _SIZE.match(text)
-    if not match:
-        raise ValueError(f"log_rotation_size {text!r}: expected a size such as 10MB")
-    return int(float(match.group(1)) * _UNITS[match.group(2).upper()])
 
 
 class EventIdFilter(logging.Filter):
@@ -120,7 +101,7 @@ def configure(settings: Settings) -> Path:
     event_filter = EventIdFilter()
     console = logging.StreamHandler()
     file = RetainingFileHandler(
-        path, parse_size(settings.log_rotation_size), settings.log_retention_days
+        path, byte_size(settings.log_rotation_size), settings.log_retention_days
     )
     root = logging.getLogger()
     for handler in list(root.handlers):

@@ -65,6 +65,8 @@ def _accepted(schema: dict[str, Any]) -> str:
 
 
 def _accepted_one(schema: dict[str, Any]) -> str:
+    if "accepts" in schema:  # said by the field itself (json_schema_extra)
+        return str(schema["accepts"])
     kind = schema.get("type")
     if "enum" in schema:
         return "one of " + ", ".join(str(v) for v in schema["enum"])

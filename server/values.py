@@ -91,3 +91,17 @@ Name = Annotated[
     ),
     AfterValidator(_printable_name),
 ]
+
+
+_BYTE_SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([KMG]?B?)\s*$", re.IGNORECASE)
+_BYTE_UNITS = {"": 1, "B": 1, "K": 1024, "KB": 1024, "M": 1024**2, "MB": 1024**2}
+_BYTE_UNITS |= {"G": 1024**3, "GB": 1024**3}
+BYTE_SIZE_ACCEPTS = "a size such as 10MB (a number, then B, KB, MB or GB)"
+
+
+def byte_size(text: str) -> int:
+    """'10MB' → bytes (KB = 1024); ValueError saying what is accepted otherwise."""
+    match = _BYTE_SIZE.match(text)
+    if not match:
+        raise ValueError(f"{text!r} is not {BYTE_SIZE_ACCEPTS}")
+    return int(float(match.group(1)) * _BYTE_UNITS[match.group(2).upper()])
