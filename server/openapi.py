@@ -6,12 +6,12 @@ root; a test fails when the committed file drifts from the code.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 from typing import Any
 
+from server import generated_file
 from server.app import create_app
 from server.config import Settings
 
@@ -28,16 +28,7 @@ def render() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--write", action="store_true", help="write the file instead of printing")
-    parser.add_argument("--path", type=Path, default=DEFAULT_PATH)
-    args = parser.parse_args(argv)
-    if args.write:
-        args.path.write_text(render(), encoding="utf-8")
-        print(f"wrote {args.path}")
-    else:
-        sys.stdout.write(render())
-    return 0
+    return generated_file.main(render, DEFAULT_PATH, __doc__, argv)
 
 
 if __name__ == "__main__":

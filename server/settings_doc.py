@@ -8,12 +8,12 @@ running this, not by remembering to edit a table.
 
 from __future__ import annotations
 
-import argparse
 import re
 import sys
 from itertools import groupby
 from pathlib import Path
 
+from server import generated_file
 from server.settings_reference import CONFIG_FILE_VARIABLE, SettingFacts, facts
 
 DEFAULT_PATH = Path("docs/settings.md")
@@ -90,16 +90,7 @@ def render() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--write", action="store_true", help="write the file instead of printing")
-    parser.add_argument("--path", type=Path, default=DEFAULT_PATH)
-    args = parser.parse_args(argv)
-    if args.write:
-        args.path.write_text(render(), encoding="utf-8")
-        print(f"wrote {args.path}")
-    else:
-        sys.stdout.write(render())
-    return 0
+    return generated_file.main(render, DEFAULT_PATH, __doc__, argv)
 
 
 if __name__ == "__main__":

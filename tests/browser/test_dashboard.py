@@ -17,7 +17,7 @@ from typing import Any
 import httpx
 import pytest
 from fastapi import FastAPI
-from playwright.async_api import Browser, ConsoleMessage, Page, async_playwright, expect
+from playwright.async_api import Browser, ConsoleMessage, Page, expect
 
 from server.api import openapi_doc
 from server.api.dashboard import mount_dashboard
@@ -27,17 +27,6 @@ from tests import serving
 from tests.rig import Rig, open_rig
 from tests.serving import admin_headers
 
-CHROMIUM = Path("/usr/bin/chromium")
-LAUNCH_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 ROOT = Path(__file__).resolve().parents[2]
 SHOTS = ROOT / "test-artifacts" / "screenshots"
 DOC_SHOT = ROOT / "docs" / "dashboard.png"
@@ -103,27 +92,6 @@ async def dashboard(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> AsyncIte
         token = admin_headers(data)["Authorization"].split()[1]
         baseline = {id(s) for s in rig.cell.worker.bus._subscribers}
         yield Dashboard(rig, apps[0], str(rig.api.base_url), token, baseline)
-
-
-def require_chromium() -> None:
-    """Fail, never skip: a missing browser must not pass for a green run."""
-    if not CHROMIUM.exists():
-        pytest.fail(
-            f"{CHROMIUM} is missing: the browser tests need Debian's chromium. "
-            "Run `make test`, which installs it (never `playwright install`).",
-            pytrace=False,
-        )
-
-
-@pytest.fixture
-async def browser() -> AsyncIterator[Browser]:
-    require_chromium()
-    async with async_playwright() as playwright:
-        browser = await playwright.chromium.launch(executable_path=str(CHROMIUM), args=LAUNCH_ARGS)
-        try:
-            yield browser
-        finally:
-            await browser.close()
 
 
 class Problems(list[str]):

@@ -13,7 +13,6 @@ from playwright.async_api import Browser, expect
 from tests.browser.test_dashboard import (
     SHOTS,
     Problems,
-    browser,  # noqa: F401  (the fixture)
 )
 from tests.rig import open_rig
 from tests.serving import admin_headers
@@ -23,7 +22,7 @@ TOKEN_KEY = "gluecell.hmi.token"  # clients/hmi/store.js
 
 async def test_jog_then_teach_a_marker_and_see_the_table_change(
     tmp_path: Path,
-    browser: Browser,  # noqa: F811
+    browser: Browser,
 ) -> None:
     data = tmp_path / "data"
     async with open_rig(data, jog_speed_mm_s=200.0) as rig:

@@ -24,7 +24,6 @@ from tests.browser.test_dashboard import (
     SHOTS,
     Dashboard,
     Problems,
-    browser,  # noqa: F401  (the fixture)
     dashboard,  # noqa: F401  (the fixture)
     expect_enabled,
     expect_live,
@@ -134,7 +133,7 @@ async def check_every_panel(page: Page, state: str, enabled: set[str]) -> None:
 
 async def test_commands_and_stop_are_in_view_on_every_panel_in_every_state(
     dashboard: Dashboard,  # noqa: F811
-    browser: Browser,  # noqa: F811
+    browser: Browser,
 ) -> None:
     rig = dashboard.rig
     page, problems = await open_page(browser, dashboard, {"width": 1920, "height": 1080})
@@ -191,7 +190,7 @@ async def test_commands_and_stop_are_in_view_on_every_panel_in_every_state(
 
 
 async def test_a_restart_forgets_the_old_run_and_initializing_fits_every_panel(
-    browser: Browser,  # noqa: F811
+    browser: Browser,
     tmp_path: Path,
 ) -> None:
     """After the server restarts, the trajectory card shows nothing of the run before it;
@@ -239,7 +238,7 @@ NOTHING_YET = ("/trajectory", "/camera/frame")
 
 async def test_the_page_loads_with_no_console_errors(
     dashboard: Dashboard,  # noqa: F811
-    browser: Browser,  # noqa: F811
+    browser: Browser,
 ) -> None:
     """Every load: no script error and no failed request (the favicon asked no token)."""
     context = await browser.new_context(viewport={"width": 1280, "height": 800})
@@ -278,7 +277,7 @@ async def test_the_page_loads_with_no_console_errors(
 
 
 async def test_a_damaged_journal_shows_on_the_devices_card(
-    browser: Browser,  # noqa: F811
+    browser: Browser,
     tmp_path: Path,
 ) -> None:
     """Damage start-up found in the journal is on /health; the technician sees it too.

@@ -6,28 +6,15 @@ when the technician leaves. A screenshot goes to test-artifacts/screenshots/."""
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator
 from pathlib import Path
 
-import pytest
-from playwright.async_api import Browser, Page, async_playwright, expect
+from playwright.async_api import Browser, Page, expect
 
-from tests.browser.test_dashboard import CHROMIUM, LAUNCH_ARGS, SHOTS, Problems, require_chromium
+from tests.browser.test_dashboard import SHOTS, Problems
 from tests.rig import WAIT_S, Rig, open_rig
 from tests.serving import admin_headers
 
 PANEL = {"width": 1920, "height": 1080}
-
-
-@pytest.fixture
-async def chromium() -> AsyncIterator[Browser]:
-    require_chromium()
-    async with async_playwright() as playwright:
-        browser = await playwright.chromium.launch(executable_path=str(CHROMIUM), args=LAUNCH_ARGS)
-        try:
-            yield browser
-        finally:
-            await browser.close()
 
 
 async def token(rig: Rig, role: str) -> str:
@@ -49,13 +36,13 @@ async def clients(rig: Rig, data: Path) -> int:
 
 
 async def test_the_set_up_page_shows_the_live_view_and_its_figures(
-    tmp_path: Path, chromium: Browser
+    tmp_path: Path, browser: Browser
 ) -> None:
     data = tmp_path / "data"
     async with open_rig(data) as rig:
         url = str(rig.api.base_url).rstrip("/")
         maintenance = await token(rig, "maintenance")
-        context = await chromium.new_context(viewport=PANEL)
+        context = await browser.new_context(viewport=PANEL)
         page = await context.new_page()
         problems = Problems().watch(page)
 
@@ -89,7 +76,7 @@ async def test_the_set_up_page_shows_the_live_view_and_its_figures(
 
         # An operator's token: the page says why there is no view (the role), shows none.
         operator = await token(rig, "operator")
-        other = await (await chromium.new_context(viewport=PANEL)).new_page()
+        other = await (await browser.new_context(viewport=PANEL)).new_page()
         await sign_in_on_the_dashboard(other, url, operator)
         await other.click("#nav-setup")
         await expect(other.locator("#setup-status")).to_contain_text("maintenance")
