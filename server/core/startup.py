@@ -22,6 +22,10 @@ PostReady = Callable[[Event, str], None]
 PostFault = Callable[[DeviceFault], None]
 
 
+# The activities that move the robot (the others only bring device links up).
+MOVES = ("homing", "jog")
+
+
 class Activities:
     """Device start-up and the move to the safe position; one at a time."""
 
@@ -63,15 +67,8 @@ class Activities:
     @property
     def moving(self) -> bool:
         """Whether a move to the safe position or a jog is still under way."""
-        return (
-            self._task is not None
-            and not self._task.done()
-            and self._task.get_name()
-            in (
-                "homing",
-                "jog",
-            )
-        )
+        task = self._task
+        return task is not None and not task.done() and task.get_name() in MOVES
 
     async def cancel(self) -> None:
         """Stop the activity and wait (bounded) for the robot's stop to be answered.
@@ -91,7 +88,7 @@ class Activities:
     def _replace(self, activity: Coroutine[Any, Any, None], name: str) -> None:
         if self._task is not None and not self._task.done():
             self._task.cancel()  # e.g. a start-up still connecting after an early fault
-        if name in ("homing", "jog"):
+        if name in MOVES:
             self.moves_started += 1
         self._task = asyncio.create_task(activity, name=name)
 
