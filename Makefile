@@ -24,7 +24,7 @@ DATA ?= data
 LOADED_LIMIT ?= 30m
 SOAK ?= 30m
 
-.PHONY: run test test-fast test-loaded soak lint bench diagram openapi clean browser node deploy-tools
+.PHONY: run test test-fast test-loaded soak lint bench diagram openapi clean browser node deploy-tools mosquitto
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -45,7 +45,7 @@ run: $(RUN_STAMP)
 	$(PY) -m server --host $(HOST) --port $(PORT) --data-dir $(DATA)
 
 # The whole suite includes the benchmarks' smoke test (tests/integration/test_bench_smoke.py).
-test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools
+test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools mosquitto
 	$(PY) -m pytest
 
 # The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
@@ -96,6 +96,14 @@ deploy-tools:
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 		$$SUDO apt-get update -qq && \
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq docker-compose systemd; }
+
+# The plant-interface tests and the line demo run Debian's MQTT broker as a process.
+mosquitto:
+	@command -v mosquitto >/dev/null && command -v mosquitto_sub >/dev/null || { \
+		echo "installing Debian's mosquitto for the MQTT tests"; \
+		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq mosquitto mosquitto-clients; }
 
 # ruff, then mypy over server/ and clients/ (configured in pyproject.toml: [tool.mypy]).
 lint: $(TEST_STAMP)
