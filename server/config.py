@@ -19,6 +19,8 @@ import itertools
 import json
 import math
 import os
+import re
+import socket
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -84,6 +86,16 @@ class JsonFileSource(PydanticBaseSettingsSource):
         if not isinstance(data, dict):
             raise ConfigurationError(f"config file {path} must hold a JSON object of settings")
         return data
+
+
+# A cell id is one MQTT topic level and an OPC UA browse name: no '/', '+', '#', spaces.
+CELL_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+
+
+def default_cell_id() -> str:
+    """The host name, made a valid cell id (other characters become '-')."""
+    name = re.sub(r"[^A-Za-z0-9._-]", "-", socket.gethostname()).strip("-.") or "cell"
+    return name[:64] if name[0].isalnum() else f"cell-{name}"[:64]
 
 
 class Settings(BaseSettings):
@@ -221,6 +233,18 @@ class Settings(BaseSettings):
     cors_allowed_origins: list[str] = Field(default_factory=list, description="closed if empty")
     max_request_bytes: int = Field(
         1024 * 1024, ge=1024, le=64 * 1024 * 1024, description="largest request body, bytes"
+    )
+
+    # The plant's interfaces (docs/plant-integration.md)
+    cell_id: str = Field(
+        default_factory=lambda: default_cell_id(),
+        pattern=CELL_ID_PATTERN,
+        description="names this cell to the plant: its OPC UA object and its MQTT topics "
+        "(glue/<cell_id>/...)",
+        json_schema_extra={
+            "default_text": "the host name",
+            "accepts": "letters, digits, '.', '_' and '-', 1 to 64, the first a letter or digit",
+        },
     )
 
     # Hardware timeouts (seconds)

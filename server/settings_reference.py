@@ -94,6 +94,9 @@ def _accepted_one(schema: dict[str, Any]) -> str:
 
 def _default(name: str) -> str:
     field = Settings.model_fields[name]
+    extra = field.json_schema_extra
+    if isinstance(extra, dict) and "default_text" in extra:  # a default that depends on the host
+        return str(extra["default_text"])
     factory = field.default_factory
     value = factory() if factory is not None else field.default  # type: ignore[call-arg]
     if value is None:
