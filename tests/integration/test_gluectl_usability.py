@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import re
+from typing import Any
 
 import pytest
 from rich.console import Console
@@ -76,23 +77,39 @@ async def test_a_server_error_with_json_is_one_json_document(cli: Cli) -> None: 
 # --- help and version -------------------------------------------------------------------
 
 
-def _commands() -> list[str]:
-    """Every subcommand, those added later included."""
+def _commands() -> list[tuple[str, ...]]:
+    """Every subcommand, those added later and those of groups (`marker list`) included."""
     import typer.main
 
-    group = typer.main.get_command(gluectl.app)
-    return sorted(group.commands)  # type: ignore[attr-defined]
+    def walk(group: Any, path: tuple[str, ...]) -> list[tuple[str, ...]]:
+        found = []
+        for name, command in sorted(group.commands.items()):
+            found.append((*path, name))
+            if hasattr(command, "commands"):  # a group (typer's own, not click's class)
+                found += walk(command, (*path, name))
+        return found
+
+    return walk(typer.main.get_command(gluectl.app), ())
 
 
-@pytest.mark.parametrize("command", ["", *_commands()])
-async def test_help_fits_80_columns_and_shows_booleans_as_flags(command: str) -> None:
-    ran = await gluectl_process(*([command] if command else []), "--help", env={"COLUMNS": "80"})
+def _is_group(command: tuple[str, ...]) -> bool:
+    import typer.main
+
+    found: Any = typer.main.get_command(gluectl.app)
+    for name in command:
+        found = found.commands[name]
+    return hasattr(found, "commands")
+
+
+@pytest.mark.parametrize("command", [(), *_commands()], ids=lambda c: " ".join(c) or "gluectl")
+async def test_help_fits_80_columns_and_shows_booleans_as_flags(command: tuple[str, ...]) -> None:
+    ran = await gluectl_process(*command, "--help", env={"COLUMNS": "80"})
     assert ran.code == 0, ran.stderr
     for line in ran.stdout.splitlines():
         assert len(line) <= 80, f"{len(line)} columns: {line!r}"
         assert "…" not in line, f"cut short: {line!r}"
     assert not re.search(r"<bool>|BOOLEAN|--json \S", ran.stdout), ran.stdout
-    assert "--json" in ran.stdout or not command
+    assert "--json" in ran.stdout or not command or _is_group(command)
 
 
 async def test_version_comes_from_the_package_metadata() -> None:
