@@ -71,6 +71,11 @@ async function main() {
   const client = mqtt.connect(config.broker, {
     clientId: `line-view-${Math.random().toString(16).slice(2, 10)}`,
     keepalive: 30, reconnectPeriod: 2000, connectTimeout: 10000, clean: true,
+    // Plain timers: MQTT.js's default starts a Worker from a blob: URL, which the page's
+    // Content-Security-Policy (script-src 'self', as the dashboard's) refuses. A hidden
+    // tab's slowed timers may then miss a ping: the view reconnects and rereads the
+    // retained state.
+    timerVariant: "native",
   });
   client.on("connect", () => {
     showBroker(`broker ${config.broker} · prefix ${config.prefix}`, true);
