@@ -887,7 +887,7 @@ def line(
 ) -> None:
     """Every cell of a line from its MQTT broker: online/offline, state, stop reason,
     progress, OEE. Live (redrawn on a terminal, one table or JSON document per change
-    when piped) until Ctrl-C; --once --json for scripts. Exit 5 if the broker is
+    when piped) until Ctrl-C. For scripts: --once --json. Exit 5 if the broker is
     unreachable.
     """
     options = _options(ctx, json_flag)
