@@ -6,6 +6,8 @@ prints it resolved; that resolved form is held to what issue 15 asks (the
 simulators on an internal network, nothing of theirs published, health checks,
 the server started once its devices are healthy); and each service's command and
 health check are run as processes, as the compose file runs them, on loopback.
+mosquitto, the cell's MQTT broker, runs from its image's command as Debian's
+mosquitto with the mounted configuration, its health check with Debian's mosquitto_sub.
 The systemd unit is checked by `systemd-analyze verify` and for its hardening.
 """
 
@@ -27,10 +29,13 @@ import httpx
 import pytest
 import yaml
 
+from server.line_broker import mosquitto_binary
 from tests.processes import ROOT, environment, stop
 from tests.serving import free_port
 
 SIMULATORS = ("robot-sim", "glue-sim")
+BROKER = "mosquitto"
+BROKER_CONFIG = "/mosquitto/config/mosquitto.conf"
 SIMULATOR_PORTS = {"30003", "5020", "5021"}  # robot, Modbus, the glue simulator's fault channel
 INSTALL_HINT = "`make deploy-tools` installs Debian's docker-compose and systemd"
 
@@ -88,7 +93,8 @@ def test_simulators_are_on_an_internal_network_and_publish_nothing(compose) -> N
         assert "--control-port" not in services[name]["command"]  # no fault channel at all
     assert compose["networks"]["devices"]["internal"] is True
     published = [p for s in services.values() for p in s.get("ports", [])]
-    assert published == ["127.0.0.1:8000:8000/tcp"]  # the server's HTTP port, this host only
+    # The server's HTTP port and the broker's MQTT port, this host only.
+    assert sorted(published) == ["127.0.0.1:1883:1883/tcp", "127.0.0.1:8000:8000/tcp"]
     for port in published:
         assert not SIMULATOR_PORTS & set(re.findall(r"\d+", str(port)))
 
@@ -100,10 +106,31 @@ def test_the_hmi_port_is_published_where_the_integrator_says(tmp_path: Path) -> 
     assert chosen["services"]["server"]["ports"] == ["0.0.0.0:8080:8000/tcp"]
 
 
+def test_the_broker_port_is_published_where_the_integrator_says(tmp_path: Path) -> None:
+    chosen = compose_config(
+        tmp_path, ROOT / "docker-compose.yml", GLUE_MQTT_BIND="10.0.0.5", GLUE_MQTT_PORT="1884"
+    )
+    assert chosen["services"][BROKER]["ports"] == ["10.0.0.5:1884:1883/tcp"]
+
+
+def test_the_server_publishes_to_the_composed_broker(compose) -> None:
+    services = compose["services"]
+    assert services["server"]["environment"]["GLUE_APP_MQTT_URL"] == f"mqtt://{BROKER}:1883"
+    assert set(services[BROKER]["networks"]) == {"plant"} <= set(services["server"]["networks"])
+    assert services[BROKER]["image"].startswith("eclipse-mosquitto:")
+    (mount,) = services[BROKER]["volumes"]
+    source, target, mode = mount.rsplit(":", 2)
+    assert (target, mode) == (BROKER_CONFIG, "ro")
+    assert Path(source) == ROOT / "deploy" / "mosquitto" / "mosquitto.conf"
+
+
 def test_every_service_is_health_checked_and_the_server_waits_for_its_devices(compose) -> None:
     services = compose["services"]
     for name, service in services.items():
         test = service["healthcheck"]["test"]
+        if name == BROKER:  # the broker's image has its own client, no Python
+            assert test[:2] == ["CMD", "mosquitto_sub"], test
+            continue
         assert test[:4] == ["CMD", "python", "-m", "server.healthcheck"], name
     assert services["server"]["depends_on"] == {
         name: {"condition": "service_healthy"} for name in SIMULATORS
@@ -146,8 +173,15 @@ class Localized:
 
     def __init__(self, compose: dict[str, Any], data: Path) -> None:
         self.hosts = {name: "127.0.0.1" for name in compose["services"]} | {"0.0.0.0": "127.0.0.1"}
-        self.ports = {port: str(free_port()) for port in ("30003", "5020", "8000")}
+        self.ports = {port: str(free_port()) for port in ("30003", "5020", "8000", "1883")}
         self.data = data
+        self.broker_config = data.parent / "mosquitto.conf"
+        for mount in compose["services"][BROKER]["volumes"]:  # the mounted file, localized
+            source, target, _ = mount.rsplit(":", 2)
+            if target == BROKER_CONFIG:
+                lines = Path(source).read_text().splitlines()
+                local = [" ".join(self(word) for word in line.split()) for line in lines]
+                self.broker_config.write_text("\n".join(local) + "\n")
 
     def __call__(self, word: str) -> str:
         for host, local in self.hosts.items():
@@ -157,7 +191,13 @@ class Localized:
         return str(self.data) if word == "/data" else word
 
     def argv(self, command: list[str]) -> list[str]:
-        """`python ...` and `glue-server ...` with this checkout's interpreter."""
+        """`python ...` and `glue-server ...` with this checkout's interpreter; the broker's
+        image's `mosquitto` and `mosquitto_sub` as Debian installs them."""
+        if command[0] == "mosquitto":
+            assert command[1:] == ["-c", BROKER_CONFIG], command
+            return [mosquitto_binary(), "-c", str(self.broker_config)]
+        if command[0] == "mosquitto_sub":  # compose's `$$` is a literal `$`
+            return [tool("mosquitto_sub"), *(self(w).replace("$$", "$") for w in command[1:])]
         words = [self(word) for word in command]
         if words[0] == "glue-server":
             return [sys.executable, "-m", "server", *words[1:]]
@@ -209,7 +249,12 @@ def test_each_service_runs_and_passes_its_health_check_as_composed(compose, tmp_
     server = services["server"]
     before = healthy(local, server)
     assert before.returncode == 1 and "unhealthy" in before.stdout  # the check can fail
+    assert healthy(local, services[BROKER]).returncode != 0  # no broker yet: this one too
     with contextlib.ExitStack() as running:
+        broker = running.enter_context(
+            service_process(local, services[BROKER], tmp_path / "mosquitto.log")
+        )
+        wait_healthy(local, services[BROKER], broker)  # not waited for by the server: first
         for name in server["depends_on"]:  # started first, as service_healthy orders them
             process = running.enter_context(
                 service_process(local, services[name], tmp_path / f"{name}.log")
@@ -222,7 +267,10 @@ def test_each_service_runs_and_passes_its_health_check_as_composed(compose, tmp_
         assert "RTU over TCP" in health["devices"]["glue"]["link"], health
         assert local.ports["30003"] in str(health["devices"]["robot"]), health
         # Nothing was opened beyond loopback: the simulators' ports are taken on 127.0.0.1.
-        for port in (local.ports["30003"], local.ports["5020"]):
+        # The server was told where its broker is: the composed one, on its local port.
+        server_env = Path(f"/proc/{process.pid}/environ").read_bytes()
+        assert f"GLUE_APP_MQTT_URL=mqtt://127.0.0.1:{local.ports['1883']}".encode() in server_env
+        for port in (local.ports["30003"], local.ports["5020"], local.ports["1883"]):
             with socket.create_connection(("127.0.0.1", int(port)), timeout=5):
                 pass
 

@@ -1,0 +1,111 @@
+"""`make line`'s module (server/line_demo.py) as a process: Debian's mosquitto, three
+cells and the line view really start, each cell with its own port, data directory, cell
+id and the broker's URL, and a SIGTERM (as Ctrl-C) stops every one of them together.
+
+Until the cell's MQTT publisher lands the cells ignore GLUE_APP_MQTT_URL (a warning);
+the end-to-end test with cells publishing is the lead's, after that merge.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+from tests.processes import ROOT, environment, stop
+from tests.serving import free_port
+
+# Not a performance bound: three cells commission at once on a shared machine.
+READY_TIMEOUT_S = 900
+
+
+def environ_of(pid: int) -> dict[str, str]:
+    raw = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+    return dict(item.decode().split("=", 1) for item in raw if b"=" in item)
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return not Path(f"/proc/{pid}/stat").read_text().split(") ")[1].startswith("Z")
+
+
+def test_the_line_starts_and_stops_together(tmp_path: Path) -> None:
+    first, mqtt, ws, view = free_port(), free_port(), free_port(), free_port()
+    cell_ports = [first, first + 1, first + 2]
+    for port in cell_ports[1:]:  # the demo numbers the cells' ports from the first
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", port))
+    data = tmp_path / "line"
+    argv = [sys.executable, "-m", "server.line_demo", "--data-dir", str(data)]
+    argv += ["--first-port", str(first), "--mqtt-port", str(mqtt), "--ws-port", str(ws)]
+    argv += ["--view-port", str(view)]
+    demo = subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env=environment(), cwd=ROOT,
+    )  # fmt: skip
+    pids: dict[str, int] = {}
+    output: list[str] = []
+    try:
+        assert demo.stdout is not None
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        while time.monotonic() < deadline:
+            line = demo.stdout.readline()
+            assert line, f"the demo exited with {demo.wait()}:\n{''.join(output)}"
+            output.append(line)
+            if found := re.match(r"line: started (.+?) \(pid (\d+)\)", line):
+                pids[found.group(1)] = int(found.group(2))
+            if line.startswith("line: ready"):
+                break
+        else:
+            raise AssertionError("".join(output))
+        assert set(pids) == {"mosquitto", "cell-1", "cell-2", "cell-3", "line view"}
+        for n, port in enumerate(cell_ports, start=1):
+            health = httpx.get(f"http://127.0.0.1:{port}/health", timeout=10)
+            assert health.status_code == 200, health.text
+            env = environ_of(pids[f"cell-{n}"])
+            assert env["GLUE_APP_CELL_ID"] == f"cell-{n}"
+            assert env["GLUE_APP_MQTT_URL"] == f"mqtt://127.0.0.1:{mqtt}"
+            assert (data / f"cell-{n}" / "admin.token").is_file()
+        page = httpx.get(f"http://127.0.0.1:{view}/", timeout=10)
+        assert page.status_code == 200 and "Glue line" in page.text
+        assert f"ws://127.0.0.1:{ws}" in page.headers["content-security-policy"]
+        for port in (mqtt, ws):
+            with socket.create_connection(("127.0.0.1", port), timeout=10):
+                pass
+        demo.send_signal(signal.SIGTERM)
+        rest, _ = demo.communicate(timeout=120)
+        output.append(rest)
+        assert demo.returncode == 0, "".join(output)
+        assert not [name for name, pid in pids.items() if alive(pid)], "".join(output)
+        assert "line: stopped\n" in rest
+    finally:
+        stop(demo)
+        for pid in pids.values():
+            if alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+def test_one_process_exiting_stops_the_line(tmp_path: Path) -> None:
+    """A line half up is not a demo: the broker's port taken, nothing is left running."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        argv = [sys.executable, "-m", "server.line_demo", "--data-dir", str(tmp_path / "line")]
+        argv += ["--mqtt-port", str(port), "--ws-port", str(free_port())]
+        answer = subprocess.run(
+            argv, capture_output=True, text=True, env=environment(), cwd=ROOT, timeout=120
+        )
+    assert answer.returncode == 1, answer.stdout
+    assert "line: failed: mosquitto" in answer.stdout
+    assert "started cell-1" not in answer.stdout
