@@ -107,7 +107,7 @@ deploy-tools:
 
 # The plant-interface tests and the line demo run Debian's MQTT broker as a process.
 mosquitto:
-	@command -v mosquitto >/dev/null && command -v mosquitto_sub >/dev/null || { \
+	@{ command -v mosquitto || test -x /usr/sbin/mosquitto; } >/dev/null && command -v mosquitto_sub >/dev/null || { \
 		echo "installing Debian's mosquitto for the MQTT tests"; \
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 		$$SUDO apt-get update -qq && \
