@@ -81,6 +81,10 @@ def main(argv: list[str] | None = None) -> None:
         log.warning("%s", warning)
     try:
         app = create_app(settings)
+        if settings.opcua_endpoint is not None:  # a port in use: one line now, not a traceback
+            from server.opcua.interface import check_endpoint_free
+
+            check_endpoint_free(settings.opcua_endpoint)
     except ConfigurationError as exc:  # one line, on the console and in the log file
         log.critical("cannot start: %s", exc)
         raise SystemExit(2) from None

@@ -7,9 +7,11 @@ cell with the server.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -38,7 +40,18 @@ from server.api.schemas import RETRY_AFTER_S
 from server.cell import Cell
 from server.config import Settings
 from server.core.camera_preview import CameraPreview
-from server.errors import ChangeNotSaved, EventQueueFull, JournalUnavailable, WorkerStopped
+from server.errors import (
+    ChangeNotSaved,
+    ConfigurationError,
+    EventQueueFull,
+    JournalUnavailable,
+    WorkerStopped,
+)
+
+if TYPE_CHECKING:
+    from server.opcua.interface import OpcUaInterface
+
+log = logging.getLogger(__name__)
 
 
 def create_app(settings: Settings | None = None, *, cell: Cell | None = None) -> FastAPI:
@@ -51,9 +64,12 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         await cell.start()
         app.state.access.tokens.ensure_admin()
         app.state.metrics.attach(cell)
+        opcua = await _start_opcua(cell, app.state.access)
         try:
             yield
         finally:
+            if opcua is not None:
+                await opcua.stop()
             await app.state.metrics.detach()
             await app.state.camera_preview.close()
             await cell.stop()
@@ -126,6 +142,29 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     # The document says what the app really does: its 422 body and the gate's roles.
     openapi_doc.install(app)
     return app
+
+
+async def _start_opcua(cell: Cell, gate: access.Access) -> OpcUaInterface | None:
+    """The OPC UA server (server/opcua), if `opcua_endpoint` is set; started after the cell.
+
+    A failure to serve it stops the cell again and is logged as one line: the
+    server does not start without an interface it was configured to offer.
+    """
+    if cell.settings.opcua_endpoint is None:
+        return None
+    from server.opcua.interface import OpcUaInterface  # asyncua is loaded only when asked for
+
+    interface = OpcUaInterface(cell, gate.tokens, cell.settings)
+    try:
+        await interface.start()
+    except BaseException as exc:
+        if isinstance(exc, ConfigurationError):
+            log.critical("cannot start: %s", exc)
+        with contextlib.suppress(Exception):
+            await interface.stop()
+        await cell.stop()
+        raise
+    return interface
 
 
 def _install_error_handlers(app: FastAPI) -> None:

@@ -90,6 +90,8 @@ class JsonFileSource(PydanticBaseSettingsSource):
 
 # A cell id is one MQTT topic level and an OPC UA browse name: no '/', '+', '#', spaces.
 CELL_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+# opc.tcp://host:port with an explicit port (a server must say where it listens).
+OPCUA_ENDPOINT_PATTERN = r"^opc\.tcp://[A-Za-z0-9._:\[\]-]+:[0-9]{1,5}/?$"
 
 
 def default_cell_id() -> str:
@@ -245,6 +247,24 @@ class Settings(BaseSettings):
             "default_text": "the host name",
             "accepts": "letters, digits, '.', '_' and '-', 1 to 64, the first a letter or digit",
         },
+    )
+    opcua_endpoint: str | None = Field(
+        None,
+        pattern=OPCUA_ENDPOINT_PATTERN,
+        description="serve OPC UA (PackML tags, methods) at this endpoint, e.g. "
+        "opc.tcp://0.0.0.0:4840; off if unset",
+        json_schema_extra={"accepts": "opc.tcp://HOST:PORT (PORT 1 to 65535), or unset"},
+    )
+    opcua_allow_unsecured: bool = Field(
+        True,
+        description="also offer OPC UA security policy None (a lab); Basic256Sha256 Sign and "
+        "SignAndEncrypt are always offered",
+    )
+    opcua_admin_interval: float = Field(
+        5.0,
+        ge=1,
+        le=3600,
+        description="seconds between refreshes of the OPC UA Admin figures (KPIs of the shift)",
     )
 
     # Hardware timeouts (seconds)
@@ -483,6 +503,14 @@ class Settings(BaseSettings):
                 raise ValueError(
                     f"trusted_proxies: {entry!r} is not an IP address or network (CIDR)"
                 ) from None
+        return value
+
+    @field_validator("opcua_endpoint")
+    @classmethod
+    def _opcua_port(cls, value: str | None) -> str | None:
+        """The pattern takes five digits; a port past 65535 is refused here, at load."""
+        if value is not None and not 1 <= int(value.rstrip("/").rsplit(":", 1)[1]) <= 65535:
+            raise ValueError("the OPC UA endpoint's port must be 1 to 65535")
         return value
 
     @field_validator("glue_pressure_range_psi")

@@ -57,6 +57,8 @@ def number_range(bounds: dict[str, Any]) -> str:
 
 def _accepted(schema: dict[str, Any]) -> str:
     """What a value must be, from the field's JSON schema, in a person's words."""
+    if "accepts" in schema:  # said by the field itself, optional or not (json_schema_extra)
+        return str(schema["accepts"])
     options = [o for o in schema.get("anyOf", [schema]) if o.get("type") != "null"]
     optional = len(options) < len(schema.get("anyOf", [schema]))
     texts = [_accepted_one(option) for option in options]

@@ -300,7 +300,22 @@ async def get_kpis(request: Request, since: Since = None, until: Until = None) -
     else:
         end = now
     start = since if since is not None else end - shift_s
-    journal = _journal(request)
+    return await shift_kpis(cell, start, end, now)
+
+
+async def shift_kpis(
+    cell: Cell, start: float | None = None, end: float | None = None, now: float | None = None
+) -> dict[str, Any]:
+    """The KPIs of [start, end) read from the journal (off the loop), as GET /kpis gives them.
+
+    Without a window, the current shift: the last shift_hours up to now. The OPC UA
+    Admin tags read them here too, so both say the same figures.
+    """
+    at = time.time() if now is None else now
+    stop = at if end is None else end
+    begin = stop - cell.settings.shift_hours * 3600 if start is None else start
+    assert cell.journal is not None
+    journal = cell.journal
     await journal.caught_up()
 
     state, since_state = cell.view.state.value, cell.view.since
@@ -310,28 +325,28 @@ async def get_kpis(request: Request, since: Since = None, until: Until = None) -
         # Every transition that closes an interval overlapping the window (the first one
         # after `end` closes the last); operations by when they ended (they start earlier).
         transitions = journal.query(
-            "transitions", since=start, limit=KPI_ROW_LIMIT, newest_first=False
+            "transitions", since=begin, limit=KPI_ROW_LIMIT, newest_first=False
         )
         operations = journal.query(
-            "operations", since=start - 86_400, until=end, limit=KPI_ROW_LIMIT, newest_first=False
+            "operations", since=begin - 86_400, until=stop, limit=KPI_ROW_LIMIT, newest_first=False
         )
         errors = journal.query(
-            "errors", since=start, until=end, limit=KPI_ROW_LIMIT, newest_first=False
+            "errors", since=begin, until=stop, limit=KPI_ROW_LIMIT, newest_first=False
         )
         recoveries = journal.query(
-            "recoveries", since=start, until=end, limit=KPI_ROW_LIMIT, newest_first=False
+            "recoveries", since=begin, until=stop, limit=KPI_ROW_LIMIT, newest_first=False
         )
         for row in recoveries:
             row["succeeded"] = bool(row["succeeded"])
         return compute_kpis(
-            Window(start, end),
+            Window(begin, stop),
             transitions,
             operations,
             errors,
             recoveries,
             current_state=state,
             current_since=since_state,
-            now=min(now, end),
+            now=min(at, stop),
             design_cycle_time_s=settings.design_cycle_time_s,
         )
 

@@ -1,0 +1,219 @@
+"""The OPC UA server inside the cell server: started and stopped with the cell.
+
+The tags follow the bus, not the cell: one bus subscription (its own bounded
+buffer, like a WebSocket client's) is read by one task that writes each
+message's values into the address space as it arrives, so a client's
+subscription sees every transition, in order, stamped with when it happened,
+and the worker never waits for OPC UA. The state comes from each
+state_changed message's own snapshot, never from the live view, which may
+already be a transition further on. Admin's KPIs are read from the journal
+every `opcua_admin_interval` seconds, off the loop, the way GET /kpis reads
+them (server/api/analytics.py: `shift_kpis`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import socket
+from typing import Any
+from urllib.parse import urlparse
+
+from asyncua import Server, ua
+
+from server.api.analytics import shift_kpis
+from server.cell import Cell
+from server.config import Settings
+from server.core.bus import BusMessage, Subscription, SubscriptionClosed
+from server.core.transitions import State
+from server.errors import ConfigurationError
+from server.opcua import address_space, tags
+from server.opcua.address_space import CellNodes, data_value
+from server.opcua.certificate import application_uri, ensure_certificate
+from server.opcua.identity import CallerRuleset, TokenUsers
+from server.opcua.methods import CellMethods
+from server.opcua.packml import packml_state, unit_mode
+from server.security.tokens import TokenStore
+
+log = logging.getLogger(__name__)
+
+BUS_BUFFER = 1024  # messages the follower may lag behind before it is dropped and catches up
+FOLLOWED = ("state_changed", "progress", "error")
+
+
+def endpoint_address(endpoint: str) -> tuple[str, int]:
+    """The host and port an opc.tcp:// endpoint listens on."""
+    url = urlparse(endpoint)
+    if url.hostname is None or url.port is None:
+        raise ConfigurationError(f"opcua_endpoint {endpoint!r} names no host and port")
+    return url.hostname, url.port
+
+
+def check_endpoint_free(endpoint: str) -> None:
+    """Bind the endpoint's address once and let it go: a ConfigurationError naming it if
+    that fails, before the server starts (a port in use, an address not on this host)."""
+    host, port = endpoint_address(endpoint)
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+        for family, kind, proto, _, address in infos:
+            with socket.socket(family, kind, proto) as probe:
+                probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                probe.bind(address)
+    except OSError as exc:
+        raise ConfigurationError(
+            f"the OPC UA endpoint {endpoint} cannot be served: {exc.strerror or exc}; "
+            "choose a free port or an address of this host (opcua_endpoint)"
+        ) from None
+
+
+class OpcUaInterface:
+    """asyncua's Server around one cell: address space, methods, the bus follower."""
+
+    def __init__(self, cell: Cell, tokens: TokenStore, settings: Settings) -> None:
+        assert settings.opcua_endpoint is not None
+        self.cell = cell
+        self.settings = settings
+        self.endpoint = settings.opcua_endpoint
+        self.server = Server(user_manager=TokenUsers(tokens))  # type: ignore[arg-type]
+        self.methods = CellMethods(self.server, cell, tokens)
+        self.nodes: CellNodes | None = None
+        self._subscription: Subscription | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self._snapshot: dict[str, Any] = {}
+        self._progress: dict[str, Any] | None = None
+        self._seq = 0
+        self._written: dict[str, object] = {}
+
+    async def start(self) -> None:
+        settings = self.settings
+        server = self.server
+        await server.init()
+        server.set_endpoint(self.endpoint)
+        server.set_server_name(f"glue cell {settings.cell_id}")
+        await server.set_application_uri(application_uri(settings.cell_id))
+        certificate, key = await asyncio.to_thread(
+            ensure_certificate, settings.data_path, settings.cell_id
+        )
+        await server.load_certificate(str(certificate))
+        await server.load_private_key(str(key))
+        policies = [
+            ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
+            ua.SecurityPolicyType.Basic256Sha256_Sign,
+        ]
+        if settings.opcua_allow_unsecured:
+            policies.insert(0, ua.SecurityPolicyType.NoSecurity)
+        server.set_security_policy(policies, permission_ruleset=CallerRuleset())
+        server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
+        self.nodes = await address_space.build(server, settings.cell_id)
+        await self.methods.add(self.nodes.cell, self.nodes.cell_id, self.nodes.namespace)
+        # Subscribe before the first values are written: nothing falls between the two.
+        view = self.cell.view
+        self._subscription = self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED)
+        self._seq = self.cell.bus.last_seq
+        await self._write_state(view.snapshot(), None)
+        try:
+            await server.start()
+        except OSError as exc:
+            self._subscription.close()
+            raise ConfigurationError(
+                f"the OPC UA endpoint {self.endpoint} cannot be served: {exc.strerror or exc}; "
+                "choose a free port or an address of this host (opcua_endpoint)"
+            ) from None
+        self._tasks = [
+            asyncio.create_task(self._follow(), name="opcua-follower"),
+            asyncio.create_task(self._refresh_admin(), name="opcua-admin"),
+        ]
+        log.info("OPC UA served at %s (cell %s)", self.endpoint, settings.cell_id)
+
+    async def stop(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self._tasks = []
+        if self._subscription is not None:
+            self._subscription.close()
+        await self.server.stop()
+
+    # --- following the bus --------------------------------------------------------------
+
+    async def _follow(self) -> None:
+        while True:
+            assert self._subscription is not None
+            try:
+                message = await self._subscription.get()
+            except SubscriptionClosed as closed:
+                # Dropped as a slow consumer: catch up from the live view, go on.
+                log.warning("OPC UA tags fell behind the bus (%s); catching up", closed.reason)
+                self._subscription = self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED)
+                self._seq = self.cell.bus.last_seq
+                await self._write_state(self.cell.view.snapshot(), None)
+                continue
+            try:
+                await self._apply(message)
+            except Exception:  # a tag not written must not end the follower
+                log.exception("OPC UA: could not write the tags of bus message %d", message.seq)
+
+    async def _apply(self, message: BusMessage) -> None:
+        self._seq = message.seq
+        if message.type == "state_changed":
+            await self._write_state(message.data["snapshot"], None, message.time)
+        elif message.type == "progress":
+            # The run's steps in the state they belong to (the state_changed snapshot
+            # that enters a state is taken before its run starts, so it names no run yet).
+            if "waypoint" in message.data and message.data.get("state") == self._snapshot.get(
+                "state"
+            ):
+                self._progress = dict(message.data)
+                await self._write_cell_state(message.time)
+        else:  # a fault: the devices' health has changed
+            await self._write_cell_state(message.time)
+
+    async def _write_state(
+        self, snapshot: dict[str, Any], progress: dict[str, Any] | None, at: float | None = None
+    ) -> None:
+        self._snapshot, self._progress = snapshot, progress
+        state = State(snapshot["state"])
+        at = at if at is not None else snapshot.get("since")
+        code, text, component = tags.stop_reason(snapshot)
+        await self._write("Status.StateCurrent", int(packml_state(state)), at)
+        await self._write("Status.UnitModeCurrent", int(unit_mode(state)), at)
+        await self._write("Status.StopReason.ID", code, at)
+        await self._write("Status.StopReason.Message", text, at)
+        await self._write("Status.StopReason.Component", component, at)
+        await self._write("Status.CellStateName", state.value, at)
+        await self._write_cell_state(at)
+
+    async def _write_cell_state(self, at: float | None = None) -> None:
+        devices = self.cell.view.health()["devices"]
+        document = tags.cell_state(self._snapshot, self._progress, devices, self._seq)
+        await self._write("CellState", tags.encode(document), at)
+
+    async def _write(self, path: str, value: object, at: float | None) -> None:
+        """Write a tag; an unchanged value is not written again (no notification for it).
+        CellState carries the bus message's seq, so each transition changes it."""
+        if path in self._written and tags.same(self._written[path], value):
+            return
+        assert self.nodes is not None
+        self._written[path] = value
+        kind = self.nodes.types[path]
+        await self.server.write_attribute_value(
+            self.nodes.variables[path], data_value(kind, value, at)
+        )
+
+    # --- Admin: the KPIs of the shift ------------------------------------------------------
+
+    async def _refresh_admin(self) -> None:
+        while True:
+            try:
+                kpis = await shift_kpis(self.cell)
+                for name, figure in tags.admin_figures(kpis).items():
+                    await self._write(f"Admin.{name}", figure, None)
+                for name, count in tags.admin_counts(kpis).items():
+                    await self._write(f"Admin.{name}", count, None)
+                await self._write_cell_state()  # the devices' health, between messages
+            except Exception:
+                log.exception("OPC UA: could not refresh the Admin figures")
+            await asyncio.sleep(self.settings.opcua_admin_interval)

@@ -1,0 +1,237 @@
+"""The cell's OPC UA methods: the operator's commands on the HTTP command path and roles.
+
+Each method is a command of server/core/transitions.py, sent through
+`Cell.command` with an audit note naming the token's principal, the client's
+address and the method, exactly as server/api/commands.py sends the HTTP
+command; the role it needs is read from server/security/policy.py for that
+command's HTTP route, so the two doors cannot drift apart. EmergencyStop is
+the e-stop of POST /estop (`Cell.command(Command.ESTOP)`: the devices halted
+first, then the event ahead of everything queued) and, like it, open to every
+signed-in role.
+
+The answer: Good with (Accepted, State, Message, EventId) as output arguments;
+a refusal is a Bad status (BadUserAccessDenied for a missing token or role,
+BadInvalidState where HTTP says 409, BadInvalidArgument for 422,
+BadResourceUnavailable for 503) with the same output arguments, so the cell's
+message comes back with it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any, Final
+
+from asyncua import Node, Server, ua
+
+from server.cell import Cell
+from server.core.events import AuditNote, Outcome, Payload, StartPayload, StopPayload
+from server.core.transitions import Command, Event
+from server.errors import EventQueueFull, JournalUnavailable, WorkerStopped
+from server.opcua.address_space import node_id_of
+from server.opcua.identity import ANONYMOUS, CellUser, caller
+from server.security.policy import required_role
+from server.security.tokens import TokenStore
+from server.storage.journal import records
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Method:
+    """One OPC UA method: its PackML name, the command it sends, that command's HTTP route."""
+
+    name: str
+    packml: str  # the PackML command it stands for
+    command: Command
+    route: str
+    description: str
+
+
+METHODS: Final = (
+    Method(
+        "Start",
+        "Start",
+        Command.START,
+        "/start",
+        "spray: WorkpieceId names a library part (empty: find the part on the table)",
+    ),
+    Method("Pause", "Hold", Command.PAUSE, "/pause", "hold the run: valve closed, robot still"),
+    Method("Resume", "Unhold", Command.RESUME, "/resume", "continue the held run"),
+    Method("Cancel", "Stop", Command.CANCEL, "/cancel", "end the operation, glue off, to IDLE"),
+    Method("Reset", "Reset", Command.RESET, "/reset", "leave ERROR once every device answers"),
+    Method(
+        "EmergencyStop",
+        "Abort",
+        Command.ESTOP,
+        "/estop",
+        "software stop: valve closed and robot stopped at once, then ERROR",
+    ),
+)
+OUTPUTS: Final = (
+    ("Accepted", ua.VariantType.Boolean),
+    ("State", ua.VariantType.String),
+    ("Message", ua.VariantType.String),
+    ("EventId", ua.VariantType.String),
+)
+INPUTS: Final = {"Start": (("WorkpieceId", ua.VariantType.String),)}
+
+
+def status_of(outcome: Outcome) -> int:
+    """The status code of the worker's answer, as commands._status gives HTTP's."""
+    if outcome.journal_problem is not None and outcome.event is not Event.EMERGENCY_STOP:
+        return ua.StatusCodes.BadResourceUnavailable
+    if outcome.accepted:
+        return ua.StatusCodes.Good
+    if outcome.field is not None:
+        return ua.StatusCodes.BadInvalidArgument
+    return ua.StatusCodes.BadInvalidState
+
+
+def status_name(code: int) -> str:
+    return ua.StatusCode(ua.UInt32(code)).name
+
+
+def answer(
+    code: int, accepted: bool, state: str, message: str, event_id: str
+) -> ua.CallMethodResult:
+    result = ua.CallMethodResult()
+    result.StatusCode = ua.StatusCode(ua.UInt32(code))
+    values = (accepted, state, message, event_id)
+    result.OutputArguments = [
+        ua.Variant(value, kind) for value, (_, kind) in zip(values, OUTPUTS, strict=True)
+    ]
+    return result
+
+
+def _label(outcome: Outcome) -> str:
+    code = status_of(outcome)
+    return "accepted" if code == ua.StatusCodes.Good else f"refused ({status_name(code)})"
+
+
+def peer_of(server: Server, user: CellUser | None) -> str:
+    """The address of the session `user` signed in on ("unknown" if not found).
+
+    asyncua names each external session after its peer (host, port); it keeps them
+    in a private map, read here only to name the caller in the audit trail.
+    """
+    sessions = getattr(server.iserver, "_external_sessions", {})
+    for session in list(sessions.values()):
+        if user is not None and session.user is user:
+            name = session.name
+            return str(name[0]) if isinstance(name, tuple) and name else str(name)
+    return "unknown"
+
+
+def _payload(method: Method, args: tuple[Any, ...]) -> Payload | None:
+    if method.command is Command.START:
+        # asyncua hands the input arguments over as Variants.
+        first = args[0].Value if args and isinstance(args[0], ua.Variant) else None
+        workpiece = str(first) if first else None
+        if workpiece:
+            return StartPayload(contour_matching=False, workpiece_id=workpiece)
+        return StartPayload()
+    if method.command is Command.ESTOP:
+        return StopPayload(None)
+    return None
+
+
+class CellMethods:
+    """The method callbacks of one cell object."""
+
+    def __init__(self, server: Server, cell: Cell, tokens: TokenStore) -> None:
+        self.server = server
+        self.cell = cell
+        self.tokens = tokens
+
+    async def add(self, parent: Node, cell_id: str, namespace: int) -> None:
+        for method in METHODS:
+            inputs = [self._argument(name, kind) for name, kind in INPUTS.get(method.name, ())]
+            outputs = [self._argument(name, kind) for name, kind in OUTPUTS]
+            node = await parent.add_method(
+                node_id_of(namespace, f"{cell_id}.{method.name}"),
+                ua.QualifiedName(method.name, namespace),
+                self._callback(method),
+                inputs,
+                outputs,
+            )
+            await node.write_attribute(
+                ua.AttributeIds.Description,
+                ua.DataValue(
+                    ua.Variant(ua.LocalizedText(f"PackML {method.packml}: {method.description}"))
+                ),
+            )
+
+    @staticmethod
+    def _argument(name: str, kind: ua.VariantType) -> ua.Argument:
+        argument = ua.Argument()
+        argument.Name = name
+        argument.DataType = ua.NodeId(ua.Int32(kind.value))
+        argument.ValueRank = -1
+        return argument
+
+    def _callback(self, method: Method) -> Callable[..., Awaitable[ua.CallMethodResult]]:
+        async def call(parent: ua.NodeId, *args: Any) -> ua.CallMethodResult:
+            return await self.call(method, args)
+
+        return call
+
+    async def call(self, method: Method, args: tuple[Any, ...]) -> ua.CallMethodResult:
+        """Check who calls, then send the command as HTTP does; the answer as a CallMethodResult."""
+        user = caller.get()
+        address = peer_of(self.server, user)
+        action = f"OPC UA {method.name}"
+        principal = user.principal(self.tokens) if user is not None else None
+        needed = required_role("POST", method.route)
+        if principal is None:
+            why = (
+                "authentication required: sign in with an API token as the password"
+                if user is None or user.token is None
+                else "the token is unknown or revoked"
+            )
+            return self._refuse(ANONYMOUS, address, action, why)
+        if needed is not None and principal.role < needed:
+            why = f"this needs the {needed.label} role; {principal.name} has {principal.role.label}"
+            return self._refuse(principal.describe(), address, action, why)
+        note = AuditNote(principal.describe(), address, action, _label)
+        try:
+            outcome = await self.cell.command(
+                method.command,
+                source=f"opcua:{address}",
+                payload=_payload(method, args),
+                audit=note,
+            )
+        except (EventQueueFull, WorkerStopped, JournalUnavailable) as exc:
+            return self._refuse(
+                principal.describe(),
+                address,
+                action,
+                str(exc),
+                ua.StatusCodes.BadResourceUnavailable,
+            )
+        code = status_of(outcome)
+        if code != ua.StatusCodes.Good:
+            log.info("OPC UA %s refused (%s): %s", method.name, status_name(code), outcome.message)
+        return answer(
+            code, outcome.accepted, outcome.state.value, outcome.message, outcome.event_id
+        )
+
+    def _refuse(
+        self,
+        who: str,
+        address: str,
+        action: str,
+        why: str,
+        code: int = ua.StatusCodes.BadUserAccessDenied,
+    ) -> ua.CallMethodResult:
+        """A call refused before the cell saw it: audited as the HTTP gate's refusals are."""
+        journal = self.cell.journal
+        if journal is not None:
+            row = records.audit(
+                time.time(), who, address, action, f"refused ({status_name(code)})", why
+            )
+            journal.append([row], durable=False)
+        log.info("%s from %s refused: %s", action, address, why)
+        return answer(code, False, self.cell.view.state.value, why, "")
