@@ -39,6 +39,8 @@ from server.cell import Cell
 from server.config import Settings
 from server.core.camera_preview import CameraPreview
 from server.errors import ChangeNotSaved, EventQueueFull, JournalUnavailable, WorkerStopped
+from server.mqtt.commands import CommandDoor
+from server.mqtt.link import MqttLink
 
 
 def create_app(settings: Settings | None = None, *, cell: Cell | None = None) -> FastAPI:
@@ -51,9 +53,12 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         await cell.start()
         app.state.access.tokens.ensure_admin()
         app.state.metrics.attach(cell)
+        app.state.mqtt = mqtt_link(app, settings, cell)
         try:
             yield
         finally:
+            if app.state.mqtt is not None:
+                await app.state.mqtt.stop()  # `offline` before the cell stops
             await app.state.metrics.detach()
             await app.state.camera_preview.close()
             await cell.stop()
@@ -71,6 +76,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     )
     app.state.cell = cell
     app.state.settings = settings
+    app.state.mqtt = None  # the MQTT link, once started (mqtt_url set)
     app.state.ws_hub = ws.WebSocketHub(
         settings.max_broadcast_clients,
         settings.ws_client_buffer,
@@ -126,6 +132,25 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     # The document says what the app really does: its 422 body and the gate's roles.
     openapi_doc.install(app)
     return app
+
+
+def mqtt_link(app: FastAPI, settings: Settings, cell: Cell) -> MqttLink | None:
+    """The MQTT link, started, when mqtt_url is set (docs/plant-integration.md)."""
+    if settings.mqtt_url is None:
+        return None
+    door = None
+    if settings.mqtt_commands:
+        door = CommandDoor(cell, app.state.access.tokens, f"mqtt:{settings.mqtt_url}")
+    link = MqttLink(
+        settings,
+        cell,
+        health=lambda: queries.health_of(app),
+        kpis=lambda: analytics.kpis_of(cell),
+        commands=door,
+    )
+    app.state.mqtt = link  # before it starts: its first health names it
+    link.start()
+    return link
 
 
 def _install_error_handlers(app: FastAPI) -> None:

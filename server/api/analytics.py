@@ -289,10 +289,14 @@ async def get_kpis(request: Request, since: Since = None, until: Until = None) -
     come without an `until` is a shift that has not begun: the window is the shift
     from `since` and holds nothing yet.
     """
-    cell: Cell = request.app.state.cell
+    time_window(since, until)  # since before until
+    return await kpis_of(request.app.state.cell, since, until)
+
+
+async def kpis_of(cell: Cell, since: float | None = None, until: float | None = None) -> dict:
+    """What GET /kpis answers (the MQTT link publishes the same, retained, on `kpis`)."""
     now = time.time()
     shift_s = cell.settings.shift_hours * 3600
-    time_window(since, until)  # since before until
     if until is not None:
         end = until
     elif since is not None and since >= now:
@@ -300,7 +304,8 @@ async def get_kpis(request: Request, since: Since = None, until: Until = None) -
     else:
         end = now
     start = since if since is not None else end - shift_s
-    journal = _journal(request)
+    journal = cell.journal
+    assert journal is not None, "the cell is not started"
     await journal.caught_up()
 
     state, since_state = cell.view.state.value, cell.view.since
