@@ -47,6 +47,8 @@ from server.errors import (
     JournalUnavailable,
     WorkerStopped,
 )
+from server.mqtt.commands import CommandDoor
+from server.mqtt.link import MqttLink
 
 if TYPE_CHECKING:
     from server.opcua.interface import OpcUaInterface
@@ -65,9 +67,12 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         app.state.access.tokens.ensure_admin()
         app.state.metrics.attach(cell)
         opcua = await _start_opcua(cell, app.state.access)
+        app.state.mqtt = mqtt_link(app, settings, cell)
         try:
             yield
         finally:
+            if app.state.mqtt is not None:
+                await app.state.mqtt.stop()  # `offline` before the cell stops
             if opcua is not None:
                 await opcua.stop()
             await app.state.metrics.detach()
@@ -87,6 +92,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     )
     app.state.cell = cell
     app.state.settings = settings
+    app.state.mqtt = None  # the MQTT link, once started (mqtt_url set)
     app.state.ws_hub = ws.WebSocketHub(
         settings.max_broadcast_clients,
         settings.ws_client_buffer,
@@ -165,6 +171,25 @@ async def _start_opcua(cell: Cell, gate: access.Access) -> OpcUaInterface | None
         await cell.stop()
         raise
     return interface
+
+
+def mqtt_link(app: FastAPI, settings: Settings, cell: Cell) -> MqttLink | None:
+    """The MQTT link, started, when mqtt_url is set (docs/plant-integration.md)."""
+    if settings.mqtt_url is None:
+        return None
+    door = None
+    if settings.mqtt_commands:
+        door = CommandDoor(cell, app.state.access.tokens, f"mqtt:{settings.mqtt_url}")
+    link = MqttLink(
+        settings,
+        cell,
+        health=lambda: queries.health_of(app),
+        kpis=lambda: analytics.kpis_of(cell),
+        commands=door,
+    )
+    app.state.mqtt = link  # before it starts: its first health names it
+    link.start()
+    return link
 
 
 def _install_error_handlers(app: FastAPI) -> None:

@@ -24,7 +24,7 @@ import socket
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import AliasChoices, Field, field_validator, model_validator
+from pydantic import AliasChoices, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -92,6 +92,9 @@ class JsonFileSource(PydanticBaseSettingsSource):
 CELL_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 # opc.tcp://host:port with an explicit port (a server must say where it listens).
 OPCUA_ENDPOINT_PATTERN = r"^opc\.tcp://[A-Za-z0-9._:\[\]-]+:[0-9]{1,5}/?$"
+MQTT_URL_PATTERN = r"^mqtts?://[^\s/:@]+(:[0-9]{1,5})?/?$"
+# One or more topic levels: no wildcards, no empty level, no leading '$' (the broker's own).
+MQTT_PREFIX_PATTERN = r"^[A-Za-z0-9._-]{1,64}(/[A-Za-z0-9._-]{1,64}){0,7}$"
 
 
 def default_cell_id() -> str:
@@ -265,6 +268,65 @@ class Settings(BaseSettings):
         ge=1,
         le=3600,
         description="seconds between refreshes of the OPC UA Admin figures (KPIs of the shift)",
+    )
+
+    # MQTT (docs/plant-integration.md): off unless mqtt_url is set
+    mqtt_url: str | None = Field(
+        None,
+        pattern=MQTT_URL_PATTERN,
+        description="the plant's MQTT broker, mqtt://host:1883 or mqtts://host:8883; "
+        "off when unset",
+        json_schema_extra={"accepts": "mqtt://host[:port] or mqtts://host[:port]"},
+    )
+    mqtt_ca_file: Path | None = Field(
+        None, description="CA certificate (PEM) the broker's is checked against (mqtts://)"
+    )
+    mqtt_username: str | None = Field(
+        None, max_length=256, description="user name at the broker, if it asks for one"
+    )
+    mqtt_password: SecretStr | None = Field(
+        None,
+        description="password at the broker; never logged, shown as ********** by GET /settings",
+    )
+    mqtt_topic_prefix: str = Field(
+        "glue",
+        pattern=MQTT_PREFIX_PATTERN,
+        description="first topic level(s): <prefix>/<cell_id>/state and the like",
+        json_schema_extra={"accepts": "topic levels of letters, digits, '.', '_', '-', '/'"},
+    )
+    mqtt_keepalive: int = Field(
+        30,
+        ge=1,
+        le=3600,
+        description="seconds of MQTT keep-alive: the broker publishes the last will "
+        "(status offline) after 1.5 times this without a word from the cell",
+    )
+    mqtt_buffer: int = Field(
+        1000,
+        ge=1,
+        le=1_000_000,
+        description="event, progress and alert messages kept while the broker is away; the "
+        "oldest are dropped beyond it (counted in /health); retained topics keep their latest",
+    )
+    mqtt_reconnect_max: float = Field(
+        30.0,
+        ge=0.1,
+        le=600,
+        description="longest wait between reconnection attempts, seconds (from 0.1 s, doubling)",
+    )
+    mqtt_kpis_interval: float = Field(
+        10.0, ge=1, le=3600, description="seconds between publications of the retained KPIs"
+    )
+    mqtt_health_interval: float = Field(
+        10.0,
+        ge=1,
+        le=3600,
+        description="seconds between publications of the retained health (also on a change)",
+    )
+    mqtt_commands: bool = Field(
+        False,
+        description="accept commands on <prefix>/<cell_id>/command/<name>, each with a token "
+        "(same roles as HTTP); off by default",
     )
 
     # Hardware timeouts (seconds)

@@ -158,7 +158,7 @@ async def export_audit(
 
 @router.get("/settings")
 async def get_settings(request: Request) -> dict[str, Any]:
-    """The settings in force (nothing secret is kept in settings)."""
+    """The settings in force; the one secret, mqtt_password, is shown as **********."""
     return request.app.state.settings.model_dump(mode="json")
 
 

@@ -289,10 +289,15 @@ async def get_kpis(request: Request, since: Since = None, until: Until = None) -
     come without an `until` is a shift that has not begun: the window is the shift
     from `since` and holds nothing yet.
     """
-    cell: Cell = request.app.state.cell
+    time_window(since, until)  # since before until
+    return await kpis_of(request.app.state.cell, since, until)
+
+
+async def kpis_of(cell: Cell, since: float | None = None, until: float | None = None) -> dict:
+    """What GET /kpis answers; without a window, the current shift. The MQTT link
+    publishes the same, retained, on `kpis`, and OPC UA's Admin tags read it here."""
     now = time.time()
     shift_s = cell.settings.shift_hours * 3600
-    time_window(since, until)  # since before until
     if until is not None:
         end = until
     elif since is not None and since >= now:
@@ -300,22 +305,8 @@ async def get_kpis(request: Request, since: Since = None, until: Until = None) -
     else:
         end = now
     start = since if since is not None else end - shift_s
-    return await shift_kpis(cell, start, end, now)
-
-
-async def shift_kpis(
-    cell: Cell, start: float | None = None, end: float | None = None, now: float | None = None
-) -> dict[str, Any]:
-    """The KPIs of [start, end) read from the journal (off the loop), as GET /kpis gives them.
-
-    Without a window, the current shift: the last shift_hours up to now. The OPC UA
-    Admin tags read them here too, so both say the same figures.
-    """
-    at = time.time() if now is None else now
-    stop = at if end is None else end
-    begin = stop - cell.settings.shift_hours * 3600 if start is None else start
-    assert cell.journal is not None
     journal = cell.journal
+    assert journal is not None, "the cell is not started"
     await journal.caught_up()
 
     state, since_state = cell.view.state.value, cell.view.since
@@ -325,28 +316,28 @@ async def shift_kpis(
         # Every transition that closes an interval overlapping the window (the first one
         # after `end` closes the last); operations by when they ended (they start earlier).
         transitions = journal.query(
-            "transitions", since=begin, limit=KPI_ROW_LIMIT, newest_first=False
+            "transitions", since=start, limit=KPI_ROW_LIMIT, newest_first=False
         )
         operations = journal.query(
-            "operations", since=begin - 86_400, until=stop, limit=KPI_ROW_LIMIT, newest_first=False
+            "operations", since=start - 86_400, until=end, limit=KPI_ROW_LIMIT, newest_first=False
         )
         errors = journal.query(
-            "errors", since=begin, until=stop, limit=KPI_ROW_LIMIT, newest_first=False
+            "errors", since=start, until=end, limit=KPI_ROW_LIMIT, newest_first=False
         )
         recoveries = journal.query(
-            "recoveries", since=begin, until=stop, limit=KPI_ROW_LIMIT, newest_first=False
+            "recoveries", since=start, until=end, limit=KPI_ROW_LIMIT, newest_first=False
         )
         for row in recoveries:
             row["succeeded"] = bool(row["succeeded"])
         return compute_kpis(
-            Window(begin, stop),
+            Window(start, end),
             transitions,
             operations,
             errors,
             recoveries,
             current_state=state,
             current_since=since_state,
-            now=min(at, stop),
+            now=min(now, end),
             design_cycle_time_s=settings.design_cycle_time_s,
         )
 

@@ -15,10 +15,12 @@ has stopped, even when the journal could not record it (the message says so).
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Request
 from fastapi.responses import JSONResponse
+from pydantic import BaseModel
 
 from server.api import audit
 from server.api.declared_query import IGNORES_UNKNOWN_QUERY, DeclaredQueryRoute
@@ -87,12 +89,14 @@ def _status(outcome: Outcome) -> int:
     return 422 if outcome.field is not None else 409
 
 
-def _audit_label(outcome: Outcome) -> str:
+def audit_label(outcome: Outcome) -> str:
+    """The outcome column of a command's audit row, from its HTTP status."""
     status = _status(outcome)
     return "accepted" if status < 400 else f"refused ({status})"
 
 
-def _answer(outcome: Outcome) -> JSONResponse:
+def answer_of(outcome: Outcome) -> tuple[int, dict[str, Any], dict[str, str]]:
+    """The status, JSON body and headers that answer a command, whichever door it came by."""
     status = _status(outcome)
     if status == 503:
         unrecorded = {
@@ -102,9 +106,7 @@ def _answer(outcome: Outcome) -> JSONResponse:
             "message": f"{outcome.message}; {_UNRECORDED_ADVICE[outcome.accepted]}",
             "retry_after": RETRY_AFTER_S,
         }
-        return JSONResponse(
-            unrecorded, status_code=503, headers={"Retry-After": str(RETRY_AFTER_S)}
-        )
+        return 503, unrecorded, {"Retry-After": str(RETRY_AFTER_S)}
     if status == 422:
         # The request names something wrong: a 422 like any invalid field, with the
         # cell's answer beside it (nothing changed).
@@ -116,7 +118,7 @@ def _answer(outcome: Outcome) -> JSONResponse:
             "event_id": outcome.event_id,
             "state": outcome.state.value,
         }
-        return JSONResponse(refused, status_code=422)
+        return 422, refused, {}
     body = CommandResult(
         accepted=outcome.accepted,
         event_id=outcome.event_id,
@@ -124,7 +126,46 @@ def _answer(outcome: Outcome) -> JSONResponse:
         message=outcome.message,
         run_id=outcome.run_id,
     )
-    return JSONResponse(body.model_dump(), status_code=status)
+    return status, body.model_dump(), {}
+
+
+def _answer(outcome: Outcome) -> JSONResponse:
+    status, body, headers = answer_of(outcome)
+    return JSONResponse(body, status_code=status, headers=headers or None)
+
+
+# Each command's request body (None: it takes none) and the payload the worker gets from
+# it: the routes below and the MQTT door (server/mqtt/commands.py) build payloads here.
+def start_payload(body: StartRequest | None) -> StartPayload:
+    body = body or StartRequest()
+    return StartPayload(body.contour_matching, body.workpiece_id)
+
+
+def create_workpiece_payload(body: CreateWorkpieceRequest | None) -> CreateWorkpiecePayload:
+    body = body or CreateWorkpieceRequest()
+    spray = body.spray.model_dump(exclude_none=True) if body.spray is not None else None
+    return CreateWorkpiecePayload(body.name, body.workpiece_id, spray)
+
+
+def estop_payload(body: EstopRequest | None) -> StopPayload:
+    return StopPayload(body.reason if body else None)
+
+
+def jog_payload(body: JogRequest) -> JogPayload:
+    return JogPayload(body.axis, body.distance_mm)
+
+
+REQUEST_BODIES: dict[Command, tuple[type[BaseModel], Callable[[Any], Payload]]] = {
+    Command.START: (StartRequest, start_payload),
+    Command.CREATE_WORKPIECE: (CreateWorkpieceRequest, create_workpiece_payload),
+    Command.ESTOP: (EstopRequest, estop_payload),
+    Command.JOG: (JogRequest, jog_payload),
+}
+
+
+def command_path(command: Command) -> str:
+    """The HTTP route of a command: its role in server/security/policy.py is keyed on it."""
+    return f"/{command.value}"
 
 
 async def _run(request: Request, command: Command, payload: Payload | None = None) -> JSONResponse:
@@ -132,7 +173,7 @@ async def _run(request: Request, command: Command, payload: Payload | None = Non
         command,
         source=_client(request),
         payload=payload,
-        audit=audit.note(request, _audit_label),
+        audit=audit.note(request, audit_label),
     )
     if outcome.journal_problem is None:
         request.state.audited = True  # its row was committed with the event
@@ -146,10 +187,7 @@ async def start(
     request: Request, body: Annotated[StartRequest | None, Body()] = None
 ) -> JSONResponse:
     """Start spraying (IDLE → EXECUTING_TRAJECTORY)."""
-    body = body or StartRequest()
-    return await _run(
-        request, Command.START, StartPayload(body.contour_matching, body.workpiece_id)
-    )
+    return await _run(request, Command.START, start_payload(body))
 
 
 @router.post("/calibrate-robot", status_code=202, responses=RESPONSES, response_model=CommandResult)
@@ -173,10 +211,7 @@ async def create_workpiece(
     request: Request, body: Annotated[CreateWorkpieceRequest | None, Body()] = None
 ) -> JSONResponse:
     """Capture the part on the table into the library (IDLE → CREATING_WORKPIECE)."""
-    body = body or CreateWorkpieceRequest()
-    spray = body.spray.model_dump(exclude_none=True) if body.spray is not None else None
-    payload = CreateWorkpiecePayload(body.name, body.workpiece_id, spray)
-    return await _run(request, Command.CREATE_WORKPIECE, payload)
+    return await _run(request, Command.CREATE_WORKPIECE, create_workpiece_payload(body))
 
 
 @router.post("/pause", status_code=202, responses=RESPONSES, response_model=CommandResult)
@@ -216,7 +251,7 @@ async def estop(
     dropped = getattr(request.state, "body_dropped", None)
     if dropped is not None:  # too large to read: the stop is made, the 413 says so
         return JSONResponse({"detail": dropped, **await stop_anyway(request)}, status_code=413)
-    return await _run(request, Command.ESTOP, StopPayload(body.reason if body else None))
+    return await _run(request, Command.ESTOP, estop_payload(body))
 
 
 def is_estop(request: Request) -> bool:
@@ -263,4 +298,4 @@ async def jog(request: Request, body: JogRequest) -> JSONResponse:
     `distance_mm`, checked against the pose the worker reads before anything moves.
     Answered once the step has begun, like home; the e-stop or a fault stops it.
     """
-    return await _run(request, Command.JOG, JogPayload(body.axis, body.distance_mm))
+    return await _run(request, Command.JOG, jog_payload(body))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, Query, Request, Response
+from fastapi import APIRouter, FastAPI, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse, JSONResponse
 
 from server.api.analytics import TEXT_MAX_LENGTH, TEXT_PATTERN
@@ -59,7 +59,16 @@ async def is_allowed(request: Request, name: str) -> AllowedView:
 @router.get("/health", response_model=HealthView)
 async def get_health(request: Request) -> dict:
     """Each device's link, last round-trip and last error; the worker's and journal's figures."""
-    return {**_view(request).health(), "websocket_clients": request.app.state.ws_hub.client_count}
+    return health_of(request.app)
+
+
+def health_of(app: FastAPI) -> dict[str, Any]:
+    """What GET /health answers (the MQTT link publishes the same, retained, on `health`)."""
+    health = {**app.state.cell.view.health(), "websocket_clients": app.state.ws_hub.client_count}
+    link = getattr(app.state, "mqtt", None)
+    if link is not None:
+        health["mqtt"] = link.health()
+    return health
 
 
 @router.get("/calibration")

@@ -191,6 +191,22 @@ class JournalHealthView(BaseModel):
     )
 
 
+class MqttHealthView(BaseModel):
+    """The MQTT link (docs/plant-integration.md)."""
+
+    connected: bool
+    broker: str = Field(description="the broker's host and port")
+    since: float | None = Field(description="Unix time the link last came up or went down")
+    buffered: int = Field(description="messages waiting for the broker")
+    dropped: int = Field(
+        description="event, progress and alert messages dropped since start (the buffer, "
+        "mqtt_buffer, was full while the broker was away)"
+    )
+    reconnects: int = Field(description="connections made after the first")
+    last_error: str | None = Field(description="why the link last went down")
+    commands: bool = Field(description="whether commands are accepted over MQTT")
+
+
 class HealthView(BaseModel):
     """GET /health: ok when every device answers, degraded otherwise."""
 
@@ -200,6 +216,7 @@ class HealthView(BaseModel):
     worker: PerformanceView
     journal: JournalHealthView
     websocket_clients: int
+    mqtt: MqttHealthView | None = Field(None, description="the MQTT link, when mqtt_url is set")
 
 
 class ErrorView(BaseModel):

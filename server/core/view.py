@@ -75,6 +75,18 @@ class CellView:
             "history": [r.as_dict() for r in list(ctx.history)[-SNAPSHOT_HISTORY:]],
         }
 
+    def current_run(self) -> dict[str, Any] | None:
+        """The operation running now: name, run id and the workpiece it sprays, if named.
+
+        The workpiece is the one the run's progress last named (contour matching
+        sprays several in turn), else the one the start asked for.
+        """
+        running = self._ctx.operation
+        if running is None:
+            return None
+        workpiece = running.progress.get("workpiece") or running.params.get("workpiece_id")
+        return {"name": running.name, "run_id": running.run_id, "workpiece_id": workpiece}
+
     def _available_commands(self) -> list[str]:
         commands = available_commands(self._ctx.state, self._worker.facts())
         if self._worker.reset_probes.under_way:  # one reset is probed at a time

@@ -22,7 +22,7 @@ from urllib.parse import urlparse
 
 from asyncua import Server, ua
 
-from server.api.analytics import shift_kpis
+from server.api.analytics import kpis_of
 from server.cell import Cell
 from server.config import Settings
 from server.core.bus import BusMessage, Subscription, SubscriptionClosed
@@ -208,7 +208,7 @@ class OpcUaInterface:
     async def _refresh_admin(self) -> None:
         while True:
             try:
-                kpis = await shift_kpis(self.cell)
+                kpis = await kpis_of(self.cell)
                 for name, figure in tags.admin_figures(kpis).items():
                     await self._write(f"Admin.{name}", figure, None)
                 for name, count in tags.admin_counts(kpis).items():

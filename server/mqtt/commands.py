@@ -1,0 +1,135 @@
+"""Commands received over MQTT: the same path, roles, audit and answers as HTTP.
+
+A message on `<prefix>/<cell_id>/command/<name>` carries `{"token": ..., "body":
+{...}}`; `name` is the HTTP route's (start, pause, resume, cancel, reset,
+estop, home, jog, calibrate-robot, calibrate-camera, create-workpiece). The
+token is checked by the HTTP gate's store and the role is the one
+server/security/policy.py gives the route (`POST /<name>`), so the two doors
+cannot drift apart. The body is validated by the route's own model and turned
+into the worker's payload by the same function (server/api/commands.py), and
+the command goes to `Cell.command` with an audit note, whose row is committed
+with the event. The answer is the HTTP answer's JSON with its status beside it
+(`"status": 202` and so on).
+
+What no command reaches the worker with (no token, a wrong one, too low a
+role, an unknown command, a body that is not valid) is refused here and
+written to the audit trail like the HTTP gate's refusals. An e-stop goes by
+the e-stop path (`Cell.command` → `Worker.emergency_stop`: the devices halted
+before the event is queued) and is never refused over its body: it is made,
+and the 422 says so, as over HTTP.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+
+from server.api.commands import REQUEST_BODIES, answer_of, audit_label, command_path
+from server.api.schemas import RETRY_AFTER_S
+from server.cell import Cell
+from server.core.events import AuditNote, Payload, StopPayload
+from server.core.transitions import Command, normalize_command
+from server.errors import EventQueueFull, JournalUnavailable, WorkerStopped
+from server.security.policy import required_role
+from server.security.tokens import Principal, TokenStore
+from server.storage.journal import records
+
+log = logging.getLogger(__name__)
+
+Answer = tuple[int, dict[str, Any]]
+
+
+class CommandDoor:
+    """Runs one MQTT command message and says what to answer."""
+
+    def __init__(self, cell: Cell, tokens: TokenStore, address: str) -> None:
+        self.cell = cell
+        self.tokens = tokens
+        self.address = address  # what the audit records as "from where": the broker
+
+    async def handle(self, topic: str, name: str, raw: bytes) -> Answer:
+        """Check, run and answer one command message; every refusal is audited."""
+        action = f"MQTT {topic}"
+        command = normalize_command(name)
+        if command is None:
+            return self._refuse(None, action, 404, f"unknown command {name!r}")
+        try:
+            message = json.loads(raw or b"{}")
+        except (ValueError, UnicodeDecodeError):
+            return self._refuse(None, action, 400, "the payload is not JSON")
+        if not isinstance(message, dict):
+            return self._refuse(None, action, 400, 'the payload must be {"token": ..., "body": {}}')
+        token = message.get("token")
+        if not isinstance(token, str) or not token:
+            detail = 'authentication required: put the token in the payload ("token")'
+            return self._refuse(None, action, 401, detail)
+        principal = self.tokens.verify(token)
+        if principal is None:
+            return self._refuse(None, action, 401, "the token is unknown or revoked")
+        needed = required_role("POST", command_path(command))
+        if needed is not None and principal.role < needed:
+            detail = (
+                f"this needs the {needed.label} role; {principal.name} has {principal.role.label}"
+            )
+            return self._refuse(principal, action, 403, detail)
+        payload, problem = _payload(command, message.get("body"))
+        if problem is not None:
+            if command is Command.ESTOP:  # a stop is never refused over its body
+                _, answer = await self._run(principal, action, command, StopPayload(None))
+                answer["message"] = f"the stop was made without its reason: {answer['message']}"
+                return 422, {"detail": problem, **answer}
+            return self._refuse(principal, action, 422, problem)
+        return await self._run(principal, action, command, payload)
+
+    async def _run(
+        self, principal: Principal, action: str, command: Command, payload: Payload | None
+    ) -> Answer:
+        note = AuditNote(principal.describe(), self.address, action, audit_label)
+        try:
+            outcome = await self.cell.command(
+                command, source=f"mqtt:{principal.name}", payload=payload, audit=note
+            )
+        except (EventQueueFull, WorkerStopped, JournalUnavailable) as exc:
+            self._audit(principal, action, "refused (503)", str(exc))
+            state = self.cell.view.state.value
+            body = {"accepted": False, "state": state, "message": str(exc)}
+            return 503, {**body, "retry_after": RETRY_AFTER_S}
+        status, body, _ = answer_of(outcome)
+        if outcome.journal_problem is not None:  # not on record with the event: once more
+            label = audit_label(outcome)
+            self._audit(principal, action, label, f"event {outcome.event_id}: {outcome.message}")
+        return status, body
+
+    def _refuse(self, principal: Principal | None, action: str, status: int, detail: str) -> Answer:
+        log.info("MQTT command refused (%d): %s: %s", status, action, detail)
+        self._audit(principal, action, f"refused ({status})", detail)
+        return status, {"detail": detail}
+
+    def _audit(self, principal: Principal | None, action: str, outcome: str, detail: str) -> None:
+        journal = self.cell.journal
+        if journal is None:
+            return
+        who = principal.describe() if principal else "anonymous"
+        row = records.audit(time.time(), who, self.address, action, outcome, detail)
+        journal.append([row], durable=False)
+
+
+def _payload(command: Command, body: Any) -> tuple[Payload | None, str | None]:
+    """The worker's payload from the message's body, or why the body is not valid."""
+    declared = REQUEST_BODIES.get(command)
+    if declared is None:
+        return None, None  # the command takes no body (as over HTTP, one sent is not read)
+    model, build = declared
+    try:
+        parsed: BaseModel = model.model_validate({} if body is None else body)
+    except ValidationError as exc:
+        problems = []
+        for error in exc.errors():
+            where = ".".join(str(part) for part in error["loc"]) or "body"
+            problems.append(f"{where}: {error['msg']}")
+        return None, f"invalid request: {'; '.join(problems)}"
+    return build(parsed), None

@@ -1,0 +1,365 @@
+"""The link to the plant's MQTT broker: one more bus subscriber, never waited on.
+
+Three tasks, none of which the worker or the e-stop ever awaits:
+
+- the feed reads the bus (its own bounded subscription, like a WebSocket
+  client) and turns each record into topic messages in the outbox at once, so
+  a transition is on its way to the broker within a turn of the event loop;
+- the connection publishes the outbox in order at QoS 1 while the broker is
+  there, and reconnects with a doubling backoff (capped at
+  `mqtt_reconnect_max`) while it is not; the outbox bounds what waits
+  (server/mqtt/outbox.py: the oldest event, progress and alert messages are
+  dropped and counted, the retained topics keep their latest);
+- the ticker republishes the retained health when it changes and every
+  `mqtt_health_interval`, and the KPIs every `mqtt_kpis_interval`.
+
+The broker is told `online` on `status` at each connection, with a last will
+of `offline` it publishes itself if the cell goes silent for 1.5 keep-alives
+(a killed server, a cut cable); a clean stop says `offline` before it leaves.
+Commands (server/mqtt/commands.py) each get a task of their own, so an e-stop
+never waits behind a command still being decided.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import random
+import ssl
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any
+from urllib.parse import urlsplit
+
+import aiomqtt
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+
+from server.cell import Cell
+from server.config import Settings
+from server.core.bus import SubscriptionClosed
+from server.mqtt.commands import CommandDoor
+from server.mqtt.outbox import Entry, Outbox
+from server.mqtt.topics import (
+    OFFLINE,
+    ONLINE,
+    Topics,
+    alert_message,
+    encode,
+    event_message,
+    progress_message,
+    state_message,
+)
+
+log = logging.getLogger(__name__)
+
+BUS_TYPES = ("state_changed", "progress", "alert", "error")
+BUS_BUFFER = 1024  # records between the bus and the outbox: drained at once, so rarely used
+FIRST_BACKOFF_S = 0.1
+STOP_FLUSH_S = 2.0  # at a clean stop, how long `offline` (and what waits) may take to go
+TICK_S = 1.0  # how often the health is looked at for a change
+MAX_COMMANDS_IN_FLIGHT = 64  # beyond this a command is refused (503), never an e-stop
+
+
+def broker_address(url: str) -> tuple[str, int, bool]:
+    """Host, port and whether TLS, from mqtt://host[:port] or mqtts://host[:port]."""
+    parts = urlsplit(url)
+    tls = parts.scheme == "mqtts"
+    return parts.hostname or "", parts.port or (8883 if tls else 1883), tls
+
+
+def _health_signature(health: dict[str, Any]) -> str:
+    """What a change of health means: status, state, each device's link and faults, the
+    journal's failure; not the figures that move with every event (rtt, counts)."""
+    devices = {
+        name: (device.get("connected"), device.get("active_faults"))
+        for name, device in health.get("devices", {}).items()
+    }
+    journal = health.get("journal", {})
+    mqtt = health.get("mqtt", {})
+    key = [health.get("status"), health.get("state"), devices, journal.get("last_error")]
+    return json.dumps([*key, mqtt.get("dropped")], sort_keys=True, default=str)
+
+
+class MqttLink:
+    """Publishes the cell to a broker and, if enabled, takes commands from it."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        cell: Cell,
+        *,
+        health: Callable[[], dict[str, Any]],
+        kpis: Callable[[], Awaitable[dict[str, Any]]],
+        commands: CommandDoor | None = None,
+    ) -> None:
+        assert settings.mqtt_url is not None
+        self.settings = settings
+        self.cell = cell
+        self.host, self.port, self.tls = broker_address(settings.mqtt_url)
+        self.topics = Topics(settings.mqtt_topic_prefix, settings.cell_id)
+        self.outbox = Outbox(settings.mqtt_buffer)
+        self._health = health
+        self._kpis = kpis
+        self._commands = commands
+        self._client: aiomqtt.Client | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self._in_flight: set[asyncio.Task[None]] = set()
+        self._connected = False
+        self._since: float | None = None
+        self._reconnects = 0
+        self._last_error: str | None = None
+        self._dropped_at_loss = 0
+        self._stopping = False
+        self._drained = asyncio.Event()  # set when the outbox was published to the end
+
+    # --- life ----------------------------------------------------------------
+
+    def start(self) -> None:
+        """Subscribe to the bus and start connecting; returns at once."""
+        subscription = self.cell.bus.subscribe(BUS_BUFFER, types=BUS_TYPES)
+        self._put_state()  # the present first, then every later change from the bus
+        self._tasks = [
+            asyncio.create_task(self._feed(subscription), name="mqtt-feed"),
+            asyncio.create_task(self._connection(), name="mqtt-connection"),
+            asyncio.create_task(self._ticker(), name="mqtt-ticker"),
+        ]
+        log.info(
+            "MQTT: publishing to %s:%d under %s/ (commands %s)",
+            self.host,
+            self.port,
+            self.topics.base,
+            "on" if self._commands else "off",
+        )
+
+    async def stop(self) -> None:
+        """Say `offline` (retained) if the broker is there, then leave cleanly."""
+        self._stopping = True
+        feed, connection, ticker = self._tasks or (None, None, None)
+        for task in (feed, ticker, *self._in_flight):
+            if task is not None:
+                task.cancel()
+        self._drained.clear()
+        self.outbox.put(Entry(self.topics.status, OFFLINE, retain=True))
+        if connection is not None:
+            if self._connected:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._drained.wait(), STOP_FLUSH_S)
+            connection.cancel()
+        await asyncio.gather(*self._tasks, *self._in_flight, return_exceptions=True)
+        self._tasks = []
+
+    def health(self) -> dict[str, Any]:
+        """The link as /health shows it (`mqtt`)."""
+        return {
+            "connected": self._connected,
+            "broker": f"{self.host}:{self.port}",
+            "since": self._since,
+            "buffered": len(self.outbox),
+            "dropped": self.outbox.dropped,
+            "reconnects": self._reconnects,
+            "last_error": self._last_error,
+            "commands": self._commands is not None,
+        }
+
+    # --- from the bus to the outbox -----------------------------------------------
+
+    async def _feed(self, subscription: Any) -> None:
+        cell_id = self.topics.cell_id
+        while True:
+            try:
+                message = await subscription.get()
+            except SubscriptionClosed as closed:
+                log.warning("MQTT: the bus feed was closed (%s); the state is sent again", closed)
+                subscription = self.cell.bus.subscribe(BUS_BUFFER, types=BUS_TYPES)
+                self._put_state()
+                continue
+            data = message.data
+            if message.type == "state_changed":
+                self._put_state(data)
+                event = event_message(cell_id, message.seq, data)
+                self.outbox.put(Entry(self.topics.event, encode(event)))
+                self._put_health_if_changed()
+            elif message.type == "progress":
+                progress = progress_message(cell_id, data)
+                if progress is not None:
+                    self.outbox.put(Entry(self.topics.progress, encode(progress)))
+            else:  # alert (a warning) or error (a fault)
+                alert = alert_message(cell_id, message.type, message.time, data)
+                self.outbox.put(Entry(self.topics.alert, encode(alert)))
+
+    def _put_state(self, changed: dict[str, Any] | None = None) -> None:
+        """The retained state: of the transition `changed` records, else the present one.
+
+        A run starts just after its transition is published, in the same turn of
+        the worker, so the run is read from the view while the view is still in
+        that state (same since); otherwise the transition's own snapshot has it.
+        """
+        view = self.cell.view
+        snapshot = changed["snapshot"] if changed else view.snapshot()
+        run = view.current_run() if view.since == snapshot["since"] else None
+        state = state_message(self.topics.cell_id, snapshot, run)
+        self.outbox.put(Entry(self.topics.state, encode(state), retain=True))
+
+    _last_health = ""
+
+    def _put_health_if_changed(self, *, anyway: bool = False) -> None:
+        health = self._health()
+        signature = _health_signature(health)
+        if anyway or signature != self._last_health:
+            self._last_health = signature
+            self.outbox.put(Entry(self.topics.health, encode(health), retain=True))
+
+    async def _ticker(self) -> None:
+        settings = self.settings
+        next_health = next_kpis = 0.0
+        while True:
+            now = time.monotonic()
+            self._put_health_if_changed(anyway=now >= next_health)
+            if now >= next_health:
+                next_health = now + settings.mqtt_health_interval
+            if now >= next_kpis:
+                next_kpis = now + settings.mqtt_kpis_interval
+                try:
+                    kpis = await self._kpis()
+                except Exception as exc:  # a journal read failed: the next tick tries again
+                    log.warning("MQTT: KPIs not published: %s", exc)
+                else:
+                    payload = encode({"cell_id": self.topics.cell_id, **kpis})
+                    self.outbox.put(Entry(self.topics.kpis, payload, retain=True))
+            await asyncio.sleep(TICK_S)
+
+    # --- the connection ------------------------------------------------------------
+
+    def _client_for(self) -> aiomqtt.Client:
+        settings = self.settings
+        tls_context = None
+        if self.tls:
+            tls_context = ssl.create_default_context(
+                cafile=str(settings.mqtt_ca_file) if settings.mqtt_ca_file else None
+            )
+        password = settings.mqtt_password.get_secret_value() if settings.mqtt_password else None
+        return aiomqtt.Client(
+            self.host,
+            self.port,
+            username=settings.mqtt_username,
+            password=password,
+            identifier=f"glue-cell-{settings.cell_id}",
+            protocol=aiomqtt.ProtocolVersion.V5,
+            will=aiomqtt.Will(self.topics.status, OFFLINE, qos=1, retain=True),
+            keepalive=settings.mqtt_keepalive,
+            tls_context=tls_context,
+            timeout=max(10.0, 2.0 * settings.mqtt_keepalive),
+        )
+
+    async def _connection(self) -> None:
+        backoff = FIRST_BACKOFF_S
+        first = True
+        while True:
+            try:
+                async with self._client_for() as client:
+                    self._up(client, first)
+                    first = False
+                    backoff = FIRST_BACKOFF_S
+                    await client.publish(self.topics.status, ONLINE, qos=1, retain=True)
+                    if self._commands is not None:
+                        await client.subscribe(self.topics.commands, qos=1)
+                    async with asyncio.TaskGroup() as group:
+                        group.create_task(self._publish(client))
+                        group.create_task(self._listen(client))
+            except* aiomqtt.MqttError as errors:
+                self._down(str(errors.exceptions[0]))
+            except* OSError as errors:  # a TLS or socket failure before MQTT spoke
+                self._down(str(errors.exceptions[0]))
+            if self._stopping:
+                return
+            await asyncio.sleep(backoff * random.uniform(0.8, 1.2))
+            backoff = min(2 * backoff, self.settings.mqtt_reconnect_max)
+
+    def _up(self, client: aiomqtt.Client, first: bool) -> None:
+        self._client = client
+        self._connected = True
+        self._since = time.time()
+        if first:
+            log.info("MQTT: connected to %s:%d", self.host, self.port)
+            return
+        self._reconnects += 1
+        dropped = self.outbox.dropped - self._dropped_at_loss
+        log.warning(
+            "MQTT: connected to %s:%d again; %d messages waiting are sent now, %d were "
+            "dropped while it was away (%d since start)",
+            self.host,
+            self.port,
+            len(self.outbox),
+            dropped,
+            self.outbox.dropped,
+        )
+
+    def _down(self, error: str) -> None:
+        if self._connected:
+            log.warning("MQTT: lost %s:%d: %s", self.host, self.port, error)
+            self._since = time.time()
+            self._dropped_at_loss = self.outbox.dropped
+        elif error != self._last_error:
+            log.warning("MQTT: cannot reach %s:%d: %s", self.host, self.port, error)
+        self._connected = False
+        self._client = None
+        self._last_error = error
+
+    async def _publish(self, client: aiomqtt.Client) -> None:
+        """The outbox, in order, each message acknowledged (QoS 1) before the next."""
+        while True:
+            await self.outbox.wait()
+            entry = self.outbox.take()
+            if entry is None:
+                continue
+            try:
+                await client.publish(entry.topic, entry.payload, qos=1, retain=entry.retain)
+            except BaseException:
+                self.outbox.put_back(entry)  # sent again on the next connection
+                raise
+            if not len(self.outbox):
+                self._drained.set()
+
+    async def _listen(self, client: aiomqtt.Client) -> None:
+        """Commands, each in a task of its own; also how a lost connection is noticed."""
+        async for message in client.messages:
+            if self._commands is None:
+                continue
+            topic = str(message.topic)
+            name = self.topics.command_name(topic)
+            if name is None:
+                continue
+            if len(self._in_flight) >= MAX_COMMANDS_IN_FLIGHT and name != "estop":
+                answer = (503, {"accepted": False, "message": "too many MQTT commands at once"})
+                await self._answer(message, answer)
+                continue
+            task = asyncio.create_task(self._command(message, topic, name), name="mqtt-command")
+            self._in_flight.add(task)
+            task.add_done_callback(self._in_flight.discard)
+
+    async def _command(self, message: aiomqtt.Message, topic: str, name: str) -> None:
+        assert self._commands is not None
+        raw = message.payload if isinstance(message.payload, bytes) else b""
+        answer = await self._commands.handle(topic, name, raw)
+        await self._answer(message, answer)
+
+    async def _answer(self, message: aiomqtt.Message, answer: tuple[int, dict[str, Any]]) -> None:
+        """On the request's v5 response topic, with its correlation data; none asked, none sent."""
+        asked = message.properties
+        response_topic = getattr(asked, "ResponseTopic", None) if asked else None
+        client = self._client
+        if not response_topic or client is None:
+            return
+        properties = Properties(PacketTypes.PUBLISH)
+        correlation = getattr(asked, "CorrelationData", None)
+        if correlation is not None:
+            properties.CorrelationData = correlation
+        properties.ContentType = "application/json"
+        status, body = answer
+        with contextlib.suppress(aiomqtt.MqttError):
+            await client.publish(
+                response_topic, encode({"status": status, **body}), qos=1, properties=properties
+            )

@@ -1,0 +1,149 @@
+"""The MQTT topic contract: the topics' names and each message's JSON, built purely.
+
+Under `<prefix>/<cell_id>/` (prefix `mqtt_topic_prefix`, default `glue`):
+
+- `status`: retained plain text `online`; the last will and a clean stop say `offline`;
+- `state`: retained, the state with its since, stop reason, run and workpiece;
+- `event`: one per transition, in order (`seq` is the bus's number);
+- `progress`: a run's progress; `alert`: each warning and each fault;
+- `kpis`, `health`: retained, what GET /kpis and GET /health answer;
+- `command/<name>`: commands in (off by default), answered on the v5 response topic.
+
+Why JSON built here and not the bus message as it is: the plant reads a
+contract that must not change when the WebSocket's messages grow a field, and
+every message names its cell, so a subscriber to `glue/+/event` needs no topic
+parsing. The line view and docs/plant-integration.md read these names.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+
+ONLINE = b"online"
+OFFLINE = b"offline"
+
+
+@dataclass(frozen=True, slots=True)
+class Topics:
+    """The topic names of one cell."""
+
+    prefix: str
+    cell_id: str
+
+    @property
+    def base(self) -> str:
+        return f"{self.prefix}/{self.cell_id}"
+
+    @property
+    def status(self) -> str:
+        return f"{self.base}/status"
+
+    @property
+    def state(self) -> str:
+        return f"{self.base}/state"
+
+    @property
+    def event(self) -> str:
+        return f"{self.base}/event"
+
+    @property
+    def progress(self) -> str:
+        return f"{self.base}/progress"
+
+    @property
+    def alert(self) -> str:
+        return f"{self.base}/alert"
+
+    @property
+    def kpis(self) -> str:
+        return f"{self.base}/kpis"
+
+    @property
+    def health(self) -> str:
+        return f"{self.base}/health"
+
+    @property
+    def commands(self) -> str:
+        """The subscription filter of every command topic."""
+        return f"{self.base}/command/+"
+
+    def command_name(self, topic: str) -> str | None:
+        """The command a topic names (`.../command/<name>`), or None if it names none."""
+        head = f"{self.base}/command/"
+        if not topic.startswith(head):
+            return None
+        name = topic[len(head) :]
+        return name if name and "/" not in name else None
+
+
+def encode(message: dict[str, Any]) -> bytes:
+    """Compact JSON, UTF-8."""
+    return json.dumps(message, separators=(",", ":"), ensure_ascii=False).encode()
+
+
+def state_message(
+    cell_id: str, snapshot: dict[str, Any], run: dict[str, Any] | None
+) -> dict[str, Any]:
+    """The retained state from a state snapshot (GET /state's) and the run, if any."""
+    reason = snapshot.get("stop_reason")
+    operation = snapshot.get("operation") or {}
+    run = run or {}
+    return {
+        "cell_id": cell_id,
+        "state": snapshot["state"],
+        "since": snapshot["since"],
+        "stop_reason": ({"code": reason["code"], "message": reason["message"]} if reason else None),
+        "run_id": run.get("run_id") or operation.get("run_id"),
+        "workpiece_id": run.get("workpiece_id"),
+        "operation": run.get("name") or operation.get("name"),
+        "available_commands": snapshot.get("available_commands", []),
+    }
+
+
+def event_message(cell_id: str, seq: int, data: dict[str, Any]) -> dict[str, Any]:
+    """One transition from a `state_changed` bus record."""
+    return {
+        "cell_id": cell_id,
+        "seq": seq,
+        "from": data["old_state"],
+        "to": data["new_state"],
+        "event": data["event"],
+        "event_id": data["event_id"],
+        "at": data["timestamp"],
+        "source": data.get("source"),
+    }
+
+
+def progress_message(cell_id: str, data: dict[str, Any]) -> dict[str, Any] | None:
+    """A run's progress from a `progress` bus record; None for one that reports no progress
+    (a recovery attempt: its fault, if it fails, comes as an alert)."""
+    if "waypoint" not in data and "fraction" not in data:
+        return None
+    fraction = data.get("fraction")
+    return {
+        "cell_id": cell_id,
+        "run_id": data.get("run_id"),
+        "operation": data.get("operation"),
+        "waypoint": data.get("waypoint"),
+        "total": data.get("of"),
+        "percent": round(100 * fraction, 1) if isinstance(fraction, int | float) else None,
+        "workpiece_id": data.get("workpiece"),
+        "step": data.get("step"),
+    }
+
+
+def alert_message(cell_id: str, kind: str, at: float, data: dict[str, Any]) -> dict[str, Any]:
+    """A warning (`alert` record) or a fault (`error` record), with what to do first."""
+    return {
+        "cell_id": cell_id,
+        "kind": "warning" if kind == "alert" else "fault",
+        "code": data.get("code"),
+        "message": data.get("message"),
+        "component": data.get("component"),
+        "classification": data.get("classification"),
+        "recommended_action": data.get("recommended_action"),
+        "state": data.get("state"),
+        "at": data.get("time", at),
+    }

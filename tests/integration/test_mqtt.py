@@ -1,0 +1,281 @@
+"""The cell on a plant's MQTT broker: Debian's mosquitto as a process, the cell
+publishing to it through its production link, and subscribers and requesters
+that are plain MQTT clients (aiomqtt, on paho).
+
+What a plant would notice: a late subscriber finds the state; every transition
+of a run arrives in order; a killed server shows `offline` (its last will) and a
+stopped one says so itself; what happened while the broker was away arrives
+when it is back, the newest first kept and the rest counted; commands over MQTT
+are refused without a valid token or the role and answered on the v5 response
+topic with the correlation data, through the same path as HTTP.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import uuid
+from pathlib import Path
+
+import aiomqtt
+import httpx
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+
+from server.mqtt.link import BUS_TYPES
+from tests.mosquitto import WAIT_S, mosquitto, subscriber
+from tests.processes import server_process
+from tests.rig import SPRAY_DEMO, open_rig, run
+from tests.serving import admin_headers, free_port
+
+CELL = "cell-7"
+BASE = f"glue/{CELL}"
+
+
+async def test_a_run_in_order_and_the_state_for_a_late_subscriber(tmp_path: Path) -> None:
+    with mosquitto(tmp_path / "broker") as broker:
+        async with (
+            open_rig(tmp_path / "data", mqtt_url=broker.url, cell_id=CELL) as rig,
+            subscriber(broker.port, f"{BASE}/#") as early,
+        ):
+            truth = rig.cell.bus.subscribe(4096, types=["state_changed"])
+            final = await run(rig, "start", SPRAY_DEMO)
+            assert final["state"] == "IDLE"
+            transitions = []
+            while truth.pending:
+                transitions.append((await truth.get()).data)
+            assert [t["new_state"] for t in transitions] == ["EXECUTING_TRAJECTORY", "IDLE"]
+
+            events = await early.wait(
+                lambda: (e := early.on(f"{BASE}/event")) and len(e) >= 2 and e
+            )
+            assert [(e["from"], e["to"], e["event_id"]) for e in events] == [
+                (t["old_state"], t["new_state"], t["event_id"]) for t in transitions
+            ]
+            assert [e["seq"] for e in events] == sorted(e["seq"] for e in events)
+            assert all(e["cell_id"] == CELL for e in events)
+            run_id = events[0]["event_id"]
+            states = early.on(f"{BASE}/state")
+            running = [s for s in states if s["state"] == "EXECUTING_TRAJECTORY"]
+            assert running and running[0]["run_id"] == run_id
+            assert running[0]["workpiece_id"] == "demo"
+            progress = early.on(f"{BASE}/progress")
+            assert progress and {p["run_id"] for p in progress} == {run_id}
+            assert [p["waypoint"] for p in progress] == list(range(1, progress[-1]["total"] + 1))
+            assert progress[-1]["percent"] == 100.0
+
+            # A subscriber that comes later is told the present by the broker alone.
+            async with subscriber(broker.port, f"{BASE}/#") as late:
+                state = await late.wait(lambda: late.on(f"{BASE}/state"))
+                assert state[-1] == {
+                    **state[-1],
+                    "cell_id": CELL,
+                    "state": "IDLE",
+                    "since": final["since"],
+                    "stop_reason": None,
+                    "run_id": None,
+                }
+                assert (await late.wait(lambda: late.on(f"{BASE}/status"))) == ["online"]
+                health = await late.wait(lambda: late.on(f"{BASE}/health"))
+                assert health[-1]["mqtt"]["connected"] is True
+                kpis = await late.wait(lambda: late.on(f"{BASE}/kpis"))
+                assert kpis[-1]["cell_id"] == CELL and "oee" in json.dumps(kpis[-1])
+                assert not late.on(f"{BASE}/event")  # not retained: history is not replayed
+
+            over_http = (await rig.api.get("/health")).json()["mqtt"]
+            assert over_http["connected"] is True and over_http["dropped"] == 0
+            settings = (await rig.api.get("/settings")).json()
+            assert settings["mqtt_url"] == broker.url
+
+
+async def test_what_happened_while_the_broker_was_away(tmp_path: Path, caplog) -> None:
+    buffer = 2
+    with mosquitto(tmp_path / "broker") as broker:
+        async with (
+            open_rig(
+                tmp_path / "data",
+                mqtt_url=broker.url,
+                cell_id=CELL,
+                mqtt_buffer=buffer,
+                mqtt_reconnect_max=0.5,
+            ) as rig,
+            subscriber(broker.port, f"{BASE}/#", identifier="plant", persistent=True) as plant,
+        ):
+            await plant.wait(
+                lambda: rig.cell.view.state.value == "IDLE" and plant.on(f"{BASE}/state")
+            )
+            health = rig.cell.bus  # noqa: F841
+            broker.stop()
+            await _wait_http(rig, lambda h: h["mqtt"]["connected"] is False)
+            seen_before = len(plant.messages)
+
+            # While it is away: an e-stop and a reset, twice (transitions and the faults).
+            truth = rig.cell.bus.subscribe(4096, types=BUS_TYPES)
+            for _ in range(2):
+                assert (await rig.api.post("/estop", json={"reason": "drill"})).status_code == 202
+                await rig.wait_state("ERROR")
+                assert (await rig.reset()).status_code == 202
+                await rig.wait_state("IDLE")
+            produced = []
+            while truth.pending:
+                produced.append(await truth.get())
+            truth.close()
+            stream = [m for m in produced if m.type != "progress"]
+            assert len(stream) > buffer  # the buffer overflowed
+
+            broker.start()
+            after = await _wait_http(rig, lambda h: h["mqtt"]["connected"] is True)
+            assert after["mqtt"]["dropped"] == len(stream) - buffer
+            assert after["mqtt"]["reconnects"] == 1
+
+            # The newest `buffer` stream messages come, in order; the state is the latest.
+            newest_transition = [m for m in stream if m.type == "state_changed"][-1]
+            events = await plant.wait(
+                lambda: [
+                    m
+                    for m in plant.on(f"{BASE}/event")[0:]
+                    if m["event_id"] == newest_transition.data["event_id"]
+                ]
+            )
+            assert events
+            arrived = [m for m in plant.messages[seen_before:] if str(m.topic) in _stream_topics()]
+            expected = [_stream_key(m) for m in stream[-buffer:]]
+            assert [_arrived_key(m) for m in arrived] == expected
+            state = await plant.wait(
+                lambda: [
+                    s
+                    for s in plant.on(f"{BASE}/state")
+                    if s["since"] == rig.cell.view.since and s["state"] == "IDLE"
+                ]
+            )
+            assert state
+            assert any("dropped while it was away" in r.getMessage() for r in caplog.records)
+
+
+def _stream_topics() -> set[str]:
+    return {f"{BASE}/event", f"{BASE}/alert"}
+
+
+def _stream_key(message) -> tuple[str, str]:
+    if message.type == "state_changed":
+        return ("event", message.data["event_id"])
+    return ("alert", message.data["code"])
+
+
+def _arrived_key(message: aiomqtt.Message) -> tuple[str, str]:
+    data = json.loads(bytes(message.payload))
+    if str(message.topic).endswith("/event"):
+        return ("event", data["event_id"])
+    return ("alert", data["code"])
+
+
+async def _wait_http(rig, check) -> dict:
+    async with asyncio.timeout(WAIT_S):
+        while not check(health := (await rig.api.get("/health")).json()):
+            await asyncio.sleep(0.05)
+    return health
+
+
+async def test_commands_need_a_valid_token_and_the_role(tmp_path: Path) -> None:
+    with mosquitto(tmp_path / "broker") as broker:
+        async with (
+            open_rig(
+                tmp_path / "data", mqtt_url=broker.url, cell_id=CELL, mqtt_commands=True
+            ) as rig,
+            aiomqtt.Client(
+                "127.0.0.1", broker.port, protocol=aiomqtt.ProtocolVersion.V5
+            ) as requester,
+        ):
+            await _await_link(rig)
+            tokens = {}
+            for role in ("viewer", "operator"):
+                made = await rig.api.post("/tokens", json={"name": f"plant-{role}", "role": role})
+                tokens[role] = made.json()["token"]
+            reply_to = f"plant/replies/{uuid.uuid4().hex}"
+            await requester.subscribe(reply_to, qos=1)
+
+            async def ask(name: str, message: object) -> tuple[dict, bytes]:
+                correlation = uuid.uuid4().bytes
+                properties = Properties(PacketTypes.PUBLISH)
+                properties.ResponseTopic = reply_to
+                properties.CorrelationData = correlation
+                payload = json.dumps(message).encode()
+                await requester.publish(
+                    f"{BASE}/command/{name}", payload, qos=1, properties=properties
+                )
+                async with asyncio.timeout(WAIT_S):
+                    async for answer in requester.messages:
+                        got = answer.properties.CorrelationData  # type: ignore[union-attr]
+                        assert got == correlation, "answers come in the order asked"
+                        return json.loads(bytes(answer.payload)), got
+                raise AssertionError("no answer")
+
+            answer, _ = await ask("start", {"body": SPRAY_DEMO})
+            assert answer["status"] == 401
+            answer, _ = await ask("start", {"token": "not-a-token", "body": SPRAY_DEMO})
+            assert answer["status"] == 401
+            answer, _ = await ask("start", {"token": tokens["viewer"], "body": SPRAY_DEMO})
+            assert answer["status"] == 403 and "operator" in answer["detail"]
+            answer, _ = await ask("start", {"token": tokens["operator"], "body": {"speed": 3}})
+            assert answer["status"] == 422
+            assert (await rig.state())["state"] == "IDLE"  # nothing of that reached the cell
+
+            answer, _ = await ask("start", {"token": tokens["operator"], "body": SPRAY_DEMO})
+            assert answer["status"] == 202 and answer["accepted"] is True
+            assert answer["state"] == "EXECUTING_TRAJECTORY" and answer["run_id"]
+            answer, _ = await ask("reset", {"token": tokens["operator"]})
+            assert answer["status"] == 403  # a reset needs maintenance, as over HTTP
+
+            # Any valid token may stop the cell; the stop takes the e-stop path.
+            answer, _ = await ask("estop", {"token": tokens["viewer"], "body": {"reason": "mqtt"}})
+            assert answer["status"] == 202 and answer["state"] == "ERROR"
+            snapshot = await rig.wait_state("ERROR")
+            assert "mqtt" in snapshot["stop_reason"]["message"]
+            answer, _ = await ask("resume", {"token": tokens["operator"]})
+            assert answer["status"] == 409 and answer["accepted"] is False
+
+            audit = (await rig.api.get("/audit", params={"limit": 1000})).json()["audit"]
+            audit = [a for a in audit if a["action"].startswith("MQTT ")]
+            rows = [(a["principal"], a["outcome"]) for a in audit]
+            assert ("anonymous", "refused (401)") in rows
+            assert any(p.startswith("plant-viewer") and o == "refused (403)" for p, o in rows)
+            assert any(p.startswith("plant-operator") and o == "accepted" for p, o in rows)
+            assert any(p.startswith("plant-viewer") and o == "accepted" for p, o in rows)
+            assert all(a["action"].startswith(f"MQTT {BASE}/command/") for a in audit)
+
+
+async def _await_link(rig) -> None:
+    await _wait_http(rig, lambda h: h.get("mqtt", {}).get("connected") is True)
+
+
+async def test_offline_when_stopped_and_when_killed(tmp_path: Path) -> None:
+    env = {
+        "GLUE_APP_MQTT_URL": "",
+        "GLUE_APP_CELL_ID": CELL,
+        "GLUE_APP_MQTT_KEEPALIVE": "1",
+    }
+    with mosquitto(tmp_path / "broker") as broker:
+        env["GLUE_APP_MQTT_URL"] = broker.url
+        data = tmp_path / "data"
+        data.mkdir()
+        async with subscriber(broker.port, f"{BASE}/status") as plant:
+            status = f"{BASE}/status"
+            with server_process(free_port(), data, env) as server:
+                await plant.wait(lambda: plant.on(status)[-1:] == ["online"])
+                server.send_signal(signal.SIGTERM)  # a clean stop says offline itself
+                await asyncio.to_thread(server.wait, WAIT_S)
+            await plant.wait(lambda: plant.on(status)[-1:] == ["offline"])
+            count = len(plant.on(status))
+
+            port = free_port()
+            with server_process(port, data, env) as server:
+                await plant.wait(lambda: plant.on(status)[count:] == ["online"])
+                token = admin_headers(data)
+                async with httpx.AsyncClient(headers=token) as http:
+                    health = (await http.get(f"http://127.0.0.1:{port}/health")).json()
+                assert health["mqtt"]["connected"] is True
+                os.kill(server.pid, signal.SIGKILL)  # no word from it: the broker's will
+                await asyncio.to_thread(server.wait, WAIT_S)
+                await plant.wait(lambda: plant.on(status)[count:] == ["online", "offline"])
