@@ -2,12 +2,15 @@
 cells and the line view really start, each cell with its own port, data directory, cell
 id and the broker's URL, and a SIGTERM (as Ctrl-C) stops every one of them together.
 
-Until the cell's MQTT publisher lands the cells ignore GLUE_APP_MQTT_URL (a warning);
-the end-to-end test with cells publishing is the lead's, after that merge.
+The cells publish for real (server/mqtt): `gluectl line` reads every cell from the
+broker as IDLE and online, a cell started on the line is seen running, and a cell that
+stops answering (frozen with SIGSTOP, its socket left open) is shown offline by the
+broker's last will within the keep-alive.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -19,7 +22,7 @@ from pathlib import Path
 
 import httpx
 
-from tests.processes import ROOT, environment, stop
+from tests.processes import ROOT, environment, run_module, stop
 from tests.serving import free_port
 
 # Not a performance bound: three cells commission at once on a shared machine.
@@ -39,6 +42,24 @@ def alive(pid: int) -> bool:
     return not Path(f"/proc/{pid}/stat").read_text().split(") ")[1].startswith("Z")
 
 
+def line_of(mqtt: int) -> dict[str, dict]:
+    """Every cell as `gluectl line --once --json` reads it from the broker."""
+    answer = run_module(
+        "clients.gluectl", "line", "--broker", f"mqtt://127.0.0.1:{mqtt}", "--once", "--json",
+        timeout=60,
+    )  # fmt: skip
+    assert answer.returncode == 0, answer.stderr
+    return {row["cell_id"]: row for row in json.loads(answer.stdout)["cells"]}
+
+
+def wait_line(mqtt: int, what: str, holds) -> dict[str, dict]:
+    deadline = time.monotonic() + READY_TIMEOUT_S
+    while not holds(cells := line_of(mqtt)):
+        assert time.monotonic() < deadline, f"{what}: {cells}"
+        time.sleep(0.5)
+    return cells
+
+
 def test_the_line_starts_and_stops_together(tmp_path: Path) -> None:
     first, mqtt, ws, view = free_port(), free_port(), free_port(), free_port()
     cell_ports = [first, first + 1, first + 2]
@@ -49,9 +70,10 @@ def test_the_line_starts_and_stops_together(tmp_path: Path) -> None:
     argv = [sys.executable, "-m", "server.line_demo", "--data-dir", str(data)]
     argv += ["--first-port", str(first), "--mqtt-port", str(mqtt), "--ws-port", str(ws)]
     argv += ["--view-port", str(view)]
+    keepalive = {"GLUE_APP_MQTT_KEEPALIVE": "1"}  # offline 1.5 s after a cell goes silent
     demo = subprocess.Popen(
         argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        env=environment(), cwd=ROOT,
+        env=environment(keepalive), cwd=ROOT,
     )  # fmt: skip
     pids: dict[str, int] = {}
     output: list[str] = []
@@ -82,6 +104,29 @@ def test_the_line_starts_and_stops_together(tmp_path: Path) -> None:
         for port in (mqtt, ws):
             with socket.create_connection(("127.0.0.1", port), timeout=10):
                 pass
+        # The cells publish to the line's broker: gluectl line reads all three.
+        names = {"cell-1", "cell-2", "cell-3"}
+        wait_line(
+            mqtt,
+            "three cells IDLE and online",
+            lambda c: (
+                set(c) == names and all(r["online"] and r["state"] == "IDLE" for r in c.values())
+            ),
+        )
+        token = (data / "cell-2" / "admin.token").read_text().strip()
+        started = httpx.post(
+            f"http://127.0.0.1:{cell_ports[1]}/start", json={"workpiece_id": "demo"},
+            headers={"Authorization": f"Bearer {token}"}, timeout=30,
+        )  # fmt: skip
+        assert started.status_code == 202, started.text
+        run_id = started.json()["run_id"]
+        wait_line(mqtt, "cell-2 running its run", lambda c: c["cell-2"]["run_id"] == run_id)
+        os.kill(pids["cell-3"], signal.SIGSTOP)  # silent, its socket still open
+        try:
+            cells = wait_line(mqtt, "cell-3 offline", lambda c: c["cell-3"]["online"] is False)
+            assert cells["cell-1"]["online"] and cells["cell-2"]["online"]
+        finally:
+            os.kill(pids["cell-3"], signal.SIGCONT)
         demo.send_signal(signal.SIGTERM)
         rest, _ = demo.communicate(timeout=120)
         output.append(rest)
