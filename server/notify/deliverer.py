@@ -110,7 +110,7 @@ class Deliverer:
             **self.target.public(),
             "queued": len(self._queue),
             "queue_size": self._maxsize,
-            "in_flight": self._current is not None,
+            "in_flight": _in_flight(self._current),
             "delivered": c.delivered,
             "refused": c.refused,
             "failed": c.failed,
@@ -225,3 +225,16 @@ class Deliverer:
         )
         with contextlib.suppress(Exception):  # a journal that fails reports it itself
             self._journal.append([record], durable=False)
+
+
+def _in_flight(pending: Pending | None) -> dict[str, Any] | None:
+    """The notice being attempted now: its id, kind, attempts so far and last error."""
+    if pending is None:
+        return None
+    last = pending.tries[-1] if pending.tries else None
+    return {
+        "delivery_id": pending.delivery_id,
+        "kind": pending.notice.kind,
+        "attempts": len(pending.tries),
+        "last_error": last["error"] if last else None,
+    }
