@@ -30,6 +30,7 @@ from server.api import (
     metrics,
     openapi_doc,
     queries,
+    webhooks,
     workpieces,
     ws,
 )
@@ -112,6 +113,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         analytics.router,
         metrics.router,
         admin.router,
+        webhooks.router,
         camera_preview.router,
     ):
         app.include_router(router)

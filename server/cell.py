@@ -34,6 +34,7 @@ from server.core.transitions import (
 from server.core.view import CellView
 from server.core.worker import Worker
 from server.logging_setup import log_path
+from server.notify.notifier import Notifier
 from server.storage import CellStores
 from server.storage.journal import Journal, records
 from server.storage.permissions import tighten_data_directory
@@ -67,6 +68,8 @@ class Cell:
         self.journal: Journal | None = None
         self._snapshot_file: SnapshotFile | None = None
         self._feed: DeviceFeed | None = None
+        # The webhooks (server/notify/): one more bus subscriber, never waited on.
+        self.notifier: Notifier | None = None
 
     @property
     def devices(self) -> CellDevices:
@@ -138,6 +141,8 @@ class Cell:
             interruption=interruption,
         )
         await self.worker.start()
+        self.notifier = Notifier(settings, self.bus, self.worker.view, self.journal)
+        self.notifier.start()
         self._feed = DeviceFeed(devices, self.bus, self.worker.view, settings.device_push_interval)
         self._feed.start()
 
@@ -149,6 +154,9 @@ class Cell:
             await self.worker.stop()
             await self.worker.devices.safe_halt(self.settings.emergency_stop_timeout)
             await self.worker.devices.close()
+        if self.notifier is not None:  # before the journal: what it abandons is on record
+            await self.notifier.stop()
+            self.notifier = None
         if self.journal is not None:
             await asyncio.to_thread(self.journal.stop)
         if self._snapshot_file is not None:

@@ -32,6 +32,7 @@ from pydantic_settings import (
 )
 
 from server.errors import ConfigurationError
+from server.notify.targets import WebhookTarget, named
 from server.values import BYTE_SIZE_ACCEPTS, byte_size
 
 SIMULATED = "sim"
@@ -329,6 +330,48 @@ class Settings(BaseSettings):
         "(same roles as HTTP); off by default",
     )
 
+    # Notifications (webhooks; docs/plant-integration.md)
+    webhooks: list[WebhookTarget] = Field(
+        default_factory=list,
+        max_length=32,
+        description="where the cell POSTs a signed JSON notice of a fault, an alert, a state "
+        "change or a completed run: a JSON list of {name, url, events, secret or "
+        "secret_file}; none by default",
+        json_schema_extra={
+            "accepts": 'a JSON list of objects such as {"url": "https://host/hook", '
+            '"events": ["fault", "run_completed"], "secret_file": "/run/secrets/hook"} '
+            "(events: fault, alert, state, run_completed; default all; a secret of at "
+            "least 16 characters, inline or in a file)",
+            "holds_secrets": True,
+        },
+    )
+    webhook_queue_size: int = Field(
+        100,
+        ge=1,
+        le=100_000,
+        description="notices waiting per webhook; when full, the oldest is dropped "
+        "(counted at GET /webhooks and journaled)",
+    )
+    webhook_timeout: float = Field(
+        5.0, gt=0, le=120, description="seconds one delivery attempt may take (connect to answer)"
+    )
+    webhook_max_attempts: int = Field(
+        5,
+        ge=1,
+        le=50,
+        description="attempts per notice: a timeout, a connection error, 408, 429 or 5xx is "
+        "retried; any other answer is final",
+    )
+    webhook_retry_delay: float = Field(
+        1.0, gt=0, le=600, description="seconds before the first retry; doubled for each next"
+    )
+    webhook_retry_max_delay: float = Field(
+        60.0,
+        gt=0,
+        le=3600,
+        description="the longest wait between two attempts (a Retry-After included)",
+    )
+
     # Hardware timeouts (seconds)
     robot_communication_timeout: float = Field(
         10.0, gt=0, le=300, description="seconds for the robot controller to answer a request"
@@ -574,6 +617,11 @@ class Settings(BaseSettings):
         if value is not None and not 1 <= int(value.rstrip("/").rsplit(":", 1)[1]) <= 65535:
             raise ValueError("the OPC UA endpoint's port must be 1 to 65535")
         return value
+
+    @field_validator("webhooks")
+    @classmethod
+    def _webhooks_named(cls, value: list[WebhookTarget]) -> list[WebhookTarget]:
+        return named(value)
 
     @field_validator("glue_pressure_range_psi")
     @classmethod

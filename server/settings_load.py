@@ -75,9 +75,17 @@ def _source_of(name: str, given: Mapping[str, Any]) -> str:
     environ = {k.upper(): v for k, v in os.environ.items()}
     for variable in variables_by_setting().get(name, ()):
         if variable in environ:
+            if holds_secrets(name):  # never echoed: the message goes to the console and log
+                return f"{variable} (value not shown: it holds secrets)"
             return f"{variable}={environ[variable]!r}"
     config = os.environ.get(CONFIG_FILE_VARIABLE)
     return f"{name} in {config}" if config else name
+
+
+def holds_secrets(name: str) -> bool:
+    """Whether setting `name` may hold a secret (its value is then never repeated)."""
+    extra = Settings.model_fields[name].json_schema_extra
+    return isinstance(extra, dict) and bool(extra.get("holds_secrets"))
 
 
 def _accepts(name: str) -> str:

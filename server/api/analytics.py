@@ -79,7 +79,7 @@ async def _page(
 
 
 def _decode(row: dict[str, Any]) -> dict[str, Any]:
-    for key in ("data", "params", "progress", "result"):
+    for key in ("data", "params", "progress", "result", "tries"):
         if isinstance(row.get(key), str):
             row[key] = json.loads(row[key])
     if "succeeded" in row:
@@ -99,7 +99,7 @@ def _filter_parameter(column: str, type_: type, description: str) -> inspect.Par
     )
 
 
-def _table_route(table: str, name: str, doc: str) -> Callable[..., Awaitable[dict[str, Any]]]:
+def table_route(table: str, name: str, doc: str) -> Callable[..., Awaitable[dict[str, Any]]]:
     """The JSON route of a journal table: time range, paging, and the table's filters
     (those of FILTERS offered on its JSON route), each a documented query parameter."""
 
@@ -163,7 +163,7 @@ TABLE_ROUTES = (
 )
 for _path, _table, _name, _doc in TABLE_ROUTES:
     # `name` gives the summary and operationId, as a function of that name would.
-    router.add_api_route(_path, _table_route(_table, _name, _doc), methods=["GET"], name=_name)
+    router.add_api_route(_path, table_route(_table, _name, _doc), methods=["GET"], name=_name)
 
 
 EXPORT_DOC = """The {table} table as CSV, oldest first, for spreadsheets and reports.

@@ -118,8 +118,8 @@ class Metrics:
         view = cell.view
         view.on_event_decided(self.event_seconds.observe)
         view.on_run_ended(
-            lambda kind, outcome, seconds: self.operation_seconds.labels(kind, outcome).observe(
-                seconds
+            lambda ended: self.operation_seconds.labels(ended.operation, ended.outcome).observe(
+                ended.seconds
             )
         )
         self._watcher = asyncio.create_task(self._count_transitions(cell), name="metrics")

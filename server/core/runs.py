@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from server.config import Settings
@@ -45,6 +46,24 @@ log = logging.getLogger(__name__)
 # How a run ended, by the event that ended it (anything else: it failed).
 RUN_OUTCOME = {Event.OPERATION_COMPLETED: "completed", Event.CANCEL_REQUESTED: "cancelled"}
 PostOutcome = Callable[[Event, Payload], None]
+
+
+@dataclass(frozen=True, slots=True)
+class RunEnded:
+    """How a run ended, as its listeners hear it (the metrics, the webhooks).
+
+    `state` is the state the run ended in (the operation's own, or PAUSED):
+    the listeners are told before the state changes.
+    """
+
+    run_id: str
+    operation: str
+    outcome: str  # completed, cancelled or failed
+    seconds: float
+    state: str
+    result: dict[str, Any] | None
+    error: str | None
+    workpieces: int
 
 
 class PauseNotHeld(Exception):
@@ -87,7 +106,7 @@ class Runs:
         self._task: asyncio.Task[None] | None = None
         self._gate: PauseGate | None = None
         # Called with (kind, outcome, seconds) when an operation ends, e.g. by metrics.
-        self.listeners: list[Callable[[str, str, float], None]] = []
+        self.listeners: list[Callable[[RunEnded], None]] = []
 
     def is_current(self, run_id: str) -> bool:
         running = self.ctx.operation
@@ -241,8 +260,6 @@ class Runs:
             return
         outcome = RUN_OUTCOME.get(event, "failed")
         took = self.clock.time() - running.started_at
-        for listener in self.listeners:
-            listener(running.name, outcome, took)
         result = payload.result if isinstance(payload, RunCompletedPayload) else None
         if result is not None:
             paused = self._gate.paused_seconds() if self._gate is not None else 0.0
@@ -254,9 +271,13 @@ class Runs:
         plan = self.trajectory
         if running.name == "trajectory" and plan is not None and plan["run_id"] == running.run_id:
             parts = len(plan["workpieces"])
-        self.recorder.run_ended(
-            running.run_id, outcome, result.as_dict() if result else None, error, parts
+        data = result.as_dict() if result else None
+        self.recorder.run_ended(running.run_id, outcome, data, error, parts)
+        ended = RunEnded(
+            running.run_id, running.name, outcome, took, self.ctx.state.value, data, error, parts
         )
+        for listener in self.listeners:
+            listener(ended)
 
     async def cancel(self) -> None:
         """Cancel the running operation and wait (bounded) until it has stopped."""

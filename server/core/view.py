@@ -18,6 +18,7 @@ from server.core.frames import Frame
 from server.core.transitions import COMMANDS, Command, State
 
 if TYPE_CHECKING:
+    from server.core.runs import RunEnded
     from server.core.worker import Worker
 
 SNAPSHOT_HISTORY = 20  # transitions in a WebSocket snapshot
@@ -172,6 +173,6 @@ class CellView:
         """Call `listener(seconds)` after each event is decided (e.g. a histogram)."""
         self._worker.stats.listeners.append(listener)
 
-    def on_run_ended(self, listener: Callable[[str, str, float], None]) -> None:
-        """Call `listener(kind, outcome, seconds)` when an operation ends."""
+    def on_run_ended(self, listener: Callable[[RunEnded], None]) -> None:
+        """Call `listener(ended)` when an operation ends (in the worker: never block)."""
         self._worker.runs.listeners.append(listener)

@@ -79,6 +79,8 @@ POLICY: Final = MappingProxyType(
         ("DELETE", "/tokens/{token_id}"): ADMIN,
         ("GET", "/audit"): ADMIN,
         ("GET", "/audit.csv"): ADMIN,
+        ("GET", "/webhooks"): ADMIN,  # names the plant's receivers (redacted)
+        ("GET", "/webhooks/deliveries"): ADMIN,
     }
 )
 WEBSOCKET_ROLE: Final = VIEW

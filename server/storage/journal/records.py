@@ -153,3 +153,44 @@ def audit(
 def write_check(at: float) -> Record:
     """A real write that leaves nothing behind but its time: does the journal write again?"""
     return Record("INSERT OR REPLACE INTO write_check (id, time) VALUES (1, ?)", (at,))
+
+
+def webhook_delivery(
+    at: float,
+    delivery_id: str,
+    webhook: str,
+    kind: str,
+    event_at: float,
+    outcome: str,
+    tries: list[dict[str, Any]],
+    error: str,
+) -> Record:
+    """A webhook notice's final outcome, with each attempt (time, seconds, status, error)."""
+    status = tries[-1].get("status") if tries else None
+    return _appended(
+        "webhook_deliveries",
+        (
+            "time",
+            "delivery_id",
+            "webhook",
+            "kind",
+            "event_at",
+            "outcome",
+            "attempts",
+            "status",
+            "error",
+            "tries",
+        ),
+        (
+            at,
+            delivery_id,
+            webhook,
+            kind,
+            event_at,
+            outcome,
+            len(tries),
+            status,
+            error,
+            _json(tries),
+        ),
+    )

@@ -42,6 +42,12 @@ CREATE TABLE IF NOT EXISTS audit (
     seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, principal TEXT NOT NULL,
     address TEXT NOT NULL, action TEXT NOT NULL, outcome TEXT NOT NULL, detail TEXT NOT NULL
 );
+-- One row per webhook notice, written once its outcome is final (docs/plant-integration.md).
+CREATE TABLE IF NOT EXISTS webhook_deliveries (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, delivery_id TEXT NOT NULL,
+    webhook TEXT NOT NULL, kind TEXT NOT NULL, event_at REAL NOT NULL, outcome TEXT NOT NULL,
+    attempts INTEGER NOT NULL, status INTEGER, error TEXT NOT NULL, tries TEXT NOT NULL
+);
 CREATE TABLE IF NOT EXISTS commits (
     seq INTEGER PRIMARY KEY, time REAL NOT NULL, rows TEXT NOT NULL, digest TEXT NOT NULL
 );
@@ -52,6 +58,7 @@ CREATE INDEX IF NOT EXISTS transitions_time ON transitions(time);
 CREATE INDEX IF NOT EXISTS operations_started ON operations(started_at);
 CREATE INDEX IF NOT EXISTS errors_time ON errors(time);
 CREATE INDEX IF NOT EXISTS recoveries_time ON recoveries(time);
+CREATE INDEX IF NOT EXISTS webhook_deliveries_time ON webhook_deliveries(time);
 -- One row, rewritten by each write that checks a failing journal can write again.
 CREATE TABLE IF NOT EXISTS write_check (id INTEGER PRIMARY KEY CHECK (id = 1), time REAL NOT NULL);
 """
@@ -85,6 +92,22 @@ TABLES: dict[str, tuple[str, list[str]]] = {
     ),
     "recoveries": ("time", ["seq", "time", "run_id", "error_code", "attempt", "succeeded"]),
     "audit": ("time", ["seq", "time", "principal", "address", "action", "outcome", "detail"]),
+    "webhook_deliveries": (
+        "time",
+        [
+            "seq",
+            "time",
+            "delivery_id",
+            "webhook",
+            "kind",
+            "event_at",
+            "outcome",
+            "attempts",
+            "status",
+            "error",
+            "tries",
+        ],
+    ),
 }
 
 # The tables whose rows are sealed: each row carries the sequence number of the
@@ -92,7 +115,16 @@ TABLES: dict[str, tuple[str, list[str]]] = {
 # is part of that commit's digest. Not `operations`: its rows are updated as a
 # run progresses and ends, so a digest taken when a row was appended would not
 # hold; the commits that change it are still numbered and chained.
-SEALED: tuple[str, ...] = ("events", "transitions", "errors", "recoveries", "audit")
+# A table added later (webhook_deliveries) is created at open with its commit_seq
+# added like the others', and counts from 0 in the first commit that appends to it.
+SEALED: tuple[str, ...] = (
+    "events",
+    "transitions",
+    "errors",
+    "recoveries",
+    "audit",
+    "webhook_deliveries",
+)
 COMMIT_SEQ = "commit_seq"
 
 
@@ -147,6 +179,12 @@ FILTERS: dict[str, tuple[Filter, ...]] = {
         Filter("address", str, "the client's address"),
         Filter("action", str, "what: the method and path"),
         Filter("outcome", str, "accepted, or refused with the status"),
+    ),
+    "webhook_deliveries": (
+        Filter("webhook", str, "the webhook's name"),
+        Filter("kind", str, "the notice: fault, alert, state or run_completed"),
+        Filter("outcome", str, "delivered, refused, failed, dropped or abandoned"),
+        Filter("delivery_id", str, "the notice's id, as the receiver got it"),
     ),
 }
 

@@ -1,0 +1,147 @@
+"""The webhooks' one bus subscriber: turns the cell's records into notices for each webhook.
+
+Why a bus subscriber (plus the run-ended hook, which the bus has no record of):
+like the WebSocket hub, it is fed without the worker ever waiting for it. Its
+subscription is bounded; should it ever fall behind and be closed as a slow
+consumer, it subscribes again and counts what it missed (`missed` at GET
+/webhooks), and the worker is not held up. Each notice is then handed to the
+webhooks whose filter names its kind, each with its own bounded queue and
+delivery task (`deliverer.py`).
+
+Order: a completed run is heard from the worker (CellView.on_run_ended) before
+the state change that follows it is published, while records published before
+it may still sit in the subscription's buffer. So the run's notice is held
+until every record published before it has been handled (by bus seq), and a
+receiver sees a run's notices in the order they happened.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections import deque
+from typing import Any
+
+import httpx
+
+from server.config import Settings
+from server.core.bus import Bus, BusMessage, Subscription, SubscriptionClosed
+from server.core.runs import RunEnded
+from server.core.view import CellView
+from server.notify import notices
+from server.notify.deliverer import Deliverer
+from server.notify.notices import Notice
+from server.storage.journal import Journal
+
+log = logging.getLogger(__name__)
+
+SUBSCRIPTION_BUFFER = 1024  # bus records; each is handled in microseconds
+
+
+class Notifier:
+    """Feeds every configured webhook; `start` after the worker, `stop` before the journal."""
+
+    def __init__(self, settings: Settings, bus: Bus, view: CellView, journal: Journal) -> None:
+        self.settings = settings
+        self._bus = bus
+        self._view = view
+        self._client = httpx.AsyncClient(
+            timeout=httpx.Timeout(settings.webhook_timeout),
+            follow_redirects=False,  # the signed notice goes where it was configured to
+            trust_env=False,  # straight to the receiver: no proxy from the environment
+        )
+        self.deliverers = [Deliverer(t, settings, self._client, journal) for t in settings.webhooks]
+        self._held: deque[tuple[int, Notice]] = deque()  # run notices waiting for a bus seq
+        self._handled_seq = 0
+        self._subscription: Subscription | None = None
+        self._task: asyncio.Task[None] | None = None
+        self.missed = 0  # bus records lost to a slow-consumer close
+
+    def start(self) -> None:
+        if not self.deliverers:
+            return  # no webhook: no subscription, no task, no cost
+        for deliverer in self.deliverers:
+            deliverer.start()
+        self._subscription = self._subscribe()
+        self._task = asyncio.create_task(self._consume(), name="webhook-notifier")
+        if any("run_completed" in d.target.events for d in self.deliverers):
+            self._view.on_run_ended(self._run_ended)
+        names = ", ".join(f"{d.name} ({d.target.shown_url})" for d in self.deliverers)
+        log.info("webhooks: %s", names)
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+            self._task = None
+        if self._subscription is not None:
+            self._subscription.close()
+        self._release(self._bus.last_seq)
+        for deliverer in self.deliverers:
+            await deliverer.stop()
+        await self._client.aclose()
+
+    def status(self) -> dict[str, Any]:
+        """GET /webhooks: each webhook redacted, with its queue and counters."""
+        s = self.settings
+        return {
+            "webhooks": [d.status() for d in self.deliverers],
+            "missed": self.missed,
+            "cell_id": s.cell_id,
+            "timeout_s": s.webhook_timeout,
+            "max_attempts": s.webhook_max_attempts,
+            "retry_delay_s": s.webhook_retry_delay,
+            "retry_max_delay_s": s.webhook_retry_max_delay,
+        }
+
+    # --- feeding -----------------------------------------------------------
+
+    def _subscribe(self) -> Subscription:
+        return self._bus.subscribe(SUBSCRIPTION_BUFFER, types=notices.BUS_TYPES)
+
+    async def _consume(self) -> None:
+        assert self._subscription is not None
+        while True:
+            try:
+                message = await self._subscription.get()
+            except SubscriptionClosed:
+                # Fell behind: start again from now, and say how much was missed.
+                self.missed += max(0, self._bus.last_seq - self._handled_seq)
+                self._subscription = self._subscribe()
+                self._release(self._bus.last_seq)
+                self._handled_seq = self._bus.last_seq
+                continue
+            self._handle(message)
+
+    def _handle(self, message: BusMessage) -> None:
+        self._release(message.seq - 1)  # a run that ended before this record
+        try:
+            notice = notices.from_bus(message, lambda: self._view.state.value)
+        except (KeyError, TypeError, ValueError) as exc:  # a record of an unexpected shape
+            log.error(
+                "webhooks: cannot make a notice of %s #%d: %s", message.type, message.seq, exc
+            )
+            notice = None
+        if notice is not None:
+            self._fan_out(notice)
+        self._handled_seq = message.seq
+        self._release(message.seq)
+
+    def _run_ended(self, ended: RunEnded) -> None:
+        """In the worker: only appends (see the module docstring for the order)."""
+        notice = notices.from_run(ended, time.time())
+        if notice is None:
+            return
+        self._held.append((self._bus.last_seq, notice))
+        if self._handled_seq >= self._bus.last_seq:
+            self._release(self._handled_seq)
+
+    def _release(self, through_seq: int) -> None:
+        while self._held and self._held[0][0] <= through_seq:
+            self._fan_out(self._held.popleft()[1])
+
+    def _fan_out(self, notice: Notice) -> None:
+        for deliverer in self.deliverers:
+            if deliverer.wants(notice):
+                deliverer.offer(notice)
