@@ -30,6 +30,7 @@ BENCHMARKS = (
     ("journal", []),
     ("journal_verify", []),
     ("planning", []),
+    ("plant_latency", []),
 )
 
 

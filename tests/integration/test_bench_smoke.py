@@ -25,6 +25,7 @@ from bench import (
     memory,
     pause_latency,
     planning,
+    plant_latency,
     reset_probe,
     rest_throughput,
     scaling,
@@ -131,6 +132,16 @@ def test_reset_probe_measures_every_condition(results_in_tmp: Path) -> None:
     for row in rows:
         assert_ordered_latencies(row)
     assert written_rows(results_in_tmp, "reset_probe") == rows
+
+
+def test_plant_latency_sees_every_transition_on_mqtt_and_opcua(results_in_tmp: Path) -> None:
+    """Two cycles of four cells (e-stop, reset): 2 transitions × 3 MQTT cells × 2 cycles
+    on the broker, 2 × 2 on cell-1's OPC UA subscription, one e-stop per cycle each."""
+    rows = plant_latency.main(["--cycles", "2"])
+    assert [row["n"] for row in rows] == [12, 4, 2, 2]
+    for row in rows:
+        assert_ordered_latencies(row)
+    assert written_rows(results_in_tmp, "plant_latency") == rows
 
 
 def test_pause_latency_reports_each_measure(results_in_tmp: Path) -> None:

@@ -1,0 +1,292 @@
+"""The plant's view of a transition: how long until an MQTT subscriber and an OPC UA
+subscription see it, and whether serving both makes the software stop any slower.
+
+Who runs where, as a line runs: Debian's mosquitto, and four cells as server
+processes of their own (`python -m server`, simulated devices): `cell-1` with
+OPC UA and MQTT on, `cell-2` and `cell-3` with MQTT on (three cells on one
+broker), and `plain` with both off. This process is the plant: an MQTT
+subscriber to every cell's `event` topic, an OPC UA client subscribed to
+cell-1's `CellState`, and the HTTP client that drives the cycles.
+
+A cycle sends POST /estop to each cell in turn (ERROR), then POST /reset to
+each (IDLE), waiting for each to settle. Each transition carries the time the
+cell made it (`at` on MQTT, `since` in CellState); a figure is the time this
+process received it minus that time, on the same machine's clock.
+
+- `mqtt`: transition → MQTT subscriber, over the three cells' transitions.
+- `opcua`: transition → OPC UA data change of cell-1's CellState, with the
+  subscription's publishing interval (`--publishing-ms`, the server's floor is
+  what asyncua grants) included: a client sees a change at the next publish.
+- `estop round trip`: POST /estop as the client sees it, on cell-1 (both
+  interfaces on, both subscribed to) and on `plain` (both off), interleaved in
+  the same run: the stop with the plant's interfaces on against without.
+
+Run: `python -m bench.plant_latency` (`--cycles 100` by default; about two
+minutes on two cores, after the four cells have commissioned).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import AsyncIterator, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import aiomqtt
+import httpx
+
+from bench.report import emit, percentiles_ms
+from server.line_broker import BrokerPorts, start_broker
+
+ROOT = Path(__file__).resolve().parents[1]
+READY_S = 600.0  # four cells commissioning at once on a shared machine: a hang guard
+SETTLE_S = 60.0
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+@dataclass
+class Cell:
+    """One server process of the line, and what the benchmark needs to drive it."""
+
+    name: str
+    port: int
+    data: Path
+    env: dict[str, str]
+    opcua_port: int | None = None
+    process: subprocess.Popen[bytes] | None = None
+    token: str = ""
+    round_trips: list[float] = field(default_factory=list)
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+
+def cell_environment(extra: dict[str, str]) -> dict[str, str]:
+    """This checkout's server, no cell settings from the shell, then `extra`."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GLUE_APP_")}
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return {**env, **extra}
+
+
+@contextlib.contextmanager
+def running(cells: list[Cell], logs: Path) -> Iterator[None]:
+    try:
+        for cell in cells:
+            log = (logs / f"{cell.name}.log").open("wb")
+            argv = [sys.executable, "-m", "server", "--port", str(cell.port)]
+            argv += ["--data-dir", str(cell.data)]
+            cell.process = subprocess.Popen(
+                argv, stdout=log, stderr=subprocess.STDOUT, env=cell.env
+            )
+            log.close()
+        yield
+    finally:
+        for cell in cells:
+            if cell.process is not None and cell.process.poll() is None:
+                cell.process.terminate()
+        for cell in cells:
+            if cell.process is not None:
+                try:
+                    cell.process.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    cell.process.kill()
+
+
+async def wait_idle(client: httpx.AsyncClient, cell: Cell, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        assert cell.process is not None and cell.process.poll() is None, f"{cell.name} exited"
+        with contextlib.suppress(httpx.HTTPError):
+            answer = await client.get(f"{cell.url}/state", headers=auth(cell))
+            if answer.status_code == 200 and answer.json()["state"] == "IDLE":
+                return
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{cell.name} did not reach IDLE")
+        await asyncio.sleep(0.05)
+
+
+def auth(cell: Cell) -> dict[str, str]:
+    if not cell.token:
+        token_file = cell.data / "admin.token"
+        if token_file.exists():
+            cell.token = token_file.read_text().strip()
+    return {"Authorization": f"Bearer {cell.token}"}
+
+
+@contextlib.asynccontextmanager
+async def mqtt_events(
+    broker: BrokerPorts, received: list[tuple[float, dict[str, Any]]]
+) -> AsyncIterator[None]:
+    """Every cell's `event` messages, each with the time it arrived here."""
+    ready = asyncio.Event()
+
+    async def listen() -> None:
+        async with aiomqtt.Client(broker.host, broker.mqtt) as client:
+            await client.subscribe("glue/+/event", qos=1)
+            ready.set()
+            async for message in client.messages:
+                arrived = time.time()
+                received.append((arrived, json.loads(bytes(message.payload))))
+
+    task = asyncio.create_task(listen())
+    await asyncio.wait_for(ready.wait(), 30)
+    try:
+        yield
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
+@contextlib.asynccontextmanager
+async def opcua_changes(
+    port: int, publishing_ms: float, received: list[tuple[float, dict[str, Any]]]
+) -> AsyncIterator[float]:
+    """cell-1's CellState changes, each with the time it arrived; yields the granted
+    publishing interval (ms)."""
+    from asyncua import Client
+
+    class Handler:
+        def datachange_notification(self, node: Any, value: Any, data: Any) -> None:
+            arrived = time.time()
+            with contextlib.suppress(ValueError, TypeError):
+                received.append((arrived, json.loads(value)))
+
+    client = Client(f"opc.tcp://127.0.0.1:{port}")
+    await client.connect()
+    try:
+        namespace = await client.get_namespace_index("urn:glue-cell:packml")
+        node = client.get_node(f"ns={namespace};s=cell-1.CellState")
+        subscription = await client.create_subscription(publishing_ms, Handler())
+        await subscription.subscribe_data_change(node)
+        granted = float(subscription.parameters.RequestedPublishingInterval)
+        yield granted
+        await subscription.delete()
+    finally:
+        await client.disconnect()
+
+
+async def cycles(client: httpx.AsyncClient, cells: list[Cell], count: int) -> None:
+    """`count` times: e-stop every cell, then reset every cell, each settled in turn."""
+    for _ in range(count):
+        for cell in cells:
+            sent = time.perf_counter()
+            answer = await client.post(
+                f"{cell.url}/estop", json={"reason": "plant latency benchmark"}, headers=auth(cell)
+            )
+            cell.round_trips.append(time.perf_counter() - sent)
+            assert answer.status_code == 202, answer.text
+        for cell in cells:
+            answer = await client.post(f"{cell.url}/reset", headers=auth(cell))
+            assert answer.status_code == 202, answer.text
+            await wait_idle(client, cell, SETTLE_S)
+
+
+def lags(received: list[tuple[float, dict[str, Any]]], stamp: str, since: float) -> list[float]:
+    """Arrival minus the transition's own time, once per transition made after `since`.
+
+    CellState also changes within a state (a device's health, a waypoint), and a
+    subscription starts with the current value: only the first sight of a
+    transition of the cycles counts.
+    """
+    seen: set[tuple[Any, float]] = set()
+    found = []
+    for arrived, document in received:
+        at = document.get(stamp)
+        key = (document.get("cell_id"), float(at)) if at is not None else None
+        if key is None or key[1] < since or key in seen:
+            continue
+        seen.add(key)
+        found.append(arrived - key[1])
+    return found
+
+
+async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[str, Any]]:
+    broker = BrokerPorts("127.0.0.1", free_port(), free_port())
+    mqtt_url = broker.mqtt_url
+    names = ("cell-1", "cell-2", "cell-3", "plain")
+    cells: list[Cell] = []
+    for name in names:
+        extra = {"GLUE_APP_CELL_ID": name.replace("plain", "cell-0")}
+        if name != "plain":
+            extra["GLUE_APP_MQTT_URL"] = mqtt_url
+        cell = Cell(name, free_port(), data / name, cell_environment(extra))
+        if name == "cell-1":
+            cell.opcua_port = free_port()
+            cell.env["GLUE_APP_OPCUA_ENDPOINT"] = f"opc.tcp://127.0.0.1:{cell.opcua_port}"
+        cells.append(cell)
+    broker_process = start_broker(broker, data / "broker")
+    try:
+        with running(cells, data):
+            async with httpx.AsyncClient(timeout=30) as client:
+                for cell in cells:
+                    await wait_idle(client, cell, READY_S)
+                mqtt: list[tuple[float, dict[str, Any]]] = []
+                opcua: list[tuple[float, dict[str, Any]]] = []
+                assert cells[0].opcua_port is not None
+                async with (
+                    mqtt_events(broker, mqtt),
+                    opcua_changes(cells[0].opcua_port, publishing_ms, opcua) as granted,
+                ):
+                    started = time.time()
+                    await cycles(client, cells, cycles_count)
+                    await asyncio.sleep(2.0)  # the last transitions reach the plant
+    finally:
+        broker_process.terminate()
+        broker_process.wait(timeout=30)
+    with_interfaces, without = cells[0], cells[3]
+    return [
+        {
+            "figure": "transition → MQTT subscriber (3 cells, 1 broker)",
+            **percentiles_ms(lags(mqtt, "at", started)),
+        },
+        {
+            "figure": f"transition → OPC UA data change (publishing {granted:g} ms)",
+            **percentiles_ms(lags(opcua, "since", started)),
+        },
+        {
+            "figure": "POST /estop round trip, OPC UA + MQTT on",
+            **percentiles_ms(with_interfaces.round_trips),
+        },
+        {
+            "figure": "POST /estop round trip, both off (same run)",
+            **percentiles_ms(without.round_trips),
+        },
+    ]
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--cycles", type=int, default=100, help="e-stop and reset cycles")
+    parser.add_argument(
+        "--publishing-ms", type=float, default=10.0, help="OPC UA publishing interval asked for"
+    )
+    args = parser.parse_args(argv)
+    logging.disable(logging.ERROR)
+    with tempfile.TemporaryDirectory(prefix="bench-plant-") as data:
+        rows = asyncio.run(run(args.cycles, args.publishing_ms, Path(data)))
+    emit("plant_latency", rows, {"cycles": args.cycles, "cells": 4})
+    return rows
+
+
+if __name__ == "__main__":
+    main()
