@@ -79,7 +79,8 @@ class Degradations:
         phase_x = 2.0 * np.pi * (_WAVES_ACROSS * points[:, 0] / width + 0.1)
         phase_y = 2.0 * np.pi * (_WAVES_DOWN * points[:, 1] / height + 0.2)
         shift = self.residual_distortion_px * np.stack([np.sin(phase_x), np.sin(phase_y)], axis=1)
-        return cast(NDArray[np.float64], points + shift)
+        moved: NDArray[np.float64] = points + shift
+        return moved
 
     def apply_to_light(self, frame: NDArray[np.float32]) -> NDArray[np.float32]:
         """Lens and light on the noiseless, lit float frame (H×W×3)."""
