@@ -149,7 +149,7 @@ def detection_rows(frames: int, marker_px: int = 45) -> list[dict[str, Any]]:
         "default": "OpenCV default detectMarkers (no refinement)",
         "reference": "reference (full res + sub-pixel)",
         "before": "fast before issue 17 (half res, 3 windows)",
-        "fast": "fast (half res, 1 window, fallbacks)",
+        "fast": "fast (1 window, half or quarter res, fallbacks)",
     }
     rows = []
     for key, name in names.items():

@@ -18,12 +18,12 @@ Two ways to find the markers, one refinement:
 Where the fast path's time goes (docs/benchmarks.md): OpenCV's default thresholds the image
 three times (adaptive windows 3, 13 and 23 px) and identifies every square-ish contour it
 finds, the data cells of large markers included. So the fast path first tries one window
-(`_FAST_WINDOW_PX` at half resolution, about a cell of a 45 px marker and under one of a
+(`_FAST_WINDOW_PX` at half resolution, about three cells of a 45 px marker and one of a
 150 px marker, both of which it finds) and, once it has seen the markers, ignores candidates
-far smaller than them. Only when that pass finds fewer markers than it should (an expected
-id, or one it saw in the previous frame) does it pay for OpenCV's three windows, then for the
-full resolution: a hard frame (glare, a shadow across a marker, markers suddenly much smaller)
-costs time, not a marker.
+far smaller than them and searches large markers at quarter resolution. Only when that pass
+finds fewer markers than it should (an expected id, or one it saw in the previous frame)
+does it pay for OpenCV's three windows, then for the full resolution: a hard frame (glare,
+a shadow across a marker, markers suddenly much smaller) costs time, not a marker.
 
 Pure functions on arrays: no I/O, no logging of frames.
 """
@@ -57,6 +57,9 @@ _DOWNSCALE_MIN_HEIGHT = 720
 # Measured on the simulator: 11 finds every marker from 45 px (4 px cells at half
 # resolution) to 150 px (12 px cells) wide; OpenCV's three windows cost four to six times more.
 _FAST_WINDOW_PX = 11
+# A marker this wide (px) at the search's resolution is found as reliably as at full
+# resolution (the default table's 45 px markers are 22 px at half resolution).
+_MIN_SEARCH_SIDE_PX = 22
 # Once markers were seen, candidates with a perimeter under this fraction of the smallest
 # one seen are skipped before identification (a 150 px marker's data cells are ~1/6 of it).
 _MIN_PERIMETER_OF_SEEN = 0.5
@@ -234,15 +237,28 @@ class MarkerDetector:
     # --- internals -----------------------------------------------------------------------
 
     def _find_quick(self, small: np.ndarray) -> dict[int, NDArray[np.float64]]:
-        """The fast first pass: one threshold window, candidates far smaller than the markers
-        last seen skipped (OpenCV's perimeter bound is a fraction of the image's larger side).
+        """The fast first pass on the half-resolution frame, corners in its pixels.
+
+        One threshold window; candidates far smaller than the markers last seen skipped
+        (OpenCV's perimeter bound is a fraction of the image's larger side). When the markers
+        last seen were large enough to stay `_MIN_SEARCH_SIDE_PX` wide at quarter resolution,
+        the search runs there (a quarter of the pixels again; the full-resolution refinement
+        converges from the coarser corners all the same).
         """
+        seen = self._seen_perimeter_px
+        quarter = seen / 4.0 >= 2 * _MIN_SEARCH_SIDE_PX
+        image = small
+        if quarter:
+            height, width = small.shape[:2]
+            image = cv2.resize(small, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
+            seen /= 2.0
         with self._lock:
-            rate = _MIN_PERIMETER_OF_SEEN * self._seen_perimeter_px / max(small.shape[:2])
+            rate = _MIN_PERIMETER_OF_SEEN * seen / max(image.shape[:2])
             self._quick_params.minMarkerPerimeterRate = max(0.03, rate)
             self._quick.setDetectorParameters(self._quick_params)
-            corners, ids, _rejected = self._quick.detectMarkers(small)
-        return _by_id(corners, ids)
+            corners, ids, _rejected = self._quick.detectMarkers(image)
+        found = _by_id(corners, ids)
+        return {i: 2.0 * c + 0.5 for i, c in found.items()} if quarter else found
 
     def _remember(self, found: dict[int, NDArray[np.float64]]) -> None:
         """Which markers this frame showed and the smallest one's perimeter, for the next."""
