@@ -180,8 +180,10 @@ class MarkerDetector:
 
     Thread-safe: one detector can serve several worker threads (calls are serialised on the
     underlying OpenCV detectors, which is cheap next to the frame capture). In fast mode it
-    remembers which markers the last frame showed and how large they were, only to decide
-    how hard to look: the result of a frame never depends on the frame before.
+    remembers which markers the last frame showed and how large they were, to decide how
+    hard to look: the corners agree whichever pass found them (the same refinement), but a
+    marker the quick pass misses is looked for again only if it was seen in the frame before
+    or is named in `expected`; pass `expected` where every marker must be looked for.
     """
 
     def __init__(
