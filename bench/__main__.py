@@ -27,6 +27,7 @@ BENCHMARKS = (
     ("memory", []),
     ("scaling", []),
     ("vision", []),
+    ("vision_accuracy", []),
     ("journal", []),
     ("journal_verify", []),
     ("planning", []),

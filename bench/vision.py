@@ -1,10 +1,10 @@
 """Vision on simulated 1920×1080 frames: detection speed, calibration accuracy, workpiece cost.
 
-1. ArUco detection per frame (fresh sensor noise each frame, the default table): OpenCV's
-   default detector, the reference (full resolution + sub-pixel corners) and the fast one
-   (half resolution + the same full-resolution sub-pixel refinement); markers found, the
-   largest fast-vs-reference centre gap and the largest reference error against the
-   simulator's ground truth.
+1. ArUco detection per frame (fresh sensor noise each frame, the default table's 45 px
+   markers and 150 px ones): OpenCV's default detector, the reference (full resolution +
+   sub-pixel corners), the fast path as it was before issue 17 and the current one, run
+   interleaved on the same frames; markers found, the largest centre gap to the reference
+   and the largest centre and corner errors against the simulator's ground truth.
 2. Calibration: intrinsics from the twelve default chessboard views (focal-length error),
    and the table calibration (marker residuals, and ground-truth table points over the marker
    field mapped through it) with exact and with calibrated intrinsics.
@@ -41,6 +41,7 @@ from server.drivers.sim.camera_scene import (
     Scene,
     aruco_dictionary,
     marker_centre_pixels,
+    marker_corner_pixels,
     render_table,
 )
 from server.vision.homography import fit_plane_calibration, pixels_to_robot
@@ -51,7 +52,7 @@ from server.vision.intrinsics import (
     find_chessboard,
     intrinsics_of,
 )
-from server.vision.markers import MarkerDetector
+from server.vision.markers import MarkerDetector, to_gray
 from server.vision.outlines import (
     find_outlines,
     match_outline,
@@ -72,48 +73,96 @@ def timed(call: Any, *args: Any, **kwargs: Any) -> tuple[Any, float]:
     return result, time.perf_counter() - started
 
 
-def detection_rows(frames: int) -> list[dict[str, Any]]:
-    scene = Scene()
+# Marker sizes on the image: the default table's 30 mm markers (~45 px) and 100 mm ones (~150 px).
+MARKER_SIZES_MM = {45: 30.0, 150: 100.0}
+
+
+def marker_scene(marker_px: int) -> Scene:
+    """The default layout with markers of about `marker_px` on the image.
+
+    The white margin is one cell of the marker (at least the default 7.5 mm): with the
+    default margin of 7.5 mm, under half a cell of a 100 mm marker, the sheet's own outline
+    decodes as the marker too and, being larger, is the one kept (centre right, corners 16 px
+    out); a printed marker keeps at least a cell of white around it.
+    """
+    size = MARKER_SIZES_MM[marker_px]
+    return Scene(marker_size_mm=size, quiet_zone_mm=max(7.5, size / 6.0))
+
+
+def fast_before_issue_17(detector: MarkerDetector, frame: np.ndarray) -> dict[int, Any]:
+    """The fast path as it was before issue 17 (OpenCV's three threshold windows at half
+    resolution, the same full-resolution refinement), measured beside the current one."""
+    gray = to_gray(frame)
+    height, width = gray.shape
+    small = cv2.resize(gray, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
+    coarse = {i: 2.0 * c + 0.5 for i, c in detector._find(small).items()}
+    return {i: detector._refine(gray, i, c) for i, c in sorted(coarse.items())}
+
+
+def detection_rows(frames: int, marker_px: int = 45) -> list[dict[str, Any]]:
+    scene = marker_scene(marker_px)
     truth = marker_centre_pixels(scene)
+    truth_corners = marker_corner_pixels(scene)
     opencv = cv2.aruco.ArucoDetector(aruco_dictionary(), cv2.aruco.DetectorParameters())
     reference, fast = MarkerDetector(fast=False), MarkerDetector(fast=True)
-    samples: dict[str, list[float]] = {"default": [], "reference": [], "fast": []}
-    found: dict[str, list[int]] = {"default": [], "reference": [], "fast": []}
-    gap_px = error_px = 0.0
+    before = MarkerDetector(fast=True)
+    keys = ("default", "reference", "before", "fast")
+    samples: dict[str, list[float]] = {k: [] for k in keys}
+    found: dict[str, list[int]] = {k: [] for k in keys}
+    gap_px = dict.fromkeys(keys, 0.0)
+    centre_px = dict.fromkeys(keys, 0.0)
+    corner_px = dict.fromkeys(keys, 0.0)
     rng = np.random.default_rng(1)
     render_table(scene, rng=rng)  # warm the simulator's caches
     for index in range(frames + 3):
         frame = render_table(scene, rng=rng)
         (_corners, ids, _), t_default = timed(opencv.detectMarkers, frame)
-        slow, t_reference = timed(reference.detect, frame)
-        quick, t_fast = timed(fast.detect, frame)
+        results: dict[str, dict[int, Any]] = {}
+        # interleaved, the order turned every frame so no path always runs on a warm cache
+        calls = [
+            ("reference", reference.detect),
+            ("before", lambda f: fast_before_issue_17(before, f)),
+            ("fast", fast.detect),
+        ]
+        timings = {"default": t_default}
+        for key, call in calls[index % 3 :] + calls[: index % 3]:
+            results[key], timings[key] = timed(call, frame)
         if index < 3:
             continue  # warm-up
-        samples["default"].append(t_default)
-        samples["reference"].append(t_reference)
-        samples["fast"].append(t_fast)
         found["default"].append(0 if ids is None else len(ids))
-        found["reference"].append(len(slow))
-        found["fast"].append(len(quick))
-        for marker_id in set(slow) & set(quick):
-            gap_px = max(
-                gap_px, float(np.linalg.norm(quick[marker_id].centre - slow[marker_id].centre))
-            )
-        for marker_id, det in slow.items():
-            error_px = max(error_px, float(np.linalg.norm(det.centre - truth[marker_id])))
+        for key in keys:
+            samples[key].append(timings[key])
+        for key in ("reference", "before", "fast"):
+            found[key].append(len(results[key]))
+            for marker_id, det in results[key].items():
+                slow = results["reference"].get(marker_id)
+                if slow is not None:
+                    gap_px[key] = max(gap_px[key], float(np.linalg.norm(det.centre - slow.centre)))
+                centre_px[key] = max(
+                    centre_px[key], float(np.linalg.norm(det.centre - truth[marker_id]))
+                )
+                corner_px[key] = max(
+                    corner_px[key],
+                    float(np.linalg.norm(det.corners - truth_corners[marker_id], axis=1).max()),
+                )
     names = {
-        "default": "ArUco: OpenCV default detectMarkers (no refinement)",
-        "reference": "ArUco: reference (full res + sub-pixel)",
-        "fast": "ArUco: fast (half res + full-res sub-pixel)",
+        "default": "OpenCV default detectMarkers (no refinement)",
+        "reference": "reference (full res + sub-pixel)",
+        "before": "fast before issue 17 (half res, 3 windows)",
+        "fast": "fast (1 window, half or quarter res, fallbacks)",
     }
     rows = []
     for key, name in names.items():
-        row: dict[str, Any] = {"measure": name, **percentiles_ms(samples[key])}
+        row: dict[str, Any] = {
+            "measure": f"ArUco {marker_px} px: {name}",
+            **percentiles_ms(samples[key]),
+        }
         row["markers_found_min"] = min(found[key])
-        if key == "reference":
-            row["max_centre_error_vs_truth_px"] = round(error_px, 4)
-        if key == "fast":
-            row["max_centre_gap_vs_reference_px"] = round(gap_px, 4)
+        if key != "default":
+            row["max_centre_error_vs_truth_px"] = round(centre_px[key], 4)
+            row["max_corner_error_vs_truth_px"] = round(corner_px[key], 4)
+        if key in ("before", "fast"):
+            row["max_centre_gap_vs_reference_px"] = round(gap_px[key], 4)
         rows.append(row)
     return rows
 
@@ -265,7 +314,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--repeats", type=int, default=10, help="frames per workpiece")
     args = parser.parse_args(argv)
     extra = {"opencv": cv2.__version__, "cv2_threads": cv2.getNumThreads()}
-    detection = detection_rows(args.frames)
+    detection = [row for px in MARKER_SIZES_MM for row in detection_rows(args.frames, px)]
     emit("vision_detection", detection, {"frames": args.frames, **extra})
     calibration = calibration_rows()
     emit("vision_calibration", calibration, extra)

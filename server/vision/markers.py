@@ -15,13 +15,23 @@ Two ways to find the markers, one refinement:
   resolution in the same small windows. Same refinement, so the centres agree with the
   reference to a few hundredths of a pixel at a fraction of the cost.
 
+Where the fast path's time goes (docs/benchmarks.md): OpenCV's default thresholds the image
+three times (adaptive windows 3, 13 and 23 px) and identifies every square-ish contour it
+finds, the data cells of large markers included. So the fast path first tries one window
+(`_FAST_WINDOW_PX` at half resolution, about three cells of a 45 px marker and one of a
+150 px marker, both of which it finds) and, once it has seen the markers, ignores candidates
+far smaller than them and searches large markers at quarter resolution. Only when that pass
+finds fewer markers than it should (an expected id, or one it saw in the previous frame)
+does it pay for OpenCV's three windows, then for the full resolution: a hard frame (glare,
+a shadow across a marker, markers suddenly much smaller) costs time, not a marker.
+
 Pure functions on arrays: no I/O, no logging of frames.
 """
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import cast
 
@@ -43,6 +53,16 @@ __all__ = [
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 0.001)
 # Frames at least this tall are searched at half resolution in fast mode.
 _DOWNSCALE_MIN_HEIGHT = 720
+# The one adaptive-threshold window (px, odd) of the fast first pass, at half resolution.
+# Measured on the simulator: 11 finds every marker from 45 px (4 px cells at half
+# resolution) to 150 px (12 px cells) wide; OpenCV's three windows cost four to six times more.
+_FAST_WINDOW_PX = 11
+# A marker this wide (px) at the search's resolution is found as reliably as at full
+# resolution (the default table's 45 px markers are 22 px at half resolution).
+_MIN_SEARCH_SIDE_PX = 22
+# Once markers were seen, candidates with a perimeter under this fraction of the smallest
+# one seen are skipped before identification (a 150 px marker's data cells are ~1/6 of it).
+_MIN_PERIMETER_OF_SEEN = 0.5
 
 
 @dataclass(frozen=True)
@@ -159,7 +179,11 @@ class MarkerDetector:
     """Finds ArUco markers and refines their corners to sub-pixel accuracy.
 
     Thread-safe: one detector can serve several worker threads (calls are serialised on the
-    underlying OpenCV detector, which is cheap next to the frame capture).
+    underlying OpenCV detectors, which is cheap next to the frame capture). In fast mode it
+    remembers which markers the last frame showed and how large they were, to decide how
+    hard to look: the corners agree whichever pass found them (the same refinement), but a
+    marker the quick pass misses is looked for again only if it was seen in the frame before
+    or is named in `expected`; pass `expected` where every marker must be looked for.
     """
 
     def __init__(
@@ -178,6 +202,13 @@ class MarkerDetector:
         self._detector = cv2.aruco.ArucoDetector(self.dictionary, params)
         self._cells = self.dictionary.markerSize + 2 * params.markerBorderBits
         self._lock = threading.Lock()
+        self._quick_params = cv2.aruco.DetectorParameters()
+        self._quick_params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE
+        self._quick_params.adaptiveThreshWinSizeMin = _FAST_WINDOW_PX
+        self._quick_params.adaptiveThreshWinSizeMax = _FAST_WINDOW_PX
+        self._quick = cv2.aruco.ArucoDetector(self.dictionary, self._quick_params)
+        self._seen_ids: frozenset[int] = frozenset()
+        self._seen_perimeter_px = 0.0  # smallest marker perimeter last seen, half-res px
 
     def detect(
         self, image: np.ndarray, *, expected: Iterable[int] | None = None
@@ -193,8 +224,12 @@ class MarkerDetector:
         if self.fast and gray.shape[0] >= _DOWNSCALE_MIN_HEIGHT:
             height, width = gray.shape
             small = cv2.resize(gray, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
-            coarse = {i: 2.0 * c + 0.5 for i, c in self._find(small).items()}  # small → full px
             wanted = set() if expected is None else {int(i) for i in expected}
+            found = self._find_quick(small)
+            if not found or (wanted | self._seen_ids) - found.keys():
+                found = {**self._find(small), **found}
+            self._remember(found)
+            coarse = {i: 2.0 * c + 0.5 for i, c in found.items()}  # small → full px
             if not coarse or wanted - coarse.keys():
                 coarse = {**self._find(gray), **coarse}
         else:
@@ -203,19 +238,42 @@ class MarkerDetector:
 
     # --- internals -----------------------------------------------------------------------
 
+    def _find_quick(self, small: np.ndarray) -> dict[int, NDArray[np.float64]]:
+        """The fast first pass on the half-resolution frame, corners in its pixels.
+
+        One threshold window; candidates far smaller than the markers last seen skipped
+        (OpenCV's perimeter bound is a fraction of the image's larger side). When the markers
+        last seen were large enough to stay `_MIN_SEARCH_SIDE_PX` wide at quarter resolution,
+        the search runs there (a quarter of the pixels again; the full-resolution refinement
+        converges from the coarser corners all the same).
+        """
+        seen = self._seen_perimeter_px
+        quarter = seen / 4.0 >= 2 * _MIN_SEARCH_SIDE_PX
+        image = small
+        if quarter:
+            height, width = small.shape[:2]
+            image = cv2.resize(small, (width // 2, height // 2), interpolation=cv2.INTER_AREA)
+            seen /= 2.0
+        with self._lock:
+            rate = _MIN_PERIMETER_OF_SEEN * seen / max(image.shape[:2])
+            self._quick_params.minMarkerPerimeterRate = max(0.03, rate)
+            self._quick.setDetectorParameters(self._quick_params)
+            corners, ids, _rejected = self._quick.detectMarkers(image)
+        found = _by_id(corners, ids)
+        return {i: 2.0 * c + 0.5 for i, c in found.items()} if quarter else found
+
+    def _remember(self, found: dict[int, NDArray[np.float64]]) -> None:
+        """Which markers this frame showed and the smallest one's perimeter, for the next."""
+        perimeters = [_perimeter(q) for q in found.values()]
+        with self._lock:
+            self._seen_ids = frozenset(found)
+            self._seen_perimeter_px = min(perimeters, default=0.0)
+
     def _find(self, gray: np.ndarray) -> dict[int, NDArray[np.float64]]:
-        """Raw (pixel-accurate) corners by id; duplicates resolved to the largest marker."""
+        """Raw (pixel-accurate) corners by id with OpenCV's default thresholds."""
         with self._lock:
             corners, ids, _rejected = self._detector.detectMarkers(gray)
-        found: dict[int, NDArray[np.float64]] = {}
-        if ids is None:
-            return found
-        for marker_id, quad in zip(ids.ravel(), corners, strict=True):
-            pts = np.asarray(quad, dtype=np.float64).reshape(4, 2)
-            key = int(marker_id)
-            if key not in found or _area(pts) > _area(found[key]):
-                found[key] = pts
-        return found
+        return _by_id(corners, ids)
 
     def _refine(self, gray: np.ndarray, marker_id: int, corners: np.ndarray) -> MarkerDetection:
         """Sub-pixel corners in a window that stays inside the marker's black border cell.
@@ -235,6 +293,23 @@ class MarkerDetector:
         centre = diagonal_intersection(out)
         centre.setflags(write=False)
         return MarkerDetection(marker_id, out, centre)
+
+
+def _by_id(corners: Sequence[np.ndarray], ids: np.ndarray | None) -> dict[int, NDArray[np.float64]]:
+    """detectMarkers' answer by id; an id seen twice keeps the larger marker."""
+    found: dict[int, NDArray[np.float64]] = {}
+    if ids is None:
+        return found
+    for marker_id, quad in zip(ids.ravel(), corners, strict=True):
+        pts = np.asarray(quad, dtype=np.float64).reshape(4, 2)
+        key = int(marker_id)
+        if key not in found or _area(pts) > _area(found[key]):
+            found[key] = pts
+    return found
+
+
+def _perimeter(quad: np.ndarray) -> float:
+    return float(np.sum(np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)))
 
 
 def _area(quad: np.ndarray) -> float:

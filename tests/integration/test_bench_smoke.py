@@ -29,6 +29,8 @@ from bench import (
     reset_probe,
     rest_throughput,
     scaling,
+    vision,
+    vision_accuracy,
     ws_fanout,
 )
 from bench.report import RESULTS_ENV, emit
@@ -200,3 +202,23 @@ def test_planning_measures_the_library_while_plans_are_cancelled(results_in_tmp:
     assert worst["points"] <= 500 and worst["fill_lines"] <= 1000
     assert 1500 < worst["fill_strokes"] <= 2000  # at the limit: the finest spacing accepted
     assert 0 < worst["plan_s_median"] <= worst["plan_s_max"]
+
+
+def test_vision_detection_runs_every_path_on_small_and_large_markers() -> None:
+    for marker_px in (45, 150):
+        rows = vision.detection_rows(2, marker_px)
+        assert [row["measure"].split(":")[0] for row in rows] == [f"ArUco {marker_px} px"] * 4
+        for row in rows:
+            assert_ordered_latencies(row)
+            assert row["markers_found_min"] == 9
+        for row in rows[1:]:
+            assert row["max_centre_error_vs_truth_px"] < 1.0  # the right marker, not a look-alike
+
+
+def test_vision_accuracy_reports_calibration_and_matching(results_in_tmp: Path) -> None:
+    rows = vision_accuracy.main(["--seeds", "1", "--only", "clean", "--only", "all together"])
+    assert [row["condition"] for row in rows] == ["clean", "all together"]
+    for row in rows:
+        assert 0 < row["calibration_field_mean_mm"] <= row["calibration_field_max_mm"]
+        assert 0 < row["match_outline_mean_mm"] <= row["match_outline_max_mm"]
+    assert written_rows(results_in_tmp, "vision_accuracy") == rows

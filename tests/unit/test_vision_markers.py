@@ -116,7 +116,15 @@ def test_fast_mode_looks_again_at_full_resolution_for_expected_markers(
             found.pop(7, None)
         return found
 
+    real_quick = detector._find_quick
+
+    def quick_pass_misses_marker_7(small: np.ndarray) -> dict[int, np.ndarray]:
+        found = real_quick(small)
+        found.pop(7, None)
+        return found
+
     detector._find = half_resolution_misses_marker_7  # type: ignore[method-assign]
+    detector._find_quick = quick_pass_misses_marker_7  # type: ignore[method-assign]
     assert 7 not in detector.detect(frames[0])
     assert 7 in detector.detect(frames[0], expected=ALL_MARKERS)
 

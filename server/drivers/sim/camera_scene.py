@@ -10,7 +10,10 @@ against it earns its accuracy claims honestly:
 3. for every camera pixel the table point it sees is computed through the exact camera model
    (undistortion + ray/plane intersection) and the table image is sampled there with
    `cv2.remap` — so geometry is exact to ~0.01 px, and anti-aliasing follows from steps 1-2;
-4. vignetting, a lighting gradient and Gaussian sensor noise are applied per frame.
+4. vignetting, a lighting gradient and Gaussian sensor noise are applied per frame;
+5. optionally (`Scene.degradations`, off by default) what a real table adds: residual lens
+   distortion, blur, uneven light, more noise, JPEG, marker sheets printed off scale
+   (`camera_degradations.py`).
 
 Steps 1-3 only change when the scene changes, so they are cached: a warm frame costs the
 noise only (~30 ms). Nothing here does I/O; `server.drivers.camera.SimulatedCamera` wraps it.
@@ -41,6 +44,7 @@ from server.drivers.sim.camera_chessboard import (
     default_chessboard_poses,
     render_chessboard_view,
 )
+from server.drivers.sim.camera_degradations import Degradations
 from server.drivers.sim.camera_model import (
     DEFAULT_CAMERA_MODEL,
     CameraModel,
@@ -69,6 +73,7 @@ __all__ = [
     "BoardPose",
     "CameraModel",
     "Chessboard",
+    "Degradations",
     "Scene",
     "Workpiece",
     "WorkpieceShape",
@@ -130,6 +135,14 @@ class Scene:
     defocus_px: float = 0.0
     exposure: float = 1.0
     seed: int = 0  # table texture, and sensor noise when no rng is given
+    # What a real table adds to the frame (none by default): see camera_degradations.py.
+    degradations: Degradations | None = None
+
+    @property
+    def printed_marker_size_mm(self) -> float:
+        """The black square's side as printed: `marker_size_mm` times any print scale."""
+        scale = self.degradations.print_scale if self.degradations else 1.0
+        return self.marker_size_mm * scale
 
     @classmethod
     def printed(
@@ -197,7 +210,7 @@ class Scene:
     def _background_key(self) -> tuple[Hashable, ...]:
         return (
             tuple((float(x), float(y)) for x, y in self.marker_positions_mm),
-            float(self.marker_size_mm),
+            float(self.printed_marker_size_mm),
             float(self.quiet_zone_mm),
             tuple(self.table_bgr),
             float(self.table_texture),
@@ -212,9 +225,10 @@ def marker_corners_mm(scene: Scene, *, paper: bool = False) -> dict[int, NDArray
     """Table corners (4×2 mm) of each marker's black square, in ArUco order.
 
     ArUco order is the marker image's top-left, top-right, bottom-right, bottom-left. With
-    `paper`, the corners of the white sheet (quiet zone included) instead.
+    `paper`, the corners of the white sheet (quiet zone included) instead. As printed: a
+    print scale in the scene's degradations makes them larger about the same centre.
     """
-    half = scene.marker_size_mm / 2.0 + (scene.quiet_zone_mm if paper else 0.0)
+    half = scene.printed_marker_size_mm / 2.0 + (scene.quiet_zone_mm if paper else 0.0)
     offsets = np.array([[-half, -half], [-half, half], [half, half], [half, -half]])
     return {
         i: np.asarray(c, dtype=np.float64) + offsets
@@ -407,9 +421,10 @@ def _marker_ink_polygons(scene: Scene, marker_id: int) -> list[NDArray[np.float6
     dictionary = aruco_dictionary()
     cells = dictionary.markerSize + 2
     bits = cv2.aruco.generateImageMarker(dictionary, marker_id, cells)
-    cell = scene.marker_size_mm / cells
+    size = scene.printed_marker_size_mm
+    cell = size / cells
     cx, cy = scene.marker_positions_mm[marker_id]
-    x_top, y_left = cx - scene.marker_size_mm / 2.0, cy - scene.marker_size_mm / 2.0
+    x_top, y_left = cx - size / 2.0, cy - size / 2.0
     squares = []
     for row, col in zip(*np.nonzero(bits == 0), strict=True):
         x, y = x_top + row * cell, y_left + col * cell
@@ -459,7 +474,10 @@ def _build_frame(scene: Scene, model: CameraModel) -> NDArray[np.float32]:
     frame = cv2.remap(
         table, optics.map_x, optics.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
     )
-    return frame.astype(np.float32) * lighting_gain(model, scene.vignetting, scene.light_gradient)
+    lit = frame.astype(np.float32) * lighting_gain(model, scene.vignetting, scene.light_gradient)
+    if scene.degradations is not None:
+        lit = scene.degradations.apply_to_light(lit)
+    return lit
 
 
 def render_table(
@@ -470,7 +488,8 @@ def render_table(
     """One camera frame of the table (uint8 BGR, model.height × model.width).
 
     Without `rng` the sensor noise is seeded from `scene.seed`, so the same scene gives the
-    same frame; pass a generator to get a fresh noise pattern per frame.
+    same frame; pass a generator to get a fresh noise pattern per frame. The scene's
+    degradations, if any, are applied (their lens and light parts cached with the frame).
     """
     snapshot = scene.snapshot()
     key = (
@@ -479,10 +498,16 @@ def render_table(
         tuple(snapshot.workpieces),
         float(snapshot.vignetting),
         float(snapshot.light_gradient),
+        snapshot.degradations,
     )
     clean = _frame_cache.get_or_build(key, lambda: _build_frame(snapshot, model))
     if snapshot.defocus_px > 0:
         clean = cv2.GaussianBlur(clean, (0, 0), float(snapshot.defocus_px))
     if snapshot.exposure != 1.0:
         clean = clean * np.float32(snapshot.exposure)
-    return expose(clean, snapshot.noise_sigma, rng or np.random.default_rng(snapshot.seed))
+    degradations = snapshot.degradations
+    sigma = snapshot.noise_sigma
+    if degradations is not None and degradations.noise_sigma is not None:
+        sigma = degradations.noise_sigma
+    frame = expose(clean, sigma, rng or np.random.default_rng(snapshot.seed))
+    return degradations.apply_to_image(frame) if degradations is not None else frame
