@@ -46,8 +46,24 @@ class CellDevices:
             device.set_fault_listener(listener)
 
     async def safe_halt(self, timeout: float) -> HaltReport:
-        """Close the glue valve and stop the robot now, valve first; never raises."""
-        return await self.start_halt(timeout)
+        """Close the glue valve and stop the robot now, valve first; never raises.
+
+        The halt of a transition, awaited in the worker's own task: the robot's stop
+        is put on its way as a task, then the valve's close runs right here (its first
+        step runs before the stop's task has its first turn, so the valve still goes
+        first, and neither waits for the other's answer). Two tasks fewer per halt
+        than `start_halt`, which an e-stop needs because its caller must not wait.
+        """
+        stop = asyncio.ensure_future(_within(self.robot.stop(), timeout))
+        try:
+            valve_result: BaseException | None = await _within(self.glue.set_valve(False), timeout)
+        except asyncio.CancelledError:
+            stop.cancel()
+            raise
+        except Exception as exc:
+            valve_result = exc
+        (stop_result,) = await asyncio.gather(stop, return_exceptions=True)
+        return _report(valve_result, stop_result)
 
     def start_halt(self, timeout: float) -> asyncio.Future[HaltReport]:
         """Put both halt commands on their way at once; the future reports how they went.
@@ -142,6 +158,11 @@ class CellDevices:
 
 async def _halt_report(valve: asyncio.Future[None], stop: asyncio.Future[None]) -> HaltReport:
     valve_result, stop_result = await asyncio.gather(valve, stop, return_exceptions=True)
+    return _report(valve_result, stop_result)
+
+
+def _report(valve_result: object, stop_result: object) -> HaltReport:
+    """What the halt achieved, from each command's result or exception; errors logged."""
     errors = [
         f"{name}: {_describe(result)}"
         for name, result in (("glue valve close", valve_result), ("robot stop", stop_result))

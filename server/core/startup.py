@@ -126,14 +126,14 @@ class Activities:
     async def _go_to_safe_position(self) -> None:
         settings = self.settings
         try:
-            await asyncio.wait_for(
-                self.devices.robot.move_linear(
+            # Not wait_for: on Python 3.11 it loses a cancel that lands as the move ends
+            # (see operations/safe_position.py), and the home move is cancelled on a stop.
+            async with asyncio.timeout(settings.safe_position_timeout):
+                await self.devices.robot.move_linear(
                     Pose.from_sequence(settings.safe_position),
                     settings.travel_speed_mm_s,
                     settings.acceleration_mm_s2,
-                ),
-                settings.safe_position_timeout,
-            )
+                )
         except asyncio.CancelledError:
             raise
         except Exception as exc:

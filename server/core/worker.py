@@ -373,7 +373,7 @@ class Worker:
                 return self._refuse(envelope, f"pause not confirmed: {exc}; the cell stops")
         message = f"{event_label(event)} accepted: {state.value} → {decision.target.value}"
         started = envelope.event_id if Action.START_RUN in decision.actions else None
-        return replace(self._outcome(envelope, True, message), run_id=started)
+        return Outcome(True, envelope.event_id, event, self.ctx.state, message, run_id=started)
 
     def _outcome(
         self, envelope: Envelope, accepted: bool, message: str, field: str | None = None

@@ -25,7 +25,8 @@ async def capture(ctx: OperationContext, purpose: str) -> np.ndarray:
     """One frame within vision_processing_timeout, at least 1920×1080."""
     timeout = ctx.settings.vision_processing_timeout
     try:
-        frame = await asyncio.wait_for(ctx.camera.capture(), timeout)
+        async with asyncio.timeout(timeout):  # not wait_for: see safe_position.py
+            frame = await ctx.camera.capture()
     except TimeoutError as exc:
         raise OperationError(
             "VISION_TIMEOUT", f"{purpose}: no camera frame within {timeout:g} s"

@@ -50,10 +50,11 @@ async def move_to_safe_position(ctx: OperationContext) -> None:
     while True:
         async with ctx.gate.step():
             try:
-                stopped = await asyncio.wait_for(
-                    pausable_move(ctx, pose, settings.travel_speed_mm_s),
-                    settings.safe_position_timeout,
-                )
+                # Not asyncio.wait_for: on Python 3.11 it swallows a cancellation that
+                # arrives as the move finishes (CPython gh-86296), so a cancel or an
+                # e-stop could leave the run going on after the cell left its state.
+                async with asyncio.timeout(settings.safe_position_timeout):
+                    stopped = await pausable_move(ctx, pose, settings.travel_speed_mm_s)
             except TimeoutError as exc:
                 limit = settings.safe_position_timeout
                 raise OperationError(
