@@ -5,8 +5,9 @@ Who runs where, as a line runs: Debian's mosquitto, and four cells as server
 processes of their own (`python -m server`, simulated devices): `cell-1` with
 OPC UA and MQTT on, `cell-2` and `cell-3` with MQTT on (three cells on one
 broker), and `plain` with both off. This process is the plant: an MQTT
-subscriber to every cell's `event` topic, an OPC UA client subscribed to
-cell-1's `CellState`, and the HTTP client that drives the cycles.
+subscriber to every cell's `event` topic and an OPC UA client subscribed to
+cell-1's `CellState`, in a process of their own, and the HTTP client that drives
+the cycles, in this one.
 
 A cycle sends POST /estop to each cell in turn (ERROR), then POST /reset to
 each (IDLE), waiting for each to settle. Each transition carries the time the
@@ -32,6 +33,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import multiprocessing
 import os
 import socket
 import subprocess
@@ -183,10 +185,41 @@ async def opcua_changes(
         await client.disconnect()
 
 
+Received = list[tuple[float, dict[str, Any]]]
+
+
+async def listen(
+    broker: BrokerPorts, opcua_port: int, publishing_ms: float, stop: Any, ready: Any
+) -> tuple[Received, Received, float]:
+    mqtt: Received = []
+    opcua: Received = []
+    async with (
+        mqtt_events(broker, mqtt),
+        opcua_changes(opcua_port, publishing_ms, opcua) as granted,
+    ):
+        ready.set()
+        while not stop.is_set():
+            await asyncio.sleep(0.05)
+    return mqtt, opcua, granted
+
+
+def plant(
+    broker: BrokerPorts, opcua_port: int, publishing_ms: float, stop: Any, ready: Any, out: Any
+) -> None:
+    """The plant's subscribers, in a process of their own: what they receive must not
+    share a loop (or the interpreter lock) with the HTTP client timing the stops."""
+    logging.disable(logging.ERROR)
+    out.send(asyncio.run(listen(broker, opcua_port, publishing_ms, stop, ready)))
+
+
 async def cycles(client: httpx.AsyncClient, cells: list[Cell], count: int) -> None:
-    """`count` times: e-stop every cell, then reset every cell, each settled in turn."""
-    for _ in range(count):
-        for cell in cells:
+    """`count` times: e-stop every cell, then reset every cell, each settled in turn.
+
+    The order of the stops alternates, so neither the cell with the interfaces nor
+    the one without always goes first (the others' transitions are still being
+    published while the later stops are sent)."""
+    for n in range(count):
+        for cell in cells if n % 2 == 0 else cells[::-1]:
             sent = time.perf_counter()
             answer = await client.post(
                 f"{cell.url}/estop", json={"reason": "plant latency benchmark"}, headers=auth(cell)
@@ -238,16 +271,27 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
             async with httpx.AsyncClient(timeout=30) as client:
                 for cell in cells:
                     await wait_idle(client, cell, READY_S)
-                mqtt: list[tuple[float, dict[str, Any]]] = []
-                opcua: list[tuple[float, dict[str, Any]]] = []
                 assert cells[0].opcua_port is not None
-                async with (
-                    mqtt_events(broker, mqtt),
-                    opcua_changes(cells[0].opcua_port, publishing_ms, opcua) as granted,
-                ):
+                context = multiprocessing.get_context("spawn")
+                stop, ready = context.Event(), context.Event()
+                receiving, out = context.Pipe(duplex=False)
+                listener = context.Process(
+                    target=plant,
+                    args=(broker, cells[0].opcua_port, publishing_ms, stop, ready, out),
+                )
+                listener.start()
+                try:
+                    assert await asyncio.to_thread(ready.wait, 60), "the plant did not subscribe"
                     started = time.time()
                     await cycles(client, cells, cycles_count)
                     await asyncio.sleep(2.0)  # the last transitions reach the plant
+                    stop.set()
+                    mqtt, opcua, granted = await asyncio.to_thread(receiving.recv)
+                finally:
+                    stop.set()
+                    listener.join(30)
+                    if listener.is_alive():
+                        listener.kill()
     finally:
         broker_process.terminate()
         broker_process.wait(timeout=30)
