@@ -44,6 +44,13 @@ full collections, which take tens of milliseconds with 1000 connections
 open, show in p99 and max. The file-descriptor limit is raised to the hard
 limit here, before the server is started, so the server inherits it (the
 server does not raise its own).
+
+`--pin` (the headline figure, as issue 17 asks): the server runs on one core
+and this process (the clients and the driver) on another
+(`os.sched_setaffinity`; the server's is set in its process before it starts,
+so every thread it starts inherits it). Unpinned, the two share both cores
+and a receipt waits whenever the crowd holds the core the server needs: the
+figure measures the crowd as much as the server. Each result row says which.
 """
 
 from __future__ import annotations
@@ -54,6 +61,7 @@ import contextlib
 import gc
 import itertools
 import json
+import os
 import resource
 import tempfile
 import time
@@ -105,6 +113,16 @@ class Tally:
 
     counts: Counter[str] = field(default_factory=Counter)
     open_clients: int = 0
+
+
+def pinning(pin: bool) -> tuple[set[int], set[int]] | None:
+    """(server cores, client cores) when pinning and at least two cores are ours, else None."""
+    if not pin:
+        return None
+    cores = sorted(os.sched_getaffinity(0))
+    if len(cores) < 2:
+        raise SystemExit("--pin needs two cores: one for the server, one for the clients")
+    return {cores[-1]}, set(cores[:-1])
 
 
 def raise_fd_limit(needed: int) -> int:
@@ -304,7 +322,13 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--transitions", type=int, default=200, help="transitions per count")
     parser.add_argument("--no-compression", action="store_true", help="do not offer deflate")
     parser.add_argument("--name", default="ws_fanout", help="results file name (without .json)")
+    parser.add_argument(
+        "--pin",
+        action="store_true",
+        help="the server on the last core, the clients on the others (the headline figure)",
+    )
     args = parser.parse_args(argv)
+    cores = pinning(args.pin)
     counts = [int(c) for c in args.clients.split(",")]
     fd_limit = raise_fd_limit(FDS_PER_CLIENT * max(counts) + SPARE_FDS)
     port = free_port()
@@ -315,8 +339,15 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     }
     with (
         tempfile.TemporaryDirectory(prefix="bench-ws-") as tmp,
-        server_process(port, Path(tmp), env=env) as process,
+        server_process(
+            port,
+            Path(tmp),
+            env=env,
+            preexec_fn=(lambda: os.sched_setaffinity(0, cores[0])) if cores else None,
+        ) as process,
     ):
+        if cores:
+            os.sched_setaffinity(0, cores[1])
         rows = run_loop(
             run(
                 f"http://127.0.0.1:{port}",
@@ -332,6 +363,11 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         "compression": "none" if args.no_compression else "permessage-deflate offered",
         "fd_limit": fd_limit,
         "target": "1000 clients: p99 < 50 ms, missing = 0",
+        "pinned": (
+            {"server_cores": sorted(cores[0]), "client_cores": sorted(cores[1])}
+            if cores
+            else "no: server and clients share every core"
+        ),
     }
     emit(args.name, rows, extra)
     return rows

@@ -40,11 +40,18 @@ def declared_query_names(dependant: Dependant) -> frozenset[str]:
     return frozenset(names)
 
 
+Handler = Callable[[Request], Coroutine[Any, Any, Response]]
+
+
 class DeclaredQueryRoute(APIRoute):
     """An APIRoute that answers 422 to a query parameter it does not declare."""
 
-    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
-        handler = super().get_route_handler()
+    def answer_handler(self) -> Handler:
+        """What answers a request once its query is checked: FastAPI's own handler."""
+        return super().get_route_handler()
+
+    def get_route_handler(self) -> Handler:
+        handler = self.answer_handler()
         if (self.openapi_extra or {}).get(IGNORES_UNKNOWN_QUERY):
             return handler
         declared = declared_query_names(self.dependant)

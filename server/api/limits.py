@@ -14,8 +14,24 @@ from typing import Any
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 
+def _body_headers(scope: Scope) -> tuple[bytes | None, bool]:
+    """The request's Content-Length, and whether it names a Transfer-Encoding."""
+    declared = None
+    chunked = False
+    for name, value in scope.get("headers") or ():
+        if name == b"content-length":
+            declared = value
+        elif name == b"transfer-encoding":
+            chunked = True
+    return declared, chunked
+
+
 class BodySizeLimit:
-    """ASGI middleware: checks Content-Length, and counts a streamed body as it arrives."""
+    """ASGI middleware: checks Content-Length, and counts a streamed body as it arrives.
+
+    A request without Transfer-Encoding passes with no wrapper: its body is
+    bounded by the Content-Length already checked (or it has none).
+    """
 
     def __init__(self, app: ASGIApp, max_bytes: int, stop_paths: Collection[str] = ()) -> None:
         self.app = app
@@ -29,9 +45,14 @@ class BodySizeLimit:
         if scope["method"] == "POST" and scope["path"] in self.stop_paths:
             await self.app(scope, self._dropping_oversized(scope, receive), send)
             return
-        declared = dict(scope.get("headers") or []).get(b"content-length")
+        declared, chunked = _body_headers(scope)
         if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
             await self._refuse(send)
+            return
+        if not chunked:
+            # No Transfer-Encoding: the body is at most the Content-Length just checked
+            # (the HTTP server reads no more), or none at all, as on every GET.
+            await self.app(scope, receive, send)
             return
         received = 0
         too_large = False

@@ -63,6 +63,7 @@ from starlette.datastructures import QueryParams
 
 from server.api.access import authenticate_websocket
 from server.api.live_views import CLOSE_UNAUTHORIZED, REVOKED_REASON, LiveViews
+from server.api.ws_frames import FrameWriter, text_frame
 from server.core.bus import Bus, BusMessage, Subscription, SubscriptionClosed
 from server.core.view import CellView
 
@@ -132,15 +133,20 @@ class Resume:
 
 
 class WebSocketHub:
-    """Holds the live views (their limits, their revocation) and encodes each message once."""
+    """Holds the live views (their limits, their revocation) and encodes each message once.
+
+    Once: its JSON text, and the wire frame that carries it (server/api/ws_frames.py),
+    shared by every client.
+    """
 
     def __init__(
         self, max_clients: int, buffer: int, per_token: int = 10, reserved: int = 0
     ) -> None:
         self.views = LiveViews(max_clients, per_token, reserved)
         self.buffer = buffer
-        self._encoded: OrderedDict[int, str] = OrderedDict()
+        self._encoded: OrderedDict[int, tuple[str, bytes]] = OrderedDict()
         self._newest = 0
+        self._sample: tuple[BusMessage, str, bytes] | None = None  # the latest sample's
 
     @property
     def client_count(self) -> int:
@@ -156,18 +162,29 @@ class WebSocketHub:
 
     def encode(self, message: BusMessage) -> str:
         """The message's JSON text, shared by every client (clients lag by a few at most)."""
-        if not message.numbered:  # a sample: sent once, to the clients that asked for it
-            return json.dumps(message.as_dict())
-        text = self._encoded.get(message.seq)
-        if text is None:
+        return self._encodings(message)[0]
+
+    def frame(self, message: BusMessage) -> bytes:
+        """The text frame carrying `encode(message)`, as written to every client's socket."""
+        return self._encodings(message)[1]
+
+    def _encodings(self, message: BusMessage) -> tuple[str, bytes]:
+        if not message.numbered:  # a sample: the same one goes to every client that asked
+            if self._sample is None or self._sample[0] is not message:
+                text = json.dumps(message.as_dict())
+                self._sample = (message, text, text_frame(text))
+            return self._sample[1], self._sample[2]
+        encoded = self._encoded.get(message.seq)
+        if encoded is None:
             text = json.dumps(message.as_dict())
+            encoded = (text, text_frame(text))
             if message.seq + ENCODED_CACHE <= self._newest:
-                return text  # replayed to one client: not worth evicting a live one
+                return encoded  # replayed to one client: not worth evicting a live one
             self._newest = max(self._newest, message.seq)
-            self._encoded[message.seq] = text
+            self._encoded[message.seq] = encoded
             if len(self._encoded) > ENCODED_CACHE:
                 self._encoded.popitem(last=False)
-        return text
+        return encoded
 
 
 def _snapshot(view: CellView, bus: Bus) -> dict[str, Any]:
@@ -237,7 +254,9 @@ async def live(websocket: WebSocket) -> None:
             return
         await websocket.send_json({**snapshot, **marks})
         sender = asyncio.create_task(
-            _send_loop(websocket, subscription, hub, replay, snapshot["seq"])
+            _send_loop(
+                websocket, subscription, hub, replay, snapshot["seq"], FrameWriter.of(websocket)
+            )
         )
         receiver = asyncio.create_task(_receive_loop(websocket, subscription))
         # `view.ended` is a plain future, set when the view's token is revoked.
@@ -262,8 +281,16 @@ async def live(websocket: WebSocket) -> None:
         hub.views.close(view)
 
 
-async def _send(websocket: WebSocket, hub: WebSocketHub, message: BusMessage) -> Close | None:
-    """Send one message; a Close when the connection must end, else None."""
+async def _send(
+    websocket: WebSocket, hub: WebSocketHub, message: BusMessage, writer: FrameWriter | None
+) -> Close | None:
+    """Send one message; a Close when the connection must end, else None.
+
+    The shared frame is written at once when the connection can take it without
+    waiting (`writer`); otherwise the ordinary send, bounded by SEND_TIMEOUT.
+    """
+    if writer is not None and writer.write(hub.frame(message)):
+        return None
     try:
         async with asyncio.timeout(SEND_TIMEOUT):  # no extra task per send, unlike wait_for
             await websocket.send_text(hub.encode(message))
@@ -280,12 +307,13 @@ async def _send_loop(
     hub: WebSocketHub,
     replay: Sequence[BusMessage],
     snapshot_seq: int,
+    writer: FrameWriter | None = None,
 ) -> Close:
     """The replay (all at or below the snapshot's seq), then live messages above it."""
     for message in replay:
         if subscription.closed_reason is not None:
             break  # fell behind meanwhile: `get` below says so
-        if (close := await _send(websocket, hub, message)) is not None:
+        if (close := await _send(websocket, hub, message, writer)) is not None:
             return close
     while True:
         try:
@@ -294,7 +322,7 @@ async def _send_loop(
             return CLOSE_SLOW, f"{closed.reason}: you fell behind; reconnect and resync"
         if message.numbered and message.seq <= snapshot_seq:
             continue  # sent from the ring already (never expected: see `live`)
-        if (close := await _send(websocket, hub, message)) is not None:
+        if (close := await _send(websocket, hub, message, writer)) is not None:
             return close
 
 

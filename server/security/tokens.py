@@ -95,6 +95,9 @@ class TokenStore:
         self.admin_token_path = data_path / "admin.token"
         self._lock = threading.Lock()
         self._entries: dict[str, TokenEntry] = {}
+        # Each entry's Principal, built once: every request is verified (GET /state
+        # included), and entries are replaced, never changed, so identity says it is current.
+        self._principals: dict[str, tuple[TokenEntry, Principal]] = {}
         self._load()
 
     def _load(self) -> None:
@@ -187,4 +190,9 @@ class TokenStore:
             return None
         if not hmac.compare_digest(entry.secret_sha256, _digest(token)):
             return None
-        return Principal(entry.id, entry.name, Role.parse(entry.role))
+        cached = self._principals.get(entry.id)
+        if cached is not None and cached[0] is entry:
+            return cached[1]
+        principal = Principal(entry.id, entry.name, Role.parse(entry.role))
+        self._principals[entry.id] = (entry, principal)
+        return principal
