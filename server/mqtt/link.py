@@ -178,6 +178,7 @@ class MqttLink:
                 continue
             data = message.data
             if message.type == "state_changed":
+                await self._after_its_commit()
                 self._put_state(data)
                 event = event_message(cell_id, message.seq, data)
                 self.outbox.put(Entry(self.topics.event, encode(event)))
@@ -189,6 +190,20 @@ class MqttLink:
             else:  # alert (a warning) or error (a fault)
                 alert = alert_message(cell_id, message.type, message.time, data)
                 self.outbox.put(Entry(self.topics.alert, encode(alert)))
+
+    async def _after_its_commit(self) -> None:
+        """Wait until the transition's records are committed before publishing it.
+
+        Why: the publishing (the state, the event, a fresh health document) is CPU
+        work on the loop and under the interpreter lock, and the command that made
+        the transition (an e-stop above all) is answered only once its commit is
+        done; the journal's writer thread needs the lock to get there. Published
+        after the commit, the plant hears of a transition about a millisecond
+        later, and the stop's answer does not wait for the plant.
+        """
+        journal = self.cell.journal
+        if journal is not None:
+            await journal.caught_up()
 
     def _put_state(self, changed: dict[str, Any] | None = None) -> None:
         """The retained state: of the transition `changed` records, else the present one.

@@ -151,6 +151,10 @@ class OpcUaInterface:
                 self._seq = self.cell.bus.last_seq
                 await self._write_state(self.cell.view.snapshot(), None)
                 continue
+            if message.type == "state_changed" and self.cell.journal is not None:
+                # After the transition's own commit, as the MQTT link does (its
+                # `_after_its_commit` says why): the command is answered first.
+                await self.cell.journal.caught_up()
             try:
                 await self._apply(message)
             except Exception:  # a tag not written must not end the follower

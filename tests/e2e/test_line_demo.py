@@ -3,13 +3,14 @@ cells and the line view really start, each cell with its own port, data director
 id and the broker's URL, and a SIGTERM (as Ctrl-C) stops every one of them together.
 
 The cells publish for real (server/mqtt): `gluectl line` reads every cell from the
-broker as IDLE and online, a cell started on the line is seen running, and a cell that
-stops answering (frozen with SIGSTOP, its socket left open) is shown offline by the
-broker's last will within the keep-alive.
+broker as IDLE and online, a run started on cell-2 is published as its transition,
+and a cell that stops answering (frozen with SIGSTOP, its socket left open) is shown
+offline by the broker's last will within the keep-alive.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -17,10 +18,13 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
+import paho.mqtt.client as paho
 
 from tests.processes import ROOT, environment, run_module, stop
 from tests.serving import free_port
@@ -58,6 +62,25 @@ def wait_line(mqtt: int, what: str, holds) -> dict[str, dict]:
         assert time.monotonic() < deadline, f"{what}: {cells}"
         time.sleep(0.5)
     return cells
+
+
+@contextlib.contextmanager
+def cell_events(mqtt: int, cell_id: str) -> Iterator[list[dict]]:
+    """A cell's `event` messages as they arrive (subscribed before the caller acts)."""
+    events: list[dict] = []
+    subscribed = threading.Event()
+    client = paho.Client(paho.CallbackAPIVersion.VERSION2)
+    client.on_message = lambda _c, _u, message: events.append(json.loads(message.payload))
+    client.on_subscribe = lambda *_: subscribed.set()
+    client.connect("127.0.0.1", mqtt)
+    client.subscribe(f"glue/{cell_id}/event", qos=1)
+    client.loop_start()
+    try:
+        assert subscribed.wait(60), "the broker did not acknowledge the subscription"
+        yield events
+    finally:
+        client.loop_stop()
+        client.disconnect()
 
 
 def test_the_line_starts_and_stops_together(tmp_path: Path) -> None:
@@ -114,13 +137,19 @@ def test_the_line_starts_and_stops_together(tmp_path: Path) -> None:
             ),
         )
         token = (data / "cell-2" / "admin.token").read_text().strip()
-        started = httpx.post(
-            f"http://127.0.0.1:{cell_ports[1]}/start", json={"workpiece_id": "demo"},
-            headers={"Authorization": f"Bearer {token}"}, timeout=30,
-        )  # fmt: skip
-        assert started.status_code == 202, started.text
-        run_id = started.json()["run_id"]
-        wait_line(mqtt, "cell-2 running its run", lambda c: c["cell-2"]["run_id"] == run_id)
+        with cell_events(mqtt, "cell-2") as events:
+            started = httpx.post(
+                f"http://127.0.0.1:{cell_ports[1]}/start", json={"workpiece_id": "demo"},
+                headers={"Authorization": f"Bearer {token}"}, timeout=30,
+            )  # fmt: skip
+            assert started.status_code == 202, started.text
+            run_id = started.json()["run_id"]
+            deadline = time.monotonic() + READY_TIMEOUT_S
+            while not [e for e in events if e["event_id"] == run_id]:
+                assert time.monotonic() < deadline, f"no transition of run {run_id}: {events}"
+                time.sleep(0.05)
+        (seen,) = [e for e in events if e["event_id"] == run_id]
+        assert (seen["from"], seen["to"]) == ("IDLE", "EXECUTING_TRAJECTORY")
         os.kill(pids["cell-3"], signal.SIGSTOP)  # silent, its socket still open
         try:
             cells = wait_line(mqtt, "cell-3 offline", lambda c: c["cell-3"]["online"] is False)
