@@ -83,6 +83,10 @@ def stop(process: subprocess.Popen[str]) -> None:
             process.wait(5)
 
 
+# A test's port is free when picked, not reserved: see server_process.
+BIND_RETRIES = 2
+
+
 @contextlib.contextmanager
 def server_process(
     port: int,
@@ -100,22 +104,33 @@ def server_process(
     """
     log_path = log_path or data_dir / "server.log"
     log = log_path.open("w")
-    process = subprocess.Popen(
-        [sys.executable, "-m", "server", "--port", str(port), "--data-dir", str(data_dir)],
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=_env(env),
-        cwd=ROOT,
-        preexec_fn=preexec_fn,
-    )
+    argv = [sys.executable, "-m", "server", "--port", str(port), "--data-dir", str(data_dir)]
+
+    def start() -> subprocess.Popen[str]:
+        return subprocess.Popen(
+            argv,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=_env(env),
+            cwd=ROOT,
+            preexec_fn=preexec_fn,
+        )
+
+    process = start()
+    retries = BIND_RETRIES
     try:
         deadline = time.monotonic() + timeout
         while True:
             if process.poll() is not None:
-                raise RuntimeError(
-                    f"server exited with {process.returncode}: {log_path.read_text()[-2000:]}"
-                )
+                output = log_path.read_text()
+                if retries and f"('127.0.0.1', {port}): address already in use" in output:
+                    # `port` was free when picked, then a socket bound to port 0 inside
+                    # that very server (a simulator) was given it first; again, same port.
+                    retries -= 1
+                    process = start()
+                    continue
+                raise RuntimeError(f"server exited with {process.returncode}: {output[-2000:]}")
             try:
                 httpx.get(f"http://127.0.0.1:{port}/health", timeout=1).raise_for_status()
                 break
