@@ -505,6 +505,63 @@ class Settings(BaseSettings):
         "robot position) is pushed on /ws at most this often; once a second otherwise",
     )
 
+    # Quality: each part inspected, production orders (docs/quality.md)
+    inspection_enabled: bool = Field(
+        True,
+        description="after each completed spray run, measure the run and inspect the part's "
+        "bead (GET /runs/{id}/inspection); off: runs are neither judged nor counted as parts",
+    )
+    quality_sample_interval_s: float = Field(
+        0.05,
+        ge=0.01,
+        le=1,
+        description="while spraying, the robot's position and the dispenser's flow are read "
+        "this often for the run's trajectory precision and dispensing consistency",
+    )
+    trajectory_precision_limit_mm: float = Field(
+        1.0,
+        gt=0,
+        le=50,
+        description="a part is defective when the robot strayed further than this (mm) from "
+        "a spray segment",
+    )
+    dispensing_flow_tolerance_percent: float = Field(
+        10.0,
+        gt=0,
+        le=100,
+        description="flow further than this (%) from its setpoint counts as out of tolerance",
+    )
+    dispensing_max_out_of_tolerance_s: float = Field(
+        0.5,
+        ge=0,
+        le=60,
+        description="a part is defective when its flow was out of tolerance longer than this "
+        "(s) while spraying",
+    )
+    bead_width_tolerance_percent: float = Field(
+        30.0,
+        gt=0,
+        le=100,
+        description="a bead narrower or wider than expected (from flow over speed) by more "
+        "than this (%) is a defect",
+    )
+    bead_max_gap_mm: float = Field(
+        3.0, gt=0, le=100, description="longest stretch of a spray segment without bead (mm)"
+    )
+    bead_max_offset_mm: float = Field(
+        1.5,
+        gt=0,
+        le=50,
+        description="furthest the bead's centre may lie from its planned path on the part (mm)",
+    )
+    order_defect_limit: int = Field(
+        3,
+        ge=1,
+        le=1000,
+        description="defective parts in a row that stop an order and the cell: a nozzle or "
+        "a calibration is wrong, and more parts would be scrap",
+    )
+
     # Cell geometry and motion
     safe_position: tuple[Millimetres, Millimetres, Millimetres, Degrees, Degrees, Degrees] = Field(
         (400.0, 0.0, 200.0, 180.0, 0.0, 0.0),
