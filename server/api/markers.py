@@ -14,7 +14,6 @@ marker, so every refusal does too.
 
 from __future__ import annotations
 
-import asyncio
 import re
 from typing import Annotated, Any
 
@@ -28,6 +27,7 @@ from server.api.runtime_settings import plan_change
 from server.api.schemas import ErrorView, Strict
 from server.cell import Cell
 from server.config import Millimetres, Settings
+from server.core.jog import read_pose_within
 from server.core.transitions import State
 from server.storage.marker_layout import MARKERS, MarkerLayoutStore
 from server.values import FiniteNumber
@@ -129,7 +129,7 @@ async def teach_marker(request: Request, marker: Marker) -> dict[str, Any]:
     moves = cell.view.robot_moves_started
     limit = settings.robot_communication_timeout
     try:
-        pose = await asyncio.wait_for(cell.devices.robot.get_position(), limit)
+        pose = await read_pose_within(cell.devices.robot, limit)
     except Exception as exc:
         reason = f"no answer within {limit:g} s" if isinstance(exc, TimeoutError) else exc
         raise HTTPException(

@@ -9,11 +9,12 @@ motion. Either refusal names the request's field and changes nothing.
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass
 
 from server.config import Settings
 from server.core.operations.safe_position import workspace_problem
-from server.drivers.base import Pose
+from server.drivers.base import Pose, Robot
 
 AXES = ("x", "y", "z")
 
@@ -57,3 +58,15 @@ def jog_target(pose: Pose, axis: str, distance_mm: float, settings: Settings) ->
             field="distance_mm",
         )
     return target
+
+
+async def read_pose_within(robot: Robot, limit: float) -> Pose:
+    """The robot's pose, or TimeoutError after `limit` seconds.
+
+    Bounded with asyncio.timeout, not asyncio.wait_for: on Python 3.11 wait_for
+    drops a cancellation that arrives in the loop turns between the read ending
+    and wait_for returning (CPython gh-86296), and a jog decided after its
+    worker was cancelled would move the arm nobody is watching any more.
+    """
+    async with asyncio.timeout(limit):
+        return await robot.get_position()

@@ -45,7 +45,7 @@ from server.core.events import (
     StopPayload,
     payload_of,
 )
-from server.core.jog import JogRefused, jog_target
+from server.core.jog import JogRefused, jog_target, read_pose_within
 from server.core.operations.base import Operation
 from server.core.preconditions import Preconditions
 from server.core.recorder import Recorder
@@ -460,7 +460,7 @@ class Worker:
         estops, faults = self._estops, self._faults_posted
         limit = self.settings.emergency_stop_timeout
         try:
-            pose = await asyncio.wait_for(self.devices.robot.get_position(), limit)
+            pose = await read_pose_within(self.devices.robot, limit)
         except asyncio.CancelledError:
             raise
         except Exception as exc:

@@ -227,9 +227,10 @@ class JsonRpcRobot:
     async def _open(self) -> None:
         """Connect, start the reader, and probe; on any failure leave nothing behind."""
         try:
-            reader, writer = await asyncio.wait_for(
-                asyncio.open_connection(self.host, self.port), self.timeout
-            )
+            # asyncio.timeout, not wait_for: on Python 3.11 wait_for can drop a cancel
+            # that lands as the connection opens, and leave a link nobody owns.
+            async with asyncio.timeout(self.timeout):
+                reader, writer = await asyncio.open_connection(self.host, self.port)
         except TimeoutError:
             raise DeviceTimeout(
                 DEVICE,
