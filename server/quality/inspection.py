@@ -19,6 +19,7 @@ import numpy as np
 from server.core.operations.base import OperationContext, OperationWarning
 from server.core.operations.camera_frames import capture_undistorted, require_robot_calibration
 from server.core.operations.workpieces import Target
+from server.errors import OperationError
 from server.quality.dispensing import dispensing_consistency
 from server.quality.model import PlannedSegment, RunSamples
 from server.quality.precision import trajectory_precision
@@ -74,8 +75,13 @@ async def inspect_run(
     dispensing = dispensing_consistency(
         samples.flows, samples.windows, segments, settings.dispensing_flow_tolerance_percent
     )
-    calibration = require_robot_calibration(ctx, "inspection")
-    frame = await capture_undistorted(ctx, "inspection")
+    try:
+        calibration = require_robot_calibration(ctx, "inspection")
+        frame = await capture_undistorted(ctx, "inspection")
+    except OperationError as exc:
+        # The part is sprayed: the run completes, judged on what was measured, and the
+        # part counts as defective because nobody has looked at its bead.
+        return _unseen(ctx, precision, dispensing, samples, started, str(exc))
     entries = await asyncio.to_thread(ctx.stores.workpieces.list)
     library = {w.id: np.asarray(w.outline_mm, dtype=np.float64) for w in entries}
     tolerances = BeadTolerances.from_settings(settings)
@@ -147,3 +153,37 @@ async def inspect_run(
         "image": jpeg is not None,
     }
     return Inspection(document, summary_of(document), jpeg, warnings)
+
+
+def _unseen(
+    ctx: OperationContext,
+    precision: dict[str, Any],
+    dispensing: dict[str, Any],
+    samples: RunSamples,
+    started: float,
+    why: str,
+) -> Inspection:
+    """The inspection of a part the camera could not look at."""
+    settings = ctx.settings
+    reasons = [
+        *precision_reasons(precision, settings),
+        *dispensing_reasons(dispensing, settings),
+        f"the bead was not inspected: {why}",
+    ]
+    document = {
+        "run_id": ctx.run_id,
+        "verdict": verdict_of(reasons),
+        "reasons": reasons,
+        "at": time.time(),
+        "took_s": round(time.monotonic() - started, 3),
+        "precision": {k: v for k, v in precision.items() if k != "segments"},
+        "dispensing": dispensing,
+        "vision": {"markers": 0, "residual_mean_mm": None, "residual_max_mm": None},
+        "segments": [
+            {**s, "precision_mean_mm": s["mean_mm"], "precision_max_mm": s["max_mm"]}
+            for s in precision["segments"]
+        ],
+        "samples": samples.as_counts(),
+        "image": False,
+    }
+    return Inspection(document, summary_of(document), None, ())
