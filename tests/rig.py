@@ -194,7 +194,12 @@ DEVICE_FAULTS: dict[str, DeviceFaultKind] = {
 
 @contextlib.asynccontextmanager
 async def open_rig(
-    data_path, *, port: int | None = None, camera_stalled: bool = False, **overrides: Any
+    data_path,
+    *,
+    port: int | None = None,
+    camera_stalled: bool = False,
+    robot_speed_factor: float = 4,
+    **overrides: Any,
 ) -> AsyncIterator[Rig]:
     """Simulators, cell and HTTP client; the cell commissioned in `data_path`.
 
@@ -202,8 +207,10 @@ async def open_rig(
     (a free one by default). `camera_stalled`: the simulated camera stalls from the
     start, so the cell stays INITIALIZING (for up to vision_processing_timeout) until the
     test calls `rig.camera.clear_faults()`; the rig then does not wait for IDLE. Only for
-    a data directory commissioned already: commissioning needs the camera."""
-    async with RobotSimulator(speed_factor=4) as robot, GlueSimulator() as glue:
+    a data directory commissioned already: commissioning needs the camera.
+    `robot_speed_factor`: the robot simulator's (4: fast tests; 1: moves take the time the
+    plan says, as a real arm's, for what measures the run against its plan)."""
+    async with RobotSimulator(speed_factor=robot_speed_factor) as robot, GlueSimulator() as glue:
         defaults: dict[str, Any] = {
             "robot_communication_timeout": TIMEOUT,
             "glue_system_timeout": TIMEOUT,

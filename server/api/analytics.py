@@ -28,6 +28,7 @@ from server.api.declared_query import DeclaredQueryRoute
 from server.api.time_window import Since, TimeWindow, Until, time_window
 from server.cell import Cell
 from server.core.kpis import Window, compute_kpis
+from server.quality.csv_columns import INSPECTION_COLUMNS, with_inspection
 from server.storage.journal import FILTERS, TABLES, Cursor, Journal
 
 router = APIRouter(tags=["analytics"], route_class=DeclaredQueryRoute)
@@ -239,6 +240,8 @@ async def csv_export(
     bound = await asyncio.to_thread(journal.last_rowid, table)
     columns = TABLES[table][1]
     page_rows = EXPORT_PAGE_ROWS
+    # The operations export carries each spray run's inspection figures (docs/quality.md).
+    inspected = table == "operations"
 
     def pages() -> Iterator[str]:
         # A plain generator on purpose: StreamingResponse runs each step of a sync
@@ -246,7 +249,7 @@ async def csv_export(
         # SQLite reads and the formatting of every page stay off the event loop.
         buffer = io.StringIO()
         writer = csv.writer(buffer)
-        writer.writerow(columns)
+        writer.writerow([*columns, *INSPECTION_COLUMNS] if inspected else columns)
         yield _drain(buffer)
         after: Cursor | None = None
         while True:
@@ -260,7 +263,7 @@ async def csv_export(
                 limit=page_rows,
             )
             if rows:
-                writer.writerows(rows)
+                writer.writerows(with_inspection(columns, rows) if inspected else rows)
                 yield _drain(buffer)
             if len(rows) < page_rows:
                 return

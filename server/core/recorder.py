@@ -126,10 +126,12 @@ class Recorder:
         result: dict[str, Any] | None,
         error: str | None,
         parts: int,
+        inspection: dict[str, Any] | None = None,
     ) -> None:
-        self._pending.append(
-            records.operation_ended(run_id, self._clock.time(), outcome, result, error, parts)
-        )
+        at = self._clock.time()
+        self._pending.append(records.operation_ended(run_id, at, outcome, result, error, parts))
+        if inspection is not None:  # in the same commit: an inspected run always has its row
+            self._pending.append(records.inspection(at, run_id, inspection))
 
     def save_snapshot(self, snapshot: dict[str, Any], running: RunningOperation | None) -> None:
         """The state after a change, for the next start to see where the cell was."""

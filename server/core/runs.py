@@ -272,7 +272,8 @@ class Runs:
         if running.name == "trajectory" and plan is not None and plan["run_id"] == running.run_id:
             parts = len(plan["workpieces"])
         data = result.as_dict() if result else None
-        self.recorder.run_ended(running.run_id, outcome, data, error, parts)
+        inspection = result.inspection if result is not None and outcome == "completed" else None
+        self.recorder.run_ended(running.run_id, outcome, data, error, parts, inspection)
         ended = RunEnded(
             running.run_id, running.name, outcome, took, self.ctx.state.value, data, error, parts
         )

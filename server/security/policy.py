@@ -44,6 +44,8 @@ POLICY: Final = MappingProxyType(
         ("GET", "/calibration/markers"): VIEW,
         ("GET", "/camera/frame"): VIEW,
         ("GET", "/trajectory"): VIEW,
+        ("GET", "/runs/{run_id}/inspection"): VIEW,
+        ("GET", "/runs/{run_id}/inspection.jpg"): VIEW,
         ("GET", "/workpieces"): VIEW,
         ("GET", "/workpieces/{workpiece_id}"): VIEW,
         ("GET", "/workpieces/{workpiece_id}/thumbnail"): VIEW,

@@ -1,5 +1,5 @@
 """What the cell keeps on disk under the data directory: calibrations, the marker layout
-being taught and the workpiece library."""
+being taught, the workpiece library and the runs' inspection images."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from server.storage.calibration import CalibrationStore
+from server.storage.inspection_images import InspectionImages
 from server.storage.marker_layout import MarkerLayoutStore
 from server.storage.permissions import private_directory
 from server.storage.workpieces import WorkpieceLibrary
@@ -19,10 +20,14 @@ class CellStores:
     calibration: CalibrationStore
     workpieces: WorkpieceLibrary
     markers: MarkerLayoutStore
+    inspection_images: InspectionImages | None = None
 
     @classmethod
     def open(cls, data_path: Path) -> CellStores:
         private_directory(data_path)
         return cls(
-            CalibrationStore(data_path), WorkpieceLibrary(data_path), MarkerLayoutStore(data_path)
+            CalibrationStore(data_path),
+            WorkpieceLibrary(data_path),
+            MarkerLayoutStore(data_path),
+            InspectionImages(data_path),
         )

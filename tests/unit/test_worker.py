@@ -167,7 +167,10 @@ async def test_pause_stops_the_run_where_it_is_and_resume_finishes_the_same_run(
     await worker.request(Event.RESUME_REQUESTED, source="test")
     await wait_for_state(worker, State.IDLE)
     assert worker.ctx.history[-1].event == "OPERATION_COMPLETED"
-    assert worker.ctx.operation_result == {"workpieces": ["demo"], "waypoints": 7}
+    result = dict(worker.ctx.operation_result or {})
+    inspection = result.pop("inspection")  # the part is judged too (docs/quality.md)
+    assert result == {"workpieces": ["demo"], "waypoints": 7}
+    assert inspection["verdict"] in ("good", "defective")
     # One run: the robot visited each planned waypoint exactly once, in order.
     planned = [tuple(w["pose"]) for w in worker.runs.trajectory["planned_path"]]
     assert [tuple(m) for m in robot.moves if tuple(m) in planned] == planned

@@ -41,6 +41,9 @@ class OperationResult:
 
     data: dict[str, Any] = field(default_factory=dict)
     warnings: tuple[OperationWarning, ...] = ()
+    # A spray run's whole inspection (server/quality/): journaled with the run's end, in
+    # its own table; the data carries only its summary.
+    inspection: dict[str, Any] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """The result as /state and the journal show it (warnings beside the data)."""

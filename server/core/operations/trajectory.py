@@ -41,6 +41,9 @@ from server.core.operations.safe_position import workspace_problem
 from server.core.operations.workpieces import Target, locate_workpieces
 from server.drivers.base import Pose
 from server.errors import OperationError
+from server.quality.inspection import inspect_run
+from server.quality.model import spray_segments
+from server.quality.sampler import RunSampler
 from server.vision.paths import Checkpoint, SprayPattern, spray_polylines
 
 log = logging.getLogger(__name__)
@@ -214,13 +217,19 @@ async def execute_trajectory(ctx: OperationContext) -> OperationResult:
     await glue.set_pressure(ctx.settings.default_pressure_psi)
     valve_open = False
     flow = None
+    inspecting = ctx.settings.inspection_enabled
+    segments, segment_of = spray_segments(path)
+    sampler = RunSampler(ctx.robot, glue, ctx.settings.quality_sample_interval_s)
 
     async def close_valve() -> None:
         nonlocal valve_open
         if valve_open:
             await glue.set_valve(False)
             valve_open = False
+            sampler.closed()
 
+    if inspecting:
+        sampler.start()
     try:
         index = 0
         resume_at: Pose | None = None  # where a pause stopped the robot inside path[index]
@@ -244,6 +253,11 @@ async def execute_trajectory(ctx: OperationContext) -> OperationResult:
                     valve_open = valve_open or waypoint.spray
                     await glue.set_valve(waypoint.spray)
                     valve_open = waypoint.spray
+                    if valve_open:
+                        sampler.opened(segment_of[index])
+                    else:
+                        sampler.closed()
+                sampler.drawing(segment_of.get(index))
                 resume_at = await pausable_move(ctx, waypoint.pose, waypoint.speed)
                 if ctx.gate.paused:
                     # The valve closed by the run itself too, before the step ends: an open
@@ -265,8 +279,20 @@ async def execute_trajectory(ctx: OperationContext) -> OperationResult:
         # However the run ends (cancel, fault, e-stop), the valve must not stay open.
         if valve_open:
             await asyncio.shield(_close_quietly(ctx))
+        samples = await sampler.stop()
+    data: dict[str, Any] = {
+        "workpieces": [t.workpiece_id for t in targets],
+        "waypoints": len(path),
+    }
+    if not inspecting:
+        return OperationResult(data)
+    ctx.report({"step": "inspecting the part", "fraction": 1.0})
+    inspection = await inspect_run(ctx, targets, segments, samples)
+    images = ctx.stores.inspection_images
+    if inspection.image_jpeg is not None and images is not None:
+        await asyncio.to_thread(images.save, ctx.run_id, inspection.image_jpeg)
     return OperationResult(
-        {"workpieces": [t.workpiece_id for t in targets], "waypoints": len(path)}
+        {**data, "inspection": inspection.summary}, inspection.warnings, inspection.document
     )
 
 

@@ -113,6 +113,15 @@ def operation_ended(
     )
 
 
+def inspection(at: float, run_id: str, document: dict[str, Any]) -> Record:
+    """A spray run's whole inspection (server/quality/), sealed like the other appended rows."""
+    return _appended(
+        "inspections",
+        ("time", "run_id", "verdict", "took_s", "document"),
+        (at, run_id, document["verdict"], float(document["took_s"]), _json(document)),
+    )
+
+
 def error(
     at: float,
     code: str,

@@ -48,6 +48,11 @@ CREATE TABLE IF NOT EXISTS webhook_deliveries (
     webhook TEXT NOT NULL, kind TEXT NOT NULL, event_at REAL NOT NULL, outcome TEXT NOT NULL,
     attempts INTEGER NOT NULL, status INTEGER, error TEXT NOT NULL, tries TEXT NOT NULL
 );
+-- One row per inspected spray run (docs/quality.md): the whole inspection as JSON.
+CREATE TABLE IF NOT EXISTS inspections (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, run_id TEXT NOT NULL,
+    verdict TEXT NOT NULL, took_s REAL NOT NULL, document TEXT NOT NULL
+);
 CREATE TABLE IF NOT EXISTS commits (
     seq INTEGER PRIMARY KEY, time REAL NOT NULL, rows TEXT NOT NULL, digest TEXT NOT NULL
 );
@@ -59,6 +64,8 @@ CREATE INDEX IF NOT EXISTS operations_started ON operations(started_at);
 CREATE INDEX IF NOT EXISTS errors_time ON errors(time);
 CREATE INDEX IF NOT EXISTS recoveries_time ON recoveries(time);
 CREATE INDEX IF NOT EXISTS webhook_deliveries_time ON webhook_deliveries(time);
+CREATE INDEX IF NOT EXISTS inspections_time ON inspections(time);
+CREATE INDEX IF NOT EXISTS inspections_run ON inspections(run_id);
 -- One row, rewritten by each write that checks a failing journal can write again.
 CREATE TABLE IF NOT EXISTS write_check (id INTEGER PRIMARY KEY CHECK (id = 1), time REAL NOT NULL);
 """
@@ -108,6 +115,7 @@ TABLES: dict[str, tuple[str, list[str]]] = {
             "tries",
         ],
     ),
+    "inspections": ("time", ["seq", "time", "run_id", "verdict", "took_s", "document"]),
 }
 
 # The tables whose rows are sealed: each row carries the sequence number of the
@@ -115,7 +123,7 @@ TABLES: dict[str, tuple[str, list[str]]] = {
 # is part of that commit's digest. Not `operations`: its rows are updated as a
 # run progresses and ends, so a digest taken when a row was appended would not
 # hold; the commits that change it are still numbered and chained.
-# A table added later (webhook_deliveries) is created at open with its commit_seq
+# A table added later (webhook_deliveries, inspections) is created at open with its commit_seq
 # added like the others', and counts from 0 in the first commit that appends to it.
 SEALED: tuple[str, ...] = (
     "events",
@@ -124,6 +132,7 @@ SEALED: tuple[str, ...] = (
     "recoveries",
     "audit",
     "webhook_deliveries",
+    "inspections",
 )
 COMMIT_SEQ = "commit_seq"
 
@@ -185,6 +194,10 @@ FILTERS: dict[str, tuple[Filter, ...]] = {
         Filter("kind", str, "the notice: fault, alert, state or run_completed"),
         Filter("outcome", str, "delivered, refused, failed, dropped or abandoned"),
         Filter("delivery_id", str, "the notice's id, as the receiver got it"),
+    ),
+    "inspections": (
+        Filter("run_id", str, "the spray run inspected"),
+        Filter("verdict", str, "good or defective"),
     ),
 }
 
