@@ -32,6 +32,7 @@ BENCHMARKS = (
     ("journal_verify", []),
     ("planning", []),
     ("plant_latency", []),
+    ("cycle_time", []),
 )
 
 

@@ -29,6 +29,15 @@ RUNTIME_SETTINGS = (
     "shift_hours",
     "processing_timeout",
     "logging_level",
+    # The quality engineer's: whether parts are judged, and against what (docs/quality.md)
+    "inspection_enabled",
+    "trajectory_precision_limit_mm",
+    "dispensing_flow_tolerance_percent",
+    "dispensing_max_out_of_tolerance_s",
+    "bead_width_tolerance_percent",
+    "bead_max_gap_mm",
+    "bead_max_offset_mm",
+    "order_defect_limit",
 )
 
 

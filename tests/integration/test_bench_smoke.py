@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 
 from bench import (
+    cycle_time,
     device_feed,
     engine_throughput,
     estop_latency,
@@ -222,3 +223,16 @@ def test_vision_accuracy_reports_calibration_and_matching(results_in_tmp: Path) 
         assert 0 < row["calibration_field_mean_mm"] <= row["calibration_field_max_mm"]
         assert 0 < row["match_outline_mean_mm"] <= row["match_outline_max_mm"]
     assert written_rows(results_in_tmp, "vision_accuracy") == rows
+
+
+def test_cycle_time_compares_runs_with_and_without_inspection(results_in_tmp: Path) -> None:
+    rows = cycle_time.main(["--runs", "1"])
+    assert [row["measure"] for row in rows] == [
+        "cycle, inspection on",
+        "cycle, inspection off",
+        "inspection itself",
+    ]
+    for row in rows:
+        assert_ordered_latencies(row)
+        assert row["n"] == 1
+    assert written_rows(results_in_tmp, "cycle_time") == rows
