@@ -5,6 +5,7 @@
  * the page resynchronises from GET /state. */
 
 import { AuthError, api, errorText, getJson } from "./api.js";
+import { refreshLastPart } from "./last_part.js";
 import { applyDeviceSample, refreshLibrary, refreshPanels } from "./panels.js";
 import {
   applyIfNewer,
@@ -139,6 +140,7 @@ function onSnapshot(snapshot) {
   refreshPanels(true);
   refreshTrajectory();
   refreshFrame(); // one may have been captured, or the server forgot it, while not live
+  refreshLastPart(); // a run may have ended while not live
 }
 
 /** seq rises by one; a gap means something was missed: resynchronise from GET /state. */
@@ -160,7 +162,10 @@ function onStateChanged(message) {
   refreshPanels(true); // link figures and faults; `device` messages carry the readings
   setTimeout(refreshPanels, 1000); // KPIs and history settle a moment after a transition
   if (from === "CALIBRATING_ROBOT" || from === "CALIBRATING_CAMERA") refreshCalibration();
-  if (isOperational(from) && !isOperational(to)) refreshFrame(); // it may have taken a picture
+  if (isOperational(from) && !isOperational(to)) {
+    refreshFrame(); // it may have taken a picture
+    refreshLastPart(); // a run ended: its part's verdict (its record is committed by now)
+  }
   if (from === "CREATING_WORKPIECE") refreshLibrary();
 }
 

@@ -140,6 +140,7 @@ function deviceFacts(name, device) {
 
 function renderKpis(kpis) {
   const oee = kpis.oee || {};
+  const quality = kpis.quality || {};
   const figures = [
     ["OEE", percent(oee.oee)],
     ["Availability", percent(oee.availability)],
@@ -148,6 +149,10 @@ function renderKpis(kpis) {
       "workpieces sprayed by completed runs"],
     ["Failed", String(kpis.workpieces_failed ?? "—"), "workpieces failed",
       "workpieces of runs that failed or were stopped"],
+    ["Quality", percent(oee.quality), "quality", "good parts / inspected parts"],
+    ["Good", String(quality.parts_good ?? "—"), "good parts", "parts inspected and judged good"],
+    ["Defective", String(quality.parts_defective ?? "—"), "defective parts",
+      "parts inspected and judged defective"],
     ["Operations", String(kpis.operations_completed ?? "—"), "operations completed",
       "runs and calibrations that completed"],
     ["MTBF", kpis.mtbf_s == null ? "—" : span(kpis.mtbf_s), "MTBF", "mean time between failures"],

@@ -50,6 +50,7 @@ export const hmi = {
   frameInfo: null,       // {time, source, run} of that frame (X-Frame-* headers)
   calibrationImage: null, // the annotated frame of the last robot calibration: the fallback
   thumbnails: [],        // blob URLs to release
+  partImage: null,       // blob URL of the last part's inspection image, to release
   pending: new Set(),    // commands whose request is in flight
   counters: { connects: 0, disconnects: 0, messages: 0, gaps: 0 },
   timers: [],

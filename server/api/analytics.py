@@ -25,6 +25,7 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
 from server.api.declared_query import DeclaredQueryRoute
+from server.api.kpi_views import KpisView
 from server.api.time_window import Since, TimeWindow, Until, time_window
 from server.cell import Cell
 from server.core.kpis import Window, compute_kpis
@@ -276,6 +277,20 @@ async def csv_export(
     )
 
 
+def _inspected_result(row: dict[str, Any]) -> dict[str, Any] | None:
+    """An operation's result as the KPIs read it (for its inspection): decoded only for a
+    trajectory run that ended, the only kind that may hold one, so a window of many
+    rows decodes no more JSON than it must."""
+    text = row.get("result")
+    if row.get("kind") != "trajectory" or row.get("ended_at") is None or not text:
+        return None
+    try:
+        result = json.loads(text) if isinstance(text, str) else text
+    except ValueError:  # a damaged record: not an inspected part, and not a 500
+        return None
+    return result if isinstance(result, dict) else None
+
+
 def _drain(buffer: io.StringIO) -> str:
     """What was written to `buffer` since the last drain; the buffer is emptied."""
     text = buffer.getvalue()
@@ -284,7 +299,7 @@ def _drain(buffer: io.StringIO) -> str:
     return text
 
 
-@router.get("/kpis")
+@router.get("/kpis", response_model=KpisView)
 async def get_kpis(request: Request, since: Since = None, until: Until = None) -> dict[str, Any]:
     """KPIs and OEE over a window (default: the current shift, the last shift_hours).
 
@@ -332,6 +347,8 @@ async def kpis_of(cell: Cell, since: float | None = None, until: float | None = 
         )
         for row in recoveries:
             row["succeeded"] = bool(row["succeeded"])
+        for row in operations:
+            row["result"] = _inspected_result(row)
         return compute_kpis(
             Window(start, end),
             transitions,

@@ -4,7 +4,10 @@ Counters that the worker already keeps (events processed and refused) and
 gauges of the moment (state, queue depth, devices, WebSocket clients) are read
 at scrape time; durations are observed as they happen: event processing by the
 worker's statistics hook, API requests by a middleware, operations when they
-end, transitions by a bus subscriber. Each app has its own registry.
+end, transitions by a bus subscriber. Inspected parts are counted as their run
+ends, by verdict, with each part's precision and flow consistency observed
+(server/core/part_verdict.py reads the run's inspection); a run that was not
+inspected is no part. Each app has its own registry.
 """
 
 from __future__ import annotations
@@ -29,11 +32,15 @@ from starlette.types import Scope
 from server.api.declared_query import DeclaredQueryRoute
 from server.cell import Cell
 from server.core.bus import SubscriptionClosed
+from server.core.part_verdict import VERDICTS, figure_of, inspection_of
+from server.core.runs import RunEnded
 from server.core.transitions import State
 
 router = APIRouter(tags=["queries"], route_class=DeclaredQueryRoute)
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5)
 OPERATION_BUCKETS = (1, 5, 10, 30, 60, 120, 300, 600, 1800)
+PRECISION_MM_BUCKETS = (0.1, 0.25, 0.5, 1, 2, 5, 10)
+CV_PERCENT_BUCKETS = (1, 2, 5, 10, 20, 50)
 
 
 class CellCollector(Collector):
@@ -111,18 +118,48 @@ class Metrics:
             ["old_state", "new_state"],
             registry=self.registry,
         )
+        self.parts_inspected = Counter(
+            "glue_cell_parts_inspected",
+            "parts inspected after their run, by verdict",
+            ["verdict"],
+            registry=self.registry,
+        )
+        for verdict in VERDICTS:  # both series exist from the start, at 0
+            self.parts_inspected.labels(verdict)
+        self.part_precision_mm = Histogram(
+            "glue_cell_part_trajectory_precision_mm",
+            "each inspected part's p95 deviation from the planned spray path",
+            buckets=PRECISION_MM_BUCKETS,
+            registry=self.registry,
+        )
+        self.part_dispensing_cv = Histogram(
+            "glue_cell_part_dispensing_cv_percent",
+            "each inspected part's flow coefficient of variation while spraying",
+            buckets=CV_PERCENT_BUCKETS,
+            registry=self.registry,
+        )
         self._watcher: asyncio.Task[None] | None = None
 
     def attach(self, cell: Cell) -> None:
         """Hook into the running cell (after it started)."""
         view = cell.view
         view.on_event_decided(self.event_seconds.observe)
-        view.on_run_ended(
-            lambda ended: self.operation_seconds.labels(ended.operation, ended.outcome).observe(
-                ended.seconds
-            )
-        )
+        view.on_run_ended(self.observe_run)
         self._watcher = asyncio.create_task(self._count_transitions(cell), name="metrics")
+
+    def observe_run(self, ended: RunEnded) -> None:
+        """A run ended (in the worker: only counts): its duration, and its part if inspected."""
+        self.operation_seconds.labels(ended.operation, ended.outcome).observe(ended.seconds)
+        inspection = inspection_of(ended.result)
+        if inspection is None:
+            return
+        self.parts_inspected.labels(inspection["verdict"]).inc()
+        precision = figure_of(inspection, "precision_p95_mm")
+        if precision is not None:
+            self.part_precision_mm.observe(precision)
+        cv = figure_of(inspection, "dispensing_cv_percent")
+        if cv is not None:
+            self.part_dispensing_cv.observe(cv)
 
     async def detach(self) -> None:
         if self._watcher is not None:

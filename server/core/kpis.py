@@ -11,7 +11,8 @@ Rows are plain mappings, as the journal hands them over (times are Unix
 seconds):
 
 * transitions: ``time, old_state, new_state, event, event_id, time_in_old_state``
-* operations: ``run_id, kind, started_at, ended_at, outcome, workpieces``
+* operations: ``run_id, kind, started_at, ended_at, outcome, workpieces, result``
+  (``result`` decoded from the journal's JSON: a mapping, or None)
 * errors: ``time, code, component, classification, event_id``
 * recoveries: ``time, error_code, attempt, succeeded``
 
@@ -33,6 +34,10 @@ Formulas (the same text as docs/kpis.md)::
     ENDED = operations whose ended_at is in W (any outcome); running ones are ignored
     DONE  = ENDED with outcome "completed"
     ENDED_TRAJ, DONE_TRAJ = the same, of kind "trajectory"
+    INSPECTED = ENDED_TRAJ whose result holds an inspection (result["inspection"]
+            with verdict "good" or "defective"): one inspected part each
+    GOOD, DEFECTIVE = INSPECTED with verdict "good", "defective"
+    p95(v) = the nearest-rank 95th percentile: v sorted, its ceil(0.95 * |v|)-th value
 
     operations_completed_per_hour = |DONE| / hours
     average_execution_time_s[k]   = mean(ended_at - started_at) over DONE of kind k
@@ -47,10 +52,17 @@ Formulas (the same text as docs/kpis.md)::
     workpieces_failed             = sum(workpieces) over ENDED_TRAJ failed or interrupted
     oee.availability              = (A - R) / A
     oee.performance               = min(1, design_cycle_time_s * |DONE_TRAJ| / X)
-    oee.quality                   = |DONE_TRAJ| / |ENDED_TRAJ completed, failed or interrupted|
+    oee.quality                   = |GOOD| / |INSPECTED|
     oee.oee                       = availability * performance * quality
+    quality.parts_good            = |GOOD|
+    quality.parts_defective       = |DEFECTIVE|
+    quality.trajectory_precision_mm.mean = mean(precision_mean_mm) over INSPECTED
+    quality.trajectory_precision_mm.p95  = p95(precision_p95_mm over INSPECTED)
+    quality.dispensing_cv_percent = mean(dispensing_cv_percent) over INSPECTED
+    quality.vision_residual_mm    = mean(vision_residual_mm) over INSPECTED
 
     A ratio or mean over nothing (denominator 0) is null; oee.oee is null if a factor is.
+    A figure an inspection did not measure (null) is left out of its mean and p95.
 """
 
 from __future__ import annotations
@@ -60,14 +72,14 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, Final
 
+from server.core.part_verdict import figure_of, inspection_of
 from server.core.transitions import State
 
 # The operation kinds the journal records (the names of server/core/operations).
 OPERATION_KINDS: Final = ("trajectory", "calibrate_robot", "calibrate_camera", "create_workpiece")
 # Errors that cost production; warnings are informative and do not count.
 COUNTED_CLASSIFICATIONS: Final = frozenset({"critical", "recoverable"})
-# Trajectory outcomes that judge the process; a cancel is an operator's decision.
-JUDGED_OUTCOMES: Final = frozenset({"completed", "failed", "interrupted"})
+# Trajectory outcomes that spoil the parts; a cancel is an operator's decision.
 SPOILED_OUTCOMES: Final = frozenset({"failed", "interrupted"})
 
 Row = Mapping[str, Any]
@@ -151,6 +163,40 @@ def _mean(values: list[float]) -> float | None:
     return math.fsum(values) / len(values) if values else None
 
 
+def _p95(values: list[float]) -> float | None:
+    """Nearest-rank 95th percentile: a value that occurred, so a hand count checks it."""
+    if not values:
+        return None
+    ordered = sorted(values)
+    return ordered[math.ceil(0.95 * len(ordered)) - 1]
+
+
+def quality_of(ended_trajectories: Iterable[Row]) -> tuple[dict[str, Any], int]:
+    """The `quality` block over trajectory runs that ended in the window, and how many
+    of them were inspected (OEE quality's denominator).
+
+    A part is a run whose result carries an inspection (server/core/part_verdict.py);
+    the figures are per part, so a long run weighs no more than a short one.
+    """
+    inspected = [i for op in ended_trajectories if (i := inspection_of(op.get("result")))]
+
+    def measured(name: str) -> list[float]:
+        return [v for i in inspected if (v := figure_of(i, name)) is not None]
+
+    good = sum(1 for i in inspected if i["verdict"] == "good")
+    block = {
+        "parts_good": good,
+        "parts_defective": len(inspected) - good,
+        "trajectory_precision_mm": {
+            "mean": _mean(measured("precision_mean_mm")),
+            "p95": _p95(measured("precision_p95_mm")),
+        },
+        "dispensing_cv_percent": _mean(measured("dispensing_cv_percent")),
+        "vision_residual_mm": _mean(measured("vision_residual_mm")),
+    }
+    return block, len(inspected)
+
+
 def compute_kpis(
     window: Window,
     transitions: Iterable[Row],
@@ -189,7 +235,6 @@ def compute_kpis(
     done = [op for op in ended if op.get("outcome") == "completed"]
     ended_traj = [op for op in ended if op.get("kind") == "trajectory"]
     done_traj = [op for op in ended_traj if op.get("outcome") == "completed"]
-    judged_traj = [op for op in ended_traj if op.get("outcome") in JUDGED_OUTCOMES]
     spoiled_traj = [op for op in ended_traj if op.get("outcome") in SPOILED_OUTCOMES]
 
     # Every known kind is a key (null when none completed); an unknown kind keeps its own.
@@ -228,7 +273,8 @@ def compute_kpis(
     availability = _ratio(up, available)
     ideal = _ratio(design_cycle_time_s * len(done_traj), executing)
     performance = None if ideal is None else min(1.0, ideal)
-    quality = _ratio(len(done_traj), len(judged_traj))
+    quality_block, inspected = quality_of(ended_traj)
+    quality = _ratio(quality_block["parts_good"], inspected)
     oee = (
         None
         if availability is None or performance is None or quality is None
@@ -259,4 +305,5 @@ def compute_kpis(
             "quality": quality,
             "oee": oee,
         },
+        "quality": quality_block,
     }

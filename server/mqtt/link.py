@@ -29,6 +29,7 @@ import logging
 import random
 import ssl
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable
 from typing import Any
 from urllib.parse import urlsplit
@@ -40,6 +41,7 @@ from paho.mqtt.properties import Properties
 from server.cell import Cell
 from server.config import Settings
 from server.core.bus import SubscriptionClosed
+from server.core.runs import RunEnded
 from server.mqtt.commands import CommandDoor
 from server.mqtt.outbox import Entry, Outbox
 from server.mqtt.topics import (
@@ -50,6 +52,7 @@ from server.mqtt.topics import (
     encode,
     event_message,
     progress_message,
+    run_message,
     state_message,
 )
 
@@ -114,6 +117,8 @@ class MqttLink:
         self._dropped_at_loss = 0
         self._stopping = False
         self._drained = asyncio.Event()  # set when the outbox was published to the end
+        self._held_runs: deque[tuple[int, Entry]] = deque()  # run messages waiting for a seq
+        self._handled_seq = 0  # the last bus record the feed put in the outbox
 
     # --- life ----------------------------------------------------------------
 
@@ -121,6 +126,7 @@ class MqttLink:
         """Subscribe to the bus and start connecting; returns at once."""
         subscription = self.cell.bus.subscribe(BUS_BUFFER, types=BUS_TYPES)
         self._put_state()  # the present first, then every later change from the bus
+        self.cell.view.on_run_ended(self._run_ended)
         self._tasks = [
             asyncio.create_task(self._feed(subscription), name="mqtt-feed"),
             asyncio.create_task(self._connection(), name="mqtt-connection"),
@@ -142,6 +148,7 @@ class MqttLink:
             if task is not None:
                 task.cancel()
         self._drained.clear()
+        self._release_runs(self.cell.bus.last_seq)  # a run that ended last still goes out
         self.outbox.put(Entry(self.topics.status, OFFLINE, retain=True))
         if connection is not None:
             if self._connected:
@@ -174,11 +181,15 @@ class MqttLink:
             except SubscriptionClosed as closed:
                 log.warning("MQTT: the bus feed was closed (%s); the state is sent again", closed)
                 subscription = self.cell.bus.subscribe(BUS_BUFFER, types=BUS_TYPES)
+                self._handled_seq = self.cell.bus.last_seq
+                self._release_runs(self._handled_seq)
                 self._put_state()
                 continue
             data = message.data
             if message.type == "state_changed":
                 await self._after_its_commit()
+            self._release_runs(message.seq - 1)  # a run that ended before this record
+            if message.type == "state_changed":
                 self._put_state(data)
                 event = event_message(cell_id, message.seq, data)
                 self.outbox.put(Entry(self.topics.event, encode(event)))
@@ -190,6 +201,22 @@ class MqttLink:
             else:  # alert (a warning) or error (a fault)
                 alert = alert_message(cell_id, message.type, message.time, data)
                 self.outbox.put(Entry(self.topics.alert, encode(alert)))
+            self._handled_seq = message.seq
+            self._release_runs(message.seq)
+
+    def _run_ended(self, ended: RunEnded) -> None:
+        """In the worker: only queues. The run's message waits until the feed has put the
+        records published before it (by bus seq) in the outbox, and goes before the
+        transition that follows the run's end: so a subscriber hears the run, then the
+        cell leaving its state, in the order they happened (as the webhooks do)."""
+        message = run_message(self.topics.cell_id, ended, time.time())
+        self._held_runs.append((self.cell.bus.last_seq, Entry(self.topics.run, encode(message))))
+        if self._handled_seq >= self.cell.bus.last_seq:  # the feed is idle: nothing before it
+            self._release_runs(self._handled_seq)
+
+    def _release_runs(self, through_seq: int) -> None:
+        while self._held_runs and self._held_runs[0][0] <= through_seq:
+            self.outbox.put(self._held_runs.popleft()[1])
 
     async def _after_its_commit(self) -> None:
         """Wait until the transition's records are committed before publishing it.

@@ -1,6 +1,6 @@
 """What waits for the broker: bounded, in order, the latest of each retained topic kept.
 
-Why two kinds of entry: the stream topics (event, progress, alert) are a
+Why two kinds of entry: the stream topics (event, progress, alert, run) are a
 history, each message counts, so while the broker is away they are kept up to
 a bound and the oldest is dropped beyond it, counted; the retained topics
 (status, state, kpis, health) are a present, only the latest matters, so a

@@ -6,6 +6,8 @@ Under `<prefix>/<cell_id>/` (prefix `mqtt_topic_prefix`, default `glue`):
 - `state`: retained, the state with its since, stop reason, run and workpiece;
 - `event`: one per transition, in order (`seq` is the bus's number);
 - `progress`: a run's progress; `alert`: each warning and each fault;
+- `run`: one per run that ended, with its outcome and its part's verdict and reasons
+  (`verdict` null: the part was not inspected);
 - `kpis`, `health`: retained, what GET /kpis and GET /health answer;
 - `command/<name>`: commands in (off by default), answered on the v5 response topic.
 
@@ -20,6 +22,9 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from typing import Any
+
+from server.core.part_verdict import verdict_details
+from server.core.runs import RunEnded
 
 ONLINE = b"online"
 OFFLINE = b"offline"
@@ -51,6 +56,10 @@ class Topics:
     @property
     def progress(self) -> str:
         return f"{self.base}/progress"
+
+    @property
+    def run(self) -> str:
+        return f"{self.base}/run"
 
     @property
     def alert(self) -> str:
@@ -131,6 +140,26 @@ def progress_message(cell_id: str, data: dict[str, Any]) -> dict[str, Any] | Non
         "percent": round(100 * fraction, 1) if isinstance(fraction, int | float) else None,
         "workpiece_id": data.get("workpiece"),
         "step": data.get("step"),
+    }
+
+
+def run_message(cell_id: str, ended: RunEnded, at: float) -> dict[str, Any]:
+    """A run that ended (from CellView's run-ended hook): how, and its part's verdict.
+
+    Every operation's end is told (a calibration too, with a null verdict), so a
+    plant counts runs and parts from one topic; the inspection summary rides along
+    so a reject gate or a historian needs no second request.
+    """
+    return {
+        "cell_id": cell_id,
+        "run_id": ended.run_id,
+        "operation": ended.operation,
+        "outcome": ended.outcome,
+        "seconds": round(ended.seconds, 3),
+        "workpieces": ended.workpieces,
+        "error": ended.error,
+        "at": at,
+        **verdict_details(ended.result),
     }
 
 

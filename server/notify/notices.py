@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from server.core.bus import BusMessage
+from server.core.part_verdict import verdict_details
 from server.core.runs import RunEnded
 from server.notify.targets import NoticeKind
 
@@ -77,5 +78,6 @@ def from_run(ended: RunEnded, at: float) -> Notice | None:
         "seconds": round(ended.seconds, 3),
         "workpieces": ended.workpieces,
         "result": ended.result,
+        **verdict_details(ended.result),  # verdict, reasons, inspection: the part's quality
     }
     return Notice("run_completed", at, ended.state, details)

@@ -23,9 +23,12 @@ ADMIN_FIGURES: Final = (
     ("MTBF", ("mtbf_s",)),
     ("MTTR", ("mttr_s",)),
 )
+# Admin's counts (names as in the OPC UA PackML companion specification) and the
+# `quality` figures of /kpis they add up: a processed part is an inspected one (good or
+# defective); a run that was not inspected is no part here, as in OEE quality.
 ADMIN_COUNTS: Final = (
-    ("ProdProcessedCount", "workpieces_processed"),
-    ("ProdDefectiveCount", "workpieces_failed"),
+    ("ProdProcessedCount", ("parts_good", "parts_defective")),
+    ("ProdDefectiveCount", ("parts_defective",)),
 )
 # What CellState keeps of each device's health: what changes when something is wrong,
 # not the round-trip times that change on every request (each would be a notification).
@@ -61,8 +64,9 @@ def admin_figures(kpis: Mapping[str, Any]) -> dict[str, float]:
 
 
 def admin_counts(kpis: Mapping[str, Any]) -> dict[str, int]:
-    """Admin's Int32 counts from a /kpis dict."""
-    return {name: int(kpis.get(key) or 0) for name, key in ADMIN_COUNTS}
+    """Admin's Int32 counts from a /kpis dict: inspected parts of the shift."""
+    quality = kpis.get("quality") or {}
+    return {name: sum(int(quality.get(k) or 0) for k in keys) for name, keys in ADMIN_COUNTS}
 
 
 def stop_reason(snapshot: Mapping[str, Any]) -> tuple[str, str, str]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +24,7 @@ from server.api import openapi_doc
 from server.api.dashboard import mount_dashboard
 from server.app import create_app
 from server.security.policy import POLICY
+from server.storage.journal import records
 from tests import serving
 from tests.rig import Rig, open_rig
 from tests.serving import admin_headers
@@ -338,6 +340,80 @@ async def test_the_devices_card_is_live_and_does_not_poll(
     assert not dashboard.rig.glue.valve_open
     await page.click('[data-command="reset"]')
     await expect_state(page, "IDLE")
+    assert problems == []
+
+
+GAP_REASON = "segment 3: a gap of 14.2 mm without bead (at most 3.0 mm)"
+
+
+async def append_inspected_run(dashboard: Dashboard, run_id: str) -> None:
+    """A defective part's run record, built to issue 18's contract (result["inspection"])
+    and written through the real journal: until the inspection itself is merged, a real
+    run holds none."""
+    journal = dashboard.rig.cell.journal
+    assert journal is not None
+    now = time.time()
+    inspection = {
+        "verdict": "defective",
+        "reasons": [GAP_REASON],
+        "precision_mean_mm": 0.31,
+        "precision_p95_mm": 0.74,
+        "dispensing_cv_percent": 4.2,
+        "glue_ml": 1.35,
+        "vision_residual_mm": 0.18,
+        "image": True,
+    }
+    result = {"workpieces": ["demo"], "waypoints": 9, "inspection": inspection}
+    written = journal.append(
+        [
+            records.operation_started(run_id, "trajectory", now - 2, {"workpiece_id": "demo"}),
+            records.operation_ended(run_id, now - 1, "completed", result, None, 1),
+        ]
+    )
+    assert written is not None
+    await written
+
+
+async def test_the_last_part_card_shows_the_verdict_live_and_on_load(
+    dashboard: Dashboard, browser: Browser
+) -> None:
+    page, problems = await open_page(browser, dashboard, PANEL)
+    await log_in(page, dashboard.token)
+    await expect_state(page, "IDLE")
+    part, verdict = page.locator("#part"), page.locator("#part-verdict")
+    await expect(verdict).to_have_text("no part yet")
+    await expect(part).to_have_attribute("data-verdict", "none")
+
+    # A real run ends: the card follows at once (no reload), and says nobody judged it.
+    await page.click('[data-command="start"]')
+    await expect_state(page, "EXECUTING_TRAJECTORY")
+    await expect_state(page, "IDLE")
+    [real] = (await dashboard.rig.api.get("/operations", params={"limit": 1})).json()["operations"]
+    await expect(part).to_have_attribute("data-run", real["run_id"])
+    await expect(verdict).to_have_text("not inspected")
+    await expect(part).to_have_attribute("data-verdict", "none")
+    await expect(page.locator("#part-reasons li")).to_have_count(0)
+    await expect(page.locator("#part-image")).to_be_hidden()
+
+    # An inspected, defective part's record: shown when the page loads, with its reasons
+    # and figures. Its image is asked for; a server that has none (404) leaves no picture.
+    await append_inspected_run(dashboard, "run-defective-1")
+    images: list[str] = []
+    page.on("request", lambda r: images.append(r.url) if "/inspection.jpg" in r.url else None)
+    await page.reload()
+    await expect_live(page)  # the tab kept its token: the session starts again by itself
+    await expect(part).to_have_attribute("data-run", "run-defective-1")
+    await expect(verdict).to_have_text("defective")
+    await expect(verdict).to_have_attribute("data-kind", "fault")
+    await expect(page.locator("#part-reasons li")).to_have_text([GAP_REASON])
+    await expect(page.locator("#part-figures")).to_contain_text("0.74 mm")
+    await expect(page.locator("#part-figures")).to_contain_text("1.35 ml")
+    await expect(page.locator("#part-image")).to_be_hidden()
+    await expect(page.locator("#part-image-note")).to_have_text("no inspection image kept")
+    assert any(url.endswith("/runs/run-defective-1/inspection.jpg") for url in images)
+    await expect(page.locator('[data-kpi="defective"] .kpi-value')).to_have_text("1")
+    await expect(page.locator('[data-kpi="quality"] .kpi-value')).to_have_text("0.0 %")
+    await shot(page, "09-last-part-defective")
     assert problems == []
 
 

@@ -62,7 +62,17 @@ def journal(start_state: str, start_minute: float, steps: list[tuple[float, str,
     return rows, state, at(since)
 
 
-def op(run_id: str, kind: str, start: float, end: float | None, outcome: str | None, wp: int = 0):
+def op(
+    run_id: str,
+    kind: str,
+    start: float,
+    end: float | None,
+    outcome: str | None,
+    wp: int = 0,
+    inspection: dict[str, Any] | None = None,
+):
+    """An operations row; `inspection` goes in its result as the run record holds it."""
+    result = None if inspection is None else {"workpieces": [], "inspection": inspection}
     return {
         "run_id": run_id,
         "kind": kind,
@@ -70,6 +80,28 @@ def op(run_id: str, kind: str, start: float, end: float | None, outcome: str | N
         "ended_at": None if end is None else at(end),
         "outcome": outcome,
         "workpieces": wp,
+        "result": result,
+    }
+
+
+def inspected(
+    verdict: str,
+    mean: float | None = None,
+    p95: float | None = None,
+    cv: float | None = None,
+    residual: float | None = None,
+    reasons: list[str] | None = None,
+) -> dict[str, Any]:
+    """An inspection summary as issue 18's contract writes it into a run's result."""
+    return {
+        "verdict": verdict,
+        "reasons": reasons or [],
+        "precision_mean_mm": mean,
+        "precision_p95_mm": p95,
+        "dispensing_cv_percent": cv,
+        "glue_ml": 1.25,
+        "vision_residual_mm": residual,
+        "image": True,
     }
 
 
@@ -93,24 +125,28 @@ def rec(minute: float, code: str, attempt: int, succeeded: bool) -> dict[str, An
 #        60- 70  IDLE
 #        70- 80  CALIBRATING_ROBOT   cal-1 completed (10 min)
 #        80- 90  IDLE
-#        90-150  EXECUTING           run-A completed, 12 workpieces (60 min)
+#        90-150  EXECUTING           run-A completed, 12 workpieces (60 min), inspected good
 #       150-160  IDLE
 #       160-200  EXECUTING           run-B ...
 #       200-210  PAUSED              ... paused 10 min ...
-#       210-240  EXECUTING           ... completed, 12 workpieces (80 min incl. the pause)
+#       210-240  EXECUTING           ... completed, 12 workpieces (80 min incl. the pause),
+#                                    inspected defective
 #       240-250  IDLE
 #       250-280  EXECUTING           run-C failed (glue NOZZLE_BLOCKED, critical), 12 workpieces
 #       280-290  ERROR               the one failure: a 10 min episode, reset at 290
 #       290-300  IDLE
 #       300-320  EXECUTING           run-D cancelled by the operator, 12 workpieces
 #       320-330  IDLE
-#       330-390  EXECUTING           run-E completed, 6 workpieces (60 min)
+#       330-390  EXECUTING           run-E completed, 6 workpieces (60 min), inspected good
 #       390-480  IDLE                still IDLE at the end of the shift (now = 480)
 #
+#   inspections (precision mean / p95 mm, flow CV %, vision residual mm):
+#     A good 0.25 / 0.5, 2, 0.25; B defective 0.5 / 1.5, 12, 0.75; E good 0.75 / 0.75, 4, none
 #   errors: 120 recoverable, 280 critical, 310 recoverable, 400 warning
 #   recoveries: 120.5 ok, 280.5 failed, 282 failed, 310.5 ok
 
 SHIFT = Window(at(0), at(480))
+GAP_REASON = "segment 3: a gap of 14.2 mm without bead (at most 3.0 mm)"
 DESIGN_CYCLE_S = 3600.0  # one trajectory run should take an hour
 
 SHIFT_TRANSITIONS, SHIFT_STATE, SHIFT_SINCE = journal(
@@ -137,11 +173,19 @@ SHIFT_TRANSITIONS, SHIFT_STATE, SHIFT_SINCE = journal(
 )
 SHIFT_OPERATIONS = [
     op("cal-1", "calibrate_robot", 70, 80, "completed"),
-    op("run-A", "trajectory", 90, 150, "completed", 12),
-    op("run-B", "trajectory", 160, 240, "completed", 12),
+    op("run-A", "trajectory", 90, 150, "completed", 12, inspected("good", 0.25, 0.5, 2.0, 0.25)),
+    op(
+        "run-B",
+        "trajectory",
+        160,
+        240,
+        "completed",
+        12,
+        inspected("defective", 0.5, 1.5, 12.0, 0.75, [GAP_REASON]),
+    ),
     op("run-C", "trajectory", 250, 280, "failed", 12),
     op("run-D", "trajectory", 300, 320, "cancelled", 12),
-    op("run-E", "trajectory", 330, 390, "completed", 6),
+    op("run-E", "trajectory", 330, 390, "completed", 6, inspected("good", 0.75, 0.75, 4.0)),
 ]
 SHIFT_ERRORS = [
     err(120, "VISION_TIMEOUT", "camera", "recoverable"),
@@ -234,8 +278,24 @@ def test_shift_oee() -> None:
     # 3 completed runs × 3600 s design / 14400 s executing: the 30 min of the failed run C
     # and the 20 min of the cancelled run D are spent without a good run to show for them.
     assert k["oee"]["performance"] == 0.75
-    assert k["oee"]["quality"] == 0.75  # 3 completed / (3 completed + 1 failed); D excluded
-    assert k["oee"]["oee"] == pytest.approx(141 / 256, rel=1e-15)  # 47/48 × 3/4 × 3/4
+    # 2 good parts (A, E) / 3 inspected (A, B, E); the failed C and the cancelled D were
+    # not inspected (they did not complete) and are outside quality.
+    assert k["oee"]["quality"] == 2 / 3
+    assert k["oee"]["oee"] == pytest.approx(47 / 96, rel=1e-15)  # 47/48 × 3/4 × 2/3
+
+
+def test_shift_quality() -> None:
+    k = shift_kpis()
+    assert k["quality"] == {
+        "parts_good": 2,  # A, E
+        "parts_defective": 1,  # B
+        "trajectory_precision_mm": {
+            "mean": 0.5,  # (0.25 + 0.5 + 0.75) / 3
+            "p95": 1.5,  # of [0.5, 0.75, 1.5]: the ceil(0.95 × 3) = 3rd
+        },
+        "dispensing_cv_percent": 6.0,  # (2 + 12 + 4) / 3
+        "vision_residual_mm": 0.5,  # (0.25 + 0.75) / 2: E did not measure it
+    }
 
 
 def test_result_is_json() -> None:
@@ -278,9 +338,11 @@ def test_window_clips_intervals_and_reads_rows_stamped_after_it() -> None:
     assert k["oee"] == {
         "availability": 1.0,
         "performance": 8 / 9,  # 2 × 3600 / 8100
-        "quality": 1.0,
-        "oee": 8 / 9,
+        "quality": 0.5,  # A good, B defective
+        "oee": 4 / 9,
     }
+    assert k["quality"]["parts_good"] == 1
+    assert k["quality"]["parts_defective"] == 1
 
 
 def test_error_episode_straddling_the_window_start() -> None:
@@ -476,7 +538,84 @@ def test_interrupted_runs_count_as_spoiled() -> None:
     )
     assert k["workpieces_processed"] == 4
     assert k["workpieces_failed"] == 5  # 3 interrupted + 2 failed
-    assert k["oee"]["quality"] == 1 / 3
+    # None of them was inspected (inspection off, or it did not complete): no quality claimed.
+    assert k["oee"]["quality"] is None
+    assert k["oee"]["oee"] is None
+
+
+def kpis_of_runs(ops: list[dict[str, Any]]) -> dict[str, Any]:
+    return compute_kpis(
+        SHIFT,
+        SHIFT_TRANSITIONS,
+        ops,
+        [],
+        [],
+        current_state=SHIFT_STATE,
+        current_since=SHIFT_SINCE,
+        now=at(480),
+        design_cycle_time_s=DESIGN_CYCLE_S,
+    )
+
+
+NO_QUALITY = {
+    "parts_good": 0,
+    "parts_defective": 0,
+    "trajectory_precision_mm": {"mean": None, "p95": None},
+    "dispensing_cv_percent": None,
+    "vision_residual_mm": None,
+}
+
+
+def test_uninspected_runs_are_not_parts() -> None:
+    # Completed runs with inspection off: their results carry no "inspection" key.
+    ops = [
+        op("r1", "trajectory", 90, 150, "completed", 4),
+        op("r2", "trajectory", 160, 240, "completed", 4),
+    ]
+    ops[0]["result"] = {"workpieces": ["w1"], "waypoints": 12}
+    k = kpis_of_runs(ops)
+    assert k["workpieces_processed"] == 8  # they did spray
+    assert k["quality"] == NO_QUALITY
+    assert k["oee"]["quality"] is None  # not 100 %: nothing was inspected
+    assert k["oee"]["oee"] is None
+
+
+def test_quality_counts_only_well_formed_trajectory_inspections_ended_in_the_window() -> None:
+    ops = [
+        op("good", "trajectory", 90, 150, "completed", 1, inspected("good", 1.0, 2.0, 3.0, 0.5)),
+        op("bad", "trajectory", 160, 240, "completed", 1, inspected("defective", None, None)),
+        # A verdict the contract does not know: not a part, not guessed at.
+        op("odd", "trajectory", 250, 280, "completed", 1, inspected("maybe", 9.0, 9.0, 9.0, 9.0)),
+        # Not a trajectory: a calibration's result is never a part.
+        op("cal", "calibrate_robot", 70, 80, "completed", 0, inspected("good", 9.0, 9.0)),
+        # Ended after the window: the next window's part.
+        op("late", "trajectory", 330, 490, "completed", 1, inspected("defective", 9.0, 9.0)),
+        # Still running.
+        op("now", "trajectory", 470, None, None, 1, inspected("defective", 9.0, 9.0)),
+    ]
+    ops[2]["result"]["inspection"]["reasons"] = ["?"]
+    k = kpis_of_runs(ops)
+    assert k["quality"] == {
+        "parts_good": 1,
+        "parts_defective": 1,
+        # "bad" measured nothing: its nulls are left out, not taken for 0.
+        "trajectory_precision_mm": {"mean": 1.0, "p95": 2.0},
+        "dispensing_cv_percent": 3.0,
+        "vision_residual_mm": 0.5,
+    }
+    assert k["oee"]["quality"] == 0.5
+
+
+def test_precision_p95_is_the_nearest_rank() -> None:
+    # 20 parts, p95 0.1 .. 2.0 mm: the ceil(0.95 × 20) = 19th sorted value is 1.9.
+    ops = [
+        op(f"r{n}", "trajectory", 90 + n, 91 + n, "completed", 1, inspected("good", 0.5, n / 10))
+        for n in range(20, 0, -1)
+    ]
+    k = kpis_of_runs(ops)
+    assert k["quality"]["trajectory_precision_mm"] == {"mean": 0.5, "p95": 1.9}
+    assert k["quality"]["parts_good"] == 20
+    assert k["oee"]["quality"] == 1.0
 
 
 def test_unknown_state_keeps_its_time() -> None:

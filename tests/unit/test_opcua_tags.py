@@ -27,12 +27,18 @@ def test_admin_figures_are_the_kpis_with_nan_for_unknown() -> None:
         "time_in_state_s": {"IDLE": 30.0},
         "workpieces_processed": 3,
         "workpieces_failed": 1,
+        "quality": {"parts_good": 5, "parts_defective": 2},
     }
     figures = tags.admin_figures(kpis)
     assert figures["OEEAvailability"] == 0.5 and figures["MTTR"] == 12.5
     assert math.isnan(figures["OEE"]) and math.isnan(figures["MTBF"])
     assert figures["TimeInState.IDLE"] == 30.0 and figures["TimeInState.ERROR"] == 0.0
-    assert tags.admin_counts(kpis) == {"ProdProcessedCount": 3, "ProdDefectiveCount": 1}
+    # Inspected parts, not workpieces sprayed: 5 good + 2 defective processed, 2 defective.
+    assert tags.admin_counts(kpis) == {"ProdProcessedCount": 7, "ProdDefectiveCount": 2}
+    assert tags.admin_counts({"workpieces_processed": 3}) == {
+        "ProdProcessedCount": 0,
+        "ProdDefectiveCount": 0,
+    }
     assert tags.same(math.nan, math.nan) and not tags.same(1.0, math.nan)
 
 

@@ -6,12 +6,14 @@ from __future__ import annotations
 import hashlib
 import hmac
 import json
+from dataclasses import replace
 
 import pytest
 from pydantic import ValidationError
 
 from server.config import Settings
-from server.notify import retry, signing
+from server.core.runs import RunEnded
+from server.notify import notices, retry, signing
 from server.notify.notices import Notice
 from server.settings_load import SettingsRefused, load_settings
 
@@ -131,3 +133,24 @@ def test_the_signature_covers_the_timestamp_and_the_raw_body() -> None:
     assert headers[signing.SIGNATURE_HEADER] == f"sha256={mac}"
     assert headers[signing.TIMESTAMP_HEADER] == "1700000000"
     assert signing.signature(SECRET, 1700000001, body) != headers[signing.SIGNATURE_HEADER]
+
+
+def test_a_run_notice_carries_its_parts_verdict_and_reasons() -> None:
+    reason = "segment 2: bead 1.1 mm wide (expected 2.0 mm ± 30 %)"
+    inspection = {"verdict": "defective", "reasons": [reason], "precision_p95_mm": 0.8}
+    ended = RunEnded("r1", "trajectory", "completed", 2.0, "EXECUTING_TRAJECTORY", {}, None, 1)
+    inspected = replace(ended, result={"workpieces": ["demo"], "inspection": inspection})
+
+    def body_of(run: RunEnded, delivery: str) -> dict:
+        notice = notices.from_run(run, 10.0)
+        assert notice is not None  # a completed run is told
+        return json.loads(notice.body(delivery, "cell"))
+
+    body = body_of(inspected, "d1")
+    assert (body["verdict"], body["reasons"]) == ("defective", [reason])
+    assert body["inspection"] == inspection
+    plain = body_of(ended, "d2")
+    assert (plain["verdict"], plain["reasons"], plain["inspection"]) == (None, [], None)
+    # A verdict outside the contract is not passed on as one.
+    odd = replace(ended, result={"inspection": {"verdict": "unsure", "reasons": ["?"]}})
+    assert body_of(odd, "d3")["verdict"] is None

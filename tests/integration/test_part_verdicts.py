@@ -1,0 +1,163 @@
+"""Where a part's verdict shows to the plant: /kpis, /metrics, OPC UA (asyncua's own
+Client) and MQTT (Debian's mosquitto), against the real server with the robot and glue
+simulators.
+
+A real run is counted as it is: until the inspection (server/quality/) is merged a run's
+result holds none, and such a run must not count as a part anywhere. The counting itself
+is shown with records built to issue 18's contract (result["inspection"]): an inspected
+run's rows appended to the real journal (what /kpis and PackML's Admin read), and an
+inspected run's end told to the cell's run-ended listeners (where the metrics, the MQTT
+link and the webhooks hear a real run end).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+from typing import Any
+
+from asyncua import Client
+
+from server.core.runs import RunEnded
+from server.opcua.address_space import NAMESPACE_URI
+from server.storage.journal import records
+from tests.mosquitto import mosquitto, subscriber
+from tests.rig import SPRAY_DEMO, WAIT_S, Rig, open_rig, run
+from tests.serving import free_port
+
+CELL = "cell-q"
+BASE = f"glue/{CELL}"
+GAP = "segment 3: a gap of 14.2 mm without bead (at most 3.0 mm)"
+
+
+def summary(verdict: str, reasons: list[str], p95: float) -> dict[str, Any]:
+    """An inspection summary as the contract writes it into a run's result."""
+    return {
+        "verdict": verdict,
+        "reasons": reasons,
+        "precision_mean_mm": p95 / 2,
+        "precision_p95_mm": p95,
+        "dispensing_cv_percent": 3.0,
+        "glue_ml": 1.5,
+        "vision_residual_mm": 0.2,
+        "image": True,
+    }
+
+
+async def append_inspected_run(rig: Rig, run_id: str, inspection: dict[str, Any]) -> None:
+    """An inspected run's start and end, through the journal's own writer."""
+    journal = rig.cell.journal
+    assert journal is not None
+    now = time.time()
+    result = {"workpieces": ["demo"], "waypoints": 9, "inspection": inspection}
+    written = journal.append(
+        [
+            records.operation_started(run_id, "trajectory", now - 2, {"workpiece_id": "demo"}),
+            records.operation_ended(run_id, now - 1, "completed", result, None, 1),
+        ]
+    )
+    assert written is not None
+    await written
+
+
+def tell_run_ended(rig: Rig, run_id: str, inspection: dict[str, Any]) -> None:
+    """An inspected run's end, told to the listeners a real run's end is told to."""
+    assert rig.cell.worker is not None
+    result = {"workpieces": ["demo"], "waypoints": 9, "inspection": inspection}
+    ended = RunEnded(
+        run_id, "trajectory", "completed", 2.0, "EXECUTING_TRAJECTORY", result, None, 1
+    )
+    for listener in rig.cell.worker.runs.listeners:
+        listener(ended)
+
+
+def metric(text: str, series: str) -> float:
+    """The value of one exposed series (`name{labels}`) in Prometheus text."""
+    for line in text.splitlines():
+        if line.startswith(series + " "):
+            return float(line.split()[-1])
+    raise AssertionError(f"{series} not exposed")
+
+
+async def opcua_counts(port: int) -> tuple[int, int]:
+    async with Client(f"opc.tcp://127.0.0.1:{port}", timeout=WAIT_S) as opc:
+        ns = await opc.get_namespace_index(NAMESPACE_URI)
+        processed = opc.get_node(f"ns={ns};s={CELL}.Admin.ProdProcessedCount")
+        defective = opc.get_node(f"ns={ns};s={CELL}.Admin.ProdDefectiveCount")
+        return await processed.read_value(), await defective.read_value()
+
+
+async def until_counts(port: int, expected: tuple[int, int]) -> None:
+    """Admin is refreshed every opcua_admin_interval: wait for the counts to get there."""
+    async with asyncio.timeout(WAIT_S):
+        while await opcua_counts(port) != expected:
+            await asyncio.sleep(0.2)
+
+
+async def test_verdicts_on_kpis_metrics_packml_and_mqtt(tmp_path: Path) -> None:
+    opcua_port = free_port()
+    with mosquitto(tmp_path / "broker") as broker:
+        overrides = {
+            "cell_id": CELL,
+            "mqtt_url": broker.url,
+            "opcua_endpoint": f"opc.tcp://127.0.0.1:{opcua_port}",
+            "opcua_admin_interval": 1,
+        }
+        async with (
+            open_rig(tmp_path / "data", **overrides) as rig,
+            subscriber(broker.port, f"{BASE}/#") as plant,
+        ):
+            # A real run: it sprayed its part, but nothing inspected it.
+            assert (await run(rig, "start", SPRAY_DEMO))["state"] == "IDLE"
+            kpis = (await rig.api.get("/kpis")).json()
+            assert kpis["workpieces_processed"] == 1
+            assert kpis["quality"] == {
+                "parts_good": 0,
+                "parts_defective": 0,
+                "trajectory_precision_mm": {"mean": None, "p95": None},
+                "dispensing_cv_percent": None,
+                "vision_residual_mm": None,
+            }
+            assert kpis["oee"]["quality"] is None and kpis["oee"]["oee"] is None
+            text = (await rig.api.get("/metrics")).text
+            assert metric(text, 'glue_cell_parts_inspected_total{verdict="good"}') == 0
+            assert metric(text, 'glue_cell_parts_inspected_total{verdict="defective"}') == 0
+            assert metric(text, "glue_cell_part_trajectory_precision_mm_count") == 0
+            # PackML: a workpiece sprayed is not a part processed until it was inspected.
+            await asyncio.sleep(1.5)  # past one Admin refresh after the run
+            assert await opcua_counts(opcua_port) == (0, 0)
+            # MQTT: the run's message, then the cell leaving its state; no verdict.
+            [real] = await plant.wait(lambda: plant.on(f"{BASE}/run"))
+            assert real["operation"] == "trajectory" and real["outcome"] == "completed"
+            assert (real["verdict"], real["reasons"], real["inspection"]) == (None, [], None)
+            await plant.wait(lambda: any(e["to"] == "IDLE" for e in plant.on(f"{BASE}/event")))
+            topics = [str(m.topic) for m in plant.messages]
+            to_idle = [i for i, t in enumerate(topics) if t == f"{BASE}/event"][-1]
+            assert topics.index(f"{BASE}/run") < to_idle
+
+            # Inspected runs in the journal: /kpis and PackML count them.
+            await append_inspected_run(rig, "good-1", summary("good", [], 0.4))
+            await append_inspected_run(rig, "bad-1", summary("defective", [GAP], 1.2))
+            kpis = (await rig.api.get("/kpis")).json()
+            assert kpis["quality"]["parts_good"] == 1
+            assert kpis["quality"]["parts_defective"] == 1
+            assert kpis["quality"]["trajectory_precision_mm"] == {"mean": 0.4, "p95": 1.2}
+            assert kpis["oee"]["quality"] == 0.5
+            await until_counts(opcua_port, (2, 1))
+
+            # An inspected run's end: the counters and the MQTT run message.
+            tell_run_ended(rig, "bad-2", summary("defective", [GAP], 2.5))
+            tell_run_ended(rig, "good-2", summary("good", [], 0.3))
+            text = (await rig.api.get("/metrics")).text
+            assert metric(text, 'glue_cell_parts_inspected_total{verdict="good"}') == 1
+            assert metric(text, 'glue_cell_parts_inspected_total{verdict="defective"}') == 1
+            assert metric(text, "glue_cell_part_trajectory_precision_mm_count") == 2
+            assert metric(text, "glue_cell_part_trajectory_precision_mm_sum") == 2.8
+            told = await plant.wait(lambda: (r := plant.on(f"{BASE}/run")) and len(r) >= 3 and r)
+            assert [(r["run_id"], r["verdict"], r["reasons"]) for r in told[1:]] == [
+                ("bad-2", "defective", [GAP]),
+                ("good-2", "good", []),
+            ]
+            assert told[1]["inspection"]["precision_p95_mm"] == 2.5
+            assert all(r["cell_id"] == CELL for r in told)

@@ -1,0 +1,39 @@
+// What the Last part card says of a run record: `node --test tests/unit/hmi/`.
+import assert from "node:assert/strict";
+import test from "node:test";
+
+import { describePart } from "../../../clients/hmi/last_part.js";
+
+const GAP = "segment 3: a gap of 14.2 mm without bead (at most 3.0 mm)";
+
+test("no run yet, and a run nobody inspected", () => {
+  assert.equal(describePart(null).label, "no part yet");
+  const plain = describePart({ run_id: "r1", outcome: "completed", result: { waypoints: 9 } });
+  assert.equal(plain.verdict, "none");
+  assert.equal(plain.label, "not inspected");
+  assert.deepEqual(plain.reasons, []);
+  const failed = describePart({ run_id: "r2", outcome: "failed", result: null });
+  assert.equal(failed.label, "not inspected");
+  assert.equal(failed.note, "run failed");
+});
+
+test("a defective part: its reasons, its figures, whether an image was kept", () => {
+  const inspection = {
+    verdict: "defective",
+    reasons: [GAP],
+    precision_p95_mm: 0.736,
+    dispensing_cv_percent: null,
+    glue_ml: 1.35,
+    vision_residual_mm: 0.18,
+    image: true,
+  };
+  const part = describePart({ run_id: "r3", outcome: "completed", result: { inspection } });
+  assert.equal(part.verdict, "defective");
+  assert.deepEqual(part.reasons, [GAP]);
+  assert.deepEqual(part.figures[0], ["path deviation p95", "0.74 mm"]);
+  assert.deepEqual(part.figures[1], ["flow CV", "—"]); // not measured
+  assert.equal(part.image, true);
+  // A verdict outside the contract is not shown as one.
+  const odd = describePart({ run_id: "r4", outcome: "completed", result: { inspection: { verdict: "?" } } });
+  assert.equal(odd.label, "not inspected");
+});
