@@ -7,10 +7,15 @@ on its standard input:
 - "server <base_url> <token>": the server to stop, once it is up;
 - "fire": clear the simulators' stop stamps, send POST /estop (on a kept-alive
   connection, as an HMI holds one), and print
-  "stopped <seconds> <valve_closed> <sent_at>":
-  from just before the request left to the later of the robot receiving `stop`
-  and the dispenser receiving the valve-close write (both stamped with
-  time.time() by the simulators on arrival).
+  "stopped <seconds> <valve_closed> <sent_at> <robot_at> <glue_at>":
+  from just before the request left to the later of the robot receiving its
+  first `stop` and the dispenser its first valve-close write after it (both
+  stamped with time.time() by the simulators on arrival), and the two stamps.
+  The first, watched while the answer is on its way: the simulators keep only
+  the latest stamp, and a stop while spraying is followed by more of both (the
+  run's own close and stop as it is cancelled, the halt after it). Reading
+  the stamps once the answer had come measured the last of them: a run whose
+  cancellation took emergency_stop_timeout showed as a 1 s stop.
 
 Being a separate process matters: simulators or a client inside the server's
 process would wait for its interpreter lock while it works, and that wait
@@ -36,13 +41,23 @@ async def fire(client: httpx.AsyncClient, robot: RobotSimulator, glue: GlueSimul
     robot.last_stop_at = None
     glue.close_commanded_at = None
     sent = time.time()
-    response = await client.post("/estop")
+    answer = asyncio.ensure_future(client.post("/estop"))
+    # The first stop and close to arrive, not the last: the run's own cancellation
+    # and the halt after it send more of both before the answer comes.
+    robot_at = glue_at = None
+    while not (robot_at and glue_at) and not answer.done():
+        robot_at = robot_at or robot.last_stop_at
+        glue_at = glue_at or glue.close_commanded_at
+        await asyncio.sleep(0.0002)  # when we report, not what we report
+    response = await answer
     if response.status_code != 202:
         return f"failed {response.status_code} {response.text[:200]!r}"
-    while not (robot.last_stop_at and glue.close_commanded_at):
-        await asyncio.sleep(0.0002)  # when we report, not what we report
-    latency = max(robot.last_stop_at, glue.close_commanded_at) - sent
-    return f"stopped {latency} {not glue.valve_open} {sent}"
+    while not (robot_at and glue_at):  # the answer came first: wait for the stamps
+        robot_at = robot_at or robot.last_stop_at
+        glue_at = glue_at or glue.close_commanded_at
+        await asyncio.sleep(0.0002)
+    latency = max(robot_at, glue_at) - sent
+    return f"stopped {latency} {not glue.valve_open} {sent} {robot_at} {glue_at}"
 
 
 async def witness(speed_factor: float) -> None:

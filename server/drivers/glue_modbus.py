@@ -27,6 +27,12 @@ for `valve_settle_s` while the valve moves) and raises DeviceError if the valve
 still reports open: closing is the safety-relevant direction and costs about
 2 ms at 115200 baud. Opening is not read back; the monitor sees the feedback.
 
+Cancellation: pymodbus bounds its connect and each transaction with
+asyncio.wait_for, which on Python 3.11 drops a cancellation landing as the
+reply arrives (CPython gh-86296); every exchange checks its task's pending
+cancellations afterwards and raises the dropped one again (the line is then
+clean, so the link is kept), so an e-stop's cancel of a run is never lost here.
+
 Sessions: `new_session()` (a reset's probe calls it) begins a numbered
 session. An exchange belongs to the session it was asked in; if it times out
 or loses the link once a newer session has begun, the link is still dropped
@@ -92,6 +98,26 @@ _VALVE_READBACK_INTERVAL_S = 0.02
 
 ModbusClient = AsyncModbusTcpClient | AsyncModbusSerialClient
 T = TypeVar("T")
+
+
+def _cancel_requests() -> int:
+    task = asyncio.current_task()
+    return task.cancelling() if task is not None else 0
+
+
+def _cancel_dropped(before: int) -> bool:
+    """Did a cancellation come, and pymodbus swallow it, while we awaited it?
+
+    pymodbus bounds its connect and each transaction with asyncio.wait_for, which
+    on Python 3.11 returns the result and drops a cancellation that lands in the
+    loop turns between the result and wait_for returning (CPython gh-86296). A
+    run's valve or setpoint write cancelled by an e-stop so went on as if never
+    cancelled: the run started its next move after the stop, and the worker
+    waited emergency_stop_timeout for it. The task still counts the request, so
+    the caller raises it again (an `asyncio.timeout` expiring then still turns it
+    into TimeoutError).
+    """
+    return _cancel_requests() > before
 
 
 class _LineArbiter:
@@ -198,6 +224,7 @@ class ModbusGlueDispenser:
         self._watchdog: asyncio.Task[None] | None = None
         self._on_line: asyncio.Timeout | None = None  # the deadline of the exchange on the line
         self._cut_short = False
+        self._cancelled_after_reply = False  # a swallowed cancel raised again after a clean reply
 
     @classmethod
     def serial(
@@ -379,6 +406,7 @@ class ModbusGlueDispenser:
                     self._on_line = None
                     self._line.release()
         except TimeoutError:
+            self._cancelled_after_reply = False
             if session != self._session:
                 if on_line:
                     self._drop_link()  # a late reply must not be read as the next one's
@@ -407,7 +435,8 @@ class ModbusGlueDispenser:
             self._link_lost("NO_REPLY", message)
             raise DeviceTimeout(DEVICE, message) from None
         except asyncio.CancelledError:
-            if on_line:
+            answered, self._cancelled_after_reply = self._cancelled_after_reply, False
+            if on_line and not answered:
                 self._drop_link()  # a reply may still be on its way: start the next one clean
             raise
 
@@ -415,7 +444,13 @@ class ModbusGlueDispenser:
         client = self._client
         if client is None:
             raise DeviceDisconnected(DEVICE, f"not connected to {self.where}: call connect() first")
-        if not client.connected and not await client.connect():
+        if client.connected:
+            return client
+        before = _cancel_requests()
+        connected = await client.connect()
+        if _cancel_dropped(before):
+            raise asyncio.CancelledError
+        if not connected:
             message = f"cannot open the link to the glue dispenser on {self.where}"
             if self._link_hint:
                 message += f"; {self._link_hint}"
@@ -432,8 +467,12 @@ class ModbusGlueDispenser:
         self._exchange_ids += 1
         exchange = self._exchange_ids
         self._waiting_since[exchange] = time.monotonic()
+        before = _cancel_requests()
         try:
             response = await send(client)
+            if _cancel_dropped(before):
+                self._cancelled_after_reply = True  # the line is clean: no need to drop it
+                raise asyncio.CancelledError
         except ConnectionException as exc:
             message = f"{what}: link to {self.where} lost ({exc})"
             self._drop_link()

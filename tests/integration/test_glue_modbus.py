@@ -565,3 +565,33 @@ async def test_a_close_read_back_shows_in_health_before_the_next_poll(
 def test_a_link_timeout_must_exceed_the_poll_interval() -> None:
     with pytest.raises(ValueError, match=r"link_timeout .* must be longer than poll_interval"):
         ModbusGlueDispenser.tcp("127.0.0.1", 1, poll_interval=0.5, link_timeout=0.5)
+
+
+@pytest.mark.parametrize("turns", range(2))
+async def test_a_cancel_landing_as_the_reply_arrives_still_cancels(
+    sim: GlueSimulator, turns: int
+) -> None:
+    """The e-stop cancels a run while its valve or setpoint write is on the line.
+
+    pymodbus bounds each exchange with asyncio.wait_for, which on Python 3.11
+    drops a cancellation that lands in the loop turns between the reply's
+    arrival and wait_for returning (CPython gh-86296). Before the fix the
+    write then returned normally and the cancelled run went on (its next move
+    started after the stop), and the worker waited emergency_stop_timeout for it.
+    """
+    dispenser = ModbusGlueDispenser.tcp("127.0.0.1", sim.port, timeout=TIMEOUT, poll_interval=30)
+    await dispenser.connect()
+    try:
+        assert dispenser._client is not None
+        exchange = dispenser._client.ctx  # pymodbus's transaction manager: the reply's future
+        task = asyncio.ensure_future(dispenser.set_flow_rate(100.0))
+        while not (dispenser._waiting_since and exchange.response_future.done()):
+            await asyncio.sleep(0)  # the reply has landed; wait_for has not returned yet
+        for _ in range(turns):
+            await asyncio.sleep(0)
+        assert not task.done()
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+    finally:
+        await dispenser.close()
