@@ -221,9 +221,10 @@ async def test_kpis_over_the_shift(api) -> None:
     assert kpis["workpieces_processed"] == 1
     assert kpis["time_in_state_s"]["EXECUTING_TRAJECTORY"] > 0
     assert 0 < kpis["oee"]["availability"] <= 1
-    # The fake devices' run completed but was not inspected: no part, no quality claimed.
-    assert kpis["oee"]["quality"] is None and kpis["oee"]["oee"] is None
-    assert kpis["quality"]["parts_good"] == kpis["quality"]["parts_defective"] == 0
+    # The fake devices' run completed and was inspected, but a fake camera shows no bead:
+    # one part, defective, and the quality factor says so.
+    assert (kpis["quality"]["parts_good"], kpis["quality"]["parts_defective"]) == (0, 1)
+    assert kpis["oee"]["quality"] == 0.0 and kpis["oee"]["oee"] == 0.0
     assert kpis["error_recovery_success_rate"] == 0.0  # the calibration retry failed too
     assert (await api.get("/kpis", params={"since": 10, "until": 5})).status_code == 422
     assert (await api.get("/kpis", params={"since": 0, "until": "inf"})).status_code == 422

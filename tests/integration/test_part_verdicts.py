@@ -2,12 +2,11 @@
 Client) and MQTT (Debian's mosquitto), against the real server with the robot and glue
 simulators.
 
-A real run is counted as it is: until the inspection (server/quality/) is merged a run's
-result holds none, and such a run must not count as a part anywhere. The counting itself
-is shown with records built to issue 18's contract (result["inspection"]): an inspected
-run's rows appended to the real journal (what /kpis and PackML's Admin read), and an
-inspected run's end told to the cell's run-ended listeners (where the metrics, the MQTT
-link and the webhooks hear a real run end).
+A real run is inspected (server/quality/) and counted as its own verdict says, on every
+surface alike. The counting of more parts is then shown with records built to issue 18's
+contract (result["inspection"]): an inspected run's rows appended to the real journal
+(what /kpis and PackML's Admin read), and an inspected run's end told to the cell's
+run-ended listeners (where the metrics, the MQTT link and the webhooks hear a run end).
 """
 
 from __future__ import annotations
@@ -17,13 +16,14 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pytest
 from asyncua import Client
 
 from server.core.runs import RunEnded
 from server.opcua.address_space import NAMESPACE_URI
 from server.storage.journal import records
 from tests.mosquitto import mosquitto, subscriber
-from tests.rig import SPRAY_DEMO, WAIT_S, Rig, open_rig, run
+from tests.rig import SPRAY_DEMO, WAIT_S, Rig, open_rig
 from tests.serving import free_port
 
 CELL = "cell-q"
@@ -108,29 +108,31 @@ async def test_verdicts_on_kpis_metrics_packml_and_mqtt(tmp_path: Path) -> None:
             open_rig(tmp_path / "data", **overrides) as rig,
             subscriber(broker.port, f"{BASE}/#") as plant,
         ):
-            # A real run: it sprayed its part, but nothing inspected it.
-            assert (await run(rig, "start", SPRAY_DEMO))["state"] == "IDLE"
+            # A real run: sprayed and inspected; every surface counts it by its verdict.
+            started = await rig.api.post("/start", json=SPRAY_DEMO)
+            assert started.status_code == 202, started.text
+            await rig.wait_state("EXECUTING_TRAJECTORY")
+            await rig.wait_state("IDLE")
+            run_id = started.json()["run_id"]
+            inspection = (await rig.api.get(f"/runs/{run_id}/inspection")).json()
+            verdict, reasons = inspection["verdict"], inspection["reasons"]
+            good, defective = int(verdict == "good"), int(verdict == "defective")
             kpis = (await rig.api.get("/kpis")).json()
             assert kpis["workpieces_processed"] == 1
-            assert kpis["quality"] == {
-                "parts_good": 0,
-                "parts_defective": 0,
-                "trajectory_precision_mm": {"mean": None, "p95": None},
-                "dispensing_cv_percent": None,
-                "vision_residual_mm": None,
-            }
-            assert kpis["oee"]["quality"] is None and kpis["oee"]["oee"] is None
+            quality = kpis["quality"]
+            assert (quality["parts_good"], quality["parts_defective"]) == (good, defective)
+            assert quality["vision_residual_mm"] == inspection["vision"]["residual_mean_mm"]
+            assert kpis["oee"]["quality"] == good
             text = (await rig.api.get("/metrics")).text
-            assert metric(text, 'glue_cell_parts_inspected_total{verdict="good"}') == 0
-            assert metric(text, 'glue_cell_parts_inspected_total{verdict="defective"}') == 0
-            assert metric(text, "glue_cell_part_trajectory_precision_mm_count") == 0
-            # PackML: a workpiece sprayed is not a part processed until it was inspected.
-            await asyncio.sleep(1.5)  # past one Admin refresh after the run
-            assert await opcua_counts(opcua_port) == (0, 0)
-            # MQTT: the run's message, then the cell leaving its state; no verdict.
+            assert metric(text, 'glue_cell_parts_inspected_total{verdict="good"}') == good
+            assert metric(text, 'glue_cell_parts_inspected_total{verdict="defective"}') == defective
+            assert metric(text, "glue_cell_part_trajectory_precision_mm_count") == 1
+            await until_counts(opcua_port, (1, defective))
+            # MQTT: the run's message with its verdict, then the cell leaving its state.
             [real] = await plant.wait(lambda: plant.on(f"{BASE}/run"))
             assert real["operation"] == "trajectory" and real["outcome"] == "completed"
-            assert (real["verdict"], real["reasons"], real["inspection"]) == (None, [], None)
+            assert (real["run_id"], real["verdict"], real["reasons"]) == (run_id, verdict, reasons)
+            assert real["inspection"]["verdict"] == verdict
             await plant.wait(lambda: any(e["to"] == "IDLE" for e in plant.on(f"{BASE}/event")))
             topics = [str(m.topic) for m in plant.messages]
             to_idle = [i for i, t in enumerate(topics) if t == f"{BASE}/event"][-1]
@@ -140,20 +142,30 @@ async def test_verdicts_on_kpis_metrics_packml_and_mqtt(tmp_path: Path) -> None:
             await append_inspected_run(rig, "good-1", summary("good", [], 0.4))
             await append_inspected_run(rig, "bad-1", summary("defective", [GAP], 1.2))
             kpis = (await rig.api.get("/kpis")).json()
-            assert kpis["quality"]["parts_good"] == 1
-            assert kpis["quality"]["parts_defective"] == 1
-            assert kpis["quality"]["trajectory_precision_mm"] == {"mean": 0.4, "p95": 1.2}
-            assert kpis["oee"]["quality"] == 0.5
-            await until_counts(opcua_port, (2, 1))
+            assert kpis["quality"]["parts_good"] == 1 + good
+            assert kpis["quality"]["parts_defective"] == 1 + defective
+            real_mean = real["inspection"]["precision_mean_mm"]
+            real_p95 = real["inspection"]["precision_p95_mm"]
+            assert kpis["quality"]["trajectory_precision_mm"] == {
+                "mean": pytest.approx((real_mean + 0.2 + 0.6) / 3, abs=1e-3),
+                "p95": pytest.approx(max(real_p95, 1.2)),
+            }
+            assert kpis["oee"]["quality"] == pytest.approx((1 + good) / 3)
+            await until_counts(opcua_port, (3, 1 + defective))
 
             # An inspected run's end: the counters and the MQTT run message.
             tell_run_ended(rig, "bad-2", summary("defective", [GAP], 2.5))
             tell_run_ended(rig, "good-2", summary("good", [], 0.3))
             text = (await rig.api.get("/metrics")).text
-            assert metric(text, 'glue_cell_parts_inspected_total{verdict="good"}') == 1
-            assert metric(text, 'glue_cell_parts_inspected_total{verdict="defective"}') == 1
-            assert metric(text, "glue_cell_part_trajectory_precision_mm_count") == 2
-            assert metric(text, "glue_cell_part_trajectory_precision_mm_sum") == 2.8
+            assert metric(text, 'glue_cell_parts_inspected_total{verdict="good"}') == 1 + good
+            assert (
+                metric(text, 'glue_cell_parts_inspected_total{verdict="defective"}')
+                == 1 + defective
+            )
+            assert metric(text, "glue_cell_part_trajectory_precision_mm_count") == 3
+            assert metric(text, "glue_cell_part_trajectory_precision_mm_sum") == pytest.approx(
+                real_p95 + 2.8
+            )
             told = await plant.wait(lambda: (r := plant.on(f"{BASE}/run")) and len(r) >= 3 and r)
             assert [(r["run_id"], r["verdict"], r["reasons"]) for r in told[1:]] == [
                 ("bad-2", "defective", [GAP]),

@@ -148,8 +148,10 @@ async def test_a_run_and_an_estop_are_posted_signed_in_order(cell_data) -> None:
     [completed] = [n for n in notices if n["kind"] == "run_completed"]
     assert completed["operation"] == "trajectory" and completed["workpieces"] == 1
     assert completed["run_id"] and completed["result"] is not None
-    # Not inspected (no "inspection" in its result): no verdict, no reasons.
-    assert (completed["verdict"], completed["reasons"], completed["inspection"]) == (None, [], None)
+    # Inspected: the notice carries the verdict and reasons of the run's inspection summary.
+    inspection = completed["inspection"]
+    assert completed["verdict"] == inspection["verdict"] in ("good", "defective")
+    assert completed["reasons"] == inspection["reasons"]
     [fault] = [n for n in notices if n["kind"] == "fault"]
     assert fault["code"] == "EMERGENCY_STOP" and fault["component"]
     for post in run_posts:
