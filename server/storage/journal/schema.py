@@ -48,6 +48,19 @@ CREATE TABLE IF NOT EXISTS webhook_deliveries (
     webhook TEXT NOT NULL, kind TEXT NOT NULL, event_at REAL NOT NULL, outcome TEXT NOT NULL,
     attempts INTEGER NOT NULL, status INTEGER, error TEXT NOT NULL, tries TEXT NOT NULL
 );
+-- Production orders (server/orders/): one row per order, updated as it goes (like
+-- operations), and one row per part made for it.
+CREATE TABLE IF NOT EXISTS orders (
+    order_id TEXT PRIMARY KEY, created_at REAL NOT NULL, workpiece_id TEXT NOT NULL,
+    quantity INTEGER NOT NULL, defect_limit INTEGER NOT NULL, state TEXT NOT NULL,
+    reason TEXT, created_by TEXT NOT NULL, updated_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS order_parts (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, order_id TEXT NOT NULL,
+    run_id TEXT NOT NULL, started_at REAL, outcome TEXT NOT NULL, verdict TEXT NOT NULL,
+    inspected INTEGER NOT NULL, reasons TEXT NOT NULL, precision_mean_mm REAL,
+    precision_p95_mm REAL, glue_ml REAL
+);
 CREATE TABLE IF NOT EXISTS commits (
     seq INTEGER PRIMARY KEY, time REAL NOT NULL, rows TEXT NOT NULL, digest TEXT NOT NULL
 );
@@ -59,6 +72,8 @@ CREATE INDEX IF NOT EXISTS operations_started ON operations(started_at);
 CREATE INDEX IF NOT EXISTS errors_time ON errors(time);
 CREATE INDEX IF NOT EXISTS recoveries_time ON recoveries(time);
 CREATE INDEX IF NOT EXISTS webhook_deliveries_time ON webhook_deliveries(time);
+CREATE INDEX IF NOT EXISTS orders_created ON orders(created_at);
+CREATE INDEX IF NOT EXISTS order_parts_time ON order_parts(time);
 -- One row, rewritten by each write that checks a failing journal can write again.
 CREATE TABLE IF NOT EXISTS write_check (id INTEGER PRIMARY KEY CHECK (id = 1), time REAL NOT NULL);
 """
@@ -108,6 +123,37 @@ TABLES: dict[str, tuple[str, list[str]]] = {
             "tries",
         ],
     ),
+    "orders": (
+        "created_at",
+        [
+            "order_id",
+            "created_at",
+            "workpiece_id",
+            "quantity",
+            "defect_limit",
+            "state",
+            "reason",
+            "created_by",
+            "updated_at",
+        ],
+    ),
+    "order_parts": (
+        "time",
+        [
+            "seq",
+            "time",
+            "order_id",
+            "run_id",
+            "started_at",
+            "outcome",
+            "verdict",
+            "inspected",
+            "reasons",
+            "precision_mean_mm",
+            "precision_p95_mm",
+            "glue_ml",
+        ],
+    ),
 }
 
 # The tables whose rows are sealed: each row carries the sequence number of the
@@ -115,8 +161,9 @@ TABLES: dict[str, tuple[str, list[str]]] = {
 # is part of that commit's digest. Not `operations`: its rows are updated as a
 # run progresses and ends, so a digest taken when a row was appended would not
 # hold; the commits that change it are still numbered and chained.
-# A table added later (webhook_deliveries) is created at open with its commit_seq
-# added like the others', and counts from 0 in the first commit that appends to it.
+# Nor `orders`, updated as an order goes, for the same reason.
+# A table added later (webhook_deliveries, order_parts) is created at open with its
+# commit_seq added like the others', and counts from 0 in the first commit that appends to it.
 SEALED: tuple[str, ...] = (
     "events",
     "transitions",
@@ -124,6 +171,7 @@ SEALED: tuple[str, ...] = (
     "recoveries",
     "audit",
     "webhook_deliveries",
+    "order_parts",
 )
 COMMIT_SEQ = "commit_seq"
 
@@ -185,6 +233,14 @@ FILTERS: dict[str, tuple[Filter, ...]] = {
         Filter("kind", str, "the notice: fault, alert, state or run_completed"),
         Filter("outcome", str, "delivered, refused, failed, dropped or abandoned"),
         Filter("delivery_id", str, "the notice's id, as the receiver got it"),
+    ),
+    "orders": (
+        Filter("workpiece_id", str, "the workpiece the order makes"),
+        Filter("state", str, "queued, running, held, completed or closed"),
+    ),
+    "order_parts": (
+        Filter("order_id", str, "the order the part was made for"),
+        Filter("verdict", str, "good or defective"),
     ),
 }
 
