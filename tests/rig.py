@@ -194,7 +194,12 @@ DEVICE_FAULTS: dict[str, DeviceFaultKind] = {
 
 @contextlib.asynccontextmanager
 async def open_rig(
-    data_path, *, port: int | None = None, camera_stalled: bool = False, **overrides: Any
+    data_path,
+    *,
+    port: int | None = None,
+    camera_stalled: bool = False,
+    wait_idle: bool = True,
+    **overrides: Any,
 ) -> AsyncIterator[Rig]:
     """Simulators, cell and HTTP client; the cell commissioned in `data_path`.
 
@@ -202,7 +207,9 @@ async def open_rig(
     (a free one by default). `camera_stalled`: the simulated camera stalls from the
     start, so the cell stays INITIALIZING (for up to vision_processing_timeout) until the
     test calls `rig.camera.clear_faults()`; the rig then does not wait for IDLE. Only for
-    a data directory commissioned already: commissioning needs the camera."""
+    a data directory commissioned already: commissioning needs the camera. `wait_idle`
+    False: yield as soon as the server answers (a restart after an interruption comes
+    up in ERROR)."""
     async with RobotSimulator(speed_factor=4) as robot, GlueSimulator() as glue:
         defaults: dict[str, Any] = {
             "robot_communication_timeout": TIMEOUT,
@@ -227,7 +234,7 @@ async def open_rig(
             ) as api,
         ):
             rig = Rig(api, cell, robot, glue)
-            if not camera_stalled:
+            if not camera_stalled and wait_idle:
                 await rig.wait_state("IDLE")
             yield rig
 

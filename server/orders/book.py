@@ -181,8 +181,8 @@ class OrderBook:
             state=OrderState.QUEUED if queued else OrderState.RUNNING,
             updated_at=now,
         )
-        self.orders[order.order_id] = order
         await self._write([self._row(order), *([audit] if audit else [])])
+        self.orders[order.order_id] = order  # once on record
         if queued:
             return order, None
         return order, await self._start_part(order)
@@ -193,15 +193,21 @@ class OrderBook:
         if order.state not in OPEN_STATES:
             raise OrderRefused(409, f"order {order_id} is {order.state.value}: nothing to close")
         was_active = order.state in ACTIVE_STATES
+        follower = self._next_queued() if was_active else None
+        undo = [order, *([follower] if follower else [])]
+        saved = [(o, o.state, o.reason, o.updated_at) for o in undo]
         self._set(order, OrderState.CLOSED, f"closed by {who}")
         rows = [self._row(order)]
-        if was_active:
-            follower = self._next_queued()
-            if follower is not None:
-                reason = f"the order before it ({order_id}) was closed: resume it to start"
-                self._set(follower, OrderState.HELD, reason)
-                rows.append(self._row(follower))
-        await self._write([*rows, *([audit] if audit else [])])
+        if follower is not None:
+            reason = f"the order before it ({order_id}) was closed: resume it to start"
+            self._set(follower, OrderState.HELD, reason)
+            rows.append(self._row(follower))
+        try:
+            await self._write([*rows, *([audit] if audit else [])])
+        except BaseException:
+            for o, state, reason_before, updated_at in saved:
+                o.state, o.reason, o.updated_at = state, reason_before, updated_at
+            raise
         return order
 
     async def resume(self, order_id: str, audit: Record | None = None) -> tuple[Order, str | None]:
@@ -212,8 +218,13 @@ class OrderBook:
                 409, f"order {order_id} is {order.state.value}: only a held order resumes"
             )
         self._refuse_unless_startable()
+        saved = (order.state, order.reason, order.updated_at)
         self._set(order, OrderState.RUNNING, None)
-        await self._write([self._row(order), *([audit] if audit else [])])
+        try:
+            await self._write([self._row(order), *([audit] if audit else [])])
+        except BaseException:
+            order.state, order.reason, order.updated_at = saved
+            raise
         self._present_next_part()
         return order, await self._start_part(order)
 
@@ -353,6 +364,7 @@ class OrderBook:
         task.add_done_callback(self._tasks.discard)
 
     async def _write(self, rows: list[Record]) -> None:
+        """Commit `rows` and wait for it (the caller puts memory back if it fails)."""
         written = self._journal.append(rows)
         if written is not None:
             await written
