@@ -53,7 +53,6 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 SOURCE = "order"  # the journal's source of the starts an order makes itself
-DEFECT_LIMIT_CODE = "ORDER_DEFECT_LIMIT"
 RESTARTED = "the server restarted while the order was running: resume it once the cell is ready"
 
 
@@ -300,7 +299,8 @@ class OrderBook:
                 start_next = follower
         elif following is Next.DEFECT_LIMIT:
             self._set(order, OrderState.HELD, order.defect_limit_reason())
-            self._cell.report_fault(DeviceFault("quality", DEFECT_LIMIT_CODE, order.reason or ""))
+            fault = DeviceFault("quality", "ORDER_DEFECT_LIMIT", order.reason or "")
+            self._cell.report_fault(fault)
         elif part.outcome != "completed":
             self._set(order, OrderState.HELD, f"part {len(order.parts)}: {part.reasons[0]}")
         elif order.state is OrderState.RUNNING:

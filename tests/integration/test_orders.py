@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import csv
 import io
+from typing import Any
 
 import pytest
 
@@ -167,3 +168,33 @@ async def test_a_restart_leaves_the_order_held(tmp_path) -> None:
         await asyncio.sleep(1.0)  # nor after the reset
         assert len(await trajectory_runs(rig)) == 1
         assert (await order_of(rig, order_id))["state"] == "held"
+
+
+async def test_gluectl_order_start_show_list_report_close_resume(tmp_path) -> None:
+    from tests.integration.test_gluectl import gluectl_process
+
+    async with open_rig(tmp_path) as rig:
+        base = ("--url", str(rig.api.base_url).rstrip("/"), "--data-dir", str(tmp_path))
+
+        async def cli(*args: str) -> Any:
+            return await gluectl_process(*base, *args)
+
+        bad = await cli("order", "start", "no-such-part", "2")
+        assert bad.code == 6 and "workpiece_id" in bad.stderr, bad
+        started = await cli("--json", "order", "start", "demo", "2")
+        assert started.code == 0, started.stderr
+        order_id = started.json()["order"]["order_id"]
+        await wait_order(rig, order_id, "completed")
+        shown = await cli("order", "show", order_id)
+        assert shown.code == 0 and "2 of 2" in shown.stdout and "completed" in shown.stdout
+        listed = await cli("order", "list")
+        assert listed.code == 0 and order_id in listed.stdout
+        report = await cli("order", "report", order_id)
+        assert report.code == 0 and report.stdout.count("good") >= 2, report.stdout
+        as_csv = await cli("order", "report", order_id, "--csv")
+        assert as_csv.code == 0 and len(as_csv.stdout.strip().splitlines()) == 3
+        assert (await cli("order", "close", order_id)).code == 3  # completed: refused (409)
+        assert (await cli("order", "resume", order_id)).code == 3
+        second = (await cli("--json", "order", "start", "demo", "40")).json()["order"]
+        closed = await cli("order", "close", second["order_id"])
+        assert closed.code == 0 and "closed" in closed.stdout
