@@ -19,7 +19,8 @@ RUNS_S = 120_000  # a bound for parts sprayed at the slow demo speed, not a perf
 
 
 async def test_the_order_card_starts_holds_resumes_and_closes(
-    dashboard: Dashboard, browser: Browser
+    dashboard: Dashboard,  # noqa: F811 - the fixture imported above
+    browser: Browser,
 ) -> None:
     page, problems = await open_page(browser, dashboard, PANEL)
     await log_in(page, dashboard.token)
