@@ -201,7 +201,7 @@ class Cell:
                 )
             except OrderRefused as refused:
                 state = self.view.state
-                return Outcome(False, "", event, state, refused.message, refused.field)
+                return Outcome(False, "", event, state, refused.message)  # 409: not now
         return await self.worker.request(event, source=source, payload=payload, audit=audit)
 
     def report_fault(self, fault: DeviceFault) -> None:

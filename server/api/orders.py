@@ -113,9 +113,12 @@ def _refused(request: Request, refused: OrderRefused) -> JSONResponse:
     request.state.audit_reason = refused.message
     if refused.status == 422 and refused.field:
         problem = {"field": refused.field, "message": refused.message, "type": "precondition"}
-        body = {"detail": f"invalid request: {refused.field}: {refused.message}"}
-        return JSONResponse({**body, "errors": [problem]}, status_code=422)
-    return JSONResponse({"detail": refused.message}, status_code=refused.status)
+        detail = f"invalid request: {refused.field}: {refused.message}"
+        return JSONResponse({"detail": detail, "errors": [problem]}, status_code=422)
+    body: dict[str, Any] = {"detail": refused.message}
+    if refused.field:  # what the request must change (a 409 on a value the cell lacks)
+        body = {"detail": f"{refused.field}: {refused.message}", "field": refused.field}
+    return JSONResponse(body, status_code=refused.status)
 
 
 def _audit(request: Request, detail: str) -> Any:
@@ -142,7 +145,8 @@ async def create_order(request: Request, body: OrderRequest) -> Any:
     """A production order: `quantity` good parts of `workpiece_id`.
 
     With no order active it runs at once (409 if the cell cannot start a part now:
-    nothing is created), else it is queued behind the active one.
+    nothing is created), else it is queued behind the active one. A workpiece the
+    library lacks is a 409 naming `workpiece_id`, as for POST /start.
     """
     detail = f"order {body.quantity} x {body.workpiece_id}"
     try:

@@ -11,7 +11,7 @@ What it decides (docs/operations-guide.md, "Production orders"):
 
 - one order is active (running or held) at a time; others wait queued;
 - a trajectory start while an order is active makes a part for it, of its
-  workpiece (a start naming another one is refused, 422 on workpiece_id);
+  workpiece (a start naming another one is refused, 409 naming workpiece_id);
 - a completed run of a running order starts the next part once the cell is
   back in IDLE, the simulated camera presenting a fresh part first;
 - any failed or cancelled run, a pause, an e-stop or a fault, the defect
@@ -161,8 +161,8 @@ class OrderBook:
         """
         library = self._cell.stores.workpieces if self._cell.stores else None
         if library is None or not await asyncio.to_thread(library.exists, workpiece_id):
-            raise OrderRefused(
-                422,
+            raise OrderRefused(  # a valid id the library lacks: 409, as for POST /start
+                409,
                 f"workpiece {workpiece_id!r} is not in the library: GET /workpieces lists them",
                 "workpiece_id",
             )
@@ -230,15 +230,16 @@ class OrderBook:
     def claim_start(self, payload: StartPayload) -> StartPayload:
         """A person's start while an order is active: it makes a part of the order.
 
-        Raises OrderRefused (422, workpiece_id) when the start names another workpiece.
+        Raises OrderRefused (409, naming workpiece_id) when the start names another
+        workpiece: not now, while the order is active.
         """
         order = self.active
         if order is None or payload.order_id is not None:
             return payload
         if payload.workpiece_id not in (None, order.workpiece_id):
             raise OrderRefused(
-                422,
-                f"order {order.order_id} is active and makes {order.workpiece_id!r}: "
+                409,
+                f"workpiece_id: order {order.order_id} is active and makes {order.workpiece_id!r}: "
                 "close it first to spray another workpiece",
                 "workpiece_id",
             )

@@ -75,8 +75,9 @@ async def test_an_order_of_three_runs_to_completion_from_one_post(tmp_path) -> N
 
 async def test_a_wrong_order_is_refused_naming_the_field_and_nothing_is_made(tmp_path) -> None:
     async with open_rig(tmp_path) as rig:
+        unknown = await rig.api.post("/orders", json={"workpiece_id": "no-such", "quantity": 2})
+        assert unknown.status_code == 409 and unknown.json()["field"] == "workpiece_id"
         cases = [
-            ({"workpiece_id": "no-such-part", "quantity": 2}, "workpiece_id"),
             ({"workpiece_id": "demo", "quantity": 0}, "quantity"),
             ({"workpiece_id": "demo", "quantity": "3"}, "quantity"),
             ({"workpiece_id": "demo", "quantity": 2.5}, "quantity"),
@@ -124,7 +125,7 @@ async def test_after_an_estop_the_order_is_held_until_resumed(tmp_path) -> None:
         assert (await order_of(rig, order_id))["state"] == "held"
         # A start while the order is active makes its part; another workpiece is refused.
         refused = await rig.api.post("/start", json={"workpiece_id": "other-part"})
-        assert refused.status_code == 422 and "workpiece_id" in refused.text
+        assert refused.status_code == 409 and "workpiece_id" in refused.text
         resumed = await rig.api.post(f"/orders/{order_id}/resume")
         assert resumed.status_code == 200, resumed.text
         order = await wait_order(rig, order_id, "completed")
@@ -180,7 +181,7 @@ async def test_gluectl_order_start_show_list_report_close_resume(tmp_path) -> No
             return await gluectl_process(*base, *args)
 
         bad = await cli("order", "start", "no-such-part", "2")
-        assert bad.code == 6 and "workpiece_id" in bad.stderr, bad
+        assert bad.code == 3 and "workpiece_id" in bad.stderr, bad
         started = await cli("--json", "order", "start", "demo", "2")
         assert started.code == 0, started.stderr
         order_id = started.json()["order"]["order_id"]
