@@ -18,7 +18,7 @@ from pydantic import ValidationError
 from server.config import Settings
 from server.core.bus import Bus
 from server.core.devices import CellDevices
-from server.core.events import AuditNote, Outcome, Payload, StopPayload
+from server.core.events import AuditNote, Outcome, Payload, StartPayload, StopPayload
 from server.core.faults import classify
 from server.core.live import DeviceFeed
 from server.core.operations import Operation, default_operations
@@ -33,8 +33,10 @@ from server.core.transitions import (
 )
 from server.core.view import CellView
 from server.core.worker import Worker
+from server.drivers.base import DeviceFault
 from server.logging_setup import log_path
 from server.notify.notifier import Notifier
+from server.orders.book import OrderBook, OrderRefused
 from server.storage import CellStores
 from server.storage.journal import Journal, records
 from server.storage.permissions import tighten_data_directory
@@ -70,6 +72,8 @@ class Cell:
         self._feed: DeviceFeed | None = None
         # The webhooks (server/notify/): one more bus subscriber, never waited on.
         self.notifier: Notifier | None = None
+        # Production orders (server/orders/): drive the cell through `command`, like a person.
+        self.orders: OrderBook | None = None
 
     @property
     def devices(self) -> CellDevices:
@@ -145,8 +149,16 @@ class Cell:
         self.notifier.start()
         self._feed = DeviceFeed(devices, self.bus, self.worker.view, settings.device_push_interval)
         self._feed.start()
+        # The simulated cell presents a fresh part after each one (a real cell: a person or
+        # a conveyor does; the next start finds the part by contour matching, or fails).
+        next_part = getattr(devices.camera, "present_next_part", None)
+        self.orders = OrderBook(self, self.journal, next_part=next_part)
+        await self.orders.start()
 
     async def stop(self) -> None:
+        if self.orders is not None:
+            await self.orders.stop()
+            self.orders = None
         if self._feed is not None:
             await self._feed.stop()
             self._feed = None
@@ -182,7 +194,21 @@ class Cell:
         if event is Event.EMERGENCY_STOP:
             stop = payload if isinstance(payload, StopPayload) else StopPayload()
             return await self.worker.emergency_stop(source=source, payload=stop, audit=audit)
+        if command is Command.START and self.orders is not None:
+            try:  # a start while an order is active makes a part of that order
+                payload = self.orders.claim_start(
+                    payload if isinstance(payload, StartPayload) else StartPayload()
+                )
+            except OrderRefused as refused:
+                state = self.view.state
+                return Outcome(False, "", event, state, refused.message)  # 409: not now
         return await self.worker.request(event, source=source, payload=payload, audit=audit)
+
+    def report_fault(self, fault: DeviceFault) -> None:
+        """Stop the cell on a fault found outside the drivers (an order's defect limit): the
+        fault path closes the valve first and enters ERROR with this as its stop reason."""
+        assert self.worker is not None, "the cell is not started"
+        self.worker.report_fault(fault)
 
 
 def restore_taught_layout(settings: Settings, taught: list[tuple[float, float]] | None) -> None:

@@ -199,6 +199,7 @@ async def open_rig(
     port: int | None = None,
     camera_stalled: bool = False,
     robot_speed_factor: float = 4,
+    wait_idle: bool = True,
     **overrides: Any,
 ) -> AsyncIterator[Rig]:
     """Simulators, cell and HTTP client; the cell commissioned in `data_path`.
@@ -209,7 +210,9 @@ async def open_rig(
     test calls `rig.camera.clear_faults()`; the rig then does not wait for IDLE. Only for
     a data directory commissioned already: commissioning needs the camera.
     `robot_speed_factor`: the robot simulator's (4: fast tests; 1: moves take the time the
-    plan says, as a real arm's, for what measures the run against its plan)."""
+    plan says, as a real arm's, for what measures the run against its plan). `wait_idle`
+    False: yield as soon as the server answers (a restart after an interruption comes
+    up in ERROR)."""
     async with RobotSimulator(speed_factor=robot_speed_factor) as robot, GlueSimulator() as glue:
         defaults: dict[str, Any] = {
             "robot_communication_timeout": TIMEOUT,
@@ -234,7 +237,7 @@ async def open_rig(
             ) as api,
         ):
             rig = Rig(api, cell, robot, glue)
-            if not camera_stalled:
+            if not camera_stalled and wait_idle:
                 await rig.wait_state("IDLE")
             yield rig
 

@@ -95,6 +95,36 @@ class AsyncCellClient:
         """Move the robot one bounded step along x, y or z, in IDLE (maintenance role)."""
         return await self._send(builders.jog(axis, distance_mm))
 
+    # production orders
+
+    async def create_order(self, workpiece_id: str, quantity: int) -> dict[str, Any]:
+        """A production order of `quantity` good parts (operator role): runs or queues."""
+        return await self._send(builders.create_order(workpiece_id, quantity))
+
+    async def orders(self, state: str | None = None) -> dict[str, Any]:
+        """The orders, newest first, and the active one's id."""
+        return await self._send(builders.orders(state))
+
+    async def order(self, order_id: str) -> dict[str, Any]:
+        """One order: state, reason, counts."""
+        return await self._send(builders.order(order_id))
+
+    async def close_order(self, order_id: str) -> dict[str, Any]:
+        """End an order before its quantity (operator role)."""
+        return await self._send(builders.close_order(order_id))
+
+    async def resume_order(self, order_id: str) -> dict[str, Any]:
+        """Continue a held order from IDLE (operator role)."""
+        return await self._send(builders.resume_order(order_id))
+
+    async def order_report(self, order_id: str) -> dict[str, Any]:
+        """Every part of the order: run, times, verdict, precision, glue."""
+        return await self._send(builders.order_report(order_id))
+
+    async def order_report_csv(self, order_id: str) -> str:
+        """The order's report as CSV text."""
+        return await self._send(builders.order_report_csv(order_id))
+
     async def markers(self) -> dict[str, Any]:
         """The marker layout in force, the draft being taught, the robot's last pose."""
         return await self._send(builders.markers())

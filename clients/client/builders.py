@@ -209,6 +209,36 @@ def apply_markers() -> Call[dict[str, Any]]:
     return Call("POST", "/calibration/markers/apply", _json)
 
 
+def create_order(workpiece_id: str, quantity: int) -> Call[dict[str, Any]]:
+    body = {"workpiece_id": workpiece_id, "quantity": quantity}
+    return Call("POST", "/orders", _json, json=body)
+
+
+def orders(state: str | None = None) -> Call[dict[str, Any]]:
+    return Call("GET", "/orders", _json, params={"state": state} if state else None)
+
+
+def order(order_id: str) -> Call[dict[str, Any]]:
+    return Call("GET", f"/orders/{quote(order_id, safe='')}", _json)
+
+
+def close_order(order_id: str) -> Call[dict[str, Any]]:
+    return Call("POST", f"/orders/{quote(order_id, safe='')}/close", _json)
+
+
+def resume_order(order_id: str) -> Call[dict[str, Any]]:
+    return Call("POST", f"/orders/{quote(order_id, safe='')}/resume", _json)
+
+
+def order_report(order_id: str) -> Call[dict[str, Any]]:
+    return Call("GET", f"/orders/{quote(order_id, safe='')}/report", _json)
+
+
+def order_report_csv(order_id: str) -> Call[str]:
+    path = f"/orders/{quote(order_id, safe='')}/report"
+    return Call("GET", path, lambda r: r.text, params={"format": "csv"})
+
+
 def ws_ticket() -> Call[str]:
     return Call("POST", "/ws-ticket", lambda r: r.json()["ticket"])
 

@@ -93,6 +93,36 @@ class CellClient:
         """Move the robot one bounded step along x, y or z, in IDLE (maintenance role)."""
         return self._send(builders.jog(axis, distance_mm))
 
+    # production orders
+
+    def create_order(self, workpiece_id: str, quantity: int) -> dict[str, Any]:
+        """A production order of `quantity` good parts (operator role): runs or queues."""
+        return self._send(builders.create_order(workpiece_id, quantity))
+
+    def orders(self, state: str | None = None) -> dict[str, Any]:
+        """The orders, newest first, and the active one's id."""
+        return self._send(builders.orders(state))
+
+    def order(self, order_id: str) -> dict[str, Any]:
+        """One order: state, reason, counts."""
+        return self._send(builders.order(order_id))
+
+    def close_order(self, order_id: str) -> dict[str, Any]:
+        """End an order before its quantity (operator role)."""
+        return self._send(builders.close_order(order_id))
+
+    def resume_order(self, order_id: str) -> dict[str, Any]:
+        """Continue a held order from IDLE (operator role)."""
+        return self._send(builders.resume_order(order_id))
+
+    def order_report(self, order_id: str) -> dict[str, Any]:
+        """Every part of the order: run, times, verdict, precision, glue."""
+        return self._send(builders.order_report(order_id))
+
+    def order_report_csv(self, order_id: str) -> str:
+        """The order's report as CSV text."""
+        return self._send(builders.order_report_csv(order_id))
+
     def markers(self) -> dict[str, Any]:
         """The marker layout in force, the draft being taught, the robot's last pose."""
         return self._send(builders.markers())

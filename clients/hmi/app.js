@@ -20,6 +20,7 @@
 import { AuthError, api, errorText, tryToken, whenUnauthorized } from "./api.js";
 import { $ } from "./dom.js";
 import { connect, dropConnection, dropSocket, watchdog } from "./live.js";
+import { initOrders } from "./orders.js";
 import { refreshLibrary, refreshPanels } from "./panels.js";
 import { applyState, renderCommands, setLive, showAnswer, showMessage, tick } from "./render.js";
 import { hmi, REFRESH_MS, TOKEN_KEY } from "./store.js";
@@ -127,6 +128,7 @@ function init() {
   for (const button of document.querySelectorAll("[data-command]")) {
     button.addEventListener("click", () => sendCommand(button.dataset.command));
   }
+  initOrders();
   window.addEventListener("resize", drawTrajectory);
   const token = sessionStorage.getItem(TOKEN_KEY);
   if (token) startSession(token, null);

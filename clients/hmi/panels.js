@@ -7,6 +7,7 @@
 
 import { AuthError, blobUrl, getJson } from "./api.js";
 import { $, clockTime, duration, element, facts, number, percent, span } from "./dom.js";
+import { refreshOrders } from "./orders.js";
 import { HISTORY_ROWS, hmi, STATE_TONE } from "./store.js";
 
 let refreshing = false;
@@ -32,6 +33,7 @@ export async function refreshPanels(withHealth = !hmi.live) {
         health ? panel("card-health", "/health", renderHealth) : null,
         panel("card-kpis", "/kpis", renderKpis),
         panel("card-history", `/history?limit=${HISTORY_ROWS}`, renderHistory),
+        refreshOrders(),
       ]);
     } while (refreshAgain && hmi.token);
   } finally {

@@ -83,9 +83,18 @@ class StartPayload:
 
     contour_matching: bool = True
     workpiece_id: str | None = None
+    # The production order this run makes a part for (server/orders/): set by the cell,
+    # never by the request, and kept in the run's params so the run's end finds its order.
+    order_id: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        return {"contour_matching": self.contour_matching, "workpiece_id": self.workpiece_id}
+        data: dict[str, Any] = {
+            "contour_matching": self.contour_matching,
+            "workpiece_id": self.workpiece_id,
+        }
+        if self.order_id is not None:
+            data["order_id"] = self.order_id
+        return data
 
 
 @dataclass(frozen=True, slots=True)

@@ -31,6 +31,8 @@ WARNING = frozenset(
 
 RECOMMENDED_ACTION = {
     "EMERGENCY_STOP": "make sure the cell is clear, then reset",
+    "ORDER_DEFECT_LIMIT": "check the nozzle (clogged or worn), the glue supply and the "
+    "calibration (camera or table moved); then reset, and resume the order",
     "COMM_LOST": "check the robot controller is on and its network cable, then reset",
     "NO_REPLY": "check the dispenser's power and RS-485 cable, then reset",
     "NO_ANSWER": "check the robot controller: power, fault or protective stop; then reset",

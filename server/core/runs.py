@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from server.config import Settings
@@ -64,6 +64,7 @@ class RunEnded:
     result: dict[str, Any] | None
     error: str | None
     workpieces: int
+    params: dict[str, Any] = field(default_factory=dict)  # what the run was started with
 
 
 class PauseNotHeld(Exception):
@@ -275,7 +276,15 @@ class Runs:
         inspection = result.inspection if result is not None and outcome == "completed" else None
         self.recorder.run_ended(running.run_id, outcome, data, error, parts, inspection)
         ended = RunEnded(
-            running.run_id, running.name, outcome, took, self.ctx.state.value, data, error, parts
+            running.run_id,
+            running.name,
+            outcome,
+            took,
+            self.ctx.state.value,
+            data,
+            error,
+            parts,
+            dict(running.params),
         )
         for listener in self.listeners:
             listener(ended)

@@ -353,6 +353,11 @@ class SimulatedCamera(_CameraBase):
     def clear_workpieces(self) -> None:
         self.scene.clear_workpieces()
 
+    def present_next_part(self) -> None:
+        """The next part of a production order: the parts on the table replaced by fresh
+        ones at the same poses (what a person or a conveyor does at a real cell)."""
+        self.scene.present_next_part()
+
     # --- fault injection (tests) ---------------------------------------------------------
 
     def inject_fault(self, kind: FaultKind) -> None:

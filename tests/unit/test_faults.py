@@ -41,6 +41,7 @@ EXPECTED = {
     "ALARM": "critical",
     "PRESSURE_OUT_OF_RANGE": "critical",
     "FLOW_DEVIATION": "critical",  # a wrong bead until a person looks at the nozzle
+    "ORDER_DEFECT_LIMIT": "critical",  # defective parts in a row: nozzle or calibration
     "TEMPERATURE_OUT_OF_RANGE": "critical",
     "VALVE_UNCONFIRMED": "critical",  # glue may still be flowing
     "VALVE_STUCK_OPEN": "critical",

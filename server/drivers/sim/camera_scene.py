@@ -198,6 +198,18 @@ class Scene:
         """Take every workpiece off the table."""
         self.workpieces.clear()
 
+    def present_next_part(self) -> None:
+        """Take the parts off the table and lay fresh ones where they were (a production
+        order's next part: same shapes and poses, nothing sprayed on them yet).
+
+        Through `clear_workpieces` and `place_workpiece`, so whatever the scene keeps
+        per part (the bead dispensed on it) goes with the old ones.
+        """
+        fresh = [(p.shape, p.x_mm, p.y_mm, p.rotation_deg) for p in self.workpieces]
+        self.clear_workpieces()
+        for shape, x_mm, y_mm, rotation_deg in fresh:
+            self.place_workpiece(shape, x_mm, y_mm, rotation_deg)
+
     def snapshot(self) -> Scene:
         """A copy whose lists are its own, so a render in a worker thread is not disturbed by
         workpieces being moved on the event loop meanwhile."""

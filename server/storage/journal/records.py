@@ -203,3 +203,78 @@ def webhook_delivery(
             _json(tries),
         ),
     )
+
+
+def order(
+    order_id: str,
+    created_at: float,
+    workpiece_id: str,
+    quantity: int,
+    defect_limit: int,
+    state: str,
+    reason: str | None,
+    created_by: str,
+    updated_at: float,
+) -> Record:
+    """A production order as it now stands (replaces its earlier row: it is updated as it
+    goes, so `orders` is not sealed)."""
+    return Record(
+        "INSERT OR REPLACE INTO orders (order_id, created_at, workpiece_id, quantity, "
+        "defect_limit, state, reason, created_by, updated_at) VALUES (?,?,?,?,?,?,?,?,?)",
+        (
+            order_id,
+            created_at,
+            workpiece_id,
+            quantity,
+            defect_limit,
+            state,
+            reason,
+            created_by,
+            updated_at,
+        ),
+    )
+
+
+def order_part(
+    at: float,
+    order_id: str,
+    run_id: str,
+    started_at: float | None,
+    outcome: str,
+    verdict: str,
+    inspected: bool,
+    reasons: list[str],
+    precision_mean_mm: float | None,
+    precision_p95_mm: float | None,
+    glue_ml: float | None,
+) -> Record:
+    """One part made for an order: its run, how the run ended and the part's verdict."""
+    return _appended(
+        "order_parts",
+        (
+            "time",
+            "order_id",
+            "run_id",
+            "started_at",
+            "outcome",
+            "verdict",
+            "inspected",
+            "reasons",
+            "precision_mean_mm",
+            "precision_p95_mm",
+            "glue_ml",
+        ),
+        (
+            at,
+            order_id,
+            run_id,
+            started_at,
+            outcome,
+            verdict,
+            int(inspected),
+            _json(reasons),
+            precision_mean_mm,
+            precision_p95_mm,
+            glue_ml,
+        ),
+    )

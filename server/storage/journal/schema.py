@@ -53,6 +53,19 @@ CREATE TABLE IF NOT EXISTS inspections (
     seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, run_id TEXT NOT NULL,
     verdict TEXT NOT NULL, took_s REAL NOT NULL, document TEXT NOT NULL
 );
+-- Production orders (server/orders/): one row per order, updated as it goes (like
+-- operations), and one row per part made for it.
+CREATE TABLE IF NOT EXISTS orders (
+    order_id TEXT PRIMARY KEY, created_at REAL NOT NULL, workpiece_id TEXT NOT NULL,
+    quantity INTEGER NOT NULL, defect_limit INTEGER NOT NULL, state TEXT NOT NULL,
+    reason TEXT, created_by TEXT NOT NULL, updated_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS order_parts (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, order_id TEXT NOT NULL,
+    run_id TEXT NOT NULL, started_at REAL, outcome TEXT NOT NULL, verdict TEXT NOT NULL,
+    inspected INTEGER NOT NULL, reasons TEXT NOT NULL, precision_mean_mm REAL,
+    precision_p95_mm REAL, glue_ml REAL
+);
 CREATE TABLE IF NOT EXISTS commits (
     seq INTEGER PRIMARY KEY, time REAL NOT NULL, rows TEXT NOT NULL, digest TEXT NOT NULL
 );
@@ -66,6 +79,8 @@ CREATE INDEX IF NOT EXISTS recoveries_time ON recoveries(time);
 CREATE INDEX IF NOT EXISTS webhook_deliveries_time ON webhook_deliveries(time);
 CREATE INDEX IF NOT EXISTS inspections_time ON inspections(time);
 CREATE INDEX IF NOT EXISTS inspections_run ON inspections(run_id);
+CREATE INDEX IF NOT EXISTS orders_created ON orders(created_at);
+CREATE INDEX IF NOT EXISTS order_parts_time ON order_parts(time);
 -- One row, rewritten by each write that checks a failing journal can write again.
 CREATE TABLE IF NOT EXISTS write_check (id INTEGER PRIMARY KEY CHECK (id = 1), time REAL NOT NULL);
 """
@@ -116,6 +131,37 @@ TABLES: dict[str, tuple[str, list[str]]] = {
         ],
     ),
     "inspections": ("time", ["seq", "time", "run_id", "verdict", "took_s", "document"]),
+    "orders": (
+        "created_at",
+        [
+            "order_id",
+            "created_at",
+            "workpiece_id",
+            "quantity",
+            "defect_limit",
+            "state",
+            "reason",
+            "created_by",
+            "updated_at",
+        ],
+    ),
+    "order_parts": (
+        "time",
+        [
+            "seq",
+            "time",
+            "order_id",
+            "run_id",
+            "started_at",
+            "outcome",
+            "verdict",
+            "inspected",
+            "reasons",
+            "precision_mean_mm",
+            "precision_p95_mm",
+            "glue_ml",
+        ],
+    ),
 }
 
 # The tables whose rows are sealed: each row carries the sequence number of the
@@ -123,8 +169,10 @@ TABLES: dict[str, tuple[str, list[str]]] = {
 # is part of that commit's digest. Not `operations`: its rows are updated as a
 # run progresses and ends, so a digest taken when a row was appended would not
 # hold; the commits that change it are still numbered and chained.
-# A table added later (webhook_deliveries, inspections) is created at open with its commit_seq
-# added like the others', and counts from 0 in the first commit that appends to it.
+# Nor `orders`, updated as an order goes, for the same reason.
+# A table added later (webhook_deliveries, inspections, order_parts) is created at open with
+# its commit_seq added like the others', and counts from 0 in the first commit that appends
+# to it.
 SEALED: tuple[str, ...] = (
     "events",
     "transitions",
@@ -133,6 +181,7 @@ SEALED: tuple[str, ...] = (
     "audit",
     "webhook_deliveries",
     "inspections",
+    "order_parts",
 )
 COMMIT_SEQ = "commit_seq"
 
@@ -197,6 +246,14 @@ FILTERS: dict[str, tuple[Filter, ...]] = {
     ),
     "inspections": (
         Filter("run_id", str, "the spray run inspected"),
+        Filter("verdict", str, "good or defective"),
+    ),
+    "orders": (
+        Filter("workpiece_id", str, "the workpiece the order makes"),
+        Filter("state", str, "queued, running, held, completed or closed"),
+    ),
+    "order_parts": (
+        Filter("order_id", str, "the order the part was made for"),
         Filter("verdict", str, "good or defective"),
     ),
 }

@@ -1,0 +1,185 @@
+"""An order and its parts, and how a part counts: pure, so it is tested with data.
+
+A part is one trajectory run of the order. Its verdict comes from the run's
+end (docs/operations-guide.md, "Production orders"):
+
+- completed and inspected: the inspection's verdict and reasons;
+- completed without an inspection (inspection_enabled off): good, marked
+  "not inspected", because nothing found it wrong and the operator chose not
+  to judge parts;
+- failed or cancelled: defective ("run failed: ...", "run cancelled"): the
+  part was started and did not get its whole bead.
+
+The order completes at its quantity of good parts; `defect_limit` defective
+parts in a row stop it (the nozzle or the calibration is wrong, and every
+further part would be scrap).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+GOOD = "good"
+DEFECTIVE = "defective"
+NOT_INSPECTED = "not inspected (inspection_enabled is off)"
+
+
+class OrderState(StrEnum):
+    """Where an order is."""
+
+    QUEUED = "queued"  # waits behind the active order
+    RUNNING = "running"  # the cell works through it: each completed part starts the next
+    HELD = "held"  # stopped (a fault, a stop, a pause, the defect limit, a restart)
+    COMPLETED = "completed"  # its quantity of good parts is made
+    CLOSED = "closed"  # an operator ended it before that
+
+
+ACTIVE_STATES = frozenset({OrderState.RUNNING, OrderState.HELD})
+OPEN_STATES = ACTIVE_STATES | {OrderState.QUEUED}
+
+
+class Next(StrEnum):
+    """What follows a part."""
+
+    CONTINUE = "continue"
+    COMPLETE = "complete"
+    DEFECT_LIMIT = "defect limit"
+
+
+@dataclass(frozen=True, slots=True)
+class Part:
+    """One part of an order: its run and how it came out."""
+
+    run_id: str
+    started_at: float | None
+    ended_at: float
+    outcome: str  # how the run ended: completed, failed, cancelled
+    verdict: str  # good or defective
+    inspected: bool
+    reasons: tuple[str, ...] = ()
+    precision_mean_mm: float | None = None
+    precision_p95_mm: float | None = None
+    glue_ml: float | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "run_id": self.run_id,
+            "started_at": self.started_at,
+            "ended_at": self.ended_at,
+            "outcome": self.outcome,
+            "verdict": self.verdict,
+            "inspected": self.inspected,
+            "reasons": list(self.reasons),
+            "precision_mean_mm": self.precision_mean_mm,
+            "precision_p95_mm": self.precision_p95_mm,
+            "glue_ml": self.glue_ml,
+        }
+
+
+def _number(value: Any) -> float | None:
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
+
+
+def part_of_run(
+    run_id: str,
+    outcome: str,
+    started_at: float | None,
+    ended_at: float,
+    result: dict[str, Any] | None,
+    error: str | None,
+) -> Part:
+    """The part a run made, judged from how it ended and its inspection summary."""
+    if outcome != "completed":
+        reason = "run cancelled" if outcome == "cancelled" else f"run failed: {error or outcome}"
+        return Part(run_id, started_at, ended_at, outcome, DEFECTIVE, False, (reason,))
+    inspection = (result or {}).get("inspection")
+    if not isinstance(inspection, dict):
+        return Part(run_id, started_at, ended_at, outcome, GOOD, False, (NOT_INSPECTED,))
+    verdict = DEFECTIVE if inspection.get("verdict") == DEFECTIVE else GOOD
+    reasons = tuple(str(r) for r in inspection.get("reasons") or ())
+    return Part(
+        run_id,
+        started_at,
+        ended_at,
+        outcome,
+        verdict,
+        True,
+        reasons,
+        _number(inspection.get("precision_mean_mm")),
+        _number(inspection.get("precision_p95_mm")),
+        _number(inspection.get("glue_ml")),
+    )
+
+
+@dataclass(slots=True)
+class Order:
+    """N good parts of one workpiece; its parts in the order they were made."""
+
+    order_id: str
+    workpiece_id: str
+    quantity: int
+    defect_limit: int  # the setting when the order was made: its rule does not change midway
+    created_at: float
+    created_by: str
+    state: OrderState = OrderState.QUEUED
+    updated_at: float = 0.0
+    reason: str | None = None  # why it is held, closed or completed
+    parts: list[Part] = field(default_factory=list)
+
+    @property
+    def good(self) -> int:
+        return sum(1 for p in self.parts if p.verdict == GOOD)
+
+    @property
+    def defective(self) -> int:
+        return sum(1 for p in self.parts if p.verdict == DEFECTIVE)
+
+    @property
+    def defects_in_row(self) -> int:
+        """Defective parts since the last good one."""
+        count = 0
+        for part in reversed(self.parts):
+            if part.verdict != DEFECTIVE:
+                break
+            count += 1
+        return count
+
+    def count(self, part: Part) -> Next:
+        """Add `part` and say what follows it."""
+        self.parts.append(part)
+        if self.good >= self.quantity:
+            return Next.COMPLETE
+        if self.defects_in_row >= self.defect_limit:
+            return Next.DEFECT_LIMIT
+        return Next.CONTINUE
+
+    def defect_limit_reason(self) -> str:
+        """The stop reason at the defect limit: what happened and what to check."""
+        last = self.parts[-1] if self.parts else None
+        found = "; ".join(last.reasons) if last and last.reasons else "no reason recorded"
+        return (
+            f"order {self.order_id}: {self.defects_in_row} defective parts in a row "
+            f"(limit {self.defect_limit}); last part (run {last.run_id if last else '-'}): "
+            f"{found}. Check the nozzle (clogged or worn: flow against setpoint), the glue "
+            "supply and pressure, and the calibration (camera or table moved: recalibrate) "
+            "before resetting the cell and resuming the order"
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "order_id": self.order_id,
+            "workpiece_id": self.workpiece_id,
+            "quantity": self.quantity,
+            "defect_limit": self.defect_limit,
+            "state": self.state.value,
+            "reason": self.reason,
+            "good": self.good,
+            "defective": self.defective,
+            "defects_in_row": self.defects_in_row,
+            "parts_made": len(self.parts),
+            "created_at": self.created_at,
+            "created_by": self.created_by,
+            "updated_at": self.updated_at,
+        }

@@ -1,0 +1,56 @@
+"""The dashboard's order card in Chromium, against the real server and simulators:
+start an order, watch it run to its quantity by itself, hold it with STOP, reset,
+resume it from the card, and close it."""
+
+from __future__ import annotations
+
+from playwright.async_api import Browser, expect
+
+from tests.browser.test_dashboard import (  # noqa: F401 - the fixture is used by name
+    PANEL,
+    Dashboard,
+    dashboard,
+    expect_state,
+    log_in,
+    open_page,
+)
+
+RUNS_S = 120_000  # a bound for parts sprayed at the slow demo speed, not a performance figure
+
+
+async def test_the_order_card_starts_holds_resumes_and_closes(
+    dashboard: Dashboard,  # noqa: F811 - the fixture imported above
+    browser: Browser,
+) -> None:
+    page, problems = await open_page(browser, dashboard, PANEL)
+    await log_in(page, dashboard.token)
+    await expect_state(page, "IDLE")
+    card = page.locator(".card-order")
+    await expect(card.locator("#order")).to_contain_text("No production order yet")
+    await expect(page.locator("#order-resume")).to_be_disabled()
+
+    # An order of 2: both parts run from this one click.
+    await page.fill("#order-quantity", "2")
+    await page.click("#order-start")
+    await expect(page.locator("#message")).to_contain_text("order: 201")
+    await expect(page.locator("#order-state")).to_have_text("completed", timeout=RUNS_S)
+    await expect(card.locator("#order")).to_contain_text("2 / 2")
+
+    # Another, held by STOP mid-part; nothing continues until it is resumed here.
+    await page.fill("#order-quantity", "3")
+    await page.click("#order-start")
+    await expect(page.locator("#order-state")).to_have_text("running")
+    await expect_state(page, "EXECUTING_TRAJECTORY")
+    await page.click("#estop")
+    await expect_state(page, "ERROR")
+    await page.click('[data-command="reset"]')
+    await expect_state(page, "IDLE")
+    await expect(page.locator("#order-state")).to_have_text("held")
+    await expect(card.locator(".order-reason")).to_be_visible()
+    await page.click("#order-resume")
+    await expect(page.locator("#message")).to_contain_text("resume order: 200")
+    await expect(page.locator("#order-state")).to_have_text("running")
+    await page.click("#order-close")
+    await expect(page.locator("#order-state")).to_have_text("closed")
+    await expect(page.locator("#order-close")).to_be_disabled()
+    assert not problems, problems
