@@ -19,7 +19,7 @@ import hashlib
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -108,6 +108,25 @@ def deposit_strokes(
         for a, b in zip(edges[::2], edges[1::2], strict=True):
             strokes.append(np.column_stack([moved[a:b], widths[a:b]]))
     return BeadLayer.of(strokes)
+
+
+BeadSource = Callable[[float, Sequence[Shift]], BeadLayer]
+
+
+def dispensed_by(robot: Any, glue: Any) -> BeadSource:
+    """What the in-process simulators dispensed, as the simulated camera asks for it:
+    `source(since, shifts)` is the bead laid from `since` (time.time()) on.
+
+    `robot` is a `RobotSimulator` (its `path_snapshot`), `glue` a `GlueSimulator` (its
+    `history` and speed factor); both only copied here, so a render thread may call it.
+    """
+
+    def source(since: float, shifts: Sequence[Shift]) -> BeadLayer:
+        return deposit_strokes(
+            robot.path_snapshot(), list(glue.history), glue.speed_factor, since=since, shifts=shifts
+        )
+
+    return source
 
 
 def bead_coverage(

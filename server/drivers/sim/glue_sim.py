@@ -214,6 +214,11 @@ class GlueSimulator:
     # --- what a test may look at ------------------------------------------------
 
     @property
+    def speed_factor(self) -> float:
+        """How much faster than real time the dispenser's dynamics run."""
+        return self._speed
+
+    @property
     def valve_open(self) -> bool:
         """The valve position now (the VALVE_STATE feedback)."""
         self._settle_valve()
