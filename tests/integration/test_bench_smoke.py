@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 
 from bench import (
+    bead_inspection,
     device_feed,
     engine_throughput,
     estop_latency,
@@ -222,3 +223,14 @@ def test_vision_accuracy_reports_calibration_and_matching(results_in_tmp: Path) 
         assert 0 < row["calibration_field_mean_mm"] <= row["calibration_field_max_mm"]
         assert 0 < row["match_outline_mean_mm"] <= row["match_outline_max_mm"]
     assert written_rows(results_in_tmp, "vision_accuracy") == rows
+
+
+def test_bead_inspection_reports_rates_and_times(results_in_tmp: Path) -> None:
+    rows = bead_inspection.main(["--parts", "4", "--seed", "3"])
+    kinds = [row["defect"] for row in rows]
+    assert kinds == [*bead_inspection.KINDS, "all"]
+    summary = rows[-1]
+    assert summary["parts"] == 4 == sum(row["parts"] for row in rows[:-1])
+    assert 0 < summary["inspection_p50_ms"] <= summary["inspection_p95_ms"]
+    assert 0 <= summary["false_alarm_rate_percent"] <= 100
+    assert written_rows(results_in_tmp, "bead_inspection") == rows
