@@ -60,6 +60,7 @@ PRESENT_FRACTION = 0.4  # a profile whose bead is narrower than this × expected
 WIDTH_STRETCH_MM = 10.0  # a width out of tolerance over a longer stretch is a defect
 OFFSET_RUN = 3  # consecutive profiles an offset must hold to count
 CORNER_TURN_DEG = 30.0  # a turn sharper than this makes its neighbourhood a corner
+CROWD_MARGIN_MM = 3.0  # beyond touching, where another segment's bead may still merge
 
 
 def expected_bead_width_mm(flow_ml_min: float, speed_mm_s: float) -> float:
@@ -226,7 +227,8 @@ def _crowded(
         path = np.asarray(other.path_mm, dtype=np.float64).reshape(-1, 2)
         if not len(path) or not len(stations.along):
             continue
-        reach = (segment.expected_width_mm + other.expected_width_mm) / 2.0 + STEP_MM
+        # beads meeting at a slant run together over a few mm more than where they touch
+        reach = (segment.expected_width_mm + other.expected_width_mm) / 2.0 + CROWD_MARGIN_MM
         crowded |= _distance_to_polyline(stations.points, path) < reach
     return crowded
 
@@ -443,7 +445,7 @@ def inspect_bead(
         half = max(2.0 * expected, expected / 2.0 + 4.0 * tolerances.max_offset_mm)
         count = 2 * math.ceil(half / PROFILE_STEP_MM) + 1
         offsets = (np.arange(count, dtype=np.float64) - count // 2) * PROFILE_STEP_MM
-        stations = _stations(path, corner_zone_mm=0.75 * expected + STEP_MM)
+        stations = _stations(path, corner_zone_mm=expected + STEP_MM)
         others = [s for s in segments if s is not segment]
         stations = dataclasses.replace(
             stations, corner=stations.corner | _crowded(stations, segment, others)

@@ -84,7 +84,7 @@ async def test_a_part_shifted_while_spraying_carries_the_glue_already_on_it(tmp_
         frame = await rig.camera.capture()
         sprayed, _ = sprayed_points(rig)
         on_plan = glue_seen(rig.camera, frame, sprayed)
-        moved = glue_seen(rig.camera, frame, sprayed + (0.0, 6.0))
+        moved = glue_seen(rig.camera, frame, sprayed + np.array([0.0, 6.0]))
         # some of the bead went with the part, the rest landed on the plan
         assert (moved > 80).sum() > 20 and (on_plan > 80).sum() > 20
 
