@@ -28,6 +28,7 @@ BENCHMARKS = (
     ("scaling", []),
     ("vision", []),
     ("vision_accuracy", []),
+    ("bead_inspection", []),
     ("journal", []),
     ("journal_verify", []),
     ("planning", []),

@@ -7,7 +7,9 @@ Each device is chosen on its own, by its address:
   `/dev/ttyUSB0` (RS-485, 115200 8N1, Modbus RTU), or `tcp://host:port` for an
   RS-485-to-Ethernet gateway in transparent mode (RTU frames over TCP).
 * camera: `VISION_CAMERA_ID` = `sim` (default), an OpenCV camera index (`0`)
-  or a device path / stream URL.
+  or a device path / stream URL. The simulated camera shows the glue bead the
+  robot and glue simulators dispensed when both run here (in-process); with
+  either one out of process or real, it shows the parts without a bead.
 
 `sim` starts that device's simulator on loopback and talks to it through the
 same production client a real device gets, so the default run exercises the
@@ -27,6 +29,7 @@ from server.core.devices import CellDevices
 from server.drivers.camera import OpenCVCamera, SimulatedCamera
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.robot_jsonrpc import JsonRpcRobot
+from server.drivers.sim.camera_bead import dispensed_by
 from server.drivers.sim.camera_scene import Scene
 
 log = logging.getLogger(__name__)
@@ -109,6 +112,10 @@ async def build_devices(
         # robot calibration checks against describe the table it sees.
         scene = Scene.printed(settings.marker_positions_mm, settings.marker_size_mm)
         camera = SimulatedCamera(scene, timeout=settings.vision_processing_timeout)
+        if host is not None and host.robot is not None and host.glue is not None:
+            # The camera shows the glue the simulators dispensed. With either simulator out
+            # of process (or a real device) it has no record of it and shows no bead.
+            camera.bead_source = dispensed_by(host.robot, host.glue)
     else:
         source: int | str = int(camera_id) if camera_id.isdigit() else camera_id
         camera = OpenCVCamera(source, timeout=settings.vision_processing_timeout)

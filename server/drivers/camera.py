@@ -26,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
+import math
 import queue
 import threading
 import time
@@ -36,6 +37,8 @@ import cv2
 import numpy as np
 
 from server.drivers.base import DeviceFault, DeviceHealth, FaultListener
+from server.drivers.sim.camera_bead import BeadSource, Shift
+from server.drivers.sim.camera_model import shifted_camera
 from server.drivers.sim.camera_scene import (
     DEFAULT_CAMERA_MODEL,
     DEFAULT_CHESSBOARD,
@@ -312,6 +315,12 @@ class SimulatedCamera(_CameraBase):
         self._fault: FaultKind | None = None
         self._stall_released: asyncio.Event | None = None
         self._open = False
+        # The bead dispensed on the table (camera_bead.py): set where the simulators run in
+        # the same process; None shows no bead.
+        self.bead_source: BeadSource | None = None
+        self._bead_since = -math.inf
+        self._part_shifts: list[Shift] = []
+        self._mounted_model = self.model
         self.health.details.update(
             simulated=True, resolution=f"{self.model.width}x{self.model.height}", mode=self._mode
         )
@@ -351,7 +360,25 @@ class SimulatedCamera(_CameraBase):
         return self.scene.place_workpiece(name, x, y, rotation_deg)
 
     def clear_workpieces(self) -> None:
+        """Take the parts off the table, and the glue on them with them."""
         self.scene.clear_workpieces()
+        self.clear_bead()
+
+    def clear_bead(self) -> None:
+        """Forget the glue dispensed so far (the parts it was on have gone)."""
+        self._bead_since = time.time()
+        self._part_shifts.clear()
+
+    def shift_part(self, dx_mm: float, dy_mm: float) -> None:
+        """Fault: the parts slide by dx, dy mm now (after matching, e.g. while the run sprays);
+        the glue already on them goes with them."""
+        self.scene.shift_workpieces(dx_mm, dy_mm)
+        self._part_shifts.append((time.time(), float(dx_mm), float(dy_mm)))
+
+    def knock(self, dx_mm: float, dy_mm: float) -> None:
+        """Fault: the camera knocked by dx, dy mm along the table from where it was mounted
+        (0, 0 puts it back); markers, parts and table all appear displaced."""
+        self.model = shifted_camera(self._mounted_model, dx_mm, dy_mm)
 
     def present_next_part(self) -> None:
         """The next part of a production order: the parts on the table replaced by fresh
@@ -444,7 +471,14 @@ class SimulatedCamera(_CameraBase):
         rng = np.random.default_rng(int(self._rng.integers(0, 2**63 - 1)))
         if self._mode == "table":
             scene = self.scene.snapshot()
-            return lambda: render_table(scene, model, rng)
+            source, since, shifts = self.bead_source, self._bead_since, list(self._part_shifts)
+
+            def render() -> np.ndarray:
+                if source is not None:
+                    scene.bead = source(since, shifts)
+                return render_table(scene, model, rng)
+
+            return render
         board, pose = self.chessboard, self.chessboard_poses[self._next_view]
         if advance:
             self._next_view = (self._next_view + 1) % len(self.chessboard_poses)

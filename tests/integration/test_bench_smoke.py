@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 
 from bench import (
+    bead_inspection,
     cycle_time,
     device_feed,
     engine_throughput,
@@ -236,3 +237,14 @@ def test_cycle_time_compares_runs_with_and_without_inspection(results_in_tmp: Pa
         assert_ordered_latencies(row)
         assert row["n"] == 1
     assert written_rows(results_in_tmp, "cycle_time") == rows
+
+
+def test_bead_inspection_reports_rates_and_times(results_in_tmp: Path) -> None:
+    rows = bead_inspection.main(["--parts", "4", "--seed", "3"])
+    kinds = [row["defect"] for row in rows]
+    assert kinds == [*bead_inspection.KINDS, "all"]
+    summary = rows[-1]
+    assert summary["parts"] == 4 == sum(row["parts"] for row in rows[:-1])
+    assert 0 < summary["inspection_p50_ms"] <= summary["inspection_p95_ms"]
+    assert 0 <= summary["false_alarm_rate_percent"] <= 100
+    assert written_rows(results_in_tmp, "bead_inspection") == rows

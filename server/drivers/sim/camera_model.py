@@ -16,6 +16,7 @@ z along the optical axis; `X_cam = R · X_robot + t` with `R = Rodrigues(rvec)`.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -280,6 +281,14 @@ class CameraModel:
 
 
 DEFAULT_CAMERA_MODEL = CameraModel.default()
+
+
+def shifted_camera(model: CameraModel, dx_mm: float, dy_mm: float) -> CameraModel:
+    """The same camera moved by dx, dy mm parallel to the table (a knocked mounting): its
+    centre moves, its orientation stays, so the whole table appears displaced."""
+    move = model.rotation @ np.array([float(dx_mm), float(dy_mm), 0.0])
+    tvec = np.asarray(model.tvec, dtype=np.float64) - move
+    return dataclasses.replace(model, tvec=(float(tvec[0]), float(tvec[1]), float(tvec[2])))
 
 
 # --- per-model caches shared by the renderers ----------------------------------------------

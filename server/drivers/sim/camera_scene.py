@@ -11,12 +11,16 @@ against it earns its accuracy claims honestly:
    (undistortion + ray/plane intersection) and the table image is sampled there with
    `cv2.remap` — so geometry is exact to ~0.01 px, and anti-aliasing follows from steps 1-2;
 4. vignetting, a lighting gradient and Gaussian sensor noise are applied per frame;
-5. optionally (`Scene.degradations`, off by default) what a real table adds: residual lens
+5. the glue bead dispensed, if any (`Scene.bead`, see `camera_bead.py`), over the parts in
+   the same way (drawn in table coordinates, then through the camera);
+6. optionally (`Scene.degradations`, off by default) what a real table adds: residual lens
    distortion, blur, uneven light, more noise, JPEG, marker sheets printed off scale
    (`camera_degradations.py`).
 
 Steps 1-3 only change when the scene changes, so they are cached: a warm frame costs the
-noise only (~30 ms). Nothing here does I/O; `server.drivers.camera.SimulatedCamera` wraps it.
+noise only (~30 ms). The table with its markers and parts is cached on its own, so a bead that
+grows from frame to frame costs a copy, its own drawing and the remap, never the parts.
+Nothing here does I/O; `server.drivers.camera.SimulatedCamera` wraps it.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from server.config import DEFAULT_MARKER_POSITIONS_MM
+from server.drivers.sim.camera_bead import BEAD_BGR, BeadLayer, bead_coverage
 from server.drivers.sim.camera_chessboard import (
     DEFAULT_CHESSBOARD,
     BoardPose,
@@ -137,6 +142,8 @@ class Scene:
     seed: int = 0  # table texture, and sensor noise when no rng is given
     # What a real table adds to the frame (none by default): see camera_degradations.py.
     degradations: Degradations | None = None
+    # The glue dispensed on the parts (camera_bead.py); None: no bead.
+    bead: BeadLayer | None = None
 
     @property
     def printed_marker_size_mm(self) -> float:
@@ -195,8 +202,16 @@ class Scene:
         return piece
 
     def clear_workpieces(self) -> None:
-        """Take every workpiece off the table."""
+        """Take every workpiece off the table, and the bead on them with them."""
         self.workpieces.clear()
+        self.bead = None
+
+    def shift_workpieces(self, dx_mm: float, dy_mm: float) -> None:
+        """Slide every workpiece on the table by dx, dy mm (a part knocked after matching)."""
+        self.workpieces = [
+            dataclasses.replace(p, x_mm=p.x_mm + float(dx_mm), y_mm=p.y_mm + float(dy_mm))
+            for p in self.workpieces
+        ]
 
     def present_next_part(self) -> None:
         """Take the parts off the table and lay fresh ones where they were (a production
@@ -382,12 +397,13 @@ class _RenderCache:
 
 _optics_cache = _RenderCache(2)
 _background_cache = _RenderCache(2)  # ~50 MB each: table image with markers
+_table_cache = _RenderCache(2)  # ~50 MB each: the background with the workpieces on it
 _frame_cache = _RenderCache(3)  # ~25 MB each: remapped, lit frame before noise
 
 
 def clear_render_caches() -> None:
     """Drop every cached map and image (frees ~200 MB after heavy use)."""
-    for cache in (_optics_cache, _background_cache, _frame_cache):
+    for cache in (_optics_cache, _background_cache, _table_cache, _frame_cache):
         cache.clear()
     clear_chessboard_cache()
 
@@ -425,6 +441,23 @@ def _composite(
     alpha = alpha[..., None]
     region = image[r0:r1, c0:c1].astype(np.float32)
     region = region * (1.0 - alpha) + np.asarray(colour, dtype=np.float32) * alpha
+    image[r0:r1, c0:c1] = np.clip(np.rint(region), 0, 255).astype(np.uint8)
+
+
+def _composite_bead(image: NDArray[np.uint8], optics: _TableOptics, bead: BeadLayer) -> None:
+    """Paint the bead over the table image, band-limited like every other edge."""
+    grid = optics.grid
+    pad = math.ceil(4.0 * optics.blur_sigma) + 2
+    found = bead_coverage(bead, grid.to_px, grid.res, (grid.rows, grid.cols), pad)
+    if found is None:
+        return
+    r0, c0, alpha = found
+    if optics.blur_sigma > 0:
+        alpha = cast(NDArray[np.float32], cv2.GaussianBlur(alpha, (0, 0), optics.blur_sigma))
+    r1, c1 = r0 + alpha.shape[0], c0 + alpha.shape[1]
+    weight = alpha[..., None]
+    region = image[r0:r1, c0:c1].astype(np.float32)
+    region = region * (1.0 - weight) + np.asarray(BEAD_BGR, dtype=np.float32) * weight
     image[r0:r1, c0:c1] = np.clip(np.rint(region), 0, 255).astype(np.uint8)
 
 
@@ -478,11 +511,22 @@ def _build_frame(scene: Scene, model: CameraModel) -> NDArray[np.float32]:
     )
     table = background
     if scene.workpieces:
-        table = background.copy()
-        for piece in scene.workpieces:
-            _composite(
-                table, optics.grid, [piece.outline_table_mm()], piece.colour_bgr, optics.blur_sigma
-            )
+
+        def with_parts() -> NDArray[np.uint8]:
+            parts = background.copy()
+            for piece in scene.workpieces:
+                _composite(
+                    parts, optics.grid, [piece.outline_table_mm()], piece.colour_bgr,
+                    optics.blur_sigma,
+                )  # fmt: skip
+            return parts
+
+        table = _table_cache.get_or_build(
+            (model, scene._background_key(), tuple(scene.workpieces)), with_parts
+        )
+    if scene.bead:
+        table = table.copy()
+        _composite_bead(table, optics, scene.bead)
     frame = cv2.remap(
         table, optics.map_x, optics.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
     )
@@ -508,6 +552,7 @@ def render_table(
         model,
         snapshot._background_key(),
         tuple(snapshot.workpieces),
+        snapshot.bead.key if snapshot.bead else None,
         float(snapshot.vignetting),
         float(snapshot.light_gradient),
         snapshot.degradations,

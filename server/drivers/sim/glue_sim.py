@@ -26,14 +26,21 @@ read and dropped, the connection stays open), `set_alarm(name)` /
 `force_flow(ml_min)` (measured flow pinned while the valve is open: a blocked
 or starved nozzle), `force_temperature(c)` (measured temperature pinned),
 `inject_exception(code)` (every request answered with that Modbus exception),
-`inject_stuck_valve()` (the valve ignores its command), `clear_faults()`.
+`inject_stuck_valve()` (the valve ignores its command), `clog_nozzle(fraction)` (a
+partly clogged nozzle: the flow out of it, and so its reading, drops to that fraction of the
+setpoint), `delay_valve(ms)` (a valve that opens `ms` milliseconds of simulated time after its
+open command; its feedback follows the valve), `clear_faults()`.
+`history` lists every change of what leaves the nozzle as (time.time(), valve open, the flow
+the nozzle tends to in ml/min), so the simulated camera can render the bead actually dispensed
+(`flow_between` replays the flow model over it).
 Out of process, the same through the control channel: JSON lines over TCP on
 `control_port`, one request object per line and one reply line each, e.g.
   {"cmd": "no_reply", "seconds": 2.0}   seconds omitted or null: until cleared
   {"cmd": "alarm", "name": "HIGH_PRESSURE"}   {"cmd": "clear_alarm", "name": ...}
   {"cmd": "force_pressure", "psi": 180.0}     {"cmd": "exception", "code": 4}
   {"cmd": "force_flow", "ml_min": 5.0}        {"cmd": "force_temperature", "c": 70.0}
-  {"cmd": "stuck_valve"}   {"cmd": "clear"}   {"cmd": "status"}
+  {"cmd": "stuck_valve"}   {"cmd": "clog", "fraction": 0.4}   {"cmd": "late_valve", "ms": 150}
+  {"cmd": "clear"}   {"cmd": "status"}
 answered {"ok": true, ...} or {"ok": false, "error": "..."}. The control
 channel always answers, even while Modbus replies are suppressed.
 
@@ -67,16 +74,17 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from server.drivers import glue_registers as regs
 from server.drivers.glue_registers import Register, Table
+from server.drivers.sim.glue_flow import FLOW_TIME_CONSTANT_S, flow_at
 
 logger = logging.getLogger(__name__)
 
-FLOW_TIME_CONSTANT_S = 0.05
 PRESSURE_TIME_CONSTANT_S = 0.1
 AMBIENT_C = 25.0
 _HOLDING_FCS = {3, 6, 16}
 _INPUT_FCS = {4}
 _CONTROL_LINE_LIMIT = 64 * 1024
 VALVE_LOG_SIZE = 10_000
+HISTORY_SIZE = 20_000
 
 
 class GlueSimulator:
@@ -122,7 +130,14 @@ class GlueSimulator:
             maxlen=VALVE_LOG_SIZE
         )
         self.close_commanded_at: float | None = None
+        # (time.time(), valve open, flow the nozzle tends to) per change, for the bead's render
+        self.history: collections.deque[tuple[float, bool, float]] = collections.deque(
+            maxlen=HISTORY_SIZE
+        )
+        self._opens_at: tuple[float, float] | None = None  # (monotonic, time.time()) of a late open
         # faults
+        self._clog = 1.0
+        self._valve_delay_s = 0.0
         self._alarm_bits = 0
         self._forced_pressure: float | None = None
         self._forced_flow: float | None = None
@@ -199,8 +214,14 @@ class GlueSimulator:
     # --- what a test may look at ------------------------------------------------
 
     @property
+    def speed_factor(self) -> float:
+        """How much faster than real time the dispenser's dynamics run."""
+        return self._speed
+
+    @property
     def valve_open(self) -> bool:
         """The valve position now (the VALVE_STATE feedback)."""
+        self._settle_valve()
         return self._valve_open
 
     async def read_register(self, register: Register) -> int:
@@ -225,6 +246,8 @@ class GlueSimulator:
             "no_reply": self._replies_suppressed(),
             "exception_code": self._exception_code,
             "valve_stuck": self._valve_stuck,
+            "clog_fraction": self._clog,
+            "valve_delay_ms": self._valve_delay_s * 1000.0,
             "forced_pressure_psi": self._forced_pressure,
             "forced_flow_ml_min": self._forced_flow,
             "forced_temperature_c": self._forced_temperature,
@@ -275,8 +298,30 @@ class GlueSimulator:
         """The valve stays where it is whatever it is commanded (VALVE_STATE keeps reporting it)."""
         self._valve_stuck = True
 
+    def clog_nozzle(self, fraction: float) -> None:
+        """A partly clogged nozzle: the flow drops to `fraction` (0..1) of its setpoint.
+
+        Unlike `force_flow`, the glue really stops coming: the bead the camera shows thins
+        with it, and the flow reading shows the drop (1.0 clears it).
+        """
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"clog fraction is between 0 and 1, got {fraction}")
+        self._advance()
+        self._clog = float(fraction)
+        self._note_history()
+
+    def delay_valve(self, ms: float) -> None:
+        """The valve opens `ms` milliseconds (simulated time) after each open command (0 clears)."""
+        if not 0.0 <= ms <= 60_000.0:
+            raise ValueError(f"valve delay is between 0 and 60000 ms, got {ms}")
+        self._valve_delay_s = float(ms) / 1000.0
+
     def clear_faults(self) -> None:
-        """Remove every injected fault: replies, alarms, pressure, exceptions, stuck valve."""
+        """Remove every injected fault: replies, alarms, pressure, exceptions, stuck valve,
+        clog and late valve."""
+        if self._clog != 1.0:
+            self.clog_nozzle(1.0)
+        self._valve_delay_s = 0.0
         self._valve_stuck = False
         self._no_reply = False
         self._no_reply_until = None
@@ -288,13 +333,41 @@ class GlueSimulator:
 
     # --- the dispenser model -----------------------------------------------------
 
+    def _note_history(self, at: float | None = None) -> None:
+        """Record what leaves the nozzle from now (or `at`) on."""
+        target = self._flow_sp * self._clog
+        self.history.append((time.time() if at is None else at, self._valve_open, target))
+
+    def _settle_valve(self) -> None:
+        """A late open whose time has come happens now (stamped when it was due)."""
+        due = self._opens_at
+        if due is not None and time.monotonic() >= due[0]:
+            self._opens_at = None
+            self._open_valve(due[1])
+
+    def _open_valve(self, wall: float) -> None:
+        self.valve_opened_at = wall
+        self.valve_log.append((wall, True))
+        self._valve_open = True
+        self._note_history(wall)
+
+    def flow_between(self, times: list[float] | tuple[float, ...]) -> list[float]:
+        """The flow (ml/min) leaving the nozzle at each time.time() in `times` (ascending).
+
+        Replays the simulator's own model over `history`: first-order towards the target
+        (time constant in simulated time, so `speed_factor` speeds it up), zero while closed.
+        """
+        return flow_at(list(self.history), times, self._speed)
+
     def _advance(self) -> None:
         """Move the first-order flow and pressure models to now."""
+        self._settle_valve()
         now = time.monotonic()
         dt = (now - self._last_update) * self._speed
         self._last_update = now
         if self._valve_open:
-            self._flow += (self._flow_sp - self._flow) * (1 - math.exp(-dt / FLOW_TIME_CONSTANT_S))
+            target = self._flow_sp * self._clog
+            self._flow += (target - self._flow) * (1 - math.exp(-dt / FLOW_TIME_CONSTANT_S))
         else:
             self._flow = 0.0
         gain = 1 - math.exp(-dt / PRESSURE_TIME_CONSTANT_S)
@@ -341,15 +414,22 @@ class GlueSimulator:
             self.close_commanded_at = time.time()  # every close command, even if already closed
         if register is regs.VALVE_COMMAND and not self._valve_stuck:
             now_open = bool(raw)
+            if not now_open:
+                self._opens_at = None  # a late open still pending never happens
             if self._valve_open and not now_open:
                 self.valve_closed_at = time.time()
                 self.valve_log.append((self.valve_closed_at, False))
-            elif now_open and not self._valve_open:
-                self.valve_opened_at = time.time()
-                self.valve_log.append((self.valve_opened_at, True))
-            self._valve_open = now_open
+                self._valve_open = False
+                self._note_history(self.valve_closed_at)
+            elif now_open and not self._valve_open and self._opens_at is None:
+                if self._valve_delay_s > 0:
+                    delay = self._valve_delay_s / self._speed
+                    self._opens_at = (time.monotonic() + delay, time.time() + delay)
+                else:
+                    self._open_valve(time.time())
         elif register is regs.FLOW_SETPOINT:
             self._flow_sp = value
+            self._note_history()
         elif register is regs.PRESSURE_SETPOINT:
             self._pressure_sp = value
 
@@ -429,12 +509,17 @@ class GlueSimulator:
             self.inject_exception(int(request.get("code", ExcCodes.DEVICE_FAILURE)))
         elif cmd == "stuck_valve":
             self.inject_stuck_valve()
+        elif cmd == "clog":
+            self.clog_nozzle(float(request.get("fraction", 0.5)))
+        elif cmd == "late_valve":
+            self.delay_valve(float(request.get("ms", 0.0)))
         elif cmd == "clear":
             self.clear_faults()
         elif cmd != "status":
             raise ValueError(
                 f"unknown cmd {cmd!r}; use no_reply, alarm, clear_alarm, force_pressure, "
-                "force_flow, force_temperature, exception, stuck_valve, clear or status"
+                "force_flow, force_temperature, exception, stuck_valve, clog, late_valve, clear "
+                "or status"
             )
         return {"ok": True, "status": self.status()}
 

@@ -307,6 +307,30 @@ class RobotSimulator:
         self._settle()
         return list(self._path)
 
+    def path_snapshot(self) -> list[PathSegment]:
+        """The executed path with the move under way cut at now, without settling anything.
+
+        Safe to call from another thread (the simulated camera renders the bead in one): it
+        only copies, while `executed_path` also records a move that has run out of time.
+        """
+        path = list(self._path)
+        motion = self._motion
+        if motion is not None:
+            now = time.monotonic()
+            elapsed = min(max(now - motion.started_mono, 0.0), motion.duration)
+            path.append(
+                PathSegment(
+                    motion.method,
+                    motion.start,
+                    motion.pose_at(now),
+                    motion.speed,
+                    False,
+                    motion.started_wall,
+                    motion.started_wall + elapsed,
+                )
+            )
+        return path
+
     @property
     def client_count(self) -> int:
         """Connections open now (a dropped client disappears from the count)."""
