@@ -22,6 +22,7 @@ from server.cell import Cell
 from server.config import Settings
 from server.core.devices import CellDevices
 from server.drivers.camera import SimulatedCamera
+from server.drivers.sim.camera_bead import dispensed_by
 from server.drivers.sim.glue_sim import GlueSimulator
 from server.drivers.sim.robot_sim import RobotSimulator
 from tests.serving import admin_headers, serve
@@ -229,7 +230,7 @@ async def open_rig(
             data_path=data_path,
             **{**defaults, **overrides},
         )
-        cell = Cell(settings, device_factory=_stalled_camera if camera_stalled else None)
+        cell = Cell(settings, device_factory=_devices_seeing(robot, glue, camera_stalled))
         async with (
             serve(cell, port) as url,
             httpx.AsyncClient(
@@ -242,11 +243,22 @@ async def open_rig(
             yield rig
 
 
-async def _stalled_camera(
-    settings: Settings,
-) -> tuple[CellDevices, Callable[[], Awaitable[None]]]:
-    """The default devices, the simulated camera stalled before the cell opens it."""
-    devices, release = await build_devices(settings)
-    assert isinstance(devices.camera, SimulatedCamera)
-    devices.camera.inject_fault("stall")
-    return devices, release
+def _devices_seeing(
+    robot: RobotSimulator, glue: GlueSimulator, stalled: bool
+) -> Callable[[Settings], Awaitable[tuple[CellDevices, Callable[[], Awaitable[None]]]]]:
+    """The default devices; the simulated camera sees the bead the rig's simulators lay.
+
+    The rig's simulators run in the test's process, as the default run's do in the
+    server's, so the camera is wired to them the same way (server/bootstrap/devices.py).
+    `stalled`: the camera stalls before the cell opens it.
+    """
+
+    async def build(settings: Settings) -> tuple[CellDevices, Callable[[], Awaitable[None]]]:
+        devices, release = await build_devices(settings)
+        assert isinstance(devices.camera, SimulatedCamera)
+        devices.camera.bead_source = dispensed_by(robot, glue)
+        if stalled:
+            devices.camera.inject_fault("stall")
+        return devices, release
+
+    return build

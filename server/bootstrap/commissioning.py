@@ -24,6 +24,7 @@ log = logging.getLogger(__name__)
 
 DEMO_WORKPIECE = ("rect-120x80", 400.0, -75.0, 5.0)  # shape, x mm, y mm, rotation deg
 DEMO_ID = "demo"
+DEMO_BEAD_INSET_MM = -5.0  # the demo part's outline offset: its bead lies inside
 
 
 async def commission_simulated_cell(
@@ -46,7 +47,13 @@ async def commission_simulated_cell(
             (
                 "workpiece creation",
                 create_workpiece,
-                {"workpiece_id": DEMO_ID, "name": "Demo part (simulated cell)"},
+                {
+                    "workpiece_id": DEMO_ID,
+                    "name": "Demo part (simulated cell)",
+                    # A bead 5 mm in from the edge, where glue goes on a real part: on
+                    # the edge it would run off, and hide the edge the camera finds.
+                    "spray": {"outline_offset_mm": DEMO_BEAD_INSET_MM},
+                },
             )
         )
     if not steps:
