@@ -1,7 +1,7 @@
 """REST throughput: GET /state against a bare FastAPI endpoint of the same size.
 
 GET /state is what every HMI and supervisor polls. Its cost should be the
-framework's, not the cell's: the target is at least 0.8 of the requests per
+framework's, not the cell's: the target is at least 0.9 of the requests per
 second of a bare FastAPI route returning a pre-built dict of the same JSON.
 
 How:
@@ -37,7 +37,10 @@ on a small machine the load generator needs the other one (and shares it with
 whatever else runs): each row reports the CPU seconds the server and the load
 generator used, so a server short of 1 CPU-second per second says the client or
 the machine, not the server, set the pace. Access logging to two sinks is part
-of the production configuration and of both figures.
+of the production configuration and of both figures. `cpu_ratio_to_bare` is
+the bare server's CPU time per request over the cell's, the median of the
+rounds: the rate ratio two servers would show each on a core of its own, and
+far steadier than the rate when other work shares the machine.
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ import contextlib
 import json
 import pstats
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -63,7 +67,7 @@ from bench.report import emit, percentiles_ms
 from tests.processes import ROOT, _env
 from tests.serving import admin_headers, free_port
 
-TARGET_RATIO = 0.8
+TARGET_RATIO = 0.9
 
 
 def bare_app(body: dict[str, Any]) -> Any:
@@ -192,6 +196,9 @@ def measure(
         "req_per_s": round(len(samples) / elapsed, 1),
         **percentiles_ms(samples),
         "server_cpu_s": round(sum(server.cpu_times()[:2]) - server_cpu, 2),
+        "server_cpu_us_per_request": round(
+            (sum(server.cpu_times()[:2]) - server_cpu) / max(len(samples), 1) * 1e6, 1
+        ),
         "client_cpu_s": round(time.process_time() - client_cpu, 2),
         "seconds": round(elapsed, 2),
     }
@@ -265,7 +272,12 @@ def run(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[str, Any]]
         "state_body_bytes": len(first.content),
         "bare_body_bytes": bare_size,
         "rounds": [
-            {"cell_req_per_s": c["req_per_s"], "bare_req_per_s": b["req_per_s"]}
+            {
+                "cell_req_per_s": c["req_per_s"],
+                "bare_req_per_s": b["req_per_s"],
+                "cell_cpu_us": c["server_cpu_us_per_request"],
+                "bare_cpu_us": b["server_cpu_us_per_request"],
+            }
             for c, b in zip(cells, bares, strict=True)
         ],
     }
@@ -342,6 +354,11 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     rows, sizes = run(args)
     ratio = rows[0]["req_per_s"] / rows[1]["req_per_s"] if rows[1]["req_per_s"] else 0.0
     rows[0]["ratio_to_bare"] = round(ratio, 3)
+    # The same comparison in the servers' CPU per request, round by round: what the rate
+    # ratio is when each server has its core to itself, and far steadier on a busy machine.
+    rows[0]["cpu_ratio_to_bare"] = round(
+        statistics.median(r["bare_cpu_us"] / r["cell_cpu_us"] for r in sizes["rounds"]), 3
+    )
     extra: dict[str, Any] = {
         **sizes,
         "concurrency": args.concurrency,

@@ -63,9 +63,9 @@ async def started(cell: Cell) -> Worker:
     return cell.worker
 
 
-async def queue_depth_point(worker: Worker, depth: int) -> dict[str, Any]:
+async def queue_depth_point(worker: Worker, depth: int, repeats: int = REPEATS) -> dict[str, Any]:
     waits, stops, memory = [], [], []
-    for _ in range(REPEATS):
+    for _ in range(repeats):
         if worker.ctx.state is State.ERROR:
             await worker.request(Event.RESET_REQUESTED, source="bench")
         while worker.ctx.state is not State.IDLE:
@@ -84,17 +84,19 @@ async def queue_depth_point(worker: Worker, depth: int) -> dict[str, Any]:
         "queue_depth": depth,
         "last_request_p50_ms": percentiles_ms(waits)["p50_ms"],
         "estop_decided_p50_ms": percentiles_ms(stops)["p50_ms"],
+        "estop_decided_p99_ms": percentiles_ms(stops)["p99_ms"],
         "estop_decided_max_ms": percentiles_ms(stops)["max_ms"],
+        "repeats": repeats,
         "rss_mb": round(statistics.median(memory), 1),
     }
 
 
-async def queue_depth_sweep(depths: list[int]) -> list[dict[str, Any]]:
+async def queue_depth_sweep(depths: list[int], repeats: int = REPEATS) -> list[dict[str, Any]]:
     with tempfile.TemporaryDirectory() as directory:
         cell = null_cell(Path(directory), event_queue_size=max(depths) + 10)
         worker = await started(cell)
         try:
-            return [await queue_depth_point(worker, depth) for depth in depths]
+            return [await queue_depth_point(worker, depth, repeats) for depth in depths]
         finally:
             await cell.stop()
 
@@ -253,6 +255,9 @@ def main(argv: list[str] | None = None) -> dict[str, list[dict[str, Any]]]:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--depths", default="0,10,100,1000,10000")
+    parser.add_argument(
+        "--depth-repeats", type=int, default=REPEATS, help="e-stops per queue depth"
+    )
     parser.add_argument("--clients", default="10,100,1000")
     parser.add_argument("--journal-sizes", default="0,10000,100000,1000000")
     parser.add_argument("--requests", type=int, default=300, help="commands per journal size")
@@ -260,7 +265,7 @@ def main(argv: list[str] | None = None) -> dict[str, list[dict[str, Any]]]:
     args = parser.parse_args(argv)
     logging.disable(logging.ERROR)
     as_ints = lambda text: [int(part) for part in text.split(",")]  # noqa: E731
-    depth = asyncio.run(queue_depth_sweep(as_ints(args.depths)))
+    depth = asyncio.run(queue_depth_sweep(as_ints(args.depths), args.depth_repeats))
     journal = asyncio.run(journal_size_sweep(as_ints(args.journal_sizes), args.requests))
     clients = websocket_sweep(as_ints(args.clients), args.transitions)
     emit("scaling_queue_depth", depth)

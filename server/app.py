@@ -106,7 +106,8 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     app.state.access.revocation_listeners.append(app.state.ws_hub.views.revoke)
     app.state.camera_preview = CameraPreview(cell, settings)
     app.state.access.revocation_listeners.append(app.state.camera_preview.revoke)
-    # The most polled route's router first: the router tries routes in order.
+    # The most polled route first, then its router: the router tries routes in order.
+    queries.add_state_route(app)
     for router in (
         queries.router,
         commands.router,

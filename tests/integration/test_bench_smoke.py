@@ -106,6 +106,9 @@ def test_rest_throughput_compares_state_with_a_bare_endpoint(results_in_tmp: Pat
     # each row is its target's median round
     assert rows[0]["req_per_s"] == sorted(r["cell_req_per_s"] for r in rounds)[1]
     assert rows[1]["req_per_s"] == sorted(r["bare_req_per_s"] for r in rounds)[1]
+    # the CPU comparison: the bare server's CPU per request over the cell's, median round
+    cpu_ratios = sorted(r["bare_cpu_us"] / r["cell_cpu_us"] for r in rounds)
+    assert rows[0]["cpu_ratio_to_bare"] == pytest.approx(cpu_ratios[1], abs=0.001)
     profile = document["cell_profile"]
     assert profile["requests_profiled"] > 0
     assert "server/api/queries.py" in " ".join(profile["cell_code_cumulative_us_per_request"])
@@ -163,6 +166,7 @@ def test_memory_and_scaling_report_every_point(results_in_tmp: Path) -> None:
     sweeps = scaling.main(
         [
             "--depths", "0,20",
+            "--depth-repeats", "3",
             "--clients", "2",
             "--journal-sizes", "0,500",
             "--requests", "5",
@@ -170,6 +174,10 @@ def test_memory_and_scaling_report_every_point(results_in_tmp: Path) -> None:
         ]
     )  # fmt: skip
     assert [row["queue_depth"] for row in sweeps["queue_depth"]] == [0, 20]
+    for row in sweeps["queue_depth"]:
+        assert row["repeats"] == 3
+        assert row["estop_decided_p50_ms"] <= row["estop_decided_p99_ms"]
+        assert row["estop_decided_p99_ms"] <= row["estop_decided_max_ms"]
     assert [row["journal_events"] for row in sweeps["journal_size"]] == [0, 500]
     assert sweeps["ws_clients"][0]["ws_clients"] == 2
     assert (results_in_tmp / "scaling.png").stat().st_size > 10_000
