@@ -7,10 +7,11 @@ on its standard input:
 - "server <base_url> <token>": the server to stop, once it is up;
 - "fire": clear the simulators' stop stamps, send POST /estop (on a kept-alive
   connection, as an HMI holds one), and print
-  "stopped <seconds> <valve_closed> <sent_at>":
+  "stopped <seconds> <valve_closed> <sent_at> <answered>":
   from just before the request left to the later of the robot receiving `stop`
   and the dispenser receiving the valve-close write (both stamped with
-  time.time() by the simulators on arrival).
+  time.time() by the simulators on arrival); `answered` is the request's round
+  trip (seconds until its answer was read).
 
 Being a separate process matters: simulators or a client inside the server's
 process would wait for its interpreter lock while it works, and that wait
@@ -37,12 +38,13 @@ async def fire(client: httpx.AsyncClient, robot: RobotSimulator, glue: GlueSimul
     glue.close_commanded_at = None
     sent = time.time()
     response = await client.post("/estop")
+    answered = time.time() - sent
     if response.status_code != 202:
         return f"failed {response.status_code} {response.text[:200]!r}"
     while not (robot.last_stop_at and glue.close_commanded_at):
         await asyncio.sleep(0.0002)  # when we report, not what we report
     latency = max(robot.last_stop_at, glue.close_commanded_at) - sent
-    return f"stopped {latency} {not glue.valve_open} {sent}"
+    return f"stopped {latency} {not glue.valve_open} {sent} {answered}"
 
 
 async def witness(speed_factor: float) -> None:
