@@ -9,20 +9,35 @@ subscriber to every cell's `event` topic and an OPC UA client subscribed to
 cell-1's `CellState`, in a process of their own, and the HTTP client that drives
 the cycles, in this one.
 
-A cycle sends POST /estop to each cell in turn (ERROR), then POST /reset to
-each (IDLE), waiting for each to settle. Each transition carries the time the
-cell made it (`at` on MQTT, `since` in CellState); a figure is the time this
-process received it minus that time, on the same machine's clock.
+The stops of `cell-1` and `plain` are sent by a witness each (bench/stop_witness.py,
+a process of its own holding that cell's robot and glue simulators and a kept-alive
+HTTP client, as an HMI holds one), so a stop is timed twice: the **device stop**,
+from the request leaving to the later of the robot receiving `stop` and the
+dispenser receiving the valve-close write (the simulators' own stamps, as
+`bench.estop_latency` takes them), and the **answer**, the POST /estop round trip.
+`cell-2` and `cell-3` run their simulators inside, as `python -m server` does;
+their stops are sent from here.
+
+A cycle has two stops per cell, one in each condition:
+- `after a reset` (the condition of the first runs): each cell is stopped in IDLE,
+  each right after the previous cell's stop was answered, the cells having been
+  reset (and the last of them settled) just before;
+- `spraying`: every cell starts the demo run, and once all of them are on the spray
+  path (waypoint 2 or later, the valve open, progress flowing to the plant) each
+  is stopped in turn. This is when a stop is pressed on a line.
+The order of the stops alternates from cycle to cycle, so neither the cell with
+the interfaces nor the one without always goes first. Each transition carries
+the time the cell made it (`at` on MQTT, `since` in CellState); a lag is the
+time the plant received it minus that time, on the same machine's clock.
 
 - `mqtt`: transition → MQTT subscriber, over the three cells' transitions.
 - `opcua`: transition → OPC UA data change of cell-1's CellState, with the
   subscription's publishing interval (`--publishing-ms`, the server's floor is
   what asyncua grants) included: a client sees a change at the next publish.
-- `estop round trip`: POST /estop as the client sees it, on cell-1 (both
-  interfaces on, both subscribed to) and on `plain` (both off), interleaved in
-  the same run: the stop with the plant's interfaces on against without.
+- device stop and answer, on cell-1 (both interfaces on, both subscribed to)
+  and on `plain` (both off), per condition, in the same run.
 
-Run: `python -m bench.plant_latency` (`--cycles 100` by default; about two
+Run: `python -m bench.plant_latency` (`--cycles 100` by default; about six
 minutes on two cores, after the four cells have commissioned).
 """
 
@@ -48,12 +63,16 @@ from typing import Any
 import aiomqtt
 import httpx
 
+from bench.estop_latency import StopWitness
 from bench.report import emit, percentiles_ms
 from server.line_broker import BrokerPorts, start_broker
 
 ROOT = Path(__file__).resolve().parents[1]
 READY_S = 600.0  # four cells commissioning at once on a shared machine: a hang guard
 SETTLE_S = 60.0
+CONDITIONS = ("after a reset", "spraying")
+SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
+SPEED_FACTOR = "3.0"  # the witness's simulators' speed (bench/stop_witness.py), for every cell
 
 
 def free_port() -> int:
@@ -73,7 +92,9 @@ class Cell:
     opcua_port: int | None = None
     process: subprocess.Popen[bytes] | None = None
     token: str = ""
-    round_trips: list[float] = field(default_factory=list)
+    witness: StopWitness | None = None  # sends this cell's stops and times them
+    device_stops: dict[str, list[float]] = field(default_factory=dict)
+    answers: dict[str, list[float]] = field(default_factory=dict)
 
     @property
     def url(self) -> str:
@@ -212,24 +233,58 @@ def plant(
     out.send(asyncio.run(listen(broker, opcua_port, publishing_ms, stop, ready)))
 
 
-async def cycles(client: httpx.AsyncClient, cells: list[Cell], count: int) -> None:
-    """`count` times: e-stop every cell, then reset every cell, each settled in turn.
+async def stop(client: httpx.AsyncClient, cell: Cell, condition: str) -> None:
+    """POST /estop; through the cell's witness (both figures kept) if it has one."""
+    if cell.witness is None:
+        answer = await client.post(
+            f"{cell.url}/estop", json={"reason": "plant latency benchmark"}, headers=auth(cell)
+        )
+        assert answer.status_code == 202, answer.text
+        return
+    words = await asyncio.to_thread(cell.witness.tell, "fire")
+    assert words[0] == "stopped", f"{cell.name}: the e-stop failed: {' '.join(words)}"
+    assert words[2] == "True", f"{cell.name}: the valve does not read closed after the stop"
+    cell.device_stops.setdefault(condition, []).append(float(words[1]))
+    cell.answers.setdefault(condition, []).append(float(words[4]))
 
-    The order of the stops alternates, so neither the cell with the interfaces nor
-    the one without always goes first (the others' transitions are still being
-    published while the later stops are sent)."""
+
+async def reset_all(client: httpx.AsyncClient, cells: list[Cell]) -> None:
+    for cell in cells:
+        answer = await client.post(f"{cell.url}/reset", headers=auth(cell))
+        assert answer.status_code == 202, answer.text
+        await wait_idle(client, cell, SETTLE_S)
+
+
+async def wait_spraying(client: httpx.AsyncClient, cell: Cell) -> None:
+    """Until the cell's run is on its spray path (waypoint 2 or later)."""
+    deadline = time.monotonic() + SETTLE_S
+    while True:
+        state = (await client.get(f"{cell.url}/state", headers=auth(cell))).json()
+        assert state["state"] == "EXECUTING_TRAJECTORY", f"{cell.name}: {state['state']}"
+        progress = (state.get("operation") or {}).get("progress") or {}
+        if progress.get("waypoint", 0) >= 2:
+            return
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{cell.name} did not reach its spray path")
+        await asyncio.sleep(0.02)
+
+
+async def cycles(client: httpx.AsyncClient, cells: list[Cell], count: int) -> None:
+    """`count` times: a stop of every cell after a reset, then one while every cell
+    sprays; each stop is answered before the next is sent, the order alternating."""
     for n in range(count):
-        for cell in cells if n % 2 == 0 else cells[::-1]:
-            sent = time.perf_counter()
-            answer = await client.post(
-                f"{cell.url}/estop", json={"reason": "plant latency benchmark"}, headers=auth(cell)
-            )
-            cell.round_trips.append(time.perf_counter() - sent)
+        order = cells if n % 2 == 0 else cells[::-1]
+        for cell in order:
+            await stop(client, cell, "after a reset")
+        await reset_all(client, cells)
+        for cell in cells:
+            answer = await client.post(f"{cell.url}/start", json=SPRAY_DEMO, headers=auth(cell))
             assert answer.status_code == 202, answer.text
         for cell in cells:
-            answer = await client.post(f"{cell.url}/reset", headers=auth(cell))
-            assert answer.status_code == 202, answer.text
-            await wait_idle(client, cell, SETTLE_S)
+            await wait_spraying(client, cell)
+        for cell in order:
+            await stop(client, cell, "spraying")
+        await reset_all(client, cells)
 
 
 def lags(received: list[tuple[float, dict[str, Any]]], stamp: str, since: float) -> list[float]:
@@ -257,10 +312,18 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
     names = ("cell-1", "cell-2", "cell-3", "plain")
     cells: list[Cell] = []
     for name in names:
-        extra = {"GLUE_APP_CELL_ID": name.replace("plain", "cell-0")}
+        extra = {
+            "GLUE_APP_CELL_ID": name.replace("plain", "cell-0"),
+            "GLUE_APP_SIMULATION_SPEED_FACTOR": SPEED_FACTOR,
+        }
         if name != "plain":
             extra["GLUE_APP_MQTT_URL"] = mqtt_url
-        cell = Cell(name, free_port(), data / name, cell_environment(extra))
+        witness = await asyncio.to_thread(StopWitness) if name in ("cell-1", "plain") else None
+        if witness is not None:
+            extra["GLUE_APP_ROBOT_IP"] = "127.0.0.1"
+            extra["GLUE_APP_ROBOT_PORT"] = str(witness.robot_port)
+            extra["GLUE_APP_GLUE_CONTROLLER_PORT"] = f"tcp://127.0.0.1:{witness.glue_port}"
+        cell = Cell(name, free_port(), data / name, cell_environment(extra), witness=witness)
         if name == "cell-1":
             cell.opcua_port = free_port()
             cell.env["GLUE_APP_OPCUA_ENDPOINT"] = f"opc.tcp://127.0.0.1:{cell.opcua_port}"
@@ -271,6 +334,12 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
             async with httpx.AsyncClient(timeout=30) as client:
                 for cell in cells:
                     await wait_idle(client, cell, READY_S)
+                    if cell.witness is not None:
+                        auth(cell)
+                        said = await asyncio.to_thread(
+                            cell.witness.tell, f"server {cell.url} {cell.token}"
+                        )
+                        assert said == ["ready"], said
                 assert cells[0].opcua_port is not None
                 context = multiprocessing.get_context("spawn")
                 stop, ready = context.Event(), context.Event()
@@ -295,7 +364,16 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
     finally:
         broker_process.terminate()
         broker_process.wait(timeout=30)
+        for cell in cells:
+            if cell.witness is not None:
+                await asyncio.to_thread(cell.witness.close)
     with_interfaces, without = cells[0], cells[3]
+    stops = []
+    for condition in CONDITIONS:
+        for what, of in (("device stop", "device_stops"), ("answer", "answers")):
+            for cell, label in ((with_interfaces, "OPC UA + MQTT on"), (without, "both off")):
+                samples = getattr(cell, of).get(condition, [])
+                stops.append({"figure": f"{what}, {condition}, {label}", **percentiles_ms(samples)})
     return [
         {
             "figure": "transition → MQTT subscriber (3 cells, 1 broker)",
@@ -305,14 +383,7 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
             "figure": f"transition → OPC UA data change (publishing {granted:g} ms)",
             **percentiles_ms(lags(opcua, "since", started)),
         },
-        {
-            "figure": "POST /estop round trip, OPC UA + MQTT on",
-            **percentiles_ms(with_interfaces.round_trips),
-        },
-        {
-            "figure": "POST /estop round trip, both off (same run)",
-            **percentiles_ms(without.round_trips),
-        },
+        *stops,
     ]
 
 

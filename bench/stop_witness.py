@@ -7,10 +7,11 @@ on its standard input:
 - "server <base_url> <token>": the server to stop, once it is up;
 - "fire": clear the simulators' stop stamps, send POST /estop (on a kept-alive
   connection, as an HMI holds one), and print
-  "stopped <seconds> <valve_closed> <sent_at> <robot_at> <glue_at>":
+  "stopped <seconds> <valve_closed> <sent_at> <answered> <robot_at> <glue_at>":
   from just before the request left to the later of the robot receiving its
   first `stop` and the dispenser its first valve-close write after it (both
-  stamped with time.time() by the simulators on arrival), and the two stamps.
+  stamped with time.time() by the simulators on arrival); `answered` is the
+  request's round trip (seconds until its answer was read), then the two stamps.
   The first, watched while the answer is on its way: the simulators keep only
   the latest stamp, and a stop while spraying is followed by more of both (the
   run's own close and stop as it is cancelled, the halt after it). Reading
@@ -50,6 +51,7 @@ async def fire(client: httpx.AsyncClient, robot: RobotSimulator, glue: GlueSimul
         glue_at = glue_at or glue.close_commanded_at
         await asyncio.sleep(0.0002)  # when we report, not what we report
     response = await answer
+    answered = time.time() - sent
     if response.status_code != 202:
         return f"failed {response.status_code} {response.text[:200]!r}"
     while not (robot_at and glue_at):  # the answer came first: wait for the stamps
@@ -57,7 +59,7 @@ async def fire(client: httpx.AsyncClient, robot: RobotSimulator, glue: GlueSimul
         glue_at = glue_at or glue.close_commanded_at
         await asyncio.sleep(0.0002)
     latency = max(robot_at, glue_at) - sent
-    return f"stopped {latency} {not glue.valve_open} {sent} {robot_at} {glue_at}"
+    return f"stopped {latency} {not glue.valve_open} {sent} {answered} {robot_at} {glue_at}"
 
 
 async def witness(speed_factor: float) -> None:

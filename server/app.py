@@ -36,6 +36,7 @@ from server.api import (
     workpieces,
     ws,
 )
+from server.api.answers_in_flight import AnswersInFlight
 from server.api.dashboard import mount_dashboard
 from server.api.limits import BodySizeLimit
 from server.api.observe import ResponseObservers
@@ -69,7 +70,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         await cell.start()
         app.state.access.tokens.ensure_admin()
         app.state.metrics.attach(cell)
-        opcua = await _start_opcua(cell, app.state.access)
+        opcua = await _start_opcua(cell, app.state.access, app.state.answers)
         app.state.mqtt = mqtt_link(app, settings, cell)
         try:
             yield
@@ -128,8 +129,11 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     app.add_middleware(methods.HttpManners, methods=app.state.route_methods)
     # Every HTTP request, before routing: the policy in server/security/policy.py.
     app.add_middleware(access.AccessGate, access=app.state.access)
+    # The commands being answered: the plant's interfaces hold their work until none is.
+    app.state.answers = AnswersInFlight()
     app.add_middleware(
         ResponseObservers,
+        answers=app.state.answers,
         observers=[
             audit.audit_observer(lambda scope: scope["app"].state.cell.journal),
             app.state.metrics.observe_response,
@@ -157,7 +161,9 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     return app
 
 
-async def _start_opcua(cell: Cell, gate: access.Access) -> OpcUaInterface | None:
+async def _start_opcua(
+    cell: Cell, gate: access.Access, answers: AnswersInFlight
+) -> OpcUaInterface | None:
     """The OPC UA server (server/opcua), if `opcua_endpoint` is set; started after the cell.
 
     A failure to serve it stops the cell again and is logged as one line: the
@@ -167,7 +173,7 @@ async def _start_opcua(cell: Cell, gate: access.Access) -> OpcUaInterface | None
         return None
     from server.opcua.interface import OpcUaInterface  # asyncua is loaded only when asked for
 
-    interface = OpcUaInterface(cell, gate.tokens, cell.settings)
+    interface = OpcUaInterface(cell, gate.tokens, cell.settings, answers=answers)
     try:
         await interface.start()
     except BaseException as exc:
@@ -193,6 +199,7 @@ def mqtt_link(app: FastAPI, settings: Settings, cell: Cell) -> MqttLink | None:
         health=lambda: queries.health_of(app),
         kpis=lambda: analytics.kpis_of(cell),
         commands=door,
+        answers=app.state.answers,
     )
     app.state.mqtt = link  # before it starts: its first health names it
     link.start()

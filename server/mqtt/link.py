@@ -38,6 +38,7 @@ import aiomqtt
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
+from server.api.answers_in_flight import AnswersInFlight, after_answers
 from server.cell import Cell
 from server.config import Settings
 from server.core.bus import SubscriptionClosed
@@ -97,6 +98,7 @@ class MqttLink:
         health: Callable[[], dict[str, Any]],
         kpis: Callable[[], Awaitable[dict[str, Any]]],
         commands: CommandDoor | None = None,
+        answers: AnswersInFlight | None = None,
     ) -> None:
         assert settings.mqtt_url is not None
         self.settings = settings
@@ -107,6 +109,7 @@ class MqttLink:
         self._health = health
         self._kpis = kpis
         self._commands = commands
+        self._answers = answers  # the commands being answered, which go first
         self._client: aiomqtt.Client | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._in_flight: set[asyncio.Task[None]] = set()
@@ -188,6 +191,7 @@ class MqttLink:
             data = message.data
             if message.type == "state_changed":
                 await self._after_its_commit()
+            await after_answers(self._answers)
             self._release_runs(message.seq - 1)  # a run that ended before this record
             if message.type == "state_changed":
                 self._put_state(data)
@@ -226,7 +230,9 @@ class MqttLink:
         the transition (an e-stop above all) is answered only once its commit is
         done; the journal's writer thread needs the lock to get there. Published
         after the commit, the plant hears of a transition about a millisecond
-        later, and the stop's answer does not wait for the plant.
+        later. The commit alone was not enough (the answer is written a few turns
+        of the loop after it): every message then also waits until no command's
+        answer is in flight (server/api/answers_in_flight.py).
         """
         journal = self.cell.journal
         if journal is not None:

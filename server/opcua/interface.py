@@ -23,6 +23,7 @@ from urllib.parse import urlparse
 from asyncua import Server, ua
 
 from server.api.analytics import kpis_of
+from server.api.answers_in_flight import AnswersInFlight, after_answers
 from server.cell import Cell
 from server.config import Settings
 from server.core.bus import BusMessage, Subscription, SubscriptionClosed
@@ -70,9 +71,17 @@ def check_endpoint_free(endpoint: str) -> None:
 class OpcUaInterface:
     """asyncua's Server around one cell: address space, methods, the bus follower."""
 
-    def __init__(self, cell: Cell, tokens: TokenStore, settings: Settings) -> None:
+    def __init__(
+        self,
+        cell: Cell,
+        tokens: TokenStore,
+        settings: Settings,
+        *,
+        answers: AnswersInFlight | None = None,
+    ) -> None:
         assert settings.opcua_endpoint is not None
         self.cell = cell
+        self.answers = answers  # the commands being answered, which go first
         self.settings = settings
         self.endpoint = settings.opcua_endpoint
         self.server = Server(user_manager=TokenUsers(tokens))  # type: ignore[arg-type]
@@ -155,6 +164,7 @@ class OpcUaInterface:
                 # After the transition's own commit, as the MQTT link does (its
                 # `_after_its_commit` says why): the command is answered first.
                 await self.cell.journal.caught_up()
+            await after_answers(self.answers)  # and once its answer has gone
             try:
                 await self._apply(message)
             except Exception:  # a tag not written must not end the follower

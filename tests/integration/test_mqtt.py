@@ -279,3 +279,44 @@ async def test_offline_when_stopped_and_when_killed(tmp_path: Path) -> None:
                 os.kill(server.pid, signal.SIGKILL)  # no word from it: the broker's will
                 await asyncio.to_thread(server.wait, WAIT_S)
                 await plant.wait(lambda: plant.on(status)[count:] == ["online", "offline"])
+
+
+async def test_the_stop_is_answered_before_the_link_publishes_it(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """The e-stop's answer is on the wire before the link does its work for ERROR."""
+    from server.api.answers_in_flight import AnswersInFlight
+    from server.mqtt.link import MqttLink
+
+    log: list[str] = []
+    begin, end, put_state = AnswersInFlight.begin, AnswersInFlight.end, MqttLink._put_state
+
+    def noting_begin(self: AnswersInFlight) -> None:
+        log.append("answer begins")
+        begin(self)
+
+    def noting_end(self: AnswersInFlight) -> None:
+        log.append("answer ends")
+        end(self)
+
+    def noting_put(self: MqttLink, changed: dict | None = None) -> None:
+        if changed is not None and changed["snapshot"]["state"] == "ERROR":
+            log.append("ERROR published")
+        put_state(self, changed)
+
+    monkeypatch.setattr(AnswersInFlight, "begin", noting_begin)
+    monkeypatch.setattr(AnswersInFlight, "end", noting_end)
+    monkeypatch.setattr(MqttLink, "_put_state", noting_put)
+    with mosquitto(tmp_path / "broker") as broker:
+        async with (
+            open_rig(tmp_path / "data", mqtt_url=broker.url, cell_id=CELL) as rig,
+            subscriber(broker.port, f"{BASE}/#") as plant,
+        ):
+            await rig.start_spraying()
+            log.clear()
+            assert (await rig.api.post("/estop")).status_code == 202
+            await plant.wait(lambda: [e for e in plant.on(f"{BASE}/event") if e["to"] == "ERROR"])
+            assert rig.robot.last_stop_at is not None and not rig.glue.valve_open
+    # The stop's answer began and ended (its last byte handed to the socket) before
+    # the link turned the transition into messages.
+    assert log[:3] == ["answer begins", "answer ends", "ERROR published"], log
