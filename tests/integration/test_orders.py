@@ -2,8 +2,9 @@
 
 An order runs its parts by itself from one POST /orders, each on a fresh part the
 simulated camera presents; every stop holds it and only the operator resumes it.
-Until the quality package lands a real run has no inspection: its part counts
-good, "not inspected" (the counting with inspections is tests/unit/test_order_counting.py).
+Each part is inspected (server/quality/), so the robot runs at the speed its plan says
+(`robot_speed_factor=1`): a part sprayed faster than planned gets less glue than its
+path needs, and is rightly defective.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ async def wait_running(rig: Rig) -> None:
 
 
 async def test_an_order_of_three_runs_to_completion_from_one_post(tmp_path) -> None:
-    async with open_rig(tmp_path) as rig:
+    async with open_rig(tmp_path, robot_speed_factor=1) as rig:
         first_parts = list(rig.camera.scene.workpieces)
         created = await rig.api.post("/orders", json={"workpiece_id": "demo", "quantity": 3})
         assert created.status_code == 201, created.text
@@ -62,7 +63,8 @@ async def test_an_order_of_three_runs_to_completion_from_one_post(tmp_path) -> N
         report = (await rig.api.get(f"/orders/{order_id}/report")).json()
         run_ids = [p["run_id"] for p in report["parts"]]
         assert len(set(run_ids)) == 3
-        assert all(p["verdict"] == "good" and not p["inspected"] for p in report["parts"])
+        assert all(p["verdict"] == "good" and p["inspected"] for p in report["parts"])
+        assert all(p["precision_mean_mm"] is not None and p["glue_ml"] for p in report["parts"])
         completed = {r["run_id"] for r in await trajectory_runs(rig) if r["outcome"] == "completed"}
         assert set(run_ids) <= completed
         text = (await rig.api.get(f"/orders/{order_id}/report", params={"format": "csv"})).text
@@ -74,7 +76,7 @@ async def test_an_order_of_three_runs_to_completion_from_one_post(tmp_path) -> N
 
 
 async def test_a_wrong_order_is_refused_naming_the_field_and_nothing_is_made(tmp_path) -> None:
-    async with open_rig(tmp_path) as rig:
+    async with open_rig(tmp_path, robot_speed_factor=1) as rig:
         unknown = await rig.api.post("/orders", json={"workpiece_id": "no-such", "quantity": 2})
         assert unknown.status_code == 409 and unknown.json()["field"] == "workpiece_id"
         cases = [
@@ -93,7 +95,7 @@ async def test_a_wrong_order_is_refused_naming_the_field_and_nothing_is_made(tmp
 
 
 async def test_close_ends_the_order_and_no_next_part_starts(tmp_path) -> None:
-    async with open_rig(tmp_path) as rig:
+    async with open_rig(tmp_path, robot_speed_factor=1) as rig:
         created = await rig.api.post("/orders", json={"workpiece_id": "demo", "quantity": 50})
         order_id = created.json()["order"]["order_id"]
         closed = await rig.api.post(f"/orders/{order_id}/close")
@@ -108,7 +110,7 @@ async def test_close_ends_the_order_and_no_next_part_starts(tmp_path) -> None:
 
 
 async def test_after_an_estop_the_order_is_held_until_resumed(tmp_path) -> None:
-    async with open_rig(tmp_path) as rig:
+    async with open_rig(tmp_path, robot_speed_factor=1) as rig:
         created = await rig.api.post("/orders", json={"workpiece_id": "demo", "quantity": 2})
         order_id = created.json()["order"]["order_id"]
         await wait_running(rig)
@@ -152,12 +154,31 @@ async def test_the_defect_limit_stops_the_cell_with_what_to_check(tmp_path) -> N
         assert order["state"] == "held" and order["defects_in_row"] == 2
 
 
+async def test_defective_parts_in_a_row_stop_the_cell(tmp_path) -> None:
+    """A partly clogged nozzle: every part short of glue, judged by its inspection alone."""
+    async with open_rig(tmp_path, robot_speed_factor=1, order_defect_limit=2) as rig:
+        rig.glue.clog_nozzle(0.85)  # under the dispenser's own flow alarm: runs complete
+        created = await rig.api.post("/orders", json={"workpiece_id": "demo", "quantity": 5})
+        assert created.status_code == 201, created.text
+        order_id = created.json()["order"]["order_id"]
+        snapshot = await rig.wait_state("ERROR", timeout=WAIT_S * 3)
+        assert snapshot["stop_reason"]["code"] == "ORDER_DEFECT_LIMIT"
+        assert not rig.glue.valve_open
+        order = await order_of(rig, order_id)
+        assert (order["state"], order["good"], order["defective"]) == ("held", 0, 2)
+        report = (await rig.api.get(f"/orders/{order_id}/report")).json()
+        assert [p["verdict"] for p in report["parts"]] == ["defective", "defective"]
+        assert all(p["reasons"] for p in report["parts"]), report
+
+
 async def test_a_restart_leaves_the_order_held(tmp_path) -> None:
-    async with open_rig(tmp_path) as rig:
+    async with open_rig(tmp_path, robot_speed_factor=1) as rig:
         created = await rig.api.post("/orders", json={"workpiece_id": "demo", "quantity": 5})
         order_id = created.json()["order"]["order_id"]
         await wait_running(rig)
-    async with open_rig(tmp_path, wait_idle=False) as rig:  # stopped mid-part, started again
+    async with open_rig(
+        tmp_path, robot_speed_factor=1, wait_idle=False
+    ) as rig:  # stopped mid-part, started again
         await rig.wait_state("ERROR")
         order = await order_of(rig, order_id)
         assert order["state"] == "held", order
@@ -174,7 +195,7 @@ async def test_a_restart_leaves_the_order_held(tmp_path) -> None:
 async def test_gluectl_order_start_show_list_report_close_resume(tmp_path) -> None:
     from tests.integration.test_gluectl import gluectl_process
 
-    async with open_rig(tmp_path) as rig:
+    async with open_rig(tmp_path, robot_speed_factor=1) as rig:
         base = ("--url", str(rig.api.base_url).rstrip("/"), "--data-dir", str(tmp_path))
 
         async def cli(*args: str) -> Any:
