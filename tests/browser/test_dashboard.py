@@ -384,16 +384,21 @@ async def test_the_last_part_card_shows_the_verdict_live_and_on_load(
     await expect(verdict).to_have_text("no part yet")
     await expect(part).to_have_attribute("data-verdict", "none")
 
-    # A real run ends: the card follows at once (no reload), and says nobody judged it.
+    # A real run ends: the card follows at once (no reload) with its inspection's verdict,
+    # reasons and annotated image.
     await page.click('[data-command="start"]')
     await expect_state(page, "EXECUTING_TRAJECTORY")
     await expect_state(page, "IDLE")
-    [real] = (await dashboard.rig.api.get("/operations", params={"limit": 1})).json()["operations"]
+    api = dashboard.rig.api
+    [real] = (await api.get("/operations", params={"limit": 1})).json()["operations"]
+    inspection = (await api.get(f"/runs/{real['run_id']}/inspection")).json()
     await expect(part).to_have_attribute("data-run", real["run_id"])
-    await expect(verdict).to_have_text("not inspected")
-    await expect(part).to_have_attribute("data-verdict", "none")
-    await expect(page.locator("#part-reasons li")).to_have_count(0)
-    await expect(page.locator("#part-image")).to_be_hidden()
+    await expect(verdict).to_have_text(inspection["verdict"])
+    await expect(part).to_have_attribute("data-verdict", inspection["verdict"])
+    await expect(page.locator("#part-reasons li")).to_have_count(len(inspection["reasons"]))
+    await expect(page.locator("#part-image")).to_be_visible()
+    await expect(page.locator("#part-image")).to_have_js_property("complete", True)
+    assert await page.locator("#part-image").evaluate("img => img.naturalWidth") > 0
 
     # An inspected, defective part's record: shown when the page loads, with its reasons
     # and figures. Its image is asked for; a server that has none (404) leaves no picture.
@@ -411,8 +416,12 @@ async def test_the_last_part_card_shows_the_verdict_live_and_on_load(
     await expect(page.locator("#part-image")).to_be_hidden()
     await expect(page.locator("#part-image-note")).to_have_text("no inspection image kept")
     assert any(url.endswith("/runs/run-defective-1/inspection.jpg") for url in images)
-    await expect(page.locator('[data-kpi="defective"] .kpi-value')).to_have_text("1")
-    await expect(page.locator('[data-kpi="quality"] .kpi-value')).to_have_text("0.0 %")
+    # The real part and the defective record: the KPI tiles count both.
+    good = int(inspection["verdict"] == "good")
+    await expect(page.locator('[data-kpi="defective"] .kpi-value')).to_have_text(str(2 - good))
+    await expect(page.locator('[data-kpi="quality"] .kpi-value')).to_have_text(
+        f"{50.0 * good:.1f} %"
+    )
     await shot(page, "09-last-part-defective")
     assert problems == []
 
