@@ -139,7 +139,25 @@ async def inspect_run(
                 "has moved; check the camera mount and run calibrate-robot",
             ),
         )
-    document = {
+    document = _document(
+        ctx, reasons, precision, dispensing, vision, per_segment, samples, started, jpeg
+    )
+    return Inspection(document, summary_of(document), jpeg, warnings)
+
+
+def _document(
+    ctx: OperationContext,
+    reasons: list[str],
+    precision: dict[str, Any],
+    dispensing: dict[str, Any],
+    vision: dict[str, Any],
+    segments: list[dict[str, Any]],
+    samples: RunSamples,
+    started: float,
+    jpeg: bytes | None,
+) -> dict[str, Any]:
+    """The inspection as journaled and served (GET /runs/{id}/inspection)."""
+    return {
         "run_id": ctx.run_id,
         "verdict": verdict_of(reasons),
         "reasons": reasons,
@@ -148,11 +166,10 @@ async def inspect_run(
         "precision": {k: v for k, v in precision.items() if k != "segments"},
         "dispensing": dispensing,
         "vision": vision,
-        "segments": per_segment,
+        "segments": segments,
         "samples": samples.as_counts(),
         "image": jpeg is not None,
     }
-    return Inspection(document, summary_of(document), jpeg, warnings)
 
 
 def _unseen(
@@ -170,20 +187,12 @@ def _unseen(
         *dispensing_reasons(dispensing, settings),
         f"the bead was not inspected: {why}",
     ]
-    document = {
-        "run_id": ctx.run_id,
-        "verdict": verdict_of(reasons),
-        "reasons": reasons,
-        "at": time.time(),
-        "took_s": round(time.monotonic() - started, 3),
-        "precision": {k: v for k, v in precision.items() if k != "segments"},
-        "dispensing": dispensing,
-        "vision": {"markers": 0, "residual_mean_mm": None, "residual_max_mm": None},
-        "segments": [
-            {**s, "precision_mean_mm": s["mean_mm"], "precision_max_mm": s["max_mm"]}
-            for s in precision["segments"]
-        ],
-        "samples": samples.as_counts(),
-        "image": False,
-    }
+    vision = {"markers": 0, "residual_mean_mm": None, "residual_max_mm": None}
+    segments = [
+        {**s, "precision_mean_mm": s["mean_mm"], "precision_max_mm": s["max_mm"]}
+        for s in precision["segments"]
+    ]
+    document = _document(
+        ctx, reasons, precision, dispensing, vision, segments, samples, started, None
+    )
     return Inspection(document, summary_of(document), None, ())
