@@ -538,6 +538,14 @@ class Settings(BaseSettings):
         description="a part is defective when its flow was out of tolerance longer than this "
         "(s) while spraying",
     )
+    glue_volume_tolerance_percent: float = Field(
+        20.0,
+        gt=0,
+        le=100,
+        description="a part is defective when the glue dispensed differs from what its path "
+        "needs (flow setpoint × length / speed) by more than this (%): wider than the flow's "
+        "tolerance, as the arm stands still a few ms at each waypoint with the valve open",
+    )
     bead_width_tolerance_percent: float = Field(
         30.0,
         gt=0,

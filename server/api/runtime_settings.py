@@ -34,6 +34,7 @@ RUNTIME_SETTINGS = (
     "trajectory_precision_limit_mm",
     "dispensing_flow_tolerance_percent",
     "dispensing_max_out_of_tolerance_s",
+    "glue_volume_tolerance_percent",
     "bead_width_tolerance_percent",
     "bead_max_gap_mm",
     "bead_max_offset_mm",

@@ -34,10 +34,12 @@ def dispensing_reasons(dispensing: dict[str, Any], settings: Settings) -> list[s
             "check the nozzle and the glue supply"
         )
     ratio = dispensing["glue_ratio_percent"]
-    if ratio is not None and abs(ratio - 100.0) > tolerance:
+    volume = settings.glue_volume_tolerance_percent
+    if ratio is not None and abs(ratio - 100.0) > volume:
         reasons.append(
             f"glue dispensed {dispensing['glue_ml']:.3f} ml, {ratio:.0f} % of the "
-            f"{dispensing['expected_ml']:.3f} ml the path needs (within ± {tolerance:g} %)"
+            f"{dispensing['expected_ml']:.3f} ml the path needs (within ± {volume:g} %, "
+            "glue_volume_tolerance_percent); check the nozzle, the glue supply and the valve"
         )
     return reasons
 

@@ -98,10 +98,23 @@ def relocate(
             rigid, _ = cv2.estimateAffinePartial2D(planned, placed, method=cv2.LMEDS)
             if rigid is None:
                 continue
-            shift = transform_outline(planned, rigid) - planned
-            moved = float(np.max(np.linalg.norm(shift, axis=1)))
+            moved = _largest_gap(planned, transform_outline(planned, rigid))
             now = PartNow(target.workpiece_id, True, rigid, moved, float(match.score))
             if best is None or now.moved_mm < best.moved_mm:
                 best = now
         parts.append(best or PartNow(target.workpiece_id, False, IDENTITY, 0.0, None))
     return parts
+
+
+def _largest_gap(planned: np.ndarray, now: np.ndarray) -> float:
+    """How far the part's outline now lies from where it was matched (mm): the largest
+    distance of a point of either outline to the other outline.
+
+    Outline to outline, not point to matched point: a part that looks the same turned
+    (a disc, a square, a hexagon) may be fitted turned, and that is no move at all.
+    """
+    a, b = planned.astype(np.float32), now.astype(np.float32)
+    return max(
+        max(abs(cv2.pointPolygonTest(b, (float(x), float(y)), True)) for x, y in a),
+        max(abs(cv2.pointPolygonTest(a, (float(x), float(y)), True)) for x, y in b),
+    )
