@@ -35,6 +35,7 @@ from server.core.operations.base import (
     PauseGate,
     PlannedPath,
 )
+from server.core.operations.leash import Leash, leashed
 from server.core.operations.safe_position import move_to_safe_position
 from server.core.recorder import Recorder
 from server.core.supervision import RunOutcome, as_result, supervise
@@ -106,6 +107,7 @@ class Runs:
         self.frames = LatestFrame()  # the last frame an operation measured on, for the HMI
         self._task: asyncio.Task[None] | None = None
         self._gate: PauseGate | None = None
+        self._leash: Leash | None = None  # the running operation's hold on the devices
         # Called with (kind, outcome, seconds) when an operation ends, e.g. by metrics.
         self.listeners: list[Callable[[RunEnded], None]] = []
 
@@ -132,9 +134,11 @@ class Runs:
                 "planned_path": [],
                 "workpieces": [],
             }
+        self._leash = Leash(run_id)
+        robot, glue = leashed(self.devices.robot, self.devices.glue, self._leash)
         op_ctx = OperationContext(
-            robot=self.devices.robot,
-            glue=self.devices.glue,
+            robot=robot,
+            glue=glue,
             camera=self.devices.camera,
             settings=self.settings,
             stores=self.stores,
@@ -292,6 +296,8 @@ class Runs:
     async def cancel(self) -> None:
         """Cancel the running operation and wait (bounded) until it has stopped."""
         task, self._task = self._task, None
+        if self._leash is not None:
+            self._leash.cut = True  # from now on it moves nothing, whatever becomes of the cancel
         if self._gate is not None:
             self._gate.resume()  # a held operation must see the cancellation, not the gate
         self._gate = None
@@ -302,6 +308,8 @@ class Runs:
 
     async def stop(self) -> None:
         """At shutdown: the task goes, whatever it was doing."""
+        if self._leash is not None:
+            self._leash.cut = True
         if self._task is not None:
             self._task.cancel()
             await asyncio.gather(self._task, return_exceptions=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from typing import Any
 
 import pytest
@@ -11,6 +12,7 @@ from server.core.event_queue import Priority
 from server.core.events import FaultPayload, RunCompletedPayload, StopPayload
 from server.core.operations import OperationContext
 from server.core.transitions import Command, Event, State
+from server.drivers.base import Pose
 from server.errors import EventQueueFull, OperationError
 from tests.conftest import START_PAYLOAD, wait_for_state
 from tests.fakes import FakeClock, FakeGlue, FakeRobot
@@ -421,3 +423,43 @@ async def test_stop_answers_a_reset_waiting_for_its_probe(make_worker) -> None:
     await worker.stop()
     with pytest.raises(Exception, match="shutting down"):
         await reset
+
+
+async def test_a_run_that_swallows_its_cancellation_moves_nothing_after_the_stop(
+    make_worker,
+) -> None:
+    """A cancellation lost below a run (asyncio.wait_for on Python 3.11, a library) must
+    not let the run go on commanding the devices after the cell stopped."""
+    started, went_on = asyncio.Event(), asyncio.Event()
+    refused: list[str] = []
+    glue, robot = FakeGlue(), FakeRobot()
+
+    async def stubborn(ctx: OperationContext) -> dict[str, Any]:
+        started.set()
+        with contextlib.suppress(asyncio.CancelledError):  # lost, as wait_for loses one
+            await asyncio.sleep(3600)
+        went_on.set()
+        for command in (
+            lambda: ctx.glue.set_valve(True),
+            lambda: ctx.robot.move_linear(Pose(500.0, 0.0, 100.0), 100.0, 1000.0),
+        ):
+            try:
+                await command()
+            except asyncio.CancelledError as refusal:
+                refused.append(str(refusal))
+        await ctx.glue.set_valve(False)  # closing the valve stays allowed
+        return {}
+
+    worker = await make_worker(operations={"calibrate_camera": stubborn}, glue=glue, robot=robot)
+    await worker.request(Event.CALIBRATE_CAMERA_REQUESTED, source="test")
+    await asyncio.wait_for(started.wait(), 5)
+    moves = len(robot.moves)
+    outcome = await worker.emergency_stop(source="test", payload=StopPayload("test"))
+    assert outcome.state is State.ERROR
+    await asyncio.wait_for(went_on.wait(), 5)
+    async with asyncio.timeout(5):
+        while len(refused) < 2:
+            await asyncio.sleep(0.01)
+    assert glue.valve_open is False
+    assert len(robot.moves) == moves, "the run moved the arm after the stop"
+    assert all("was cancelled" in why for why in refused)

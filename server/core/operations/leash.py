@@ -1,0 +1,74 @@
+"""A run's hold on the devices, cut the moment the run is cancelled.
+
+Why: a run ends by cancellation (cancel, e-stop, a fault, a timeout), and a
+cancellation can be lost below the run: Python 3.11's asyncio.wait_for drops one
+that lands as the awaited call ends (CPython gh-86296), and a library may do the
+same. Twice already such a run went on after its stop and sent its next move.
+The worker gives up waiting for it after emergency_stop_timeout, so nothing would
+stop it from moving the arm or opening the valve after the cell had stopped.
+
+So each run gets its devices through a leash. Once the leash is cut (before the
+cancellation is sent), whatever would move the arm or make glue flow is refused
+at once with a CancelledError, which also restores the lost cancellation.
+Stopping the arm, closing the valve and reading stay allowed: they are always safe.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Any, cast
+
+from server.drivers.base import GlueDispenser, Pose, Robot
+
+log = logging.getLogger(__name__)
+
+
+class Leash:
+    """Whether the run holding it may still command motion and glue."""
+
+    def __init__(self, run_id: str) -> None:
+        self.run_id = run_id
+        self.cut = False
+
+    def check(self, what: str) -> None:
+        """Raise CancelledError when the run was cancelled: `what` is refused."""
+        if self.cut:
+            log.warning("run %s was cancelled: %s refused", self.run_id, what)
+            raise asyncio.CancelledError(f"run {self.run_id} was cancelled: {what} refused")
+
+
+class _LeashedRobot:
+    def __init__(self, robot: Robot, leash: Leash) -> None:
+        self._robot = robot
+        self._leash = leash
+
+    async def move_linear(self, pose: Pose, speed: float, acceleration: float) -> None:
+        self._leash.check("a linear move")
+        await self._robot.move_linear(pose, speed, acceleration)
+
+    async def move_joint(self, target: Pose, speed: float) -> None:
+        self._leash.check("a joint move")
+        await self._robot.move_joint(target, speed)
+
+    def __getattr__(self, name: str) -> Any:  # reads, stop, health: as the robot's own
+        return getattr(self._robot, name)
+
+
+class _LeashedGlue:
+    def __init__(self, glue: GlueDispenser, leash: Leash) -> None:
+        self._glue = glue
+        self._leash = leash
+
+    async def set_valve(self, open_: bool) -> None:
+        if open_:
+            self._leash.check("opening the valve")
+        await self._glue.set_valve(open_)
+
+    def __getattr__(self, name: str) -> Any:  # setpoints, reads, health: the dispenser's
+        return getattr(self._glue, name)
+
+
+def leashed(robot: Robot, glue: GlueDispenser, leash: Leash) -> tuple[Robot, GlueDispenser]:
+    """The robot and the dispenser as a run sees them: held by `leash`."""
+    return cast(Robot, _LeashedRobot(robot, leash)), cast(GlueDispenser, _LeashedGlue(glue, leash))
