@@ -2,7 +2,7 @@
 
 Each cell publishes under `<prefix>/<cell_id>/`: `status` (retained `online`, or
 `offline` as its last will), `state` (retained JSON: state, since, stop_reason,
-run_id, workpiece_id), `progress` (JSON per waypoint of a run) and `kpis`
+run_id, workpiece_id), `progress` (JSON: where a run is, thinned by the cell) and `kpis`
 (retained, the body of GET /kpis). This module only folds those messages into
 rows, with no I/O, so `gluectl line` and its tests share one reading of the
 topics; the browser's line view (clients/hmi/line_state.js) reads them the same way.

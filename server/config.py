@@ -270,6 +270,14 @@ class Settings(BaseSettings):
         le=3600,
         description="seconds between refreshes of the OPC UA Admin figures (KPIs of the shift)",
     )
+    plant_progress_interval: float = Field(
+        0.25,
+        ge=0,
+        le=10,
+        description="a run's progress reaches the plant (OPC UA CellState, MQTT progress) at "
+        "most this often, in seconds, the latest kept; transitions are never held and a "
+        "run's final progress goes before the transition that ends it; 0: every waypoint",
+    )
 
     # MQTT (docs/plant-integration.md): off unless mqtt_url is set
     mqtt_url: str | None = Field(

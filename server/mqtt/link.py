@@ -4,7 +4,9 @@ Three tasks, none of which the worker or the e-stop ever awaits:
 
 - the feed reads the bus (its own bounded subscription, like a WebSocket
   client) and turns each record into topic messages in the outbox at once, so
-  a transition is on its way to the broker within a turn of the event loop;
+  a transition is on its way to the broker within a turn of the event loop; a
+  run's progress goes at most every `plant_progress_interval`, the latest kept
+  (server/core/paced_feed.py);
 - the connection publishes the outbox in order at QoS 1 while the broker is
   there, and reconnects with a doubling backoff (capped at
   `mqtt_reconnect_max`) while it is not; the outbox bounds what waits
@@ -42,6 +44,7 @@ from server.api.answers_in_flight import AnswersInFlight, after_answers
 from server.cell import Cell
 from server.config import Settings
 from server.core.bus import SubscriptionClosed
+from server.core.paced_feed import PacedFeed
 from server.core.runs import RunEnded
 from server.mqtt.commands import CommandDoor
 from server.mqtt.outbox import Entry, Outbox
@@ -130,8 +133,9 @@ class MqttLink:
         subscription = self.cell.bus.subscribe(BUS_BUFFER, types=BUS_TYPES)
         self._put_state()  # the present first, then every later change from the bus
         self.cell.view.on_run_ended(self._run_ended)
+        paced = PacedFeed(subscription, self.settings.plant_progress_interval)
         self._tasks = [
-            asyncio.create_task(self._feed(subscription), name="mqtt-feed"),
+            asyncio.create_task(self._feed(paced), name="mqtt-feed"),
             asyncio.create_task(self._connection(), name="mqtt-connection"),
             asyncio.create_task(self._ticker(), name="mqtt-ticker"),
         ]
@@ -176,14 +180,14 @@ class MqttLink:
 
     # --- from the bus to the outbox -----------------------------------------------
 
-    async def _feed(self, subscription: Any) -> None:
+    async def _feed(self, feed: PacedFeed) -> None:
         cell_id = self.topics.cell_id
         while True:
             try:
-                message = await subscription.get()
+                message = await feed.get()
             except SubscriptionClosed as closed:
                 log.warning("MQTT: the bus feed was closed (%s); the state is sent again", closed)
-                subscription = self.cell.bus.subscribe(BUS_BUFFER, types=BUS_TYPES)
+                feed.resubscribe(self.cell.bus.subscribe(BUS_BUFFER, types=BUS_TYPES))
                 self._handled_seq = self.cell.bus.last_seq
                 self._release_runs(self._handled_seq)
                 self._put_state()

@@ -4,7 +4,9 @@ The tags follow the bus, not the cell: one bus subscription (its own bounded
 buffer, like a WebSocket client's) is read by one task that writes each
 message's values into the address space as it arrives, so a client's
 subscription sees every transition, in order, stamped with when it happened,
-and the worker never waits for OPC UA. The state comes from each
+and the worker never waits for OPC UA. A run's progress is the exception: it is
+written at most every `plant_progress_interval`, the latest kept
+(server/core/paced_feed.py). The state comes from each
 state_changed message's own snapshot, never from the live view, which may
 already be a transition further on. Admin's KPIs are read from the journal
 every `opcua_admin_interval` seconds, off the loop, the way GET /kpis reads
@@ -26,7 +28,8 @@ from server.api.analytics import kpis_of
 from server.api.answers_in_flight import AnswersInFlight, after_answers
 from server.cell import Cell
 from server.config import Settings
-from server.core.bus import BusMessage, Subscription, SubscriptionClosed
+from server.core.bus import BusMessage, SubscriptionClosed
+from server.core.paced_feed import PacedFeed
 from server.core.transitions import State
 from server.errors import ConfigurationError
 from server.opcua import address_space, tags
@@ -87,7 +90,7 @@ class OpcUaInterface:
         self.server = Server(user_manager=TokenUsers(tokens))  # type: ignore[arg-type]
         self.methods = CellMethods(self.server, cell, tokens)
         self.nodes: CellNodes | None = None
-        self._subscription: Subscription | None = None
+        self._feed: PacedFeed | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._snapshot: dict[str, Any] = {}
         self._progress: dict[str, Any] | None = None
@@ -118,13 +121,14 @@ class OpcUaInterface:
         await self.methods.add(self.nodes.cell, self.nodes.cell_id, self.nodes.namespace)
         # Subscribe before the first values are written: nothing falls between the two.
         view = self.cell.view
-        self._subscription = self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED)
+        subscription = self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED)
+        self._feed = PacedFeed(subscription, settings.plant_progress_interval)
         self._seq = self.cell.bus.last_seq
         await self._write_state(view.snapshot(), None)
         try:
             await server.start()
         except OSError as exc:
-            self._subscription.close()
+            subscription.close()
             raise ConfigurationError(
                 f"the OPC UA endpoint {self.endpoint} cannot be served: {exc.strerror or exc}; "
                 "choose a free port or an address of this host (opcua_endpoint)"
@@ -142,21 +146,24 @@ class OpcUaInterface:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         self._tasks = []
-        if self._subscription is not None:
-            self._subscription.close()
+        if self._feed is not None:
+            self._feed.subscription.close()
         await self.server.stop()
 
     # --- following the bus --------------------------------------------------------------
 
     async def _follow(self) -> None:
+        # A run's progress at most every plant_progress_interval, the latest kept
+        # (server/core/paced_feed.py says why); transitions and faults as they come.
+        feed = self._feed
+        assert feed is not None
         while True:
-            assert self._subscription is not None
             try:
-                message = await self._subscription.get()
+                message = await feed.get()
             except SubscriptionClosed as closed:
                 # Dropped as a slow consumer: catch up from the live view, go on.
                 log.warning("OPC UA tags fell behind the bus (%s); catching up", closed.reason)
-                self._subscription = self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED)
+                feed.resubscribe(self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED))
                 self._seq = self.cell.bus.last_seq
                 await self._write_state(self.cell.view.snapshot(), None)
                 continue

@@ -37,7 +37,10 @@ BASE = f"glue/{CELL}"
 async def test_a_run_in_order_and_the_state_for_a_late_subscriber(tmp_path: Path) -> None:
     with mosquitto(tmp_path / "broker") as broker:
         async with (
-            open_rig(tmp_path / "data", mqtt_url=broker.url, cell_id=CELL) as rig,
+            # Every waypoint (plant_progress_interval 0), to check them all in order.
+            open_rig(
+                tmp_path / "data", mqtt_url=broker.url, cell_id=CELL, plant_progress_interval=0
+            ) as rig,
             subscriber(broker.port, f"{BASE}/#") as early,
         ):
             truth = rig.cell.bus.subscribe(4096, types=["state_changed"])
@@ -63,7 +66,10 @@ async def test_a_run_in_order_and_the_state_for_a_late_subscriber(tmp_path: Path
             assert running[0]["workpiece_id"] == "demo"
             progress = early.on(f"{BASE}/progress")
             assert progress and {p["run_id"] for p in progress} == {run_id}
-            assert [p["waypoint"] for p in progress] == list(range(1, progress[-1]["total"] + 1))
+            # Each waypoint once, in order; the inspection's step repeats the last one.
+            reached = [p["waypoint"] for p in progress]
+            assert list(dict.fromkeys(reached)) == list(range(1, progress[-1]["total"] + 1))
+            assert reached == sorted(reached)
             assert progress[-1]["percent"] == 100.0
 
             # A subscriber that comes later is told the present by the broker alone.
@@ -88,6 +94,43 @@ async def test_a_run_in_order_and_the_state_for_a_late_subscriber(tmp_path: Path
             assert over_http["connected"] is True and over_http["dropped"] == 0
             settings = (await rig.api.get("/settings")).json()
             assert settings["mqtt_url"] == broker.url
+
+
+async def test_a_runs_progress_is_thinned_and_ends_with_its_final_waypoint(
+    tmp_path: Path,
+) -> None:
+    """With an interval longer than the run, the plant hears its first waypoint at once,
+    then only the latest, and the final progress before the transition that ends it."""
+    with mosquitto(tmp_path / "broker") as broker:
+        async with (
+            open_rig(
+                tmp_path / "data", mqtt_url=broker.url, cell_id=CELL, plant_progress_interval=10
+            ) as rig,
+            subscriber(broker.port, f"{BASE}/#") as plant,
+        ):
+            truth = rig.cell.bus.subscribe(4096, types=["progress"])
+            final = await run(rig, "start", SPRAY_DEMO)
+            assert final["state"] == "IDLE"
+            await plant.wait(lambda: [e for e in plant.on(f"{BASE}/event") if e["to"] == "IDLE"])
+            produced = []
+            while truth.pending:
+                produced.append((await truth.get()).data)
+            waypoints = [p for p in produced if "waypoint" in p]
+            total = waypoints[-1]["of"]
+            assert [p["waypoint"] for p in waypoints][-1] == total > 2
+
+    progress = plant.on(f"{BASE}/progress")
+    assert 2 <= len(progress) < len(waypoints)  # thinned: fewer than the run published
+    assert progress[0]["waypoint"] == 1  # the first goes at once
+    assert progress[-1]["waypoint"] == total and progress[-1]["percent"] == 100.0
+    assert [p["waypoint"] for p in progress] == sorted(p["waypoint"] for p in progress)
+    # On the broker, in order: the final progress, then the run, then the end of the state.
+    order = [
+        str(m.topic).rsplit("/", 1)[-1]
+        for m in plant.messages
+        if str(m.topic) in (f"{BASE}/progress", f"{BASE}/run", f"{BASE}/event")
+    ]
+    assert order[-3:] == ["progress", "run", "event"], order
 
 
 async def test_what_happened_while_the_broker_was_away(tmp_path: Path, caplog) -> None:
