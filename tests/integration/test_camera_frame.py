@@ -72,7 +72,10 @@ async def test_the_latest_frame_follows_the_operations_that_capture(tmp_path) ->
         placed = camera.scene.workpieces[0].centroid_table_mm()
         assert np.linalg.norm(outline.mean(axis=0) - placed) < 2.0
 
-        # A run without contour matching takes no picture: the frame stays.
+        # A run without contour matching and without inspection takes no picture: the frame
+        # stays. (Inspected, a run photographs its part after the path: docs/quality.md.)
+        patched = await rig.api.patch("/settings", json={"inspection_enabled": False})
+        assert patched.status_code == 200, patched.text
         await run_to_idle(rig, "start", SPRAY_DEMO)
         same = await rig.api.get("/camera/frame")
         assert same.headers["x-frame-run-id"] == trajectory["run_id"]

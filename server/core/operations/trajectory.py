@@ -286,7 +286,8 @@ async def execute_trajectory(ctx: OperationContext) -> OperationResult:
     }
     if not inspecting:
         return OperationResult(data)
-    ctx.report({"step": "inspecting the part", "fraction": 1.0})
+    # No progress message of its own: the last waypoint's (fraction 1.0) stands until the
+    # run completes, so every progress message a client sees advances the waypoint.
     inspection = await inspect_run(ctx, targets, segments, samples)
     images = ctx.stores.inspection_images
     if inspection.image_jpeg is not None and images is not None:
