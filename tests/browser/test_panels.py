@@ -229,7 +229,10 @@ async def test_a_restart_forgets_the_old_run_and_initializing_fits_every_panel(
         await expect_live(page)
         await expect(info).to_contain_text("no trajectory planned")
         await expect(canvas).not_to_have_attribute("data-background", "camera")
-    assert problems == []
+    # While the server was down on purpose, the browser itself logs each request it could
+    # not make (the live link trying again, a card's fetch): that is the restart, not a
+    # fault of the page. Anything else the page logged still counts.
+    assert [p for p in problems if "net::ERR_CONNECTION_REFUSED" not in p] == []
 
 
 # The API's "nothing yet" answers on a fresh server: no run planned, no frame captured.
