@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
@@ -25,6 +26,7 @@ from server.drivers.camera import SimulatedCamera
 from server.drivers.sim.camera_bead import dispensed_by
 from server.drivers.sim.glue_sim import GlueSimulator
 from server.drivers.sim.robot_sim import RobotSimulator
+from server.storage.journal import records
 from tests.serving import admin_headers, serve
 
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
@@ -88,6 +90,24 @@ async def run(rig: Rig, command: str, body: dict | None = None) -> dict:
         while (snapshot := await rig.state())["state"] not in ("IDLE", "ERROR"):
             await asyncio.sleep(0.02)
     return snapshot
+
+
+async def append_inspected_run(rig: Rig, run_id: str, inspection: dict[str, Any]) -> None:
+    """An inspected spray run's start and end (its result carrying `inspection`, issue 18's
+    summary), written through the cell's own journal writer: a part on record without
+    spraying it."""
+    journal = rig.cell.journal
+    assert journal is not None
+    now = time.time()
+    result = {"workpieces": ["demo"], "waypoints": 9, "inspection": inspection}
+    written = journal.append(
+        [
+            records.operation_started(run_id, "trajectory", now - 2, {"workpiece_id": "demo"}),
+            records.operation_ended(run_id, now - 1, "completed", result, None, 1),
+        ]
+    )
+    assert written is not None
+    await written
 
 
 async def assert_safe(rig: Rig, component: str) -> dict:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,9 +23,8 @@ from server.api import openapi_doc
 from server.api.dashboard import mount_dashboard
 from server.app import create_app
 from server.security.policy import POLICY
-from server.storage.journal import records
 from tests import serving
-from tests.rig import Rig, open_rig
+from tests.rig import Rig, append_inspected_run, open_rig
 from tests.serving import admin_headers
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -346,32 +344,17 @@ async def test_the_devices_card_is_live_and_does_not_poll(
 GAP_REASON = "segment 3: a gap of 14.2 mm without bead (at most 3.0 mm)"
 
 
-async def append_inspected_run(dashboard: Dashboard, run_id: str) -> None:
-    """A defective part's run record, built to issue 18's contract (result["inspection"])
-    and written through the real journal: until the inspection itself is merged, a real
-    run holds none."""
-    journal = dashboard.rig.cell.journal
-    assert journal is not None
-    now = time.time()
-    inspection = {
-        "verdict": "defective",
-        "reasons": [GAP_REASON],
-        "precision_mean_mm": 0.31,
-        "precision_p95_mm": 0.74,
-        "dispensing_cv_percent": 4.2,
-        "glue_ml": 1.35,
-        "vision_residual_mm": 0.18,
-        "image": True,
-    }
-    result = {"workpieces": ["demo"], "waypoints": 9, "inspection": inspection}
-    written = journal.append(
-        [
-            records.operation_started(run_id, "trajectory", now - 2, {"workpiece_id": "demo"}),
-            records.operation_ended(run_id, now - 1, "completed", result, None, 1),
-        ]
-    )
-    assert written is not None
-    await written
+# A defective part's record, as issue 18's contract writes it into a run's result.
+DEFECTIVE_PART = {
+    "verdict": "defective",
+    "reasons": [GAP_REASON],
+    "precision_mean_mm": 0.31,
+    "precision_p95_mm": 0.74,
+    "dispensing_cv_percent": 4.2,
+    "glue_ml": 1.35,
+    "vision_residual_mm": 0.18,
+    "image": True,
+}
 
 
 async def test_the_last_part_card_shows_the_verdict_live_and_on_load(
@@ -402,7 +385,7 @@ async def test_the_last_part_card_shows_the_verdict_live_and_on_load(
 
     # An inspected, defective part's record: shown when the page loads, with its reasons
     # and figures. Its image is asked for; a server that has none (404) leaves no picture.
-    await append_inspected_run(dashboard, "run-defective-1")
+    await append_inspected_run(dashboard.rig, "run-defective-1", DEFECTIVE_PART)
     images: list[str] = []
     page.on("request", lambda r: images.append(r.url) if "/inspection.jpg" in r.url else None)
     await page.reload()

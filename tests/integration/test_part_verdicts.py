@@ -12,7 +12,6 @@ run-ended listeners (where the metrics, the MQTT link and the webhooks hear a ru
 from __future__ import annotations
 
 import asyncio
-import time
 from pathlib import Path
 from typing import Any
 
@@ -21,9 +20,8 @@ from asyncua import Client
 
 from server.core.runs import RunEnded
 from server.opcua.address_space import NAMESPACE_URI
-from server.storage.journal import records
 from tests.mosquitto import mosquitto, subscriber
-from tests.rig import SPRAY_DEMO, WAIT_S, Rig, open_rig
+from tests.rig import SPRAY_DEMO, WAIT_S, Rig, append_inspected_run, open_rig
 from tests.serving import free_port
 
 CELL = "cell-q"
@@ -43,22 +41,6 @@ def summary(verdict: str, reasons: list[str], p95: float) -> dict[str, Any]:
         "vision_residual_mm": 0.2,
         "image": True,
     }
-
-
-async def append_inspected_run(rig: Rig, run_id: str, inspection: dict[str, Any]) -> None:
-    """An inspected run's start and end, through the journal's own writer."""
-    journal = rig.cell.journal
-    assert journal is not None
-    now = time.time()
-    result = {"workpieces": ["demo"], "waypoints": 9, "inspection": inspection}
-    written = journal.append(
-        [
-            records.operation_started(run_id, "trajectory", now - 2, {"workpiece_id": "demo"}),
-            records.operation_ended(run_id, now - 1, "completed", result, None, 1),
-        ]
-    )
-    assert written is not None
-    await written
 
 
 def tell_run_ended(rig: Rig, run_id: str, inspection: dict[str, Any]) -> None:
