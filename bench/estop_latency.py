@@ -66,7 +66,7 @@ from server.core.transitions import Event, State
 from server.core.worker import Worker
 from server.drivers.glue_registers import VALVE_COMMAND
 from server.errors import EventQueueFull
-from server.runtime import tune_garbage_collection
+from server.runtime import freeze_once_started, tune_garbage_collection
 from tests.serving import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -275,8 +275,10 @@ async def run(trials: int, queue_size: int, ws_clients: int) -> list[dict[str, A
     )
     cell = Cell(settings)
     port = free_port()
-    stages = StopStages(create_app(cell=cell), cell)
+    app = create_app(cell=cell)
+    stages = StopStages(app, cell)
     tune_garbage_collection()  # as python -m server does
+    freeze_once_started(app)
     server = uvicorn.Server(
         uvicorn.Config(
             stages,

@@ -4,14 +4,18 @@ subscription see it, and whether serving both makes the software stop any slower
 Who runs where, as a line runs: Debian's mosquitto, and four cells as server
 processes of their own (`python -m server`, simulated devices): `cell-1` with
 OPC UA and MQTT on, `cell-2` and `cell-3` with MQTT on (three cells on one
-broker), and `plain` with both off. This process is the plant: an MQTT
+broker), and `plain` with both off; and `control`, a second cell with both off,
+measured exactly as `plain` is. Two identical cells differ too (where each
+process lands on the two cores, what else runs at that moment): the gap between
+`control` and `plain` in the same run is the noise floor that the gap between
+`cell-1` and `plain` is read against. This process is the plant: an MQTT
 subscriber to every cell's `event` topic and an OPC UA client subscribed to
 cell-1's `CellState`, in a process of their own, and the HTTP client that drives
 the cycles, in this one.
 
-The stops of `cell-1` and `plain` are sent by a witness each (bench/stop_witness.py,
-a process of its own holding that cell's robot and glue simulators and a kept-alive
-HTTP client, as an HMI holds one), so a stop is timed twice: the **device stop**,
+The stops of `cell-1`, `plain` and `control` are sent by a witness each
+(bench/stop_witness.py, a process of its own holding that cell's robot and glue
+simulators and a kept-alive HTTP client, as an HMI holds one), so a stop is timed twice: the **device stop**,
 from the request leaving to the later of the robot receiving `stop` and the
 dispenser receiving the valve-close write (the simulators' own stamps, as
 `bench.estop_latency` takes them), and the **answer**, the POST /estop round trip.
@@ -34,8 +38,8 @@ time the plant received it minus that time, on the same machine's clock.
 - `opcua`: transition → OPC UA data change of cell-1's CellState, with the
   subscription's publishing interval (`--publishing-ms`, the server's floor is
   what asyncua grants) included: a client sees a change at the next publish.
-- device stop and answer, on cell-1 (both interfaces on, both subscribed to)
-  and on `plain` (both off), per condition, in the same run.
+- device stop and answer, on cell-1 (both interfaces on, both subscribed to),
+  on `plain` (both off) and on `control` (both off), per condition, in the same run.
 
 Run: `python -m bench.plant_latency` (`--cycles 100` by default; about six
 minutes on two cores, after the four cells have commissioned).
@@ -73,6 +77,8 @@ SETTLE_S = 60.0
 CONDITIONS = ("after a reset", "spraying")
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
 SPEED_FACTOR = "3.0"  # the witness's simulators' speed (bench/stop_witness.py), for every cell
+WITHOUT_INTERFACES = ("plain", "control")
+WITNESSED = ("cell-1", *WITHOUT_INTERFACES)  # each stop timed at the devices too
 
 
 def free_port() -> int:
@@ -309,16 +315,13 @@ def lags(received: list[tuple[float, dict[str, Any]]], stamp: str, since: float)
 async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[str, Any]]:
     broker = BrokerPorts("127.0.0.1", free_port(), free_port())
     mqtt_url = broker.mqtt_url
-    names = ("cell-1", "cell-2", "cell-3", "plain")
+    names = ("cell-1", "cell-2", "cell-3", "plain", "control")
     cells: list[Cell] = []
     for name in names:
-        extra = {
-            "GLUE_APP_CELL_ID": name.replace("plain", "cell-0"),
-            "GLUE_APP_SIMULATION_SPEED_FACTOR": SPEED_FACTOR,
-        }
-        if name != "plain":
+        extra = {"GLUE_APP_CELL_ID": name, "GLUE_APP_SIMULATION_SPEED_FACTOR": SPEED_FACTOR}
+        if name not in WITHOUT_INTERFACES:
             extra["GLUE_APP_MQTT_URL"] = mqtt_url
-        witness = await asyncio.to_thread(StopWitness) if name in ("cell-1", "plain") else None
+        witness = await asyncio.to_thread(StopWitness) if name in WITNESSED else None
         if witness is not None:
             extra["GLUE_APP_ROBOT_IP"] = "127.0.0.1"
             extra["GLUE_APP_ROBOT_PORT"] = str(witness.robot_port)
@@ -367,11 +370,15 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
         for cell in cells:
             if cell.witness is not None:
                 await asyncio.to_thread(cell.witness.close)
-    with_interfaces, without = cells[0], cells[3]
+    compared = (
+        (cells[0], "OPC UA + MQTT on"),
+        (cells[3], "both off"),
+        (cells[4], "both off, control cell"),
+    )
     stops = []
     for condition in CONDITIONS:
         for what, of in (("device stop", "device_stops"), ("answer", "answers")):
-            for cell, label in ((with_interfaces, "OPC UA + MQTT on"), (without, "both off")):
+            for cell, label in compared:
                 samples = getattr(cell, of).get(condition, [])
                 stops.append({"figure": f"{what}, {condition}, {label}", **percentiles_ms(samples)})
     return [
@@ -399,7 +406,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     logging.disable(logging.ERROR)
     with tempfile.TemporaryDirectory(prefix="bench-plant-") as data:
         rows = asyncio.run(run(args.cycles, args.publishing_ms, Path(data)))
-    emit("plant_latency", rows, {"cycles": args.cycles, "cells": 4})
+    emit("plant_latency", rows, {"cycles": args.cycles, "cells": 5})
     return rows
 
 

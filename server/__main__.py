@@ -16,7 +16,12 @@ from server.app import create_app
 from server.config import Settings
 from server.errors import ConfigurationError
 from server.logging_setup import configure as configure_logging
-from server.runtime import limit_malloc_arenas, raise_open_file_limit, tune_garbage_collection
+from server.runtime import (
+    freeze_once_started,
+    limit_malloc_arenas,
+    raise_open_file_limit,
+    tune_garbage_collection,
+)
 from server.settings_load import SettingsRefused, load_settings, unknown_variables
 from server.storage.data_lock import DataDirectoryBusy, DataDirectoryLock
 from server.storage.permissions import private_directory
@@ -91,6 +96,7 @@ def main(argv: list[str] | None = None) -> None:
     files = raise_open_file_limit()
     logging.getLogger(__name__).info("open-file limit %d", files)
     tune_garbage_collection()
+    freeze_once_started(app)  # and again once the cell, OPC UA and MQTT have started
     uvicorn.run(
         app,
         host=args.host,
