@@ -15,10 +15,11 @@ the cycles, in this one.
 
 The stops of `cell-1`, `plain` and `control` are sent by a witness each
 (bench/stop_witness.py, a process of its own holding that cell's robot and glue
-simulators and a kept-alive HTTP client, as an HMI holds one), so a stop is timed twice: the **device stop**,
-from the request leaving to the later of the robot receiving `stop` and the
-dispenser receiving the valve-close write (the simulators' own stamps, as
-`bench.estop_latency` takes them), and the **answer**, the POST /estop round trip.
+simulators and a kept-alive HTTP client, as an HMI holds one), so a stop is timed
+twice: the **device stop**, from the request leaving to the later of the robot
+receiving `stop` and the dispenser receiving the valve-close write (the
+simulators' own stamps, as `bench.estop_latency` takes them), and the
+**answer**, the POST /estop round trip.
 `cell-2` and `cell-3` run their simulators inside, as `python -m server` does;
 their stops are sent from here.
 

@@ -187,6 +187,30 @@ async def test_last_error_is_the_last_write_failure_until_a_write_succeeds(tmp_p
     journal.stop()
 
 
+async def test_caught_up_waits_for_every_batch_queued_before_it(tmp_path) -> None:
+    """Read-your-writes without a transaction of its own: each wait ends once the
+    batches queued before it are committed (durable or not), a wait cancelled on
+    the way disturbs no other, and with nothing queued it ends at once."""
+    journal = Journal(tmp_path / "journal.db")
+    journal.open()
+    journal.start(asyncio.get_running_loop())
+    await journal.caught_up()  # nothing queued yet
+    for n in range(20):
+        journal.append(
+            [records.operation_started(f"r{n}", "trajectory", time.time(), {})], durable=False
+        )
+        if n == 9:
+            cancelled = asyncio.ensure_future(journal.caught_up())
+            halfway = asyncio.ensure_future(journal.caught_up())
+            await asyncio.sleep(0)
+            cancelled.cancel()
+    await journal.caught_up()
+    assert len(journal.query("operations", limit=100)) == 20
+    await halfway
+    assert cancelled.cancelled()
+    journal.stop()
+
+
 async def test_restarting_in_error_again_and_again_keeps_the_first_fault_as_it_was(
     tmp_path,
 ) -> None:

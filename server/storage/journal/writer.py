@@ -122,6 +122,11 @@ class Writer:
         self._connect = connect
         self._prune = prune
         self._queue: deque[tuple[list[Record], asyncio.Future[None] | None]] = deque()
+        # Batches are numbered as queued; `_committed` is the number of the last one
+        # written (seen on the loop), and `_waiting` the `caught_up` calls not yet met.
+        self._queued = 0
+        self._committed = 0
+        self._waiting: list[tuple[int, asyncio.Future[None]]] = []
         self._wake = threading.Condition()
         self._stopping = False
         self._thread: threading.Thread | None = None
@@ -159,6 +164,7 @@ class Writer:
             future = self._loop.create_future()
         with self._wake:
             self._queue.append((records, future))
+            self._queued += 1
             self._wake.notify()
         return future
 
@@ -169,11 +175,17 @@ class Writer:
         client that has just seen ERROR on /state and then asks /history must find
         that transition there. Queries call this first (read-your-writes). A failed
         write is reported by the writer itself; the reader just reads what is there.
+
+        It queues nothing: it waits for the transaction that takes the last batch
+        queued. The plant's interfaces wait here for every transition, at the
+        moment its command is answered; a marker of their own made the writer
+        thread take another turn (and wake the loop again) just then.
         """
-        future = self.append([])
-        if future is not None:
-            with contextlib.suppress(Exception):
-                await future
+        if self._loop is None or self._committed >= self._queued:
+            return
+        waiter = self._loop.create_future()
+        self._waiting.append((self._queued, waiter))
+        await waiter
 
     def _run(self) -> None:
         connection = self._connect()
@@ -184,9 +196,10 @@ class Writer:
                     self._wake.wait(timeout=60)
                 batch = list(self._queue)
                 self._queue.clear()
+                through = self._queued  # the number of the last batch taken
                 stopping = self._stopping
             if batch:
-                self._write(connection, batch)
+                self._write(connection, batch, through)
             if stopping and not self._queue:
                 break
             if time.monotonic() - last_prune > DAY_S:
@@ -195,7 +208,7 @@ class Writer:
         connection.close()
         self._chain.close()
 
-    def _write(self, connection: sqlite3.Connection, batch: Batch) -> None:
+    def _write(self, connection: sqlite3.Connection, batch: Batch, through: int) -> None:
         error: Exception | None = None
         try:
             with connection:
@@ -212,15 +225,25 @@ class Writer:
         loop = self._loop
         if loop is None or loop.is_closed():
             return
-        for _, future in batch:
-            if future is not None:
-                loop.call_soon_threadsafe(_settle, future, error)
+        futures = [future for _, future in batch if future is not None]
+        with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
+            loop.call_soon_threadsafe(self._settle, futures, error, through)
 
-
-def _settle(future: asyncio.Future[None], error: Exception | None) -> None:
-    if future.done():
-        return
-    if error is None:
-        future.set_result(None)
-    else:
-        future.set_exception(error)
+    def _settle(
+        self, futures: list[asyncio.Future[None]], error: Exception | None, through: int
+    ) -> None:
+        """On the loop, once per transaction: its answers, then the waits it meets."""
+        for future in futures:
+            if future.done():
+                continue
+            if error is None:
+                future.set_result(None)
+            else:
+                future.set_exception(error)
+        self._committed = through
+        met = [waiter for number, waiter in self._waiting if number <= through]
+        if met:
+            self._waiting = [(n, w) for n, w in self._waiting if n > through]
+            for waiter in met:
+                if not waiter.done():
+                    waiter.set_result(None)
