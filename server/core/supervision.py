@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from server.config import Settings
+from server.core.clock import Timer
 from server.core.faults import classify
 from server.core.operations.base import Operation, OperationContext, OperationResult
 from server.errors import DeviceError, OperationError
@@ -47,22 +48,61 @@ class OperationTimeout(Exception):
 
 
 async def _run_once(operation: Operation, op_ctx: OperationContext, budget: float) -> Any:
-    clock = op_ctx.clock
-    task = asyncio.ensure_future(operation(op_ctx))
-    started = clock.monotonic()
+    """Run `operation` in this task, cancelled once it has run `budget` s (held time not
+    counted): OperationTimeout then.
+
+    Why in this task, under asyncio.timeout and a timer: a task for the operation and
+    one sleeping for its budget cost every run two tasks and a wait on both, for a
+    limit that almost never fires. asyncio.timeout cancels this very task and tells
+    its own expiry from a cancel from outside, which it passes on (a cancel is never
+    lost, unlike with asyncio.wait_for on 3.11).
+    """
+    deadline = asyncio.timeout(None)
+    budget_timer = _Budget(op_ctx, budget, deadline)
     try:
-        while not task.done():
-            remaining = budget - (clock.monotonic() - started - op_ctx.gate.paused_seconds())
-            if remaining <= 0 and not op_ctx.gate.paused:
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
-                raise OperationTimeout(f"operation exceeded processing_timeout ({budget:g} s)")
-            await _first_of(task, clock.sleep(max(remaining, 0.05)))
-        return task.result()
-    except asyncio.CancelledError:
-        task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
+        async with deadline:
+            budget_timer.start()
+            try:
+                return await operation(op_ctx)
+            finally:
+                budget_timer.cancel()
+    except Exception as exc:
+        if deadline.expired():  # whatever the operation made of the cancellation
+            raise OperationTimeout(f"operation exceeded processing_timeout ({budget:g} s)") from exc
         raise
+
+
+class _Budget:
+    """Expires `deadline` once the run has used `budget` s, time held paused not counted.
+
+    It looks again when the budget would run out, and every 0.05 s at least while
+    the run is held (the paused time keeps moving the end).
+    """
+
+    def __init__(self, op_ctx: OperationContext, budget: float, deadline: asyncio.Timeout):
+        self._clock = op_ctx.clock
+        self._gate = op_ctx.gate
+        self._budget = budget
+        self._deadline = deadline
+        self._started = self._clock.monotonic()
+        self._timer: Timer | None = None
+
+    def start(self) -> None:
+        self._look()
+
+    def cancel(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+    def _look(self) -> None:
+        used = self._clock.monotonic() - self._started - self._gate.paused_seconds()
+        remaining = self._budget - used
+        if remaining <= 0 and not self._gate.paused:
+            self._timer = None
+            self._deadline.reschedule(asyncio.get_running_loop().time())  # expires now
+            return
+        self._timer = self._clock.call_later(max(remaining, 0.05), self._look)
 
 
 async def supervise(
@@ -122,12 +162,3 @@ def as_result(value: Any) -> OperationResult:
     if isinstance(value, OperationResult):
         return value
     return OperationResult(value if isinstance(value, dict) else {"value": value})
-
-
-async def _first_of(task: asyncio.Future[Any], timer: Any) -> None:
-    """Wait until `task` is done or `timer` (a clock's sleep) has run out."""
-    sleeper = asyncio.ensure_future(timer)
-    try:
-        await asyncio.wait({task, sleeper}, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        sleeper.cancel()
