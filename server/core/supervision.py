@@ -57,50 +57,61 @@ async def _run_once(operation: Operation, op_ctx: OperationContext, budget: floa
     its own expiry from a cancel from outside, which it passes on (a cancel is never
     lost, unlike with asyncio.wait_for on 3.11).
     """
-    deadline = asyncio.timeout(None)
-    budget_timer = _Budget(op_ctx, budget, deadline)
+    limit = _Budget(op_ctx, budget)
     try:
-        async with deadline:
-            budget_timer.start()
-            try:
-                return await operation(op_ctx)
-            finally:
-                budget_timer.cancel()
+        async with limit:
+            return await operation(op_ctx)
     except Exception as exc:
-        if deadline.expired():  # whatever the operation made of the cancellation
+        if limit.expired:  # whatever the operation made of the cancellation
             raise OperationTimeout(f"operation exceeded processing_timeout ({budget:g} s)") from exc
         raise
 
 
 class _Budget:
-    """Expires `deadline` once the run has used `budget` s, time held paused not counted.
+    """Cancels the task it is entered in once the run has used `budget` s, time held
+    paused not counted (the block then raises TimeoutError and `expired` is set).
 
     It looks again when the budget would run out, and every 0.05 s at least while
-    the run is held (the paused time keeps moving the end).
+    the run is held (the paused time keeps moving the end). The asyncio.timeout it
+    uses is dropped on leaving: it refers to the task, and a run's frames kept by
+    its cancellation's traceback would otherwise hold the task in a reference
+    cycle, left for the garbage collector after every cancelled run.
     """
 
-    def __init__(self, op_ctx: OperationContext, budget: float, deadline: asyncio.Timeout):
+    def __init__(self, op_ctx: OperationContext, budget: float) -> None:
         self._clock = op_ctx.clock
         self._gate = op_ctx.gate
         self._budget = budget
-        self._deadline = deadline
         self._started = self._clock.monotonic()
+        self._deadline: asyncio.Timeout | None = None
         self._timer: Timer | None = None
+        self.expired = False
 
-    def start(self) -> None:
+    async def __aenter__(self) -> None:
+        self._deadline = asyncio.timeout(None)
+        await self._deadline.__aenter__()
         self._look()
 
-    def cancel(self) -> None:
+    async def __aexit__(self, *exc_info: Any) -> None:
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
+        deadline, self._deadline = self._deadline, None
+        assert deadline is not None
+        try:
+            await deadline.__aexit__(*exc_info)  # raises TimeoutError once expired
+        finally:
+            self.expired = deadline.expired()
 
     def _look(self) -> None:
+        deadline = self._deadline
+        if deadline is None:
+            return
         used = self._clock.monotonic() - self._started - self._gate.paused_seconds()
         remaining = self._budget - used
         if remaining <= 0 and not self._gate.paused:
             self._timer = None
-            self._deadline.reschedule(asyncio.get_running_loop().time())  # expires now
+            deadline.reschedule(asyncio.get_running_loop().time())  # expires now
             return
         self._timer = self._clock.call_later(max(remaining, 0.05), self._look)
 
