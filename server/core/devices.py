@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
+from server.core.eager import Started
 from server.drivers.base import Camera, FaultListener, GlueDispenser, Robot
 from server.errors import DeviceTimeout
 
@@ -45,24 +46,35 @@ class CellDevices:
         for device in self.by_name().values():
             device.set_fault_listener(listener)
 
-    async def safe_halt(self, timeout: float) -> HaltReport:
+    async def safe_halt(self, timeout: float, then: Callable[[], None] | None = None) -> HaltReport:
         """Close the glue valve and stop the robot now, valve first; never raises.
 
-        The halt of a transition, awaited in the worker's own task: the robot's stop
-        is put on its way as a task, then the valve's close runs right here (its first
-        step runs before the stop's task has its first turn, so the valve still goes
-        first, and neither waits for the other's answer). Two tasks fewer per halt
-        than `start_halt`, which an e-stop needs because its caller must not wait.
+        The halt of a transition, awaited in the worker's own task. The valve's close
+        takes its first step here, at once; then the robot's stop. If the valve is
+        waiting for its answer, the stop goes on its way as a task (so neither waits
+        for the other's answer); if the valve answered at once (nothing was waited
+        for), the stop takes its first step here too and no task is made. `then` (a
+        pause's hold) runs once both commands are on their way, before their answers.
         """
-        stop = asyncio.ensure_future(_within(self.robot.stop(), timeout))
+        valve = Started(_within(self.glue.set_valve(False), timeout))
+        stop: Started[None] | asyncio.Future[None]
+        if valve.done:
+            stop = Started(_within(self.robot.stop(), timeout))
+        else:
+            stop = asyncio.ensure_future(_within(self.robot.stop(), timeout))
         try:
-            valve_result: BaseException | None = await _within(self.glue.set_valve(False), timeout)
-        except asyncio.CancelledError:
-            stop.cancel()
+            if then is not None:
+                then()
+            valve_result = await _settled(valve)
+        except BaseException:
+            valve.close()
+            _abandon(stop)
             raise
-        except Exception as exc:
-            valve_result = exc
-        (stop_result,) = await asyncio.gather(stop, return_exceptions=True)
+        try:
+            stop_result = await _settled(stop)
+        except BaseException:
+            _abandon(stop)
+            raise
         return _report(valve_result, stop_result)
 
     def start_halt(self, timeout: float) -> asyncio.Future[HaltReport]:
@@ -154,6 +166,31 @@ class CellDevices:
         await asyncio.gather(
             *(device.close() for device in self.by_name().values()), return_exceptions=True
         )
+
+
+async def _settled(command: Awaitable[None]) -> BaseException | None:
+    """The exception a halt command ended with, or None when it succeeded.
+
+    A cancellation of the command itself (a stop task cancelled by someone else)
+    is its failure; one of the awaiting task (the worker shutting down) goes on up.
+    """
+    try:
+        await command
+    except asyncio.CancelledError as exc:
+        task = asyncio.current_task()
+        if task is not None and task.cancelling():
+            raise
+        return exc
+    except Exception as exc:
+        return exc
+    return None
+
+
+def _abandon(command: Started[None] | asyncio.Future[None]) -> None:
+    if isinstance(command, Started):
+        command.close()
+    else:
+        command.cancel()
 
 
 async def _halt_report(valve: asyncio.Future[None], stop: asyncio.Future[None]) -> HaltReport:

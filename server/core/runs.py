@@ -213,15 +213,14 @@ class Runs:
         """Pause: valve closed and robot stopped at once, as a halt, and the run held.
 
         Why the devices are commanded here rather than left to the run: the
-        commands leave on the loop's next turn, whatever the run is awaiting.
+        commands leave at once, whatever the run is awaiting; the gate closes as
+        soon as both are on their way, before their answers (`safe_halt`'s `then`).
         The run, told by its gate, then stops its own move, closes the valve
         again (an open it had queued may land after this close) and holds;
         PAUSED is entered only once both devices answered and the run holds.
         Raises PauseNotHeld when either is not confirmed.
         """
-        halt = self.devices.start_halt(self.settings.emergency_stop_timeout)
-        self.hold()
-        report = await halt
+        report = await self.devices.safe_halt(self.settings.emergency_stop_timeout, self.hold)
         if report.errors:
             component = report.errors[0].split(":", 1)[0]
             raise PauseNotHeld("glue" if component.startswith("glue") else "robot", report.errors)
