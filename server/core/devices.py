@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-from server.core.eager import Started
+from server.core.eager import Started, together, within
 from server.drivers.base import Camera, FaultListener, GlueDispenser, Robot
 from server.errors import DeviceTimeout
 
@@ -123,7 +123,7 @@ class CellDevices:
                 return f"{name}: {_describe(exc)}"
             return None
 
-        results = await asyncio.gather(*(probe(name) for name in self.by_name()))
+        results = await together([probe(name) for name in self.by_name()])
         return [fault for fault in results if fault]
 
     async def _probe_glue(self) -> str | None:
@@ -214,14 +214,14 @@ def _report(valve_result: object, stop_result: object) -> HaltReport:
     )
 
 
-async def _within(call: Awaitable[T], timeout: float) -> T:
-    """Await `call` for at most `timeout` s (TimeoutError after).
+def _within(call: Coroutine[Any, Any, T], timeout: float) -> Coroutine[Any, Any, T]:
+    """Await `call` for at most `timeout` s (TimeoutError after), in the caller's task.
 
-    Unlike asyncio.wait_for on Python 3.11, this runs `call` in the caller's
-    task instead of a new one: one task fewer on the path of every stop.
+    Unlike asyncio.wait_for on Python 3.11, this runs `call` in the caller's task
+    instead of a new one: one task fewer on the path of every stop; and its timer
+    is set only if `call` has to wait (`eager.within`).
     """
-    async with asyncio.timeout(timeout):
-        return await call
+    return within(call, timeout)
 
 
 def _describe(exc: BaseException) -> str:

@@ -18,6 +18,7 @@ cancellation is thrown into the coroutine where it waits.
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Coroutine, Generator
 from typing import Any, Generic, TypeVar
 
@@ -83,3 +84,45 @@ def _drive(coro: Coroutine[Any, Any, T], pending: Any) -> Generator[Any, Any, T]
                 pending = coro.send(sent)
             except StopIteration as stop:
                 return stop.value  # type: ignore[no-any-return]
+
+
+async def within(call: Coroutine[Any, Any, T], timeout: float) -> T:
+    """Await `call` for at most `timeout` s (TimeoutError after); the timer is set only
+    if `call` has to wait.
+
+    Why: a command that answers in its first step cannot be late, and arming and
+    cancelling a timer for it is a good part of what a halt costs on devices that
+    answer at once. The first step runs in this task and so does the rest, under
+    asyncio.timeout (not asyncio.wait_for, which on 3.11 can lose a cancel).
+    """
+    started = Started(call)
+    if started.done:
+        return await started
+    async with asyncio.timeout(timeout):
+        return await started
+
+
+async def together(calls: list[Coroutine[Any, Any, T]]) -> list[T]:
+    """The results of `calls`, run at once (none waits for another), in their order.
+
+    Like asyncio.gather, except that a call answering in its first step costs no
+    task: each is started here in turn while they answer at once; the first that
+    has to wait goes on in this task, and every later one as a task of its own.
+    If this task is cancelled, the calls still running are cancelled too.
+    """
+    results: list[T] = []
+    for index, call in enumerate(calls):
+        started = Started(call)
+        if started.done:
+            results.append(await started)
+            continue
+        rest = [asyncio.ensure_future(later) for later in calls[index + 1 :]]
+        try:
+            results.append(await started)
+        except BaseException:
+            for task in rest:
+                task.cancel()
+            raise
+        results.extend(await asyncio.gather(*rest))
+        break
+    return results
