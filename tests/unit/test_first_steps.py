@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+from server.config import Settings
 from server.core.devices import CellDevices
 from server.core.eager import Started
 from server.core.operations.base import PauseGate
@@ -165,3 +166,15 @@ async def _after_block(gate: PauseGate, moving: asyncio.Event) -> str:
     gate.pause()
     await _turns()
     return "not cancelled"
+
+
+async def test_a_run_cancelled_before_its_first_step_is_not_waited_for(
+    make_worker: Any, fast_settings: Settings
+) -> None:
+    """Its `finally` never runs, so the end is told by the task's done callback instead."""
+    worker = await make_worker(fast_settings.model_copy(update={"emergency_stop_timeout": 30.0}))
+    worker.runs.start("calibrate_robot", "run-early", {})
+    # cancelled in the same turn it was created (asyncio.timeout, not wait_for, which
+    # would run cancel() in a task of its own, a turn later): not the 30 s timeout
+    async with asyncio.timeout(5):
+        await worker.runs.cancel()
