@@ -101,18 +101,21 @@ class CellDevices:
         self.robot.new_session()
         self.glue.new_session()
 
-        async def probe(name: str) -> str | None:
+        async def ask(name: str) -> str | None:
             device = self.by_name()[name]
+            if not device.health.connected:  # never came up, or the link was lost
+                await device.connect()
+            if name == "robot":
+                await self.robot.get_position()
+            elif name == "glue":
+                return await self._probe_glue()
+            else:
+                await self.camera.capture()
+            return None
+
+        async def probe(name: str) -> str | None:
             try:
-                async with asyncio.timeout(timeout):
-                    if not device.health.connected:  # never came up, or the link was lost
-                        await device.connect()
-                    if name == "robot":
-                        await self.robot.get_position()
-                    elif name == "glue":
-                        return await self._probe_glue()
-                    else:
-                        await self.camera.capture()
+                return await within(ask(name), timeout)  # the timer only if it waits
             except asyncio.CancelledError:
                 raise
             except TimeoutError:
@@ -121,7 +124,6 @@ class CellDevices:
                 return f"{name}: no answer in time ({str(exc).removeprefix(name + ': ')})"
             except Exception as exc:
                 return f"{name}: {_describe(exc)}"
-            return None
 
         results = await together([probe(name) for name in self.by_name()])
         return [fault for fault in results if fault]
