@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -207,6 +208,13 @@ class FakeClock:
         future = asyncio.get_running_loop().create_future()
         self._sleepers.append((self._now + max(seconds, 0.0), future))
         await future
+
+    def call_later(self, seconds: float, callback: Callable[[], None]) -> asyncio.Future[None]:
+        """`callback` once `advance` moves time past `seconds` from now; cancel() drops it."""
+        future = asyncio.get_running_loop().create_future()
+        future.add_done_callback(lambda done: None if done.cancelled() else callback())
+        self._sleepers.append((self._now + max(seconds, 0.0), future))
+        return future
 
     async def advance(self, seconds: float) -> None:
         """Let pending work reach its sleeps, move time on, and wake whoever is due."""

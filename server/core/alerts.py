@@ -8,13 +8,12 @@ counted in the KPI error rate) and pushed on /ws as an `alert`.
 
 from __future__ import annotations
 
-import asyncio
 import logging
 from collections.abc import Iterable
 
 from server.config import Settings
 from server.core.bus import Bus
-from server.core.clock import Clock
+from server.core.clock import Clock, Timer
 from server.core.context import MachineContext
 from server.core.operations.base import OperationWarning
 from server.core.recorder import Recorder
@@ -42,7 +41,7 @@ class Alerts:
         self.bus = bus
         self.recorder = recorder
         self.clock = clock
-        self._error_timer: asyncio.Task[None] | None = None
+        self._error_timer: Timer | None = None
 
     def warn(self, code: str, message: str, component: str) -> None:
         """A warning-class condition: logged, journaled, pushed on /ws; the cell runs on."""
@@ -84,11 +83,15 @@ class Alerts:
             self.warn(warning.code, warning.message, operation)
 
     def watch_state(self, state: State) -> None:
-        """Start the ERROR-timeout alert on entering ERROR; stop it on leaving."""
+        """Start the ERROR-timeout alert on entering ERROR; stop it on leaving.
+
+        A timer, not a task that sleeps: every entry into ERROR would otherwise
+        cost the worker a task created and cancelled.
+        """
         self.stop()
         if state is State.ERROR:
-            self._error_timer = asyncio.create_task(
-                self._alert_after_timeout(), name="error-state-alert"
+            self._error_timer = self.clock.call_later(
+                self.settings.error_state_timeout, self._alert_after_timeout
             )
 
     def stop(self) -> None:
@@ -96,9 +99,9 @@ class Alerts:
             self._error_timer.cancel()
             self._error_timer = None
 
-    async def _alert_after_timeout(self) -> None:
+    def _alert_after_timeout(self) -> None:
+        self._error_timer = None
         timeout = self.settings.error_state_timeout
-        await self.clock.sleep(timeout)
         reason = self.ctx.stop_reason.message if self.ctx.stop_reason else "unknown"
         message = f"the cell has been in ERROR for {timeout:g} s (first fault: {reason})"
         self.warn("ERROR_STATE_TIMEOUT", message, "system")

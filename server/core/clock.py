@@ -3,13 +3,24 @@
 Why: a unit test of a 30 s budget or a 5 s ERROR alert should take
 milliseconds, not 30 s. Production code uses `SYSTEM_CLOCK`; tests hand in a
 clock whose `sleep` advances virtual time at once (see tests/fakes.py).
+
+`call_later` is the cheap form of a wait whose only purpose is to do one
+thing later (the ERROR alert, a run's time budget): a timer on the loop, not a
+task that sleeps, so the worker's hot path creates no task for it.
 """
 
 from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 from typing import Protocol
+
+
+class Timer(Protocol):
+    """A callback scheduled by `Clock.call_later`; cancelling it means it never runs."""
+
+    def cancel(self) -> None: ...
 
 
 class Clock(Protocol):
@@ -27,6 +38,10 @@ class Clock(Protocol):
         """Wait `seconds` of this clock's time."""
         ...
 
+    def call_later(self, seconds: float, callback: Callable[[], None]) -> Timer:
+        """Call `callback` on the running loop once `seconds` of this clock's time passed."""
+        ...
+
 
 class SystemClock:
     """The real clock."""
@@ -39,6 +54,9 @@ class SystemClock:
 
     async def sleep(self, seconds: float) -> None:
         await asyncio.sleep(seconds)
+
+    def call_later(self, seconds: float, callback: Callable[[], None]) -> Timer:
+        return asyncio.get_running_loop().call_later(seconds, callback)
 
 
 SYSTEM_CLOCK: Clock = SystemClock()

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
+from server.core.eager import Started, together, within
 from server.drivers.base import Camera, FaultListener, GlueDispenser, Robot
 from server.errors import DeviceTimeout
 
@@ -45,24 +46,35 @@ class CellDevices:
         for device in self.by_name().values():
             device.set_fault_listener(listener)
 
-    async def safe_halt(self, timeout: float) -> HaltReport:
+    async def safe_halt(self, timeout: float, then: Callable[[], None] | None = None) -> HaltReport:
         """Close the glue valve and stop the robot now, valve first; never raises.
 
-        The halt of a transition, awaited in the worker's own task: the robot's stop
-        is put on its way as a task, then the valve's close runs right here (its first
-        step runs before the stop's task has its first turn, so the valve still goes
-        first, and neither waits for the other's answer). Two tasks fewer per halt
-        than `start_halt`, which an e-stop needs because its caller must not wait.
+        The halt of a transition, awaited in the worker's own task. The valve's close
+        takes its first step here, at once; then the robot's stop. If the valve is
+        waiting for its answer, the stop goes on its way as a task (so neither waits
+        for the other's answer); if the valve answered at once (nothing was waited
+        for), the stop takes its first step here too and no task is made. `then` (a
+        pause's hold) runs once both commands are on their way, before their answers.
         """
-        stop = asyncio.ensure_future(_within(self.robot.stop(), timeout))
+        valve = Started(_within(self.glue.set_valve(False), timeout))
+        stop: Started[None] | asyncio.Future[None]
+        if valve.done:
+            stop = Started(_within(self.robot.stop(), timeout))
+        else:
+            stop = asyncio.ensure_future(_within(self.robot.stop(), timeout))
         try:
-            valve_result: BaseException | None = await _within(self.glue.set_valve(False), timeout)
-        except asyncio.CancelledError:
-            stop.cancel()
+            if then is not None:
+                then()
+            valve_result = await _settled(valve)
+        except BaseException:
+            valve.close()
+            _abandon(stop)
             raise
-        except Exception as exc:
-            valve_result = exc
-        (stop_result,) = await asyncio.gather(stop, return_exceptions=True)
+        try:
+            stop_result = await _settled(stop)
+        except BaseException:
+            _abandon(stop)
+            raise
         return _report(valve_result, stop_result)
 
     def start_halt(self, timeout: float) -> asyncio.Future[HaltReport]:
@@ -89,18 +101,21 @@ class CellDevices:
         self.robot.new_session()
         self.glue.new_session()
 
-        async def probe(name: str) -> str | None:
+        async def ask(name: str) -> str | None:
             device = self.by_name()[name]
+            if not device.health.connected:  # never came up, or the link was lost
+                await device.connect()
+            if name == "robot":
+                await self.robot.get_position()
+            elif name == "glue":
+                return await self._probe_glue()
+            else:
+                await self.camera.capture()
+            return None
+
+        async def probe(name: str) -> str | None:
             try:
-                async with asyncio.timeout(timeout):
-                    if not device.health.connected:  # never came up, or the link was lost
-                        await device.connect()
-                    if name == "robot":
-                        await self.robot.get_position()
-                    elif name == "glue":
-                        return await self._probe_glue()
-                    else:
-                        await self.camera.capture()
+                return await within(ask(name), timeout)  # the timer only if it waits
             except asyncio.CancelledError:
                 raise
             except TimeoutError:
@@ -109,9 +124,8 @@ class CellDevices:
                 return f"{name}: no answer in time ({str(exc).removeprefix(name + ': ')})"
             except Exception as exc:
                 return f"{name}: {_describe(exc)}"
-            return None
 
-        results = await asyncio.gather(*(probe(name) for name in self.by_name()))
+        results = await together([probe(name) for name in self.by_name()])
         return [fault for fault in results if fault]
 
     async def _probe_glue(self) -> str | None:
@@ -156,6 +170,31 @@ class CellDevices:
         )
 
 
+async def _settled(command: Awaitable[None]) -> BaseException | None:
+    """The exception a halt command ended with, or None when it succeeded.
+
+    A cancellation of the command itself (a stop task cancelled by someone else)
+    is its failure; one of the awaiting task (the worker shutting down) goes on up.
+    """
+    try:
+        await command
+    except asyncio.CancelledError as exc:
+        task = asyncio.current_task()
+        if task is not None and task.cancelling():
+            raise
+        return exc
+    except Exception as exc:
+        return exc
+    return None
+
+
+def _abandon(command: Started[None] | asyncio.Future[None]) -> None:
+    if isinstance(command, Started):
+        command.close()
+    else:
+        command.cancel()
+
+
 async def _halt_report(valve: asyncio.Future[None], stop: asyncio.Future[None]) -> HaltReport:
     valve_result, stop_result = await asyncio.gather(valve, stop, return_exceptions=True)
     return _report(valve_result, stop_result)
@@ -177,14 +216,14 @@ def _report(valve_result: object, stop_result: object) -> HaltReport:
     )
 
 
-async def _within(call: Awaitable[T], timeout: float) -> T:
-    """Await `call` for at most `timeout` s (TimeoutError after).
+def _within(call: Coroutine[Any, Any, T], timeout: float) -> Coroutine[Any, Any, T]:
+    """Await `call` for at most `timeout` s (TimeoutError after), in the caller's task.
 
-    Unlike asyncio.wait_for on Python 3.11, this runs `call` in the caller's
-    task instead of a new one: one task fewer on the path of every stop.
+    Unlike asyncio.wait_for on Python 3.11, this runs `call` in the caller's task
+    instead of a new one: one task fewer on the path of every stop; and its timer
+    is set only if `call` has to wait (`eager.within`).
     """
-    async with asyncio.timeout(timeout):
-        return await call
+    return within(call, timeout)
 
 
 def _describe(exc: BaseException) -> str:

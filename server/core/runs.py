@@ -106,6 +106,7 @@ class Runs:
         self.trajectory: dict[str, Any] | None = None  # the plan of the current or last run
         self.frames = LatestFrame()  # the last frame an operation measured on, for the HMI
         self._task: asyncio.Task[None] | None = None
+        self._ended: asyncio.Future[None] | None = None  # set as the run's task ends
         self._gate: PauseGate | None = None
         self._leash: Leash | None = None  # the running operation's hold on the devices
         # Called with (kind, outcome, seconds) when an operation ends, e.g. by metrics.
@@ -151,11 +152,28 @@ class Runs:
             clock=self.clock,
         )
         operation = _from_safe_position(self.operations[name])
+        self._ended = ended = asyncio.get_running_loop().create_future()
         self._task = asyncio.create_task(
-            self._supervise(operation, op_ctx), name=f"operation-{name}"
+            self._supervise(operation, op_ctx, ended), name=f"operation-{name}"
         )
+        # A task cancelled before its first step never runs _supervise's `finally`.
+        self._task.add_done_callback(lambda _: None if ended.done() else ended.set_result(None))
 
-    async def _supervise(self, operation: Operation, op_ctx: OperationContext) -> None:
+    async def _supervise(
+        self, operation: Operation, op_ctx: OperationContext, ended: asyncio.Future[None]
+    ) -> None:
+        """Run one operation and post its outcome; `ended` is set as it ends, however.
+
+        Why `ended`: set in the task's last step, it wakes a cancel waiting for the
+        run a loop turn sooner than the task's own done callbacks would.
+        """
+        try:
+            await self._supervised(operation, op_ctx)
+        finally:
+            if not ended.done():
+                ended.set_result(None)
+
+    async def _supervised(self, operation: Operation, op_ctx: OperationContext) -> None:
         """Run one operation (budget and retries in supervision.py); post its outcome."""
         run_id = op_ctx.run_id
 
@@ -213,15 +231,14 @@ class Runs:
         """Pause: valve closed and robot stopped at once, as a halt, and the run held.
 
         Why the devices are commanded here rather than left to the run: the
-        commands leave on the loop's next turn, whatever the run is awaiting.
+        commands leave at once, whatever the run is awaiting; the gate closes as
+        soon as both are on their way, before their answers (`safe_halt`'s `then`).
         The run, told by its gate, then stops its own move, closes the valve
         again (an open it had queued may land after this close) and holds;
         PAUSED is entered only once both devices answered and the run holds.
         Raises PauseNotHeld when either is not confirmed.
         """
-        halt = self.devices.start_halt(self.settings.emergency_stop_timeout)
-        self.hold()
-        report = await halt
+        report = await self.devices.safe_halt(self.settings.emergency_stop_timeout, self.hold)
         if report.errors:
             component = report.errors[0].split(":", 1)[0]
             raise PauseNotHeld("glue" if component.startswith("glue") else "robot", report.errors)
@@ -296,15 +313,23 @@ class Runs:
     async def cancel(self) -> None:
         """Cancel the running operation and wait (bounded) until it has stopped."""
         task, self._task = self._task, None
+        ended, self._ended = self._ended, None
         if self._leash is not None:
             self._leash.cut = True  # from now on it moves nothing, whatever becomes of the cancel
         if self._gate is not None:
             self._gate.resume()  # a held operation must see the cancellation, not the gate
         self._gate = None
         self.ctx.operation = None
-        if task is not None and not task.done():
+        if task is not None and not task.done() and ended is not None:
             task.cancel()
-            await asyncio.wait({task}, timeout=self.settings.emergency_stop_timeout)
+            try:
+                # Not asyncio.wait_for (loses a cancel on 3.11). On time out, or if the
+                # worker is cancelled meanwhile, it is `ended` that is cancelled, never
+                # the run a second time: its own stop sequence is left to finish.
+                async with asyncio.timeout(self.settings.emergency_stop_timeout):
+                    await ended
+            except TimeoutError:
+                pass  # the leash is cut: whatever it still does, it moves nothing
 
     async def stop(self) -> None:
         """At shutdown: the task goes, whatever it was doing."""

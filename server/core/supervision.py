@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from server.config import Settings
+from server.core.clock import Timer
 from server.core.faults import classify
 from server.core.operations.base import Operation, OperationContext, OperationResult
 from server.errors import DeviceError, OperationError
@@ -47,22 +48,72 @@ class OperationTimeout(Exception):
 
 
 async def _run_once(operation: Operation, op_ctx: OperationContext, budget: float) -> Any:
-    clock = op_ctx.clock
-    task = asyncio.ensure_future(operation(op_ctx))
-    started = clock.monotonic()
+    """Run `operation` in this task, cancelled once it has run `budget` s (held time not
+    counted): OperationTimeout then.
+
+    Why in this task, under asyncio.timeout and a timer: a task for the operation and
+    one sleeping for its budget cost every run two tasks and a wait on both, for a
+    limit that almost never fires. asyncio.timeout cancels this very task and tells
+    its own expiry from a cancel from outside, which it passes on (a cancel is never
+    lost, unlike with asyncio.wait_for on 3.11).
+    """
+    limit = _Budget(op_ctx, budget)
     try:
-        while not task.done():
-            remaining = budget - (clock.monotonic() - started - op_ctx.gate.paused_seconds())
-            if remaining <= 0 and not op_ctx.gate.paused:
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
-                raise OperationTimeout(f"operation exceeded processing_timeout ({budget:g} s)")
-            await _first_of(task, clock.sleep(max(remaining, 0.05)))
-        return task.result()
-    except asyncio.CancelledError:
-        task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
+        async with limit:
+            return await operation(op_ctx)
+    except Exception as exc:
+        if limit.expired:  # whatever the operation made of the cancellation
+            raise OperationTimeout(f"operation exceeded processing_timeout ({budget:g} s)") from exc
         raise
+
+
+class _Budget:
+    """Cancels the task it is entered in once the run has used `budget` s, time held
+    paused not counted (the block then raises TimeoutError and `expired` is set).
+
+    It looks again when the budget would run out, and every 0.05 s at least while
+    the run is held (the paused time keeps moving the end). The asyncio.timeout it
+    uses is dropped on leaving: it refers to the task, and a run's frames kept by
+    its cancellation's traceback would otherwise hold the task in a reference
+    cycle, left for the garbage collector after every cancelled run.
+    """
+
+    def __init__(self, op_ctx: OperationContext, budget: float) -> None:
+        self._clock = op_ctx.clock
+        self._gate = op_ctx.gate
+        self._budget = budget
+        self._started = self._clock.monotonic()
+        self._deadline: asyncio.Timeout | None = None
+        self._timer: Timer | None = None
+        self.expired = False
+
+    async def __aenter__(self) -> None:
+        self._deadline = asyncio.timeout(None)
+        await self._deadline.__aenter__()
+        self._look()
+
+    async def __aexit__(self, *exc_info: Any) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        deadline, self._deadline = self._deadline, None
+        assert deadline is not None
+        try:
+            await deadline.__aexit__(*exc_info)  # raises TimeoutError once expired
+        finally:
+            self.expired = deadline.expired()
+
+    def _look(self) -> None:
+        deadline = self._deadline
+        if deadline is None:
+            return
+        used = self._clock.monotonic() - self._started - self._gate.paused_seconds()
+        remaining = self._budget - used
+        if remaining <= 0 and not self._gate.paused:
+            self._timer = None
+            deadline.reschedule(asyncio.get_running_loop().time())  # expires now
+            return
+        self._timer = self._clock.call_later(max(remaining, 0.05), self._look)
 
 
 async def supervise(
@@ -122,12 +173,3 @@ def as_result(value: Any) -> OperationResult:
     if isinstance(value, OperationResult):
         return value
     return OperationResult(value if isinstance(value, dict) else {"value": value})
-
-
-async def _first_of(task: asyncio.Future[Any], timer: Any) -> None:
-    """Wait until `task` is done or `timer` (a clock's sleep) has run out."""
-    sleeper = asyncio.ensure_future(timer)
-    try:
-        await asyncio.wait({task, sleeper}, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        sleeper.cancel()

@@ -122,6 +122,7 @@ class Worker:
         self.preconditions = Preconditions(stores, settings)  # what a command needs first
         self.view = CellView(self)  # what the API, the hub and metrics read
         self._ready: set[str] = set()
+        self._ready_now: frozenset[str] = frozenset()  # _ready as the guards see it, kept
         self._boot = secrets.token_hex(3)
         self._ids = itertools.count(1)
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -276,11 +277,19 @@ class Worker:
 
     def facts(self) -> Facts:
         """Guard facts from what is known without asking the devices (a reset probes them)."""
+        devices = self.devices
         known: list[str] = []
-        for name, device in self.devices.by_name().items():
+        for name, device in (
+            ("robot", devices.robot),
+            ("glue", devices.glue),
+            ("camera", devices.camera),
+        ):
             health = device.health
-            known.extend(health.active_faults if health.connected else (f"{name}: not connected",))
-        return Facts(ready_devices=frozenset(self._ready), active_faults=tuple(known))
+            if not health.connected:
+                known.append(f"{name}: not connected")
+            elif health.active_faults:
+                known.extend(health.active_faults)
+        return Facts(ready_devices=self._ready_now, active_faults=tuple(known))
 
     # --- the loop ----------------------------------------------------------
 
@@ -433,6 +442,7 @@ class Worker:
 
     def _note_ready(self, decision: Decision, envelope: Envelope) -> None:
         self._ready.add(READINESS_EVENTS[decision.event])
+        self._ready_now = frozenset(self._ready)
         if self._ready >= REQUIRED_DEVICES and self.ctx.state is State.INITIALIZING:
             self.submit(Event.SYSTEM_READY, source="system", bounded=False)
 

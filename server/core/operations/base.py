@@ -100,6 +100,7 @@ class PauseGate:
         self._open = asyncio.Event()
         self._open.set()
         self._interruptible: set[asyncio.Future[Any]] = set()
+        self._in_task: set[Interruption] = set()
         self._no_step = asyncio.Event()
         self._no_step.set()
         self._steps = 0
@@ -117,6 +118,8 @@ class PauseGate:
         self._open.clear()
         for move in list(self._interruptible):
             move.cancel()
+        for stretch in list(self._in_task):
+            stretch.interrupt()
 
     def resume(self) -> None:
         if self._paused_at is not None:
@@ -138,6 +141,10 @@ class PauseGate:
             yield
         finally:
             self._interruptible.discard(move)
+
+    def interruption(self) -> Interruption:
+        """A stretch of the current task that a pause interrupts on the spot (see Interruption)."""
+        return Interruption(self._in_task)
 
     @property
     def in_step(self) -> bool:
@@ -177,6 +184,46 @@ class PauseGate:
             self._steps -= 1
             if self._steps == 0:
                 self._no_step.set()
+
+
+class Interruption:
+    """`async with gate.interruption() as it:` a pause cancels this task inside the block,
+    and the block ends as if its work had returned, with `it.interrupted` set.
+
+    Why not a task per move (as `interrupting`): a move that answers at once would
+    cost its run a task and a loop turn for nothing. The cancellation is the pause's
+    own, told apart from any other by the task's cancel count, as asyncio.timeout
+    does: a cancel from outside (the run cancelled, a timeout) that lands too is
+    never swallowed, it goes on up.
+    """
+
+    __slots__ = ("_cancelling", "_registry", "_task", "interrupted")
+
+    def __init__(self, registry: set[Interruption]) -> None:
+        self._registry = registry
+        self._task: asyncio.Task[Any] | None = None
+        self._cancelling = 0
+        self.interrupted = False
+
+    async def __aenter__(self) -> Interruption:
+        task = asyncio.current_task()
+        assert task is not None, "an interruption belongs to a task"
+        self._task, self._cancelling = task, task.cancelling()
+        self._registry.add(self)
+        return self
+
+    async def __aexit__(self, exc_type: type[BaseException] | None, *_: object) -> bool:
+        self._registry.discard(self)
+        if not self.interrupted or self._task is None:
+            return False
+        remaining = self._task.uncancel()  # the pause's cancel, delivered or not, is spent
+        return exc_type is asyncio.CancelledError and remaining <= self._cancelling
+
+    def interrupt(self) -> None:
+        """Cancel the task where it waits inside the block (the pause does, synchronously)."""
+        if not self.interrupted and self._task is not None:
+            self.interrupted = True
+            self._task.cancel()
 
 
 @dataclass

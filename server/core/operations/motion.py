@@ -2,12 +2,17 @@
 
 Why not just hold between moves: a spray segment lasts up to a second or
 more, and a pause that waited for its end would leave the arm moving with the
-valve open after PAUSED was reported. So a move inside a pause-gate step runs
-as a task the pause cancels on the spot (the driver sends `stop`; a move that
+valve open after PAUSED was reported. So a move inside a pause-gate step is
+cancelled by the pause on the spot (the driver sends `stop`; a move that
 had not sent `moveL` yet never sends it, so nothing starts after the
 worker's stop), the robot is confirmed still and its pose is read; the
 operation then closes the valve, leaves the step, holds, and on resume
 re-approaches that pose and continues the same segment from there.
+
+The move runs in the run's own task, in a `gate.interruption()`: the pause
+cancels the task there, and the block tells that cancellation from any other
+(a cancel or a timeout of the run goes on up). No task per move, so a move
+that answers at once costs no loop turn.
 """
 
 from __future__ import annotations
@@ -35,21 +40,16 @@ async def pausable_move(ctx: OperationContext, target: Pose, speed: float) -> Po
     gate = ctx.gate
     if gate.paused:
         return await stop_here(ctx, target)
-    move = asyncio.ensure_future(
-        ctx.robot.move_linear(target, speed, ctx.settings.acceleration_mm_s2)
-    )
-    with gate.interrupting(move):  # a pause cancels it at once; the driver then sends stop
-        try:
-            await asyncio.wait({move})
-        except asyncio.CancelledError:
-            move.cancel()
-            await asyncio.gather(move, return_exceptions=True)
-            raise
+    interruption = gate.interruption()  # a pause cancels the move here; the driver sends stop
+    try:
+        async with interruption:
+            await ctx.robot.move_linear(target, speed, ctx.settings.acceleration_mm_s2)
+    except Exception:
+        if not gate.paused:
+            raise  # the move failed: the fault is the run's
+        # failed while a pause was made: stopped by the worker's own stop, the pause's
     if not gate.paused:
-        move.result()  # finished (or failed: the fault is the run's)
         return None
-    if not move.cancelled():
-        move.exception()  # stopped by the worker's own stop: taken as the pause's
     return await stop_here(ctx, target)
 
 

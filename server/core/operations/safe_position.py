@@ -9,9 +9,8 @@ command), and its target is checked against the workspace before it moves.
 
 from __future__ import annotations
 
-import asyncio
-
 from server.config import Settings
+from server.core.eager import within
 from server.core.operations.base import OperationContext
 from server.core.operations.motion import pausable_move
 from server.drivers.base import Pose
@@ -53,8 +52,9 @@ async def move_to_safe_position(ctx: OperationContext) -> None:
                 # Not asyncio.wait_for: on Python 3.11 it swallows a cancellation that
                 # arrives as the move finishes (CPython gh-86296), so a cancel or an
                 # e-stop could leave the run going on after the cell left its state.
-                async with asyncio.timeout(settings.safe_position_timeout):
-                    stopped = await pausable_move(ctx, pose, settings.travel_speed_mm_s)
+                # `within` is asyncio.timeout, set only if the move has to wait.
+                move = pausable_move(ctx, pose, settings.travel_speed_mm_s)
+                stopped = await within(move, settings.safe_position_timeout)
             except TimeoutError as exc:
                 limit = settings.safe_position_timeout
                 raise OperationError(

@@ -7,6 +7,7 @@ transaction.
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass
 from typing import Any
@@ -39,14 +40,19 @@ def _appended(
     table: str, columns: tuple[str, ...], values: tuple[Any, ...], *, replace: bool = False
 ) -> Record:
     """A row of a sealed `table`: `values` for `columns`."""
+    sql, sealed = _statements(table, columns, replace)
+    return Record(sql, values, sealed)
+
+
+@functools.cache
+def _statements(table: str, columns: tuple[str, ...], replace: bool) -> tuple[str, Sealed]:
+    """The SQL of a row of `table` (plain and sealed): built once per kind of row, not per
+    row, since every event the worker decides writes one or more."""
     verb = "INSERT OR REPLACE" if replace else "INSERT"
     placeholders = ",".join("?" * len(columns))
     sealed = f"{verb} INTO {table} ({', '.join(columns)}, {COMMIT_SEQ}) VALUES ({placeholders},?)"
-    return Record(
-        f"{verb} INTO {table} ({', '.join(columns)}) VALUES ({placeholders})",
-        values,
-        Sealed(table, sealed),
-    )
+    plain = f"{verb} INTO {table} ({', '.join(columns)}) VALUES ({placeholders})"
+    return plain, Sealed(table, sealed)
 
 
 def _json(value: Any) -> str:

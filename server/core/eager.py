@@ -1,0 +1,128 @@
+"""A coroutine's first step run at once, in the task that goes on to await the rest.
+
+Why: the worker's halt, a pause's hold and a reset's probe each command several
+devices "at once", which costs a task per command. A command that answers
+without waiting (a device that needs no round trip, a fake) then pays a task
+and a loop turn for nothing. Python 3.12's eager tasks solve this for tasks;
+3.11 has none. `Started(coro)` runs the first step now: if it finished, its
+result is there without a task; if it is waiting, the caller decides what
+else to start before it awaits the rest (see `CellDevices.safe_halt`).
+
+The one rule that makes this safe: **the rest is awaited in the same task that
+ran the first step**, never handed to another one. The first step may bind
+itself to the current task (`asyncio.timeout` does, to cancel it later), and
+awaiting the rest here keeps that binding true. Awaiting a `Started` then
+behaves exactly like `await coro`: the same futures reach the task, and a
+cancellation is thrown into the coroutine where it waits.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Coroutine, Generator
+from typing import Any, Generic, TypeVar
+
+T = TypeVar("T")
+
+
+class Started(Generic[T]):
+    """`coro` with its first step already run in the current task; await it for the rest."""
+
+    __slots__ = ("_coro", "_error", "_pending", "_result", "done")
+
+    def __init__(self, coro: Coroutine[Any, Any, T]) -> None:
+        self._coro = coro
+        self._pending: Any = None  # what the coroutine waits on (a future, or None: a bare yield)
+        self._result: T | None = None
+        self._error: BaseException | None = None
+        self.done = True  # finished in its first step (with a result or an exception)
+        try:
+            self._pending = coro.send(None)
+        except StopIteration as stop:
+            self._result = stop.value
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except BaseException as exc:  # CancelledError included: the coroutine's own outcome
+            self._error = exc
+        else:
+            self.done = False
+
+    def close(self) -> None:
+        """Abandon a coroutine still waiting (its `finally` blocks run now)."""
+        if not self.done:
+            self.done = True
+            self._coro.close()
+
+    def __await__(self) -> Generator[Any, Any, T]:
+        if self.done:
+            if self._error is not None:
+                raise self._error
+            return self._result  # type: ignore[return-value]
+        self.done = True  # awaited once: from here the coroutine runs in this task
+        return (yield from _drive(self._coro, self._pending))
+
+
+def _drive(coro: Coroutine[Any, Any, T], pending: Any) -> Generator[Any, Any, T]:
+    """`await coro` from where its first step left it waiting on `pending`.
+
+    What `yield from` does, except that the first value is already known: each
+    resumption is sent in, each exception (a cancellation) thrown in.
+    """
+    while True:
+        try:
+            sent = yield pending
+        except GeneratorExit:
+            coro.close()
+            raise
+        except BaseException as exc:
+            try:
+                pending = coro.throw(exc)
+            except StopIteration as stop:
+                return stop.value  # type: ignore[no-any-return]
+        else:
+            try:
+                pending = coro.send(sent)
+            except StopIteration as stop:
+                return stop.value  # type: ignore[no-any-return]
+
+
+async def within(call: Coroutine[Any, Any, T], timeout: float) -> T:
+    """Await `call` for at most `timeout` s (TimeoutError after); the timer is set only
+    if `call` has to wait.
+
+    Why: a command that answers in its first step cannot be late, and arming and
+    cancelling a timer for it is a good part of what a halt costs on devices that
+    answer at once. The first step runs in this task and so does the rest, under
+    asyncio.timeout (not asyncio.wait_for, which on 3.11 can lose a cancel).
+    """
+    started = Started(call)
+    if started.done:
+        return await started
+    async with asyncio.timeout(timeout):
+        return await started
+
+
+async def together(calls: list[Coroutine[Any, Any, T]]) -> list[T]:
+    """The results of `calls`, run at once (none waits for another), in their order.
+
+    Like asyncio.gather, except that a call answering in its first step costs no
+    task: each is started here in turn while they answer at once; the first that
+    has to wait goes on in this task, and every later one as a task of its own.
+    If this task is cancelled, the calls still running are cancelled too.
+    """
+    results: list[T] = []
+    for index, call in enumerate(calls):
+        started = Started(call)
+        if started.done:
+            results.append(await started)
+            continue
+        rest = [asyncio.ensure_future(later) for later in calls[index + 1 :]]
+        try:
+            results.append(await started)
+        except BaseException:
+            for task in rest:
+                task.cancel()
+            raise
+        results.extend(await asyncio.gather(*rest))
+        break
+    return results

@@ -1,0 +1,180 @@
+"""Commands that answer at once cost no task (server/core/eager.py), and nothing else changes.
+
+The halt still puts the valve's close first and lets neither command wait for
+the other's answer; a pause still cancels a move on the spot while the run goes
+on; a cancel that lands with the pause is still never swallowed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+from server.config import Settings
+from server.core.devices import CellDevices
+from server.core.eager import Started
+from server.core.operations.base import PauseGate
+from tests.fakes import FakeCamera, FakeGlue, FakeRobot
+
+
+async def _turns(count: int = 5) -> None:
+    for _ in range(count):
+        await asyncio.sleep(0)
+
+
+async def test_a_coroutine_that_answers_at_once_is_done_without_a_task() -> None:
+    async def answer() -> int:
+        return 42
+
+    before = len(asyncio.all_tasks())
+    started = Started(answer())
+    assert started.done and len(asyncio.all_tasks()) == before
+    assert await started == 42
+
+
+async def test_a_coroutine_that_waits_goes_on_in_the_awaiting_task() -> None:
+    reply: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+    seen: list[Any] = []
+
+    async def ask() -> str:
+        seen.append(asyncio.current_task())
+        answer = await reply
+        seen.append(asyncio.current_task())
+        return answer
+
+    started = Started(ask())
+    assert not started.done
+    asyncio.get_running_loop().call_soon(reply.set_result, "ok")
+    assert await started == "ok"
+    assert seen == [asyncio.current_task()] * 2  # both steps in this task, none in another
+
+
+async def test_a_cancel_reaches_the_coroutine_where_it_waits() -> None:
+    cleaned: list[str] = []
+
+    async def wait_forever() -> None:
+        try:
+            await asyncio.sleep(3600)
+        finally:
+            cleaned.append("finally")
+
+    async def holder() -> None:
+        await Started(wait_forever())
+
+    task = asyncio.create_task(holder())
+    await _turns()
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    assert task.cancelled() and cleaned == ["finally"]
+
+
+async def test_an_exception_of_the_first_step_is_raised_when_awaited() -> None:
+    async def fail() -> None:
+        raise RuntimeError("no link")
+
+    started = Started(fail())
+    assert started.done
+    try:
+        await started
+    except RuntimeError as exc:
+        assert str(exc) == "no link"
+    else:
+        raise AssertionError("the first step's exception was lost")
+
+
+class _SlowValve(FakeGlue):
+    """A valve whose close waits for its answer until the test gives it."""
+
+    def __init__(self, log: list[str]) -> None:
+        super().__init__()
+        self.log = log
+        self.answer: asyncio.Event = asyncio.Event()
+
+    async def set_valve(self, open_: bool) -> None:
+        self.log.append("valve sent")
+        await self.answer.wait()
+        self.log.append("valve answered")
+
+
+class _LoggingRobot(FakeRobot):
+    def __init__(self, log: list[str]) -> None:
+        super().__init__()
+        self.log = log
+
+    async def stop(self) -> None:
+        self.log.append("stop sent")
+        await super().stop()
+
+
+async def test_the_halt_sends_the_stop_while_the_valve_waits_for_its_answer() -> None:
+    log: list[str] = []
+    glue = _SlowValve(log)
+    devices = CellDevices(_LoggingRobot(log), glue, FakeCamera())
+    halt = asyncio.create_task(devices.safe_halt(1.0, then=lambda: log.append("then")))
+    await _turns()
+    assert log == ["valve sent", "then", "stop sent"]  # valve first, the stop not held back
+    glue.answer.set()
+    report = await halt
+    assert report.valve_closed and report.robot_stopped and not report.errors
+
+
+async def test_the_halt_of_devices_that_answer_at_once_makes_no_task() -> None:
+    log: list[str] = []
+    devices = CellDevices(_LoggingRobot(log), FakeGlue(), FakeCamera())
+    before = len(asyncio.all_tasks())
+    report = await devices.safe_halt(
+        1.0, then=lambda: log.append(f"tasks {len(asyncio.all_tasks())}")
+    )
+    assert log == ["stop sent", f"tasks {before}"]
+    assert report.valve_closed and report.robot_stopped
+
+
+async def _move_in(gate: PauseGate, moving: asyncio.Event) -> str:
+    async with gate.interruption() as stretch:
+        moving.set()
+        await asyncio.sleep(3600)
+    return "interrupted" if stretch.interrupted else "ended"
+
+
+async def test_a_pause_interrupts_the_move_and_the_run_goes_on() -> None:
+    gate, moving = PauseGate(), asyncio.Event()
+    run = asyncio.create_task(_move_in(gate, moving))
+    await moving.wait()
+    gate.pause()
+    assert await asyncio.wait_for(run, 1) == "interrupted"
+    assert run.cancelling() == 0  # the pause's cancel is spent, nothing left pending
+
+
+async def test_a_cancel_landing_with_the_pause_is_not_swallowed() -> None:
+    gate, moving = PauseGate(), asyncio.Event()
+    run = asyncio.create_task(_move_in(gate, moving))
+    await moving.wait()
+    gate.pause()
+    run.cancel()  # the run is cancelled in the same turn as the pause
+    await asyncio.gather(run, return_exceptions=True)
+    assert run.cancelled()
+
+
+async def test_after_the_block_a_pause_leaves_the_task_alone() -> None:
+    gate, moving = PauseGate(), asyncio.Event()
+    assert await asyncio.wait_for(_after_block(gate, moving), 1) == "not cancelled"
+
+
+async def _after_block(gate: PauseGate, moving: asyncio.Event) -> str:
+    async with gate.interruption():
+        moving.set()
+    gate.pause()
+    await _turns()
+    return "not cancelled"
+
+
+async def test_a_run_cancelled_before_its_first_step_is_not_waited_for(
+    make_worker: Any, fast_settings: Settings
+) -> None:
+    """Its `finally` never runs, so the end is told by the task's done callback instead."""
+    worker = await make_worker(fast_settings.model_copy(update={"emergency_stop_timeout": 30.0}))
+    worker.runs.start("calibrate_robot", "run-early", {})
+    # cancelled in the same turn it was created (asyncio.timeout, not wait_for, which
+    # would run cancel() in a task of its own, a turn later): not the 30 s timeout
+    async with asyncio.timeout(5):
+        await worker.runs.cancel()
