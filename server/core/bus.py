@@ -62,11 +62,15 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 SLOW_CONSUMER = "slow consumer"
-# One turn's delivery work: about 10 µs per direct hand-over (a socket write),
-# about 40 µs per task woken (the wake, then that task's send), so a turn stays
-# well under a millisecond either way and a stop request waits for one at most.
-DELIVERY_BUDGET = 64
-WAKE_COST = 4
+# Delivery work per turn of the loop. A direct hand-over (a socket write, about
+# 10 µs on the 2-core bench machine) costs 1; waking a subscriber's task costs
+# WAKE_COST (its send, about 30 µs, runs on the next turn, beside the next batch):
+# 32 writes, or 16 wakes as before there was a direct road. A turn stays at a few
+# tenths of a millisecond, and each hop of a stop request through the loop waits
+# for one turn at most; 64 writes a turn made the stop measurably slower with a
+# thousand clients (docs/benchmarks.md, "WebSocket fan-out").
+DELIVERY_BUDGET = 32
+WAKE_COST = 2
 WAKE_BATCH = DELIVERY_BUDGET // WAKE_COST  # subscribers' tasks woken per turn, at most
 # Messages kept for replay. Sized for a client's longest reconnect: the Python
 # client's backoff is capped at 5 s (+20 % jitter), and a run publishes a progress
