@@ -4,6 +4,16 @@ Each client is one bus subscription with a bounded buffer. A client that falls
 behind (its buffer fills, or one send takes longer than SEND_TIMEOUT) is
 closed with code 4001 and never delays the worker or the other clients.
 
+Two roads to the socket, one at a time per client (server/core/bus.py keeps
+them apart): while the client's send task waits with nothing in hand, the bus
+hands each new message to `_direct_sender`, which writes the shared frame to
+the socket in the bus's delivery turn, with no task woken (at a thousand
+clients, the wake of a task per client and message was the largest cost left
+besides the socket write itself). When the frame cannot be written at once
+(flow control paused the transport, the connection is closing), or while the
+replay is being sent, the message waits in the buffer and the send task
+takes it: the ordinary awaited send, bounded by SEND_TIMEOUT.
+
 Resuming: the snapshot carries `boot`, the id of this server's numbering (seq
 starts again at 1 in a new server process). A client that reconnects with
 `?after_seq=N&boot=B` (the last seq it received, and the boot it came from) is
@@ -64,7 +74,7 @@ from starlette.datastructures import QueryParams
 from server.api.access import authenticate_websocket
 from server.api.live_views import CLOSE_UNAUTHORIZED, REVOKED_REASON, LiveViews
 from server.api.ws_frames import FrameWriter, text_frame
-from server.core.bus import Bus, BusMessage, Subscription, SubscriptionClosed
+from server.core.bus import Bus, BusMessage, DirectConsumer, Subscription, SubscriptionClosed
 from server.core.view import CellView
 
 log = logging.getLogger(__name__)
@@ -253,16 +263,19 @@ async def live(websocket: WebSocket) -> None:
             await websocket.close(CLOSE_INVALID, str(invalid)[:120])
             return
         await websocket.send_json({**snapshot, **marks})
+        writer = FrameWriter.of(websocket)
+        if writer is not None:
+            subscription.take_directly(_direct_sender(hub, writer, snapshot["seq"]))
         sender = asyncio.create_task(
-            _send_loop(
-                websocket, subscription, hub, replay, snapshot["seq"], FrameWriter.of(websocket)
-            )
+            _send_loop(websocket, subscription, hub, replay, snapshot["seq"], writer)
         )
         receiver = asyncio.create_task(_receive_loop(websocket, subscription))
         # `view.ended` is a plain future, set when the view's token is revoked.
         done, pending = await asyncio.wait(
             {sender, receiver, view.ended}, return_when=asyncio.FIRST_COMPLETED
         )
+        # The client is ending either way: nothing more for it, by either road.
+        subscription.close("client gone")
         for task in pending:
             task.cancel()
         await asyncio.gather(*pending, return_exceptions=True)
@@ -279,6 +292,18 @@ async def live(websocket: WebSocket) -> None:
     finally:
         subscription.close("client gone")
         hub.views.close(view)
+
+
+def _direct_sender(hub: WebSocketHub, writer: FrameWriter, snapshot_seq: int) -> DirectConsumer:
+    """The bus's direct road to this client: write the shared frame now, or say it cannot."""
+    frame = hub.frame
+
+    def send_now(message: BusMessage) -> bool:
+        if message.numbered and message.seq <= snapshot_seq:
+            return True  # the snapshot covers it (never expected: see `live`)
+        return writer.write(frame(message))
+
+    return send_now
 
 
 async def _send(

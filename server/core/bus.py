@@ -7,12 +7,25 @@ reason `slow consumer` instead of holding up the worker or anyone else. The
 WebSocket hub and the metrics are subscribers; the journal is not (it must
 never be dropped, so the worker hands it records directly).
 
-Waking subscribers is spread over turns of the event loop, WAKE_BATCH at a
-time: with a thousand WebSocket clients, waking them all at once would put a
-thousand sends in one turn (tens of milliseconds) ahead of anything that
-arrives meanwhile, such as an e-stop request. In batches, the loop checks its
-sockets between every WAKE_BATCH sends; the fan-out as a whole takes as long
-as before.
+Delivery is spread over turns of the event loop, starting on the turn after
+the publish: with a thousand WebSocket clients, serving them all at once
+would put a thousand sends in one turn (tens of milliseconds) ahead of
+anything that arrives meanwhile, such as an e-stop request. Each turn serves
+subscribers until a budget is spent: waking a subscriber's task costs
+WAKE_COST, a message handed over directly costs one, and the budget is
+DELIVERY_BUDGET (so WAKE_BATCH task wakes, or up to DELIVERY_BUDGET direct
+hand-overs, a turn). The loop polls its sockets between turns.
+
+A direct consumer (`Subscription.take_directly`) is how the WebSocket hub
+skips the wake of one task per client and message: while the subscription's
+task is waiting in `get` with nothing handed to it, the bus hands the
+buffered messages to the consumer itself, which writes them to the client's
+socket at once or says it cannot. What it refuses stays in the buffer and
+the task is woken to take it the ordinary way; the consumer is not offered
+another message until the task has emptied the buffer and waits again. So a
+subscriber's messages leave its buffer in order, from its front, by one road
+at a time: none is skipped, none twice. Offering stays at publish time, so
+the slow-consumer rule and the types filter are the same for both roads.
 
 The bus also keeps the last REPLAY_HISTORY messages, so that a WebSocket
 client that lost its connection can be sent what it missed (`since`) instead of
@@ -38,15 +51,27 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import logging
 import secrets
 import time
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+log = logging.getLogger(__name__)
+
 SLOW_CONSUMER = "slow consumer"
-WAKE_BATCH = 16  # subscribers woken per turn of the loop
+# Delivery work per turn of the loop. A direct hand-over (a socket write, about
+# 10 µs on the 2-core bench machine) costs 1; waking a subscriber's task costs
+# WAKE_COST (its send, about 30 µs, runs on the next turn, beside the next batch):
+# 32 writes, or 16 wakes as before there was a direct road. A turn stays at a few
+# tenths of a millisecond, and each hop of a stop request through the loop waits
+# for one turn at most; 64 writes a turn made the stop measurably slower with a
+# thousand clients (docs/benchmarks.md, "WebSocket fan-out").
+DELIVERY_BUDGET = 32
+WAKE_COST = 2
+WAKE_BATCH = DELIVERY_BUDGET // WAKE_COST  # subscribers' tasks woken per turn, at most
 # Messages kept for replay. Sized for a client's longest reconnect: the Python
 # client's backoff is capped at 5 s (+20 % jitter), and a run publishes a progress
 # message per waypoint (tens a second at most), so a few hundred cover it; four
@@ -86,6 +111,10 @@ class SubscriptionClosed(Exception):
         super().__init__(reason)
 
 
+DirectConsumer = Callable[["BusMessage"], bool]
+"""Takes one message at once (True), or cannot now (False): see `Subscription.take_directly`."""
+
+
 class Subscription:
     """A bounded mailbox of bus messages for one consumer."""
 
@@ -94,6 +123,9 @@ class Subscription:
         self._maxsize = maxsize
         self._buffer: deque[BusMessage] = deque()
         self._ready = asyncio.Event()
+        self._waiting = False  # the consumer's task is suspended in `get`
+        self.to_be_served = False  # in the bus's delivery queue (see `Bus._offer`)
+        self._direct: DirectConsumer | None = None
         self.types: frozenset[str] | None = frozenset(types) if types is not None else None
         self.closed_reason: str | None = None
 
@@ -110,10 +142,21 @@ class Subscription:
         """Change which message types this subscriber receives from now on."""
         self.types = frozenset(types) if types is not None else None
 
+    def take_directly(self, consumer: DirectConsumer | None) -> None:
+        """Let the bus hand messages to `consumer` while this subscription's task waits.
+
+        Why: waking one task per subscriber and message is most of a large
+        fan-out's cost when all the task then does is one non-blocking write.
+        `consumer` runs in the bus's delivery turn, must not block, and returns
+        False when it cannot take the message now (the task then takes it, in
+        order). None switches it off.
+        """
+        self._direct = consumer
+
     def offer(self, message: BusMessage) -> bool:
         """Queue a message (True), or close the subscription if its buffer is full.
 
-        The consumer is not woken here: the bus wakes it (see `Bus.publish`).
+        The consumer is not served here: the bus does that (see `Bus.publish`).
         """
         if self.closed_reason is not None or not self.wants(message.type):
             return False
@@ -127,6 +170,34 @@ class Subscription:
         if self._buffer:
             self._ready.set()
 
+    def serve(self) -> int:
+        """Hand the buffer to the direct consumer if it may have it, else wake the task.
+
+        Returns the delivery cost spent (see the module docstring). The direct road
+        is open only while the task waits in `get` and has not been woken: then it
+        holds no message of its own, so nothing it sends can overtake or follow
+        out of order what is handed over here.
+        """
+        self.to_be_served = False
+        buffer, consumer = self._buffer, self._direct
+        if self.closed_reason is not None:
+            return 1
+        if consumer is None or not self._waiting or self._ready.is_set():
+            self.wake()
+            return WAKE_COST
+        handed = 0
+        try:
+            while buffer and consumer(buffer[0]):
+                buffer.popleft()
+                handed += 1
+        except Exception:  # a bug in the consumer must not stop the other subscribers
+            log.exception("direct delivery failed; this subscriber is served by its task")
+            self._direct = None
+        if buffer:
+            self._ready.set()
+            return handed + WAKE_COST
+        return max(handed, 1)
+
     async def get(self) -> BusMessage:
         """The next message; raises SubscriptionClosed once closed (buffer discarded)."""
         while True:
@@ -135,13 +206,18 @@ class Subscription:
             if self._buffer:
                 return self._buffer.popleft()
             self._ready.clear()
-            await self._ready.wait()
+            self._waiting = True
+            try:
+                await self._ready.wait()
+            finally:
+                self._waiting = False
 
     def close(self, reason: str = "closed") -> None:
         """Stop receiving; a waiting `get` raises SubscriptionClosed."""
         if self.closed_reason is None:
             self.closed_reason = reason
             self._buffer.clear()
+            self._direct = None
             self._bus.unsubscribe(self)
             self._ready.set()
 
@@ -157,8 +233,12 @@ class Bus:
         # server is never taken for the one a client was following.
         self.boot = secrets.token_hex(8)
         self._recent: deque[BusMessage] = deque(maxlen=history)
-        self._to_wake: dict[Subscription, None] = {}  # insertion-ordered set
-        self._waker: asyncio.Task[None] | None = None
+        # Subscribers offered a message and not served since, oldest first. A deque
+        # and a flag, not an ordered set: taking from the front of a dict rescans
+        # what was taken before (quadratic in a thousand clients).
+        self._to_serve: deque[Subscription] = deque()
+        # The loop on which the next delivery turn is scheduled; None when none is.
+        self._turn_loop: asyncio.AbstractEventLoop | None = None
 
     @property
     def subscriber_count(self) -> int:
@@ -173,26 +253,19 @@ class Bus:
     def unsubscribe(self, subscription: Subscription) -> None:
         if subscription in self._subscribers:
             self._subscribers.remove(subscription)
-        self._to_wake.pop(subscription, None)
 
     def publish(self, message_type: str, data: dict[str, Any]) -> BusMessage:
         """Number the record and hand it to every subscriber without waiting."""
         self.last_seq = next(self._seq)
         message = BusMessage(self.last_seq, message_type, time.time(), data)
         self._recent.append(message)
-        for subscription in tuple(self._subscribers):
-            if subscription.offer(message):
-                self._to_wake[subscription] = None
-        self._wake_first_batch()
+        self._offer(message)
         return message
 
     def publish_sample(self, message_type: str, data: dict[str, Any]) -> BusMessage:
         """Hand a sample to the subscribers that asked for its type: no seq, not kept."""
         message = BusMessage(0, message_type, time.time(), data)
-        for subscription in tuple(self._subscribers):
-            if subscription.offer(message):
-                self._to_wake[subscription] = None
-        self._wake_first_batch()
+        self._offer(message)
         return message
 
     def since(self, seq: int) -> list[BusMessage] | None:
@@ -209,27 +282,39 @@ class Bus:
             return None
         return list(itertools.islice(self._recent, seq + 1 - self._recent[0].seq, None))
 
-    def _wake_first_batch(self) -> None:
-        """Wake WAKE_BATCH subscribers now; a task wakes the rest, a batch per turn."""
-        self._wake_batch()
-        if not self._to_wake or (self._waker is not None and not self._waker.done()):
+    def _offer(self, message: BusMessage) -> None:
+        to_serve = self._to_serve
+        for subscription in tuple(self._subscribers):
+            if subscription.offer(message) and not subscription.to_be_served:
+                subscription.to_be_served = True
+                to_serve.append(subscription)
+        self._schedule()
+
+    def _schedule(self) -> None:
+        """Serve the subscribers offered a message, from the next turn of the loop on."""
+        if not self._to_serve:
             return
         try:
             loop = asyncio.get_running_loop()
         except RuntimeError:  # no loop (a synchronous caller): nobody to interleave with
-            while self._to_wake:
-                self._wake_batch()
+            while self._to_serve:
+                self._serve_some()
             return
-        self._waker = loop.create_task(self._wake_the_rest(), name="bus-waker")
+        # Compared by loop, not by a flag: a turn scheduled on a loop that has since
+        # stopped never runs, and must not keep this bus from scheduling on the next.
+        if self._turn_loop is not loop:
+            self._turn_loop = loop
+            loop.call_soon(self._serve_a_turn, loop)
 
-    async def _wake_the_rest(self) -> None:
-        # Runs a turn after the publish; each turn, the loop polls its sockets first.
-        while self._to_wake:
-            self._wake_batch()
-            await asyncio.sleep(0)
+    def _serve_a_turn(self, loop: asyncio.AbstractEventLoop) -> None:
+        # A plain callback, not a task: between two turns the loop polls its sockets.
+        self._turn_loop = None
+        self._serve_some()
+        if self._to_serve:
+            self._turn_loop = loop
+            loop.call_soon(self._serve_a_turn, loop)
 
-    def _wake_batch(self) -> None:
-        for _ in range(min(WAKE_BATCH, len(self._to_wake))):
-            subscription = next(iter(self._to_wake))
-            del self._to_wake[subscription]
-            subscription.wake()
+    def _serve_some(self) -> None:
+        budget, to_serve = DELIVERY_BUDGET, self._to_serve
+        while budget > 0 and to_serve:
+            budget -= to_serve.popleft().serve()  # a closed one costs little and is let go
