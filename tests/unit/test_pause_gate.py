@@ -47,20 +47,19 @@ async def test_a_pause_outside_any_step_is_settled_at_once() -> None:
 
 
 async def test_a_pause_cancels_the_move_in_progress_on_the_spot() -> None:
-    gate = PauseGate()
-    move = asyncio.ensure_future(asyncio.sleep(3600))
-    with gate.interrupting(move):
-        gate.pause()
-        assert move.cancelling() == 1  # requested in pause() itself, not a turn later
-    await asyncio.gather(move, return_exceptions=True)
-    assert move.cancelled()
-    after = asyncio.ensure_future(asyncio.sleep(3600))
-    with gate.interrupting(after):
-        pass
-    gate.pause()  # no longer registered: left alone
-    await _turns()
-    assert not after.done()
-    after.cancel()
+    gate, moving = PauseGate(), asyncio.Event()
+
+    async def move() -> bool:
+        async with gate.interruption() as stretch:
+            moving.set()
+            await asyncio.sleep(3600)
+        return stretch.interrupted
+
+    run = asyncio.create_task(move())
+    await moving.wait()
+    gate.pause()
+    assert run.cancelling() == 1  # requested in pause() itself, not a turn later
+    assert await asyncio.wait_for(run, 1) is True
 
 
 async def test_a_step_that_fails_still_ends() -> None:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -84,13 +84,13 @@ class PauseGate:
 
     The worker closes the gate on PAUSE and opens it on RESUME. An operation
     marks the stretches that command the devices as *steps* (`async with
-    gate.step():`); inside one it runs each move as a task registered with
-    `interrupting(task)`, which `pause()` cancels on the spot (a move that was
-    about to send its motion command never sends it; one under way makes the
-    driver send `stop`); the operation then stops the robot where it is,
-    closes the valve and leaves the step. `settled()` is what the worker waits for before it
-    reports PAUSED: no step in progress, so nothing the operation sent can
-    still move the arm or open the valve. Outside a step an operation commands
+    gate.step():`); inside one it runs each move in an `interruption()`, which
+    `pause()` cancels on the spot (a move that was about to send its motion
+    command never sends it; one under way makes the driver send `stop`); the
+    operation then stops the robot where it is, closes the valve and leaves the
+    step. `settled()` is what the worker waits for before it reports PAUSED: no
+    step in progress, so nothing the operation sent can still move the arm or
+    open the valve. Outside a step an operation commands
     nothing, so a pause there is settled at once; the next step waits at the
     gate. `checkpoint()` is the plain form: hold here while paused.
     """
@@ -99,7 +99,6 @@ class PauseGate:
         self._clock = clock
         self._open = asyncio.Event()
         self._open.set()
-        self._interruptible: set[asyncio.Future[Any]] = set()
         self._in_task: set[Interruption] = set()
         self._no_step = asyncio.Event()
         self._no_step.set()
@@ -116,8 +115,6 @@ class PauseGate:
         if self._paused_at is None:
             self._paused_at = self._clock.monotonic()
         self._open.clear()
-        for move in list(self._interruptible):
-            move.cancel()
         for stretch in list(self._in_task):
             stretch.interrupt()
 
@@ -132,15 +129,6 @@ class PauseGate:
         now = self._clock.monotonic()
         current = now - self._paused_at if self._paused_at is not None else 0.0
         return self._paused_total + current
-
-    @contextlib.contextmanager
-    def interrupting(self, move: asyncio.Future[Any]) -> Iterator[None]:
-        """While inside, a pause cancels `move` at once (synchronously, in `pause()`)."""
-        self._interruptible.add(move)
-        try:
-            yield
-        finally:
-            self._interruptible.discard(move)
 
     def interruption(self) -> Interruption:
         """A stretch of the current task that a pause interrupts on the spot (see Interruption)."""
@@ -190,7 +178,7 @@ class Interruption:
     """`async with gate.interruption() as it:` a pause cancels this task inside the block,
     and the block ends as if its work had returned, with `it.interrupted` set.
 
-    Why not a task per move (as `interrupting`): a move that answers at once would
+    Why not a task per move: a move that answers at once would
     cost its run a task and a loop turn for nothing. The cancellation is the pause's
     own, told apart from any other by the task's cancel count, as asyncio.timeout
     does: a cancel from outside (the run cancelled, a timeout) that lands too is
