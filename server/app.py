@@ -40,6 +40,7 @@ from server.api.answers_in_flight import AnswersInFlight
 from server.api.dashboard import mount_dashboard
 from server.api.limits import BodySizeLimit
 from server.api.observe import ResponseObservers
+from server.api.route_warmup import prepare_routes
 from server.api.schemas import RETRY_AFTER_S
 from server.cell import Cell
 from server.config import Settings
@@ -72,6 +73,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         app.state.metrics.attach(cell)
         opcua = await _start_opcua(cell, app.state.access, app.state.answers)
         app.state.mqtt = mqtt_link(app, settings, cell)
+        await prepare_routes(app)  # not on the first stop pressed
         try:
             yield
         finally:
