@@ -10,16 +10,15 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Awaitable, Callable, Coroutine
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any
 
 from server.core.eager import Started, together, within
 from server.drivers.base import Camera, FaultListener, GlueDispenser, Robot
 from server.errors import DeviceTimeout
 
 log = logging.getLogger(__name__)
-T = TypeVar("T")
 
 
 @dataclass
@@ -56,12 +55,12 @@ class CellDevices:
         for), the stop takes its first step here too and no task is made. `then` (a
         pause's hold) runs once both commands are on their way, before their answers.
         """
-        valve = Started(_within(self.glue.set_valve(False), timeout))
+        valve = Started(within(self.glue.set_valve(False), timeout))
         stop: Started[None] | asyncio.Future[None]
         if valve.done:
-            stop = Started(_within(self.robot.stop(), timeout))
+            stop = Started(within(self.robot.stop(), timeout))
         else:
-            stop = asyncio.ensure_future(_within(self.robot.stop(), timeout))
+            stop = asyncio.ensure_future(within(self.robot.stop(), timeout))
         try:
             if then is not None:
                 then()
@@ -84,8 +83,8 @@ class CellDevices:
         on the loop's very next turn: a caller that had to be scheduled first
         would cost the e-stop one more turn of a possibly busy loop.
         """
-        valve = asyncio.ensure_future(_within(self.glue.set_valve(False), timeout))
-        stop = asyncio.ensure_future(_within(self.robot.stop(), timeout))
+        valve = asyncio.ensure_future(within(self.glue.set_valve(False), timeout))
+        stop = asyncio.ensure_future(within(self.robot.stop(), timeout))
         return asyncio.ensure_future(_halt_report(valve, stop))
 
     async def probe_faults(self, timeout: float) -> list[str]:
@@ -162,7 +161,7 @@ class CellDevices:
 
     async def connect(self, name: str, timeout: float) -> None:
         """Connect one device within `timeout` (TimeoutError or DeviceError otherwise)."""
-        await _within(self.by_name()[name].connect(), timeout)
+        await within(self.by_name()[name].connect(), timeout)
 
     async def close(self) -> None:
         await asyncio.gather(
@@ -214,16 +213,6 @@ def _report(valve_result: object, stop_result: object) -> HaltReport:
         robot_stopped=not isinstance(stop_result, BaseException),
         errors=errors,
     )
-
-
-def _within(call: Coroutine[Any, Any, T], timeout: float) -> Coroutine[Any, Any, T]:
-    """Await `call` for at most `timeout` s (TimeoutError after), in the caller's task.
-
-    Unlike asyncio.wait_for on Python 3.11, this runs `call` in the caller's task
-    instead of a new one: one task fewer on the path of every stop; and its timer
-    is set only if `call` has to wait (`eager.within`).
-    """
-    return within(call, timeout)
 
 
 def _describe(exc: BaseException) -> str:
