@@ -23,6 +23,9 @@ stamps (the two protocol clients, the kernel, the simulators' parsing).
 `to_sockets` is the server's whole share, from the request's arrival at the
 app to the later of the robot's `stop` and the valve-close frame being
 handed to their sockets (the transport's write, which sends at once).
+`answer` is the POST /estop round trip as the client sees it: until it has
+read the answer, which the server gives once both devices answered, the run
+is cancelled and the stop is on record (its journal commit, fsync included).
 
 Conditions, each with --trials e-stops (default 500):
 - idle: the cell in IDLE, nothing running;
@@ -101,13 +104,14 @@ class StopWitness:
         self.stdin.flush()
         return self.stdout.readline().split()
 
-    def estop_once(self) -> tuple[float, float]:
-        """POST /estop from the witness: (seconds until both devices had it, time sent)."""
+    def estop_once(self) -> tuple[float, float, float]:
+        """POST /estop from the witness: (seconds until both devices had it, time sent,
+        seconds until the client had read the answer)."""
         answer = self.tell("fire")
         if answer[0] != "stopped":
             raise RuntimeError(f"the e-stop failed: {' '.join(answer)}")
         assert answer[2] == "True", "the valve does not read closed after the stop"
-        return float(answer[1]), float(answer[3])
+        return float(answer[1]), float(answer[3]), float(answer[4])
 
     def close(self) -> None:
         self.stdin.close()
@@ -243,14 +247,16 @@ async def trials_in(
         "in_server": [],
         "to_devices": [],
         "to_sockets": [],
+        "answer": [],
     }
     for _ in range(trials):
         await to_idle(worker)
         if condition in prepare:
             await prepare[condition]()
         stages.clear()
-        total, sent = await asyncio.to_thread(witness.estop_once)
+        total, sent, answered = await asyncio.to_thread(witness.estop_once)
         samples["total"].append(total)
+        samples["answer"].append(answered)
         if stages.arrived is not None and stages.halted is not None:
             samples["to_server"].append(stages.arrived - sent)
             samples["in_server"].append(stages.halted - stages.arrived)

@@ -23,6 +23,7 @@ from server.core.transitions import Event
 from server.errors import EventQueueFull
 
 if TYPE_CHECKING:
+    from server.core.devices import HaltReport
     from server.core.events import AuditNote, Outcome, Payload
 
 
@@ -47,6 +48,8 @@ class Envelope:
     timestamp: float = field(default_factory=time.time)
     future: asyncio.Future[Outcome] | None = None
     audit: AuditNote | None = None  # who sent it: its audit row goes into the event's commit
+    # An e-stop's halt, made before it was queued: its transition's first HALT is this one.
+    halt_made: asyncio.Future[HaltReport] | None = None
 
 
 class EventQueue:

@@ -310,12 +310,20 @@ class Runs:
         for listener in self.listeners:
             listener(ended)
 
+    def cut_leash(self) -> None:
+        """From now on the running operation commands no move and no glue (an e-stop).
+
+        The e-stop cuts it as it arrives, before its halt is made, so nothing the
+        run sends after the stop can undo it; the cancellation follows in the worker.
+        """
+        if self._leash is not None:
+            self._leash.cut = True
+
     async def cancel(self) -> None:
         """Cancel the running operation and wait (bounded) until it has stopped."""
         task, self._task = self._task, None
         ended, self._ended = self._ended, None
-        if self._leash is not None:
-            self._leash.cut = True  # from now on it moves nothing, whatever becomes of the cancel
+        self.cut_leash()  # from now on it moves nothing, whatever becomes of the cancel
         if self._gate is not None:
             self._gate.resume()  # a held operation must see the cancellation, not the gate
         self._gate = None
@@ -333,8 +341,7 @@ class Runs:
 
     async def stop(self) -> None:
         """At shutdown: the task goes, whatever it was doing."""
-        if self._leash is not None:
-            self._leash.cut = True
+        self.cut_leash()
         if self._task is not None:
             self._task.cancel()
             await asyncio.gather(self._task, return_exceptions=True)

@@ -134,7 +134,7 @@ class Worker:
             devices, settings.reset_probe_timeout, lambda e: self.queue.put(e, bounded=False)
         )
         self._handlers: dict[Action, Handler] = {
-            Action.HALT: lambda _d, _e: self._halt(),
+            Action.HALT: lambda _d, e: self._halt(e),
             Action.RECORD_RUN_END: lambda d, e: self.runs.record_end(d.event, e.payload),
             Action.CANCEL_RUN: lambda _d, _e: self.runs.cancel(),
             Action.CANCEL_HOMING: lambda _d, _e: self.activities.cancel(),
@@ -233,6 +233,7 @@ class Worker:
         queued; the EMERGENCY_STOP event then overtakes everything waiting.
         """
         self._estops += 1  # anything being decided now must not undo this stop
+        self.runs.cut_leash()  # the run commands no move and no glue from now on
         halt = self.devices.start_halt(self.settings.emergency_stop_timeout)
         envelope = self.submit(
             Event.EMERGENCY_STOP,
@@ -242,6 +243,7 @@ class Worker:
             bounded=False,
             audit=audit,
         )
+        envelope.halt_made = halt
         assert envelope.future is not None
         report = await asyncio.shield(halt)
         outcome: Outcome = await envelope.future
@@ -400,8 +402,24 @@ class Worker:
 
     # --- action handlers ---------------------------------------------------
 
-    async def _halt(self) -> None:
-        report = await self.devices.safe_halt(self.settings.emergency_stop_timeout)
+    async def _halt(self, envelope: Envelope | None = None) -> None:
+        """Close the valve and stop the robot (valve first); an incomplete halt is alerted.
+
+        An e-stop's first HALT is the halt the stop made before it was queued: the
+        same two commands, already on their way. Sent again, they would only queue
+        behind those on each device's line, and the stop's answer would wait a
+        round trip more. Nothing can have been commanded since that needs undoing:
+        the run's leash was cut before that halt was made, and a move started
+        before it was written before it. A later HALT of the same transition (once
+        the run is cancelled) is sent anew.
+        """
+        made = envelope.halt_made if envelope is not None else None
+        if made is not None:
+            assert envelope is not None
+            envelope.halt_made = None
+            report = await asyncio.shield(made)
+        else:
+            report = await self.devices.safe_halt(self.settings.emergency_stop_timeout)
         self.alerts.halt_incomplete(report.errors)
 
     def _record_fault(self, decision: Decision, envelope: Envelope) -> None:

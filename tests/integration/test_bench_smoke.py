@@ -131,6 +131,8 @@ def test_estop_latency_measures_every_condition(results_in_tmp: Path) -> None:
     for row in rows:
         assert_ordered_latencies(row)
         assert row["n"] == 3
+        # The answer comes after both devices had the stop (it waits for their replies).
+        assert row["answer_p50_ms"] >= row["to_sockets_p50_ms"] > 0
 
 
 def test_reset_probe_measures_every_condition(results_in_tmp: Path) -> None:

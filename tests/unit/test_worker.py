@@ -146,6 +146,39 @@ async def test_estop_mid_run_closes_the_valve_and_stops_the_robot(make_worker) -
     assert worker.ctx.operation is None
 
 
+async def test_an_estop_halts_once_before_its_run_is_cancelled_and_once_after(
+    make_worker,
+) -> None:
+    """The transition's first HALT is the halt the stop made on arrival, not a second one.
+
+    Before, the worker sent the same two commands again; they queued behind the
+    stop's own on each device's line and the answer waited a round trip more.
+    """
+    glue, robot = FakeGlue(), FakeRobot(speed_factor=2)
+    worker = await make_worker(glue=glue, robot=robot)
+    await worker.request(Event.START_REQUESTED, source="test", payload=START_PAYLOAD)
+    async with asyncio.timeout(10):
+        while not glue.valve_open:
+            await asyncio.sleep(0.002)
+    halts: list[str] = []
+    start_halt, safe_halt = worker.devices.start_halt, worker.devices.safe_halt
+
+    def on_arrival(timeout: float) -> Any:
+        halts.append("on arrival, leash cut" if worker.runs._leash.cut else "on arrival")
+        return start_halt(timeout)
+
+    async def in_transition(timeout: float, then: Any = None) -> Any:
+        halts.append("after the cancel" if worker.runs._task is None else "before the cancel")
+        return await safe_halt(timeout, then)
+
+    worker.devices.start_halt = on_arrival  # type: ignore[method-assign]
+    worker.devices.safe_halt = in_transition  # type: ignore[method-assign]
+    outcome = await worker.emergency_stop(source="test")
+    assert outcome.accepted and outcome.state is State.ERROR
+    assert halts == ["on arrival, leash cut", "after the cancel"]
+    assert glue.valve_open is False and not robot.moving
+
+
 async def test_pause_stops_the_run_where_it_is_and_resume_finishes_the_same_run(
     make_worker,
 ) -> None:
