@@ -58,6 +58,7 @@ class EventQueue:
     def __init__(self, capacity: int) -> None:
         self.capacity = capacity
         self._lanes: dict[Priority, deque[Envelope]] = {p: deque() for p in Priority}
+        self._in_order = tuple(self._lanes[p] for p in sorted(Priority))  # drained in this order
         self._ready = asyncio.Event()
 
     def __len__(self) -> int:
@@ -74,8 +75,7 @@ class EventQueue:
     async def get(self) -> Envelope:
         """The next envelope, highest priority first."""
         while True:
-            for priority in Priority:
-                lane = self._lanes[priority]
+            for lane in self._in_order:
                 if lane:
                     return lane.popleft()
             self._ready.clear()

@@ -496,3 +496,15 @@ async def test_a_run_that_swallows_its_cancellation_moves_nothing_after_the_stop
     assert glue.valve_open is False
     assert len(robot.moves) == moves, "the run moved the arm after the stop"
     assert all("was cancelled" in why for why in refused)
+
+
+async def test_a_long_queue_of_refusals_lets_the_loop_run_while_it_drains(make_worker) -> None:
+    """The worker lets other callbacks (an HTTP handler, the e-stop route) run between
+    events, though not after every one: it yields once it has held the loop a while."""
+    worker = await make_worker()
+    queued = [worker.submit(Event.PAUSE_REQUESTED, source="test") for _ in range(1000)]
+    left_when_the_loop_ran: list[int] = []
+    asyncio.get_running_loop().call_soon(lambda: left_when_the_loop_ran.append(len(worker.queue)))
+    outcomes = [await envelope.future for envelope in queued]
+    assert not any(outcome.accepted for outcome in outcomes)  # PAUSE in IDLE: refused
+    assert left_when_the_loop_ran and left_when_the_loop_ran[0] > 500

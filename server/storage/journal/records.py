@@ -56,6 +56,8 @@ def _statements(table: str, columns: tuple[str, ...], replace: bool) -> tuple[st
 
 
 def _json(value: Any) -> str:
+    if value == {}:  # most events carry no data: no encoder for them
+        return "{}"
     return json.dumps(value, default=str, separators=(",", ":"))
 
 
