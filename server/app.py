@@ -42,6 +42,7 @@ from server.api.limits import BodySizeLimit
 from server.api.observe import ResponseObservers
 from server.api.route_warmup import prepare_routes
 from server.api.schemas import RETRY_AFTER_S
+from server.api.stop_lane import StopLane
 from server.cell import Cell
 from server.config import Settings
 from server.core.camera_preview import CameraPreview
@@ -129,6 +130,8 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     # HEAD and OPTIONS, once the gate has let them through (each as its route needs).
     app.state.route_methods = methods.RouteMethods(app)
     app.add_middleware(methods.HttpManners, methods=app.state.route_methods)
+    # The e-stop's devices commanded as soon as the gate lets it through (before routing).
+    app.add_middleware(StopLane, stop_paths=commands.STOP_PATHS)
     # Every HTTP request, before routing: the policy in server/security/policy.py.
     app.add_middleware(access.AccessGate, access=app.state.access)
     # The commands being answered: the plant's interfaces hold their work until none is.

@@ -17,7 +17,7 @@ from pydantic import ValidationError
 
 from server.config import Settings
 from server.core.bus import Bus
-from server.core.devices import CellDevices
+from server.core.devices import CellDevices, HaltReport
 from server.core.events import AuditNote, Outcome, Payload, StartPayload, StopPayload
 from server.core.faults import classify
 from server.core.live import DeviceFeed
@@ -184,16 +184,21 @@ class Cell:
         source: str,
         payload: Payload | None = None,
         audit: AuditNote | None = None,
+        halt: asyncio.Future[HaltReport] | None = None,
     ) -> Outcome:
         """Run an operator command (start, pause, estop, ...) with its typed payload.
 
         `audit` says who sent it: its row is committed with the event, before the answer.
+        `halt` is an e-stop's halt already made (`Worker.halt_for_stop`, by the HTTP
+        stop lane); an e-stop without one makes its own.
         """
         assert self.worker is not None, "the cell is not started"
         event = COMMANDS[command]
         if event is Event.EMERGENCY_STOP:
             stop = payload if isinstance(payload, StopPayload) else StopPayload()
-            return await self.worker.emergency_stop(source=source, payload=stop, audit=audit)
+            return await self.worker.emergency_stop(
+                source=source, payload=stop, audit=audit, halt=halt
+            )
         if command is Command.START and self.orders is not None:
             try:  # a start while an order is active makes a part of that order
                 payload = self.orders.claim_start(

@@ -32,7 +32,7 @@ from server.core.alerts import Alerts
 from server.core.bus import Bus
 from server.core.clock import SYSTEM_CLOCK, Clock
 from server.core.context import FaultRecord, MachineContext, ProcessingStats
-from server.core.devices import CellDevices
+from server.core.devices import CellDevices, HaltReport
 from server.core.engine import REQUIRED_DEVICES, Decision, Facts, step
 from server.core.event_queue import Envelope, EventQueue, Priority
 from server.core.events import (
@@ -225,16 +225,47 @@ class Worker:
         return await envelope.future
 
     async def emergency_stop(
-        self, *, source: str, payload: StopPayload | None = None, audit: AuditNote | None = None
+        self,
+        *,
+        source: str,
+        payload: StopPayload | None = None,
+        audit: AuditNote | None = None,
+        halt: asyncio.Future[HaltReport] | None = None,
     ) -> Outcome:
         """Halt the devices now, without queueing, then have the machine go to ERROR.
 
         The valve-close and robot-stop commands leave before the event is even
-        queued; the EMERGENCY_STOP event then overtakes everything waiting.
+        queued (`halt_for_stop`, unless the caller made that halt already, as the
+        HTTP stop lane does when the request passes the gate); the EMERGENCY_STOP
+        event then overtakes everything waiting.
         """
-        self._estops += 1  # anything being decided now must not undo this stop
-        self.runs.cut_leash()  # the run commands no move and no glue from now on
-        halt = self.devices.start_halt(self.settings.emergency_stop_timeout)
+        if halt is None:
+            halt = self.halt_for_stop()
+        envelope = self.post_stop(halt, source=source, payload=payload, audit=audit)
+        assert envelope.future is not None
+        report = await asyncio.shield(halt)
+        outcome: Outcome = await envelope.future
+        if report.errors:
+            return outcome.with_note(f"; halt incomplete: {'; '.join(report.errors)}")
+        return outcome
+
+    def halt_for_stop(self) -> asyncio.Future[HaltReport]:
+        """An e-stop's first moves, in this order: anything being decided from now on
+        cannot undo it, the run commands no move and no glue, and both halt commands
+        are on their way. The stop's event must follow (`post_stop`)."""
+        self._estops += 1
+        self.runs.cut_leash()
+        return self.devices.start_halt(self.settings.emergency_stop_timeout)
+
+    def post_stop(
+        self,
+        halt: asyncio.Future[HaltReport],
+        *,
+        source: str,
+        payload: StopPayload | None = None,
+        audit: AuditNote | None = None,
+    ) -> Envelope:
+        """Queue the EMERGENCY_STOP of a halt already made, ahead of everything waiting."""
         envelope = self.submit(
             Event.EMERGENCY_STOP,
             source=source,
@@ -244,12 +275,7 @@ class Worker:
             audit=audit,
         )
         envelope.halt_made = halt
-        assert envelope.future is not None
-        report = await asyncio.shield(halt)
-        outcome: Outcome = await envelope.future
-        if report.errors:
-            return outcome.with_note(f"; halt incomplete: {'; '.join(report.errors)}")
-        return outcome
+        return envelope
 
     def report_fault(self, fault: DeviceFault) -> None:
         """Fault listener for the drivers; safe to call from any thread."""
