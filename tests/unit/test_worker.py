@@ -131,13 +131,19 @@ async def test_leaving_an_operational_state_cancels_its_operation(make_worker) -
     assert glue.valve_open is False and worker.ctx.operation is None
 
 
-async def test_estop_mid_run_closes_the_valve_and_stops_the_robot(make_worker) -> None:
+async def spraying(make_worker) -> tuple[Any, FakeGlue, FakeRobot]:
+    """A worker whose run has opened the valve, with its fake dispenser and robot."""
     glue, robot = FakeGlue(), FakeRobot(speed_factor=2)
     worker = await make_worker(glue=glue, robot=robot)
     await worker.request(Event.START_REQUESTED, source="test", payload=START_PAYLOAD)
     async with asyncio.timeout(10):
         while not glue.valve_open:
             await asyncio.sleep(0.002)
+    return worker, glue, robot
+
+
+async def test_estop_mid_run_closes_the_valve_and_stops_the_robot(make_worker) -> None:
+    worker, glue, robot = await spraying(make_worker)
     outcome = await worker.emergency_stop(source="test", payload=StopPayload("hand in cell"))
     assert outcome.state is State.ERROR
     assert glue.valve_open is False and not robot.moving and robot.stops >= 1
@@ -154,12 +160,7 @@ async def test_an_estop_halts_once_before_its_run_is_cancelled_and_once_after(
     Before, the worker sent the same two commands again; they queued behind the
     stop's own on each device's line and the answer waited a round trip more.
     """
-    glue, robot = FakeGlue(), FakeRobot(speed_factor=2)
-    worker = await make_worker(glue=glue, robot=robot)
-    await worker.request(Event.START_REQUESTED, source="test", payload=START_PAYLOAD)
-    async with asyncio.timeout(10):
-        while not glue.valve_open:
-            await asyncio.sleep(0.002)
+    worker, glue, robot = await spraying(make_worker)
     halts: list[str] = []
     start_halt, safe_halt = worker.devices.start_halt, worker.devices.safe_halt
 
