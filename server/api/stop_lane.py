@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Iterable
+from collections.abc import Awaitable, Iterable
 from typing import Any
 
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -38,11 +38,14 @@ class StopLane:
         self.app = app
         self.stop_paths = frozenset(stop_paths)
 
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+    def __call__(self, scope: Scope, receive: Receive, send: Send) -> Awaitable[None]:
+        """Not a coroutine: any other request is handed on as it is, with no frame of ours."""
         worker = _worker_of(scope) if _is_stop(scope, self.stop_paths) else None
         if worker is None:
-            await self.app(scope, receive, send)
-            return
+            return self.app(scope, receive, send)
+        return self._stop(worker, scope, receive, send)
+
+    async def _stop(self, worker: Any, scope: Scope, receive: Receive, send: Send) -> None:
         state = scope.setdefault("state", {})
         state[HALT_MADE] = worker.halt_for_stop()
         try:
