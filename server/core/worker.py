@@ -352,7 +352,7 @@ class Worker:
             # never starves the HTTP handlers (the e-stop route above all). After
             # every event: letting it run only every 0.1 ms made the worker 1.17x
             # faster, and the stop behind a full queue 2 ms slower at p99
-            # (docs/benchmarks.md, "The worker's accepted cycle").
+            # (docs/benchmarks.md, "Issue 17, fourth pass").
             await asyncio.sleep(0)
 
     async def _let_commit_through(self, durable: asyncio.Future[None]) -> None:
@@ -437,10 +437,11 @@ class Worker:
         An e-stop's first HALT is the halt the stop made before it was queued: the
         same two commands, already on their way. Sent again, they would only queue
         behind those on each device's line, and the stop's answer would wait a
-        round trip more. Nothing can have been commanded since that needs undoing:
-        the run's leash was cut before that halt was made, and a move started
-        before it was written before it. A later HALT of the same transition (once
-        the run is cancelled) is sent anew.
+        round trip more. The run's leash was cut before that halt was made, so it
+        commands nothing new; what it may still have on its way (an opening
+        waiting for the dispenser's line, which a close goes ahead of, this one's
+        repeat included) is what the HALT after its cancellation is for, and that
+        one is sent anew.
         """
         made = envelope.halt_made if envelope is not None else None
         if made is not None:
