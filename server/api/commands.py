@@ -175,7 +175,7 @@ async def _run(request: Request, command: Command, payload: Payload | None = Non
         source=_client(request),
         payload=payload,
         audit=audit.note(request, audit_label),
-        halt=take_halt(request.state) if command is Command.ESTOP else None,
+        halt=take_halt(request.scope) if command is Command.ESTOP else None,
     )
     if outcome.journal_problem is None:
         request.state.audited = True  # its row was committed with the event

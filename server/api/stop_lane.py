@@ -19,11 +19,14 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Awaitable, Iterable
-from typing import Any
+from typing import TYPE_CHECKING
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from server.core.devices import HaltReport
+if TYPE_CHECKING:
+    from server.cell import Cell
+    from server.core.devices import HaltReport
+    from server.core.worker import Worker
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +48,7 @@ class StopLane:
             return self.app(scope, receive, send)
         return self._stop(worker, scope, receive, send)
 
-    async def _stop(self, worker: Any, scope: Scope, receive: Receive, send: Send) -> None:
+    async def _stop(self, worker: Worker, scope: Scope, receive: Receive, send: Send) -> None:
         state = scope.setdefault("state", {})
         state[HALT_MADE] = worker.halt_for_stop()
         try:
@@ -61,11 +64,9 @@ class StopLane:
                 worker.post_stop(halt, source=f"api:{host}")
 
 
-def take_halt(state: Any) -> asyncio.Future[HaltReport] | None:
+def take_halt(scope: Scope) -> asyncio.Future[HaltReport] | None:
     """The halt the lane made for this request (once: whoever takes it makes the stop)."""
-    halt: asyncio.Future[HaltReport] | None = getattr(state, HALT_MADE, None)
-    if halt is not None:
-        setattr(state, HALT_MADE, None)
+    halt: asyncio.Future[HaltReport] | None = scope.get("state", {}).pop(HALT_MADE, None)
     return halt
 
 
@@ -73,6 +74,6 @@ def _is_stop(scope: Scope, stop_paths: frozenset[str]) -> bool:
     return scope["type"] == "http" and scope["method"] == "POST" and scope["path"] in stop_paths
 
 
-def _worker_of(scope: Scope) -> Any:
-    cell = getattr(scope["app"].state, "cell", None)
-    return getattr(cell, "worker", None)
+def _worker_of(scope: Scope) -> Worker | None:
+    cell: Cell | None = getattr(scope["app"].state, "cell", None)
+    return cell.worker if cell is not None else None

@@ -311,9 +311,9 @@ class Runs:
             listener(ended)
 
     def cut_leash(self) -> None:
-        """From now on the running operation commands no move and no glue (an e-stop).
+        """From now on the running operation commands no move and no glue.
 
-        The e-stop cuts it as it arrives, before its halt is made, so nothing the
+        An e-stop cuts it as it arrives, before its halt is made, so nothing the
         run sends after the stop can undo it; the cancellation follows in the worker.
         """
         if self._leash is not None:

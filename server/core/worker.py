@@ -443,10 +443,8 @@ class Worker:
         repeat included) is what the HALT after its cancellation is for, and that
         one is sent anew.
         """
-        made = envelope.halt_made if envelope is not None else None
-        if made is not None:
-            assert envelope is not None
-            envelope.halt_made = None
+        if envelope is not None and envelope.halt_made is not None:
+            made, envelope.halt_made = envelope.halt_made, None
             report = await asyncio.shield(made)
         else:
             report = await self.devices.safe_halt(self.settings.emergency_stop_timeout)
