@@ -5,9 +5,10 @@ routing, the validation of its (optional) body and the handler's own steps:
 about 0.3 ms of the 0.45 ms from the request's arrival to the halt's commands
 (docs/benchmarks.md, issue 17). The devices are commanded here instead, once
 the gate has let the request through (so only a token allowed to stop can stop):
-`Worker.halt_for_stop` counts the stop, cuts the run's leash and puts both halt
-commands on their way. The route then makes the stop with that halt, with its
-reason, its audit row and its answer, as before.
+`Worker.halt_for_stop` counts the stop, cuts the run's leash and writes both halt
+commands' frames (tasks started at once: no turn of the loop comes first). The
+route then makes the stop with that halt, with its reason, its audit row and
+its answer, as before.
 
 A halt is never left without its transition: if the route did not get to the
 stop (an error on the way), the lane queues the EMERGENCY_STOP itself, so the
@@ -52,9 +53,6 @@ class StopLane:
         state = scope.setdefault("state", {})
         state[HALT_MADE] = worker.halt_for_stop()
         try:
-            # The halt's commands are tasks: let them write their frames now, before
-            # this request goes on through routing (which would hold the loop meanwhile).
-            await asyncio.sleep(0)
             await self.app(scope, receive, send)
         finally:
             halt = state.pop(HALT_MADE, None)

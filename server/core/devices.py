@@ -14,7 +14,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
-from server.core.eager import Started, together, within
+from server.core.eager import Started, start_task, together, within
 from server.drivers.base import Camera, FaultListener, GlueDispenser, Robot
 from server.errors import DeviceTimeout
 
@@ -50,17 +50,18 @@ class CellDevices:
 
         The halt of a transition, awaited in the worker's own task. The valve's close
         takes its first step here, at once; then the robot's stop. If the valve is
-        waiting for its answer, the stop goes on its way as a task (so neither waits
-        for the other's answer); if the valve answered at once (nothing was waited
-        for), the stop takes its first step here too and no task is made. `then` (a
-        pause's hold) runs once both commands are on their way, before their answers.
+        waiting for its answer, the stop is a task started at once (its frame is
+        written now, and neither waits for the other's answer); if the valve answered
+        at once (nothing was waited for), the stop takes its first step here too and
+        no task is made. `then` (a pause's hold) runs once both frames are written,
+        before their answers.
         """
         valve = Started(within(self.glue.set_valve(False), timeout))
         stop: Started[None] | asyncio.Future[None]
         if valve.done:
             stop = Started(within(self.robot.stop(), timeout))
         else:
-            stop = asyncio.ensure_future(within(self.robot.stop(), timeout))
+            stop = start_task(within(self.robot.stop(), timeout))
         try:
             if then is not None:
                 then()
@@ -77,14 +78,15 @@ class CellDevices:
         return _report(valve_result, stop_result)
 
     def start_halt(self, timeout: float) -> asyncio.Future[HaltReport]:
-        """Put both halt commands on their way at once; the future reports how they went.
+        """Put both halt commands on their way now, valve first; the future reports how they went.
 
-        Not a coroutine, so the commands' tasks exist when this returns and run
-        on the loop's very next turn: a caller that had to be scheduled first
-        would cost the e-stop one more turn of a possibly busy loop.
+        Not a coroutine, and each command a task started at once (`start_task`):
+        when this returns, each command's frame is written (unless its line is
+        busy with an exchange already under way), not left for a later turn of a
+        possibly busy loop.
         """
-        valve = asyncio.ensure_future(within(self.glue.set_valve(False), timeout))
-        stop = asyncio.ensure_future(within(self.robot.stop(), timeout))
+        valve = start_task(within(self.glue.set_valve(False), timeout))
+        stop = start_task(within(self.robot.stop(), timeout))
         return asyncio.ensure_future(_halt_report(valve, stop))
 
     async def probe_faults(self, timeout: float) -> list[str]:

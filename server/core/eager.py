@@ -19,10 +19,13 @@ cancellation is thrown into the coroutine where it waits.
 from __future__ import annotations
 
 import asyncio
+import contextvars
+import sys
 from collections.abc import Coroutine, Generator
 from typing import Any, Generic, TypeVar
 
 T = TypeVar("T")
+_EAGER_START = sys.version_info >= (3, 12)  # asyncio.Task(..., eager_start=True)
 
 
 class Started(Generic[T]):
@@ -60,6 +63,96 @@ class Started(Generic[T]):
             return self._result  # type: ignore[return-value]
         self.done = True  # awaited once: from here the coroutine runs in this task
         return (yield from _drive(self._coro, self._pending))
+
+
+def start_task(coro: Coroutine[Any, Any, T]) -> asyncio.Task[T]:
+    """A task of `coro` whose first step has already run, as that task, when this returns.
+
+    Why: the e-stop's halt commands are tasks, because the stop must not wait
+    for their answers. A task's first step waits for the loop's next turn,
+    behind every callback already ready (a crowd's WebSocket writes, a vision
+    result, the requests queued ahead): the stop's frames then left up to a few
+    ms after it arrived. Started here, each command's frame is written before
+    this returns. Python 3.12 calls this an eager task (`eager_start=True`); on
+    3.11 the first step runs here with the new task made the current one, so
+    whatever the step binds to its task (asyncio.timeout, a lock's owner) is
+    bound to the task that drives the rest, and in the task's own context.
+    """
+    loop = asyncio.get_running_loop()
+    if _EAGER_START:
+        return asyncio.Task(coro, loop=loop, eager_start=True)  # type: ignore[call-arg]
+    context = contextvars.copy_context()
+    first = _FirstStepDone(coro)
+    task = loop.create_task(first, context=context)
+    outer = asyncio.current_task(loop)
+    if outer is not None:
+        asyncio.tasks._leave_task(loop, outer)
+    asyncio.tasks._enter_task(loop, task)
+    try:
+        context.run(first.step)
+    finally:
+        asyncio.tasks._leave_task(loop, task)
+        if outer is not None:
+            asyncio.tasks._enter_task(loop, outer)
+    return task
+
+
+class _FirstStepDone(Coroutine[Any, Any, T]):
+    """What `start_task`'s task drives: `coro`, whose first step `step` ran beforehand.
+
+    The task's own first step receives what that step gave (the future it waits
+    on, its result or its exception); from then on each resumption and each
+    exception (a cancellation) goes straight to `coro`. A cancel that reached
+    the task before its first step is thrown into `coro` where it waits, as for
+    any task, so the coroutine's own handling of a cancel runs.
+    """
+
+    __slots__ = ("_coro", "_outcome", "_stepped")
+
+    def __init__(self, coro: Coroutine[Any, Any, T]) -> None:
+        self._coro = coro
+        self._stepped = False
+        self._outcome: tuple[str, Any] = ("yield", None)
+
+    def step(self) -> None:
+        try:
+            self._outcome = ("yield", self._coro.send(None))
+        except StopIteration as stop:
+            self._outcome = ("return", stop.value)
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except BaseException as exc:  # CancelledError included: the coroutine's own outcome
+            self._outcome = ("raise", exc)
+
+    def send(self, value: Any) -> Any:
+        if self._stepped:
+            return self._coro.send(value)
+        self._stepped = True
+        kind, what = self._outcome
+        self._outcome = ("yield", None)  # drop the reference: a traceback would keep frames
+        if kind == "yield":
+            return what
+        if kind == "return":
+            raise StopIteration(what)
+        raise what
+
+    def throw(self, typ: Any, val: Any = None, tb: Any = None) -> Any:
+        exc = typ if val is None else val
+        if not self._stepped:
+            self._stepped = True
+            kind, what = self._outcome
+            self._outcome = ("yield", None)
+            if kind != "yield":  # already finished: its outcome stands, the throw comes too late
+                if kind == "return":
+                    raise StopIteration(what)
+                raise what
+        return self._coro.throw(exc)
+
+    def close(self) -> None:
+        self._coro.close()
+
+    def __await__(self) -> Generator[Any, Any, T]:
+        raise TypeError("a started task's coroutine is driven by its task only")
 
 
 def _drive(coro: Coroutine[Any, Any, T], pending: Any) -> Generator[Any, Any, T]:

@@ -8,11 +8,12 @@ on; a cancel that lands with the pause is still never swallowed.
 from __future__ import annotations
 
 import asyncio
+import contextvars
 from typing import Any
 
 from server.config import Settings
 from server.core.devices import CellDevices
-from server.core.eager import Started
+from server.core.eager import Started, start_task
 from server.core.operations.base import PauseGate
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
@@ -82,6 +83,82 @@ async def test_an_exception_of_the_first_step_is_raised_when_awaited() -> None:
         raise AssertionError("the first step's exception was lost")
 
 
+async def test_a_started_task_has_run_its_first_step_as_itself_when_made() -> None:
+    reply: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+    seen: list[Any] = []
+
+    async def ask() -> str:
+        seen.append(asyncio.current_task())
+        answer = await reply
+        seen.append(asyncio.current_task())
+        return answer
+
+    outer = asyncio.current_task()
+    task = start_task(ask())
+    assert seen == [task]  # before any turn of the loop, and as the new task
+    assert asyncio.current_task() is outer  # this task is the current one again
+    reply.set_result("ok")
+    assert await task == "ok"
+    assert seen == [task, task]
+
+
+async def test_a_started_task_that_answers_at_once_has_its_result() -> None:
+    async def answer() -> int:
+        return 42
+
+    async def fail() -> None:
+        raise RuntimeError("no link")
+
+    assert await start_task(answer()) == 42
+    failing = start_task(fail())
+    await asyncio.gather(failing, return_exceptions=True)
+    assert isinstance(failing.exception(), RuntimeError)
+
+
+async def test_a_timeout_entered_in_the_first_step_ends_the_started_task_only() -> None:
+    """asyncio.timeout binds to the task current at its entry: it must be the new one."""
+
+    async def late() -> str:
+        try:
+            async with asyncio.timeout(0.01):
+                await asyncio.sleep(3600)
+        except TimeoutError:
+            return "timed out"
+        return "not timed out"
+
+    task = start_task(late())
+    assert await task == "timed out"
+    await _turns()  # this task, the one that made it, was not cancelled meanwhile
+
+
+async def test_a_cancel_before_the_started_tasks_first_turn_reaches_the_coroutine() -> None:
+    cleaned: list[str] = []
+
+    async def wait_forever() -> None:
+        try:
+            await asyncio.sleep(3600)
+        except asyncio.CancelledError:
+            cleaned.append("cancelled where it waits")
+            raise
+
+    task = start_task(wait_forever())
+    task.cancel()  # the loop has not turned: the task's own first step is still to come
+    await asyncio.gather(task, return_exceptions=True)
+    assert task.cancelled() and cleaned == ["cancelled where it waits"]
+
+
+async def test_a_started_task_runs_in_a_context_of_its_own() -> None:
+    where = contextvars.ContextVar("where", default="outside")
+
+    async def mark() -> str:
+        where.set("inside")
+        await asyncio.sleep(0)
+        return where.get()
+
+    assert await start_task(mark()) == "inside"
+    assert where.get() == "outside"
+
+
 class _SlowValve(FakeGlue):
     """A valve whose close waits for its answer until the test gives it."""
 
@@ -112,7 +189,17 @@ async def test_the_halt_sends_the_stop_while_the_valve_waits_for_its_answer() ->
     devices = CellDevices(_LoggingRobot(log), glue, FakeCamera())
     halt = asyncio.create_task(devices.safe_halt(1.0, then=lambda: log.append("then")))
     await _turns()
-    assert log == ["valve sent", "then", "stop sent"]  # valve first, the stop not held back
+    assert log == ["valve sent", "stop sent", "then"]  # valve first, the stop not held back
+    glue.answer.set()
+    report = await halt
+    assert report.valve_closed and report.robot_stopped and not report.errors
+
+
+async def test_the_stops_halt_has_sent_both_commands_when_made() -> None:
+    log: list[str] = []
+    glue = _SlowValve(log)
+    halt = CellDevices(_LoggingRobot(log), glue, FakeCamera()).start_halt(1.0)
+    assert log == ["valve sent", "stop sent"]  # valve first, before the loop turned
     glue.answer.set()
     report = await halt
     assert report.valve_closed and report.robot_stopped and not report.errors

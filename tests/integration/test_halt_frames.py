@@ -1,0 +1,80 @@
+"""The e-stop's halt has written both device frames when `start_halt` returns.
+
+Before, each halt command was a task whose first step (the one that writes its
+frame) waited for the loop's next turn, behind every callback ready by then: a
+crowd's WebSocket writes, a vision result, the requests queued ahead. Here the
+production drivers talk to the simulators over loopback, and every write to a
+socket is recorded as it happens.
+"""
+
+from __future__ import annotations
+
+import json
+from asyncio.selector_events import _SelectorSocketTransport
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+
+from server.core.devices import CellDevices
+from server.drivers import glue_registers as regs
+from server.drivers.glue_modbus import ModbusGlueDispenser
+from server.drivers.robot_jsonrpc import JsonRpcRobot
+from server.drivers.sim.glue_sim import GlueSimulator
+from server.drivers.sim.robot_sim import RobotSimulator
+from tests.fakes import FakeCamera
+
+TIMEOUT = 2.0
+WRITE_SINGLE_REGISTER = 6
+
+
+@pytest.fixture
+async def devices() -> AsyncIterator[CellDevices]:
+    async with RobotSimulator(speed_factor=4) as robot_sim, GlueSimulator(seed=3) as glue_sim:
+        robot = JsonRpcRobot("127.0.0.1", robot_sim.port, timeout=TIMEOUT)
+        glue = ModbusGlueDispenser.tcp("127.0.0.1", glue_sim.port, timeout=TIMEOUT)
+        await robot.connect()
+        await glue.connect()
+        try:
+            yield CellDevices(robot, glue, FakeCamera())
+        finally:
+            await robot.close()
+            await glue.close()
+
+
+@pytest.fixture
+def written(monkeypatch: pytest.MonkeyPatch) -> list[bytes]:
+    """Every frame handed to a socket from here on, in order."""
+    frames: list[bytes] = []
+    write = _SelectorSocketTransport.write
+
+    def recording(self: Any, data: Any) -> None:
+        frames.append(bytes(data))
+        write(self, data)
+
+    monkeypatch.setattr(_SelectorSocketTransport, "write", recording)
+    return frames
+
+
+def _is_valve_close(frame: bytes) -> bool:
+    return (
+        len(frame) == 8
+        and frame[1] == WRITE_SINGLE_REGISTER
+        and int.from_bytes(frame[2:4], "big") == regs.VALVE_COMMAND.address
+        and int.from_bytes(frame[4:6], "big") == regs.encode_valve(False)
+    )
+
+
+def _is_robot_stop(frame: bytes) -> bool:
+    return json.loads(frame).get("method") == "stop"
+
+
+async def test_both_halt_frames_are_on_their_sockets_when_the_halt_is_made(
+    devices: CellDevices, written: list[bytes]
+) -> None:
+    halt = devices.start_halt(TIMEOUT)
+    # No await yet: the loop has not turned since the halt was made.
+    assert len(written) == 2, written
+    assert _is_valve_close(written[0]) and _is_robot_stop(written[1])  # the valve first
+    report = await halt
+    assert report.valve_closed and report.robot_stopped and not report.errors
