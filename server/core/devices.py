@@ -17,6 +17,7 @@ from typing import Any
 from server.core.eager import Started, start_task, together, within
 from server.drivers.base import Camera, FaultListener, GlueDispenser, Robot
 from server.errors import DeviceTimeout
+from server.runtime import collection_deferred
 
 log = logging.getLogger(__name__)
 
@@ -83,10 +84,11 @@ class CellDevices:
         Not a coroutine, and each command a task started at once (`start_task`):
         when this returns, each command's frame is written (unless its line is
         busy with an exchange already under way), not left for a later turn of a
-        possibly busy loop.
+        possibly busy loop, nor behind a garbage collection (`collection_deferred`).
         """
-        valve = start_task(within(self.glue.set_valve(False), timeout))
-        stop = start_task(within(self.robot.stop(), timeout))
+        with collection_deferred():
+            valve = start_task(within(self.glue.set_valve(False), timeout))
+            stop = start_task(within(self.robot.stop(), timeout))
         return asyncio.ensure_future(_halt_report(valve, stop))
 
     async def probe_faults(self, timeout: float) -> list[str]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
+import gc
 from typing import Any
 
 from server.config import Settings
@@ -203,6 +204,25 @@ async def test_the_stops_halt_has_sent_both_commands_when_made() -> None:
     glue.answer.set()
     report = await halt
     assert report.valve_closed and report.robot_stopped and not report.errors
+
+
+async def test_no_garbage_collection_starts_while_the_stops_frames_are_written() -> None:
+    seen: list[bool] = []
+
+    class Watching(FakeGlue):
+        async def set_valve(self, open_: bool) -> None:
+            seen.append(gc.isenabled())
+            await super().set_valve(open_)
+
+    class WatchingRobot(FakeRobot):
+        async def stop(self) -> None:
+            seen.append(gc.isenabled())
+            await super().stop()
+
+    assert gc.isenabled()
+    report = await CellDevices(WatchingRobot(), Watching(), FakeCamera()).start_halt(1.0)
+    assert seen == [False, False] and gc.isenabled()  # off for the first steps only
+    assert report.valve_closed and report.robot_stopped
 
 
 async def test_the_halt_of_devices_that_answer_at_once_makes_no_task() -> None:

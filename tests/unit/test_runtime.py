@@ -13,6 +13,7 @@ from starlette.applications import Starlette
 
 from server.runtime import (
     GC_THRESHOLDS,
+    collection_deferred,
     freeze_once_started,
     limit_malloc_arenas,
     raise_open_file_limit,
@@ -68,3 +69,17 @@ def test_what_start_up_builds_is_frozen_before_the_first_request() -> None:
     finally:
         gc.unfreeze()
         gc.set_threshold(*thresholds)
+
+
+def test_a_deferred_collection_leaves_the_collector_as_it_found_it() -> None:
+    assert gc.isenabled()
+    with collection_deferred():
+        assert not gc.isenabled()
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with collection_deferred():
+            assert not gc.isenabled()
+        assert not gc.isenabled()  # not turned on by a block that found it off
+    finally:
+        gc.enable()
