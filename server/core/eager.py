@@ -90,6 +90,9 @@ def start_task(coro: Coroutine[Any, Any, T]) -> asyncio.Task[T]:
     asyncio.tasks._enter_task(loop, task)
     try:
         context.run(first.step)
+    except BaseException:  # KeyboardInterrupt, SystemExit: the task must not go on
+        task.cancel()
+        raise
     finally:
         asyncio.tasks._leave_task(loop, task)
         if outer is not None:
