@@ -105,8 +105,8 @@ class StopWitness:
             stdout=subprocess.PIPE,
             text=True,
             cwd=ROOT,
-            preexec_fn=on_cores(cores),
         )
+        keep_to(self.process.pid, cores)  # at once: it starts no thread before its imports
         assert self.process.stdout is not None and self.process.stdin is not None
         self.stdin, self.stdout = self.process.stdin, self.process.stdout
         _, robot, _, glue = self.stdout.readline().split()
@@ -213,17 +213,20 @@ async def start_vision(worker: Worker, rng: random.Random) -> None:
     await asyncio.sleep(rng.uniform(0.0, 0.06))
 
 
-def on_cores(cores: set[int] | None, nice: int = 0) -> Callable[[], None] | None:
-    """What a child process runs before it starts: keep to `cores` at niceness `nice`
-    (None: no pinning, and nothing to run)."""
+def keep_to(pid: int, cores: set[int] | None, nice: int = 0) -> None:
+    """Keep every thread of process `pid` (0: this one) to `cores`, at niceness `nice`
+    (None: no pinning). Threads started later inherit it from the thread that starts them.
+
+    Every thread, not the process's first alone: on Linux affinity and niceness
+    are a thread's, and numpy and OpenCV start threads of their own when imported.
+    """
     if cores is None:
-        return None
-
-    def setup() -> None:
-        os.sched_setaffinity(0, cores)
-        os.nice(nice)
-
-    return setup
+        return
+    for thread in os.listdir(f"/proc/{pid or os.getpid()}/task"):
+        with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+            os.sched_setaffinity(int(thread), cores)
+            if nice:
+                os.setpriority(os.PRIO_PROCESS, int(thread), nice)
 
 
 CROWD_NICE = 10  # pinned: the simulated devices, on the crowd's core, are served first
@@ -246,8 +249,8 @@ async def ws_crowd(
         stdout=asyncio.subprocess.PIPE,
         env={**os.environ, "GLUE_BENCH_TOKEN": token},
         cwd=ROOT,
-        preexec_fn=on_cores(cores, nice=CROWD_NICE),
     )
+    keep_to(crowd.pid, cores, nice=CROWD_NICE)
     assert crowd.stdout is not None and crowd.stdin is not None
     line = (await crowd.stdout.readline()).decode()
     if not line.startswith("connected"):
@@ -378,8 +381,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     args = parser.parse_args(argv)
     logging.disable(logging.ERROR)  # every e-stop logs a fault; not what is measured
     cores = pinning(args.pin)
-    if cores is not None:
-        os.sched_setaffinity(0, cores[0])  # before any thread: each inherits it
+    keep_to(0, cores[0] if cores is not None else None)  # before the server starts any thread
     others = cores[1] if cores is not None else None
     rows = asyncio.run(run(args.trials, args.queue_size, args.ws_clients, others))
     pinned: Any = (

@@ -83,18 +83,20 @@ def start_task(coro: Coroutine[Any, Any, T]) -> asyncio.Task[T]:
         return asyncio.Task(coro, loop=loop, eager_start=True)  # type: ignore[call-arg]
     context = contextvars.copy_context()
     first = _FirstStepDone(coro)
-    task = loop.create_task(first, context=context)
+    task = loop.create_task(first, name=getattr(coro, "__qualname__", None), context=context)
     outer = asyncio.current_task(loop)
     if outer is not None:
         asyncio.tasks._leave_task(loop, outer)
-    asyncio.tasks._enter_task(loop, task)
     try:
-        context.run(first.step)
-    except BaseException:  # KeyboardInterrupt, SystemExit: the task must not go on
-        task.cancel()
-        raise
+        asyncio.tasks._enter_task(loop, task)
+        try:
+            context.run(first.step)
+        except BaseException:  # KeyboardInterrupt, SystemExit: the task must not go on
+            task.cancel()
+            raise
+        finally:
+            asyncio.tasks._leave_task(loop, task)
     finally:
-        asyncio.tasks._leave_task(loop, task)
         if outer is not None:
             asyncio.tasks._enter_task(loop, outer)
     return task
@@ -105,9 +107,10 @@ class _FirstStepDone(Coroutine[Any, Any, T]):
 
     The task's own first step receives what that step gave (the future it waits
     on, its result or its exception); from then on each resumption and each
-    exception (a cancellation) goes straight to `coro`. A cancel that reached
-    the task before its first step is thrown into `coro` where it waits, as for
-    any task, so the coroutine's own handling of a cancel runs.
+    exception (a cancellation) goes straight to `coro`. Until then the future is
+    not marked as awaited (so another task may await it meanwhile), and a cancel
+    that reaches the task first cancels that future and is thrown into `coro`
+    where it waits, as a task's cancel does: the coroutine's own handling runs.
     """
 
     __slots__ = ("_coro", "_outcome", "_stepped")
@@ -119,21 +122,33 @@ class _FirstStepDone(Coroutine[Any, Any, T]):
 
     def step(self) -> None:
         try:
-            self._outcome = ("yield", self._coro.send(None))
+            waits_on = self._coro.send(None)
         except StopIteration as stop:
             self._outcome = ("return", stop.value)
-        except (KeyboardInterrupt, SystemExit):
+        except (KeyboardInterrupt, SystemExit) as exc:
+            self._outcome = ("interrupted", exc)  # finished: a cancel can only end the task
             raise
         except BaseException as exc:  # CancelledError included: the coroutine's own outcome
             self._outcome = ("raise", exc)
+        else:
+            # A future is awaited by the task it is handed to: the flag goes back on
+            # when it is handed over, on the task's first turn.
+            if getattr(waits_on, "_asyncio_future_blocking", False):
+                waits_on._asyncio_future_blocking = False
+            self._outcome = ("yield", waits_on)
+
+    def _take_outcome(self) -> tuple[str, Any]:
+        self._stepped = True
+        outcome, self._outcome = self._outcome, ("yield", None)  # no reference kept
+        return outcome
 
     def send(self, value: Any) -> Any:
         if self._stepped:
             return self._coro.send(value)
-        self._stepped = True
-        kind, what = self._outcome
-        self._outcome = ("yield", None)  # drop the reference: a traceback would keep frames
+        kind, what = self._take_outcome()
         if kind == "yield":
+            if hasattr(what, "_asyncio_future_blocking"):
+                what._asyncio_future_blocking = True
             return what
         if kind == "return":
             raise StopIteration(what)
@@ -141,14 +156,17 @@ class _FirstStepDone(Coroutine[Any, Any, T]):
 
     def throw(self, typ: Any, val: Any = None, tb: Any = None) -> Any:
         exc = typ if val is None else val
-        if not self._stepped:
-            self._stepped = True
-            kind, what = self._outcome
-            self._outcome = ("yield", None)
-            if kind != "yield":  # already finished: its outcome stands, the throw comes too late
-                if kind == "return":
-                    raise StopIteration(what)
-                raise what
+        if self._stepped:
+            return self._coro.throw(exc)
+        kind, what = self._take_outcome()
+        if kind == "return":  # finished already: its outcome stands, the throw comes too late
+            raise StopIteration(what)
+        if kind == "raise":
+            raise what
+        if kind == "interrupted":
+            raise exc
+        if isinstance(exc, asyncio.CancelledError) and isinstance(what, asyncio.Future):
+            what.cancel()  # what a task's cancel does to the future it waits on
         return self._coro.throw(exc)
 
     def close(self) -> None:

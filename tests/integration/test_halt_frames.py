@@ -32,7 +32,10 @@ WRITE_SINGLE_REGISTER = 6
 async def devices() -> AsyncIterator[CellDevices]:
     async with RobotSimulator(speed_factor=4) as robot_sim, GlueSimulator(seed=3) as glue_sim:
         robot = JsonRpcRobot("127.0.0.1", robot_sim.port, timeout=TIMEOUT)
-        glue = ModbusGlueDispenser.tcp("127.0.0.1", glue_sim.port, timeout=TIMEOUT)
+        # No status poll of its own: one on the line would hold the close back.
+        glue = ModbusGlueDispenser.tcp(
+            "127.0.0.1", glue_sim.port, timeout=TIMEOUT, poll_interval=3600
+        )
         await robot.connect()
         await glue.connect()
         try:

@@ -148,6 +148,57 @@ async def test_a_cancel_before_the_started_tasks_first_turn_reaches_the_coroutin
     assert task.cancelled() and cleaned == ["cancelled where it waits"]
 
 
+async def test_a_future_a_started_task_waits_on_may_be_awaited_by_another_meanwhile() -> None:
+    shared: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+
+    async def wait() -> int:
+        return await shared
+
+    # Each waits on `shared` before the other's task has had a turn.
+    first, second = start_task(wait()), start_task(wait())
+    plain = asyncio.ensure_future(wait())
+    await asyncio.sleep(0)
+    shared.set_result(1)
+    assert await asyncio.gather(first, second, plain) == [1, 1, 1]
+
+
+async def test_a_cancel_before_the_first_turn_cancels_what_the_task_waits_on() -> None:
+    inner = asyncio.ensure_future(asyncio.sleep(3600))
+
+    async def wait() -> None:
+        await inner
+
+    task = start_task(wait())
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    assert task.cancelled() and inner.cancelled()  # as a task's cancel does
+
+
+async def test_a_first_step_interrupted_leaves_its_task_cancelled() -> None:
+    async def interrupted() -> None:
+        raise KeyboardInterrupt
+
+    made: list[asyncio.Task[None]] = []
+    create_task = asyncio.get_running_loop().create_task
+
+    def keep(coro: Any, **kwargs: Any) -> asyncio.Task[Any]:
+        made.append(create_task(coro, **kwargs))
+        return made[-1]
+
+    loop = asyncio.get_running_loop()
+    loop.create_task = keep  # type: ignore[method-assign]
+    try:
+        start_task(interrupted())
+    except KeyboardInterrupt:
+        pass
+    else:
+        raise AssertionError("the interrupt was swallowed")
+    finally:
+        del loop.create_task
+    await asyncio.gather(*made, return_exceptions=True)
+    assert made[0].cancelled()
+
+
 async def test_a_started_task_runs_in_a_context_of_its_own() -> None:
     where = contextvars.ContextVar("where", default="outside")
 
