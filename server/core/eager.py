@@ -1,4 +1,5 @@
-"""A coroutine's first step run at once, in the task that goes on to await the rest.
+"""A coroutine's first step run at once: in the task that goes on to await the rest
+(`Started`), or as a task of its own (`start_task`).
 
 Why: the worker's halt, a pause's hold and a reset's probe each command several
 devices "at once", which costs a task per command. A command that answers
@@ -14,6 +15,10 @@ itself to the current task (`asyncio.timeout` does, to cancel it later), and
 awaiting the rest here keeps that binding true. Awaiting a `Started` then
 behaves exactly like `await coro`: the same futures reach the task, and a
 cancellation is thrown into the coroutine where it waits.
+
+When the caller must not wait at all (the e-stop's halt), `start_task(coro)`
+is the eager task 3.12 has and 3.11 lacks: a task whose first step has run,
+as that task, by the time it is returned.
 """
 
 from __future__ import annotations

@@ -24,6 +24,14 @@ async def _turns(count: int = 5) -> None:
         await asyncio.sleep(0)
 
 
+async def _ask(reply: asyncio.Future[str], seen: list[Any]) -> str:
+    """Note the task it runs in before and after it waits for `reply`."""
+    seen.append(asyncio.current_task())
+    answer = await reply
+    seen.append(asyncio.current_task())
+    return answer
+
+
 async def test_a_coroutine_that_answers_at_once_is_done_without_a_task() -> None:
     async def answer() -> int:
         return 42
@@ -38,13 +46,7 @@ async def test_a_coroutine_that_waits_goes_on_in_the_awaiting_task() -> None:
     reply: asyncio.Future[str] = asyncio.get_running_loop().create_future()
     seen: list[Any] = []
 
-    async def ask() -> str:
-        seen.append(asyncio.current_task())
-        answer = await reply
-        seen.append(asyncio.current_task())
-        return answer
-
-    started = Started(ask())
+    started = Started(_ask(reply, seen))
     assert not started.done
     asyncio.get_running_loop().call_soon(reply.set_result, "ok")
     assert await started == "ok"
@@ -88,14 +90,8 @@ async def test_a_started_task_has_run_its_first_step_as_itself_when_made() -> No
     reply: asyncio.Future[str] = asyncio.get_running_loop().create_future()
     seen: list[Any] = []
 
-    async def ask() -> str:
-        seen.append(asyncio.current_task())
-        answer = await reply
-        seen.append(asyncio.current_task())
-        return answer
-
     outer = asyncio.current_task()
-    task = start_task(ask())
+    task = start_task(_ask(reply, seen))
     assert seen == [task]  # before any turn of the loop, and as the new task
     assert asyncio.current_task() is outer  # this task is the current one again
     reply.set_result("ok")
