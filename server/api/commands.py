@@ -33,7 +33,7 @@ from server.api.schemas import (
     QueueFullResult,
     StartRequest,
 )
-from server.api.stop_lane import take_halt
+from server.api.stop_lane import source_of, take_halt
 from server.cell import Cell
 from server.core.events import (
     CreateWorkpiecePayload,
@@ -67,11 +67,6 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
 
 def _cell(request: Request) -> Cell:
     return request.app.state.cell
-
-
-def _client(request: Request) -> str:
-    host = request.client.host if request.client else "unknown"
-    return f"api:{host}"
 
 
 _UNRECORDED_ADVICE = {
@@ -172,7 +167,7 @@ def command_path(command: Command) -> str:
 async def _run(request: Request, command: Command, payload: Payload | None = None) -> JSONResponse:
     outcome = await _cell(request).command(
         command,
-        source=_client(request),
+        source=source_of(request.scope),
         payload=payload,
         audit=audit.note(request, audit_label),
         halt=take_halt(request.scope) if command is Command.ESTOP else None,

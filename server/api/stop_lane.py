@@ -58,8 +58,13 @@ class StopLane:
             halt = state.pop(HALT_MADE, None)
             if halt is not None:  # the route did not make the stop: make it here
                 log.error("the stop route failed before it made the stop; made by the lane")
-                host = (scope.get("client") or ("unknown",))[0]
-                worker.post_stop(halt, source=f"api:{host}")
+                worker.post_stop(halt, source=source_of(scope))
+
+
+def source_of(scope: Scope) -> str:
+    """Who sent a command over the API, as its event's `source` says it: `api:<host>`."""
+    client = scope.get("client")
+    return f"api:{client[0] if client else 'unknown'}"
 
 
 def take_halt(scope: Scope) -> asyncio.Future[HaltReport] | None:
