@@ -185,6 +185,9 @@ class NullDevice:
     def new_session(self) -> int:
         return 0
 
+    def drop_waiting_openings(self) -> int:
+        return 0
+
     async def connect(self) -> None: ...
     async def close(self) -> None: ...
     async def stop(self) -> None: ...

@@ -15,7 +15,7 @@ on its standard input:
   request's round trip (seconds until its answer was read), then the two stamps.
   The first, watched while the answer is on its way: the simulators keep only
   the latest stamp, and a stop while spraying is followed by more of both (the
-  run's own close and stop as it is cancelled, the halt after it). Reading
+  run's own close as it is cancelled). Reading
   the stamps once the answer had come measured the last of them: a run whose
   cancellation took emergency_stop_timeout showed as a 1 s stop.
 
@@ -45,7 +45,7 @@ async def fire(client: httpx.AsyncClient, robot: RobotSimulator, glue: GlueSimul
     sent = time.time()
     answer = asyncio.ensure_future(client.post("/estop"))
     # The first stop and close to arrive, not the last: the run's own cancellation
-    # and the halt after it send more of both before the answer comes.
+    # sends another close before the answer comes.
     robot_at = glue_at = None
     while not (robot_at and glue_at) and not answer.done():
         robot_at = robot_at or robot.last_stop_at

@@ -119,6 +119,7 @@ class FakeGlue:
         self.alarms: tuple[str, ...] = ()
         self.silent = False
         self.sessions = 0  # link sessions begun (one per reset probe)
+        self.drops: list[float] = []  # when waiting openings were refused (none ever wait here)
         self._listener: FaultListener | None = None
 
     def set_fault_listener(self, listener: FaultListener | None) -> None:
@@ -127,6 +128,10 @@ class FakeGlue:
     def new_session(self) -> int:
         self.sessions += 1
         return self.sessions
+
+    def drop_waiting_openings(self) -> int:
+        self.drops.append(time.perf_counter())
+        return 0
 
     async def _exchange(self) -> None:
         if self.silent:

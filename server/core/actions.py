@@ -9,10 +9,10 @@ every (state, event) pair without an event loop:
 
 * On every path into ERROR, and on every path out of a running operation,
   HALT (glue valve closed, robot stopped) comes first, before any record,
-  cancellation or state change.
-* An operation's task is cancelled (CANCEL_RUN) before the state changes, and
-  HALT follows the cancellation again unless the run ended by itself: a valve
-  command the operation had on the line may sit behind the first close.
+  cancellation or state change. It cuts the run's leash before its commands
+  go: the run commands nothing after them, and an opening it had waiting for
+  the dispenser's line is refused (`operations/leash.py`). So one HALT holds.
+* An operation's task is cancelled (CANCEL_RUN) before the state changes.
 * The fault is recorded (RECORD_FAULT) before anyone sees the ERROR state.
 * Into PAUSED, HOLD comes before the state changes: the valve is commanded
   closed and the robot stopped at once (both on their way together, as for a
@@ -91,8 +91,6 @@ def actions_of(row: Transition) -> tuple[Action, ...]:
         actions.append(Action.HALT)
     if ending:
         actions += [Action.RECORD_RUN_END, Action.CANCEL_RUN]
-        if row.event is not Event.OPERATION_COMPLETED:
-            actions.append(Action.HALT)
     if row.source is State.IDLE and row.target is not State.IDLE:
         actions.append(Action.CANCEL_HOMING)
     if row.target is State.PAUSED and changes_state:

@@ -135,7 +135,7 @@ class Runs:
                 "planned_path": [],
                 "workpieces": [],
             }
-        self._leash = Leash(run_id)
+        self._leash = Leash(run_id, self.devices.glue)
         robot, glue = leashed(self.devices.robot, self.devices.glue, self._leash)
         op_ctx = OperationContext(
             robot=robot,
@@ -313,11 +313,13 @@ class Runs:
     def cut_leash(self) -> None:
         """From now on the running operation commands no move and no glue.
 
-        An e-stop cuts it as it arrives, before its halt is made, so nothing the
-        run sends after the stop can undo it; the cancellation follows in the worker.
+        An e-stop cuts it as it arrives, and every other halt before it is made,
+        so nothing the run sends after the halt can undo it (an opening it has
+        waiting for the dispenser's line included); the cancellation follows in
+        the worker.
         """
         if self._leash is not None:
-            self._leash.cut = True
+            self._leash.cut_now()
 
     async def cancel(self) -> None:
         """Cancel the running operation and wait (bounded) until it has stopped."""

@@ -434,19 +434,21 @@ class Worker:
     async def _halt(self, envelope: Envelope | None = None) -> None:
         """Close the valve and stop the robot (valve first); an incomplete halt is alerted.
 
-        An e-stop's first HALT is the halt the stop made before it was queued: the
-        same two commands, already on their way. Sent again, they would only queue
-        behind those on each device's line, and the stop's answer would wait a
-        round trip more. The run's leash was cut before that halt was made, so it
-        commands nothing new; what it may still have on its way (an opening
-        waiting for the dispenser's line, which a close goes ahead of, this one's
-        repeat included) is what the HALT after its cancellation is for, and that
-        one is sent anew.
+        The run's leash is cut first (a HALT always ends the run, if there is one):
+        it commands nothing new, and an opening it had waiting for the dispenser's
+        line is refused, so nothing it asked for goes out after this halt. One
+        halt is enough, before the run's cancellation.
+
+        An e-stop's HALT is the halt the stop made before it was queued (its leash
+        cut as it arrived): the same two commands, already on their way. Sent
+        again, they would only queue behind those on each device's line, and the
+        stop's answer would wait a round trip more.
         """
         if envelope is not None and envelope.halt_made is not None:
             made, envelope.halt_made = envelope.halt_made, None
             report = await asyncio.shield(made)
         else:
+            self.runs.cut_leash()
             report = await self.devices.safe_halt(self.settings.emergency_stop_timeout)
         self.alerts.halt_incomplete(report.errors)
 

@@ -155,6 +155,13 @@ class GlueDispenser(Protocol):
     async def set_pressure(self, psi: float) -> None:
         """Set the pressure setpoint in PSI."""
 
+    def drop_waiting_openings(self) -> int:
+        """Refuse every valve opening not yet sent (its call raises CancelledError); how many.
+
+        A close goes ahead of commands waiting for the dispenser: an opening asked
+        for before a halt must not go out after the halt's close.
+        """
+
     async def read_status(self) -> GlueStatus:
         """Valve, setpoints, measured flow, pressure, temperature and alarms."""
 

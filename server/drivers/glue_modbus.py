@@ -124,27 +124,33 @@ class _LineArbiter:
     """Mutual exclusion on the Modbus line with priorities (FIFO within a priority).
 
     An asyncio.Lock is FIFO only, so a valve close could queue behind polls and
-    setpoint writes; here the lowest priority number goes first.
+    setpoint writes; here the lowest priority number goes first. A waiter taken
+    as droppable (a valve opening) can be refused while it waits (`drop_waiting`).
     """
 
     def __init__(self, levels: int = 3) -> None:
         self._busy = False
         self._queues: list[deque[asyncio.Future[None]]] = [deque() for _ in range(levels)]
+        self._droppable: set[asyncio.Future[None]] = set()
 
-    async def acquire(self, priority: int) -> None:
+    async def acquire(self, priority: int, *, droppable: bool = False) -> None:
         if not self._busy and not any(self._queues):
             self._busy = True
             return
         waiter: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self._queues[priority].append(waiter)
+        if droppable:
+            self._droppable.add(waiter)
         try:
             await waiter
         except asyncio.CancelledError:
             if waiter.done() and not waiter.cancelled():
                 self.release()  # the line was handed to us just as we gave up: pass it on
-            else:
+            elif waiter in self._queues[priority]:  # release() may have passed it over
                 self._queues[priority].remove(waiter)
             raise
+        finally:
+            self._droppable.discard(waiter)
 
     def release(self) -> None:
         for queue in self._queues:
@@ -154,6 +160,13 @@ class _LineArbiter:
                     waiter.set_result(None)  # ownership passes on; _busy stays True
                     return
         self._busy = False
+
+    def drop_waiting(self) -> int:
+        """Refuse every droppable waiter still queued (each raises CancelledError); how many."""
+        dropped = [waiter for waiter in self._droppable if not waiter.done()]
+        for waiter in dropped:
+            waiter.cancel()
+        return len(dropped)
 
 
 class ModbusGlueDispenser:
@@ -358,9 +371,19 @@ class ModbusGlueDispenser:
         self._pressure_low_since = None
         self._opening += 1
         try:
-            await self._call(what, COMMAND, body)
+            await self._call(what, COMMAND, body, droppable=True)
         finally:
             self._opening -= 1
+
+    def drop_waiting_openings(self) -> int:
+        """Refuse every valve opening still waiting for the line; how many there were.
+
+        Each one's `set_valve(True)` raises CancelledError. A close goes ahead of
+        whatever waits for the line, so an opening asked for before a halt would
+        otherwise go out after the halt's close and open the valve again. An
+        opening already on the line is left to finish: the close follows it.
+        """
+        return self._line.drop_waiting()
 
     async def set_flow_rate(self, ml_per_min: float) -> None:
         """Set the flow setpoint (ml/min); ValueError outside the register's range."""
@@ -390,13 +413,21 @@ class ModbusGlueDispenser:
 
     # --- exchanges ---------------------------------------------------------------
 
-    async def _call(self, what: str, priority: int, body: Callable[[], Awaitable[T]]) -> T:
-        """Run `body` on the line within `timeout`, classifying a timeout by where it hit."""
+    async def _call(
+        self,
+        what: str,
+        priority: int,
+        body: Callable[[], Awaitable[T]],
+        *,
+        droppable: bool = False,
+    ) -> T:
+        """Run `body` on the line within `timeout`, classifying a timeout by where it hit;
+        `droppable`: `drop_waiting_openings` may refuse it while it waits for the line."""
         on_line = False
         session = self._session
         try:
             async with asyncio.timeout(self.timeout) as deadline:
-                await self._line.acquire(priority)
+                await self._line.acquire(priority, droppable=droppable)
                 on_line = True
                 self._line_session = session
                 self._on_line = deadline  # the watchdog may cut a silent exchange short

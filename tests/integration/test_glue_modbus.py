@@ -280,6 +280,31 @@ async def test_line_arbiter_serves_valve_close_before_queued_work() -> None:
     await asyncio.wait_for(arbiter.acquire(POLL), 1.0)  # nothing leaked
 
 
+async def test_line_arbiter_drops_waiting_openings_and_serves_the_rest() -> None:
+    arbiter = _LineArbiter()
+    order: list[str] = []
+
+    async def use(name: str, priority: int, droppable: bool = False) -> None:
+        await arbiter.acquire(priority, droppable=droppable)
+        order.append(name)
+        arbiter.release()
+
+    await arbiter.acquire(COMMAND)  # an exchange is on the wire
+    opening = asyncio.create_task(use("open", COMMAND, droppable=True))
+    flow = asyncio.create_task(use("flow", COMMAND))
+    await asyncio.sleep(0.01)
+    assert arbiter.drop_waiting() == 1
+    close = asyncio.create_task(use("close", URGENT))
+    await asyncio.sleep(0.01)
+    arbiter.release()
+    await asyncio.gather(flow, close)
+    with pytest.raises(asyncio.CancelledError):
+        await opening
+    assert order == ["close", "flow"]
+    assert arbiter.drop_waiting() == 0  # nothing left to drop
+    await asyncio.wait_for(arbiter.acquire(POLL), 1.0)  # nothing leaked
+
+
 async def test_wrong_device_id_gets_no_reply(sim: GlueSimulator) -> None:
     dispenser = ModbusGlueDispenser.tcp("127.0.0.1", sim.port, device_id=2, timeout=0.3)
     with pytest.raises(DeviceTimeout, match="from device 2"):

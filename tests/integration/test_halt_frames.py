@@ -9,6 +9,7 @@ socket is recorded as it happens.
 
 from __future__ import annotations
 
+import asyncio
 import json
 from asyncio.selector_events import _SelectorSocketTransport
 from collections.abc import AsyncIterator
@@ -17,6 +18,8 @@ from typing import Any
 import pytest
 
 from server.core.devices import CellDevices
+from server.core.eager import start_task
+from server.core.operations.leash import Leash, leashed
 from server.drivers import glue_registers as regs
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.robot_jsonrpc import JsonRpcRobot
@@ -81,3 +84,38 @@ async def test_both_halt_frames_are_on_their_sockets_when_the_halt_is_made(
     assert _is_valve_close(written[0]) and _is_robot_stop(written[1])  # the valve first
     report = await halt
     assert report.valve_closed and report.robot_stopped and not report.errors
+
+
+def _is_valve_write(frame: bytes, open_: bool) -> bool:
+    return (
+        len(frame) == 8
+        and frame[1] == WRITE_SINGLE_REGISTER
+        and int.from_bytes(frame[2:4], "big") == regs.VALVE_COMMAND.address
+        and int.from_bytes(frame[4:6], "big") == regs.encode_valve(open_)
+    )
+
+
+async def test_an_opening_waiting_for_the_line_never_follows_the_halts_close(
+    devices: CellDevices, written: list[bytes]
+) -> None:
+    """A halt's close goes ahead of what waits for the dispenser's line; a run's
+    opening asked for before the stop and still waiting there must not go out after it.
+
+    Before, it did: the valve opened again after the stop had closed it, until a
+    second halt, after the run's cancellation, closed it once more (the glue
+    flowing meanwhile).
+    """
+    glue = devices.glue
+    leash = Leash("run-1", glue)
+    _, run_glue = leashed(devices.robot, glue, leash)
+    poll = start_task(glue.read_status())  # on the line now, waiting for its answer
+    opening = start_task(run_glue.set_valve(True))  # waiting for the line behind it
+    leash.cut_now()  # as an e-stop does when it arrives (Worker.halt_for_stop)
+    report = await devices.start_halt(TIMEOUT)
+    assert report.valve_closed and not report.errors
+    results = await asyncio.gather(poll, opening, return_exceptions=True)
+    closes = [i for i, frame in enumerate(written) if _is_valve_write(frame, False)]
+    assert closes, written
+    assert not any(_is_valve_write(frame, True) for frame in written[closes[0] :])
+    assert (await glue.read_status()).valve_open is False
+    assert isinstance(results[1], asyncio.CancelledError), results[1]  # as a cut leash's

@@ -152,32 +152,49 @@ async def test_estop_mid_run_closes_the_valve_and_stops_the_robot(make_worker) -
     assert worker.ctx.operation is None
 
 
-async def test_an_estop_halts_once_before_its_run_is_cancelled_and_once_after(
-    make_worker,
-) -> None:
-    """The transition's first HALT is the halt the stop made on arrival, not a second one.
+async def test_an_estop_halts_once_on_arrival_with_its_runs_leash_cut(make_worker) -> None:
+    """The stop's HALT is the halt it made on arrival, its run's leash cut first; no other.
 
-    Before, the worker sent the same two commands again; they queued behind the
-    stop's own on each device's line and the answer waited a round trip more.
+    Before, the worker sent the same two commands again before the run's
+    cancellation (they queued behind the stop's own on each device's line, and
+    the answer waited a round trip more), and once more after it, for an opening
+    the run had waiting for the dispenser's line: now the leash's cut refuses that.
     """
     worker, glue, robot = await spraying(make_worker)
     halts: list[str] = []
     start_halt, safe_halt = worker.devices.start_halt, worker.devices.safe_halt
 
     def on_arrival(timeout: float) -> Any:
-        halts.append("on arrival, leash cut" if worker.runs._leash.cut else "on arrival")
+        cut = worker.runs._leash.cut and glue.drops
+        halts.append("on arrival, leash cut, openings dropped" if cut else "on arrival")
         return start_halt(timeout)
 
     async def in_transition(timeout: float, then: Any = None) -> Any:
-        halts.append("after the cancel" if worker.runs._task is None else "before the cancel")
+        halts.append("in the transition")
         return await safe_halt(timeout, then)
 
     worker.devices.start_halt = on_arrival  # type: ignore[method-assign]
     worker.devices.safe_halt = in_transition  # type: ignore[method-assign]
     outcome = await worker.emergency_stop(source="test")
     assert outcome.accepted and outcome.state is State.ERROR
-    assert halts == ["on arrival, leash cut", "after the cancel"]
+    assert halts == ["on arrival, leash cut, openings dropped"]
     assert glue.valve_open is False and not robot.moving
+
+
+async def test_a_cancel_cuts_its_runs_leash_before_its_halt(make_worker) -> None:
+    worker, glue, _robot = await spraying(make_worker)
+    seen: list[bool] = []
+    safe_halt = worker.devices.safe_halt
+
+    async def halting(timeout: float, then: Any = None) -> Any:
+        seen.append(worker.runs._leash is not None and worker.runs._leash.cut and bool(glue.drops))
+        return await safe_halt(timeout, then)
+
+    worker.devices.safe_halt = halting  # type: ignore[method-assign]
+    outcome = await worker.request(Event.CANCEL_REQUESTED, source="test")
+    assert outcome.accepted and outcome.state is State.IDLE
+    assert seen == [True]  # one halt, the leash already cut
+    assert glue.valve_open is False
 
 
 async def test_pause_stops_the_run_where_it_is_and_resume_finishes_the_same_run(

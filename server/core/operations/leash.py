@@ -11,6 +11,13 @@ So each run gets its devices through a leash. Once the leash is cut (before the
 cancellation is sent), whatever would move the arm or make glue flow is refused
 at once with a CancelledError, which also restores the lost cancellation.
 Stopping the arm, closing the valve and reading stay allowed: they are always safe.
+
+What the run asked for before the cut is not taken back at the robot: a move is
+written to its socket in the call's first step, so it is on the wire before any
+stop made after the cut. The dispenser's line is different: an opening may wait
+there behind another exchange, and a close goes ahead of it. So cutting the leash
+also refuses the openings still waiting (`drop_waiting_openings`); otherwise one
+would go out after the halt's close and open the valve again.
 """
 
 from __future__ import annotations
@@ -27,9 +34,17 @@ log = logging.getLogger(__name__)
 class Leash:
     """Whether the run holding it may still command motion and glue."""
 
-    def __init__(self, run_id: str) -> None:
+    def __init__(self, run_id: str, glue: GlueDispenser) -> None:
         self.run_id = run_id
         self.cut = False
+        self._glue = glue
+
+    def cut_now(self) -> None:
+        """No motion and no glue from now on, an opening waiting for the line included."""
+        self.cut = True
+        dropped = self._glue.drop_waiting_openings()
+        if dropped:
+            log.warning("run %s was cancelled: its valve opening waiting refused", self.run_id)
 
     def check(self, what: str) -> None:
         """Raise CancelledError when the run was cancelled: `what` is refused."""
