@@ -310,22 +310,27 @@ class Runs:
         for listener in self.listeners:
             listener(ended)
 
-    def cut_leash(self) -> None:
+    def cut_leash(self, *, halt_follows: bool = True) -> None:
         """From now on the running operation commands no move and no glue.
 
         An e-stop cuts it as it arrives, and every other halt before it is made,
         so nothing the run sends after the halt can undo it (an opening it has
         waiting for the dispenser's line included); the cancellation follows in
-        the worker.
+        the worker. `halt_follows`: the halt made next reports to `halted`.
         """
         if self._leash is not None:
-            self._leash.cut_now()
+            self._leash.cut_now(halt_follows=halt_follows)
+
+    def halted(self, valve_closed: bool) -> None:
+        """The halt after the cut has ended (`valve_closed`: the valve read back closed)."""
+        if self._leash is not None:
+            self._leash.halted(valve_closed)
 
     async def cancel(self) -> None:
         """Cancel the running operation and wait (bounded) until it has stopped."""
         task, self._task = self._task, None
         ended, self._ended = self._ended, None
-        self.cut_leash()  # from now on it moves nothing, whatever becomes of the cancel
+        self.cut_leash(halt_follows=False)  # it moves nothing, whatever becomes of the cancel
         if self._gate is not None:
             self._gate.resume()  # a held operation must see the cancellation, not the gate
         self._gate = None
@@ -343,7 +348,8 @@ class Runs:
 
     async def stop(self) -> None:
         """At shutdown: the task goes, whatever it was doing."""
-        self.cut_leash()
+        self.cut_leash(halt_follows=False)
+        self.halted(False)  # a halt the run's close would wait for may never report
         if self._task is not None:
             self._task.cancel()
             await asyncio.gather(self._task, return_exceptions=True)

@@ -437,7 +437,9 @@ class Worker:
         The run's leash is cut first (a HALT always ends the run, if there is one):
         it commands nothing new, and an opening it had waiting for the dispenser's
         line is refused, so nothing it asked for goes out after this halt. One
-        halt is enough, before the run's cancellation.
+        halt is enough, before the run's cancellation; once it has read the valve
+        back closed, the run's own close as it ends is answered without another
+        exchange (`Runs.halted`).
 
         An e-stop's HALT is the halt the stop made before it was queued (its leash
         cut as it arrived): the same two commands, already on their way. Sent
@@ -450,6 +452,7 @@ class Worker:
         else:
             self.runs.cut_leash()
             report = await self.devices.safe_halt(self.settings.emergency_stop_timeout)
+        self.runs.halted(report.valve_closed)
         self.alerts.halt_incomplete(report.errors)
 
     def _record_fault(self, decision: Decision, envelope: Envelope) -> None:

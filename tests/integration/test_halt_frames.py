@@ -110,7 +110,7 @@ async def test_an_opening_waiting_for_the_line_never_follows_the_halts_close(
     _, run_glue = leashed(devices.robot, glue, leash)
     poll = start_task(glue.read_status())  # on the line now, waiting for its answer
     opening = start_task(run_glue.set_valve(True))  # waiting for the line behind it
-    leash.cut_now()  # as an e-stop does when it arrives (Worker.halt_for_stop)
+    leash.cut_now(halt_follows=True)  # as an e-stop does when it arrives (halt_for_stop)
     report = await devices.start_halt(TIMEOUT)
     assert report.valve_closed and not report.errors
     results = await asyncio.gather(poll, opening, return_exceptions=True)

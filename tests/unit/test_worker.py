@@ -181,6 +181,40 @@ async def test_an_estop_halts_once_on_arrival_with_its_runs_leash_cut(make_worke
     assert glue.valve_open is False and not robot.moving
 
 
+async def test_a_stopped_runs_own_close_needs_no_exchange_once_the_halt_closed_it(
+    make_worker,
+) -> None:
+    """The halt's close, read back closed after the leash was cut, is the run's last.
+
+    Before, the run closed the valve again as it ended: two more exchanges on the
+    dispenser's line before the stop could answer.
+    """
+    worker, glue, _robot = await spraying(make_worker)
+    opened_at = max(at for at, open_ in glue.valve_log if open_)
+    outcome = await worker.emergency_stop(source="test")
+    assert outcome.state is State.ERROR
+    closes = [at for at, open_ in glue.valve_log if not open_ and at > opened_at]
+    assert len(closes) == 1 and glue.valve_open is False
+
+
+async def test_the_runs_own_close_is_sent_when_the_halt_could_not_confirm_it(
+    make_worker,
+) -> None:
+    worker, glue, _robot = await spraying(make_worker)
+    glue.silent = True  # the halt's close gets no answer
+    closes: list[bool] = []
+    set_valve = glue.set_valve
+
+    async def counting(open_: bool) -> None:
+        closes.append(open_)
+        await set_valve(open_)
+
+    glue.set_valve = counting  # type: ignore[method-assign]
+    outcome = await worker.emergency_stop(source="test")
+    assert outcome.state is State.ERROR
+    assert closes == [False, False]  # the halt's, then the run's own
+
+
 async def test_a_cancel_cuts_its_runs_leash_before_its_halt(make_worker) -> None:
     worker, glue, _robot = await spraying(make_worker)
     seen: list[bool] = []

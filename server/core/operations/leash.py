@@ -18,6 +18,14 @@ stop made after the cut. The dispenser's line is different: an opening may wait
 there behind another exchange, and a close goes ahead of it. So cutting the leash
 also refuses the openings still waiting (`drop_waiting_openings`); otherwise one
 would go out after the halt's close and open the valve again.
+
+So the halt that follows the cut sends the last valve command of the run's
+time. The run's own close as it ends (its `finally`) waits for that halt instead
+of queueing another close behind it: once the halt has read the valve back
+closed, the run's close is answered without an exchange on the line. It cost
+the stop's answer two exchanges (0.4 ms at p50, 2 ms when the dispenser was slow
+to answer). When the halt could not confirm the close, or no halt follows the
+cut (at shutdown), the run's close is sent as before.
 """
 
 from __future__ import annotations
@@ -38,13 +46,31 @@ class Leash:
         self.run_id = run_id
         self.cut = False
         self._glue = glue
+        # The halt after the cut: did it read the valve back closed? (None: no halt follows)
+        self._halt: asyncio.Future[bool] | None = None
 
-    def cut_now(self) -> None:
-        """No motion and no glue from now on, an opening waiting for the line included."""
+    def cut_now(self, *, halt_follows: bool) -> None:
+        """No motion and no glue from now on, an opening waiting for the line included.
+
+        `halt_follows`: the cell's halt is made next, and reports to `halted`.
+        """
+        if not self.cut and halt_follows:
+            self._halt = asyncio.get_running_loop().create_future()
         self.cut = True
         dropped = self._glue.drop_waiting_openings()
         if dropped:
             log.warning("run %s was cancelled: its valve opening waiting refused", self.run_id)
+
+    def halted(self, valve_closed: bool) -> None:
+        """The halt after the cut has ended; `valve_closed`: it read the valve back closed."""
+        if self._halt is not None and not self._halt.done():
+            self._halt.set_result(valve_closed)
+
+    async def closed_by_halt(self) -> bool:
+        """Whether the halt after the cut read the valve back closed (waits for it to end)."""
+        if self._halt is None:
+            return False
+        return await asyncio.shield(self._halt)
 
     def check(self, what: str) -> None:
         """Raise CancelledError when the run was cancelled: `what` is refused."""
@@ -78,6 +104,8 @@ class _LeashedGlue:
     async def set_valve(self, open_: bool) -> None:
         if open_:
             self._leash.check("opening the valve")
+        elif self._leash.cut and await self._leash.closed_by_halt():
+            return  # closed by the halt, after the run's last opening (see the module doc)
         await self._glue.set_valve(open_)
 
     def __getattr__(self, name: str) -> Any:  # setpoints, reads, health: the dispenser's
