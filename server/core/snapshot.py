@@ -3,16 +3,8 @@
 Only the latest snapshot matters, so writes coalesce: a background thread
 writes whatever is newest when it gets to it, and the worker never waits. The
 file is also refreshed every persistence_interval seconds (its `saved_at` says
-how fresh it is).
-
-A change is written `SETTLE_S` after it, not at once. Why: the change that
-dirtied the snapshot is being committed to the journal at that very moment, and
-an answer (an e-stop's above all) waits for that commit. Written beside it, the
-snapshot took the interpreter lock and the disk's flush from it: the stop's
-commit ended 0.4 ms later at p50 (docs/benchmarks.md, "Issue 17, sixth pass").
-
-At start a missing, truncated or corrupt file is logged, kept aside for
-inspection, and the cell starts safely without it.
+how fresh it is). At start a missing, truncated or corrupt file is logged,
+kept aside for inspection, and the cell starts safely without it.
 """
 
 from __future__ import annotations
@@ -28,20 +20,16 @@ from server.storage.files import write_json_atomic
 
 log = logging.getLogger(__name__)
 
-SETTLE_S = 0.02  # after a change, before its snapshot is written (see the module doc)
-
 
 class SnapshotFile:
     """Latest-wins atomic writes of the state snapshot at `path`."""
 
-    def __init__(self, path: Path, interval: float, settle: float = SETTLE_S) -> None:
+    def __init__(self, path: Path, interval: float) -> None:
         self.path = path
         self.interval = interval
-        self.settle = settle
         self._latest: dict[str, Any] | None = None
         self._dirty = threading.Event()
         self._stopping = False
-        self._stopped = threading.Event()  # wakes a settling writer: the last write is now
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
 
@@ -80,15 +68,13 @@ class SnapshotFile:
 
     def stop(self) -> None:
         self._stopping = True
-        self._stopped.set()
         self._dirty.set()
         if self._thread is not None:
             self._thread.join(timeout=10)
 
     def _write_loop(self) -> None:
         while True:
-            if self._dirty.wait(timeout=self.interval):
-                self._stopped.wait(timeout=self.settle)  # the journal's commit first
+            self._dirty.wait(timeout=self.interval)
             self._dirty.clear()
             with self._lock:
                 latest = self._latest
