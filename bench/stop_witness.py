@@ -14,8 +14,8 @@ on its standard input:
   stamped with time.time() by the simulators on arrival); `answered` is the
   request's round trip (seconds until its answer was read), then the two stamps.
   The first, watched while the answer is on its way: the simulators keep only
-  the latest stamp, and a stop while spraying is followed by more of both (the
-  run's own close as it is cancelled). Reading
+  the latest stamp, and a stop while spraying may be followed by another close
+  (the run's own, when the halt could not confirm the valve closed). Reading
   the stamps once the answer had come measured the last of them: a run whose
   cancellation took emergency_stop_timeout showed as a 1 s stop.
 
@@ -44,8 +44,8 @@ async def fire(client: httpx.AsyncClient, robot: RobotSimulator, glue: GlueSimul
     glue.close_commanded_at = None
     sent = time.time()
     answer = asyncio.ensure_future(client.post("/estop"))
-    # The first stop and close to arrive, not the last: the run's own cancellation
-    # sends another close before the answer comes.
+    # The first stop and close to arrive, not the last: a cancelled run may send
+    # its own close before the answer comes.
     robot_at = glue_at = None
     while not (robot_at and glue_at) and not answer.done():
         robot_at = robot_at or robot.last_stop_at
