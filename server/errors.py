@@ -9,6 +9,8 @@ because the reader is often a technician standing at the cell.
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class CellError(Exception):
     """Root of every deliberate error in the cell server."""
@@ -125,3 +127,7 @@ class OperationError(CellError):
         self.code = code
         self.recoverable = recoverable
         super().__init__(message)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled whole: raised in the image process, it reaches the operation as it was."""
+        return (self.__class__, (self.code, str(self)), self.__dict__)

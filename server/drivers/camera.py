@@ -18,7 +18,8 @@ driver call then ties up only that thread (not the shared pool the other drivers
 being a daemon, it cannot keep the server from exiting.
 
 `SimulatedCamera` renders the table or a cycle of chessboard views (see
-`server.drivers.sim.camera_scene`) with `asyncio.to_thread`, and takes injected faults.
+`server.drivers.sim.camera_scene`) in the image process (`server.vision.process`), as a
+camera of its own would, and takes injected faults.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ from server.drivers.sim.camera_scene import (
     render_table,
 )
 from server.errors import DeviceDisconnected, DeviceError, DeviceTimeout
+from server.vision.process import IMAGE_PROCESS
 
 logger = logging.getLogger(__name__)
 
@@ -416,7 +418,7 @@ class SimulatedCamera(_CameraBase):
             async with asyncio.timeout(self.timeout):
                 await self._wait_out_faults()
             async with asyncio.timeout(max(self.timeout, SIM_WARM_UP_S)):
-                await asyncio.to_thread(self._next_render(advance=False))
+                await self._render(advance=False)
         except TimeoutError:
             self._open = False
             message = f"simulated camera did not open within {self.timeout:g} s (stall injected)"
@@ -437,7 +439,7 @@ class SimulatedCamera(_CameraBase):
         try:
             async with asyncio.timeout(self.timeout):
                 await self._wait_out_faults(report=True)
-                frame = await asyncio.to_thread(self._next_render(advance=True))
+                frame = await self._render(advance=True)
         except TimeoutError:
             message = (
                 f"simulated camera delivered no frame within {self.timeout:g} s "
@@ -465,27 +467,40 @@ class SimulatedCamera(_CameraBase):
                 self._frame_failed("CAPTURE_FAILED", message, connected=None)
             raise DeviceError(DEVICE, message)
 
-    def _next_render(self, *, advance: bool) -> Callable[[], np.ndarray]:
-        """Snapshot what to render now, on the event loop; the returned call runs in a thread."""
+    async def _render(self, *, advance: bool) -> np.ndarray:
+        """The next frame, rendered in the image process (`server.vision.process`): the
+        simulator's work is a device's own, and would otherwise hold the server's
+        interpreter lock for several ms at a time while it draws."""
+        draw, args = self._next_render(advance=advance)
+        if self._mode == "table" and self.bead_source is not None:
+            source, since, shifts = self.bead_source, self._bead_since, list(self._part_shifts)
+            args[0].bead = await asyncio.to_thread(source, since, shifts)
+        shape = (self.model.height, self.model.width, 3)
+        return await IMAGE_PROCESS.call(draw, *args, frame_out=(shape, np.uint8))
+
+    def _next_render(self, *, advance: bool) -> tuple[Callable[..., np.ndarray], list[Any]]:
+        """What to render now, taken on the event loop: the drawing and its arguments."""
         model = self.model
         rng = np.random.default_rng(int(self._rng.integers(0, 2**63 - 1)))
         if self._mode == "table":
-            scene = self.scene.snapshot()
-            source, since, shifts = self.bead_source, self._bead_since, list(self._part_shifts)
-
-            def render() -> np.ndarray:
-                if source is not None:
-                    scene.bead = source(since, shifts)
-                return render_table(scene, model, rng)
-
-            return render
+            return render_table, [self.scene.snapshot(), model, rng]
         board, pose = self.chessboard, self.chessboard_poses[self._next_view]
         if advance:
             self._next_view = (self._next_view + 1) % len(self.chessboard_poses)
             self.last_chessboard_pose = pose
-        light = {
-            "noise_sigma": self.scene.noise_sigma,
-            "vignetting": self.scene.vignetting,
-            "light_gradient": self.scene.light_gradient,
-        }
-        return lambda: render_chessboard_view(model, board, pose, rng=rng, **light)
+        light = (self.scene.noise_sigma, self.scene.vignetting, self.scene.light_gradient)
+        return _chessboard_view, [model, board, pose, rng, *light]
+
+
+def _chessboard_view(
+    model: CameraModel,
+    board: Chessboard,
+    pose: BoardPose,
+    rng: np.random.Generator,
+    noise_sigma: float,
+    vignetting: float,
+    light_gradient: float,
+) -> np.ndarray:
+    """`render_chessboard_view` with its keywords given in order, as the image process calls it."""
+    light = {"noise_sigma": noise_sigma, "vignetting": vignetting, "light_gradient": light_gradient}
+    return render_chessboard_view(model, board, pose, rng=rng, **light)

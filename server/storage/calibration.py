@@ -12,7 +12,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from server.storage.files import read_json, write_bytes_atomic, write_json_atomic
@@ -72,11 +71,10 @@ class CalibrationStore:
         self._undistorter = Undistorter(self.camera)
 
     def save_robot(
-        self, calibration: PlaneCalibration, image: np.ndarray, meta: dict[str, Any]
+        self, calibration: PlaneCalibration, image_png: bytes | None, meta: dict[str, Any]
     ) -> None:
-        ok, png = cv2.imencode(".png", image)
-        if ok:
-            write_bytes_atomic(self.robot_image_path, png.tobytes())
+        if image_png is not None:
+            write_bytes_atomic(self.robot_image_path, image_png)
         meta = {"created_at": time.time(), **meta}
         write_json_atomic(self.robot_path, {**meta, "calibration": calibration.to_dict()})
         self.robot, self.robot_meta = calibration, meta

@@ -13,6 +13,7 @@ resolution with `cv2.cornerSubPix`, which is as accurate as searching at full re
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, cast
@@ -244,3 +245,21 @@ def intrinsics_of(
         np.asarray(dist_coeffs, dtype=np.float64).ravel(),
         (int(size[0]), int(size[1])),
     )
+
+
+_undistorters: dict[str, Undistorter] = {}  # in the image process: the latest calibrations'
+
+
+def undistort_frame(frame: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    """The frame through `Undistorter(intrinsics)`, its maps built once per calibration.
+
+    Why a function with its own cache: the image process (`server.vision.process`) runs
+    it, and there the maps (tens of MB) are built once, not sent with every frame.
+    """
+    key = json.dumps(intrinsics.to_dict(), sort_keys=True)
+    undistorter = _undistorters.get(key)
+    if undistorter is None:
+        if len(_undistorters) >= 2:  # a recalibration: the old maps are not asked for again
+            _undistorters.pop(next(iter(_undistorters)))
+        undistorter = _undistorters[key] = Undistorter(intrinsics)
+    return undistorter(frame)

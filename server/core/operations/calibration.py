@@ -22,6 +22,7 @@ from server.vision.homography import (
 )
 from server.vision.intrinsics import calibrate_intrinsics, find_chessboard
 from server.vision.markers import MarkerDetection, MarkerDetector, border_corners, missing_markers
+from server.vision.process import IMAGE_PROCESS, encode_png
 
 REQUIRED_MARKERS = range(9)
 MIN_VIEW_SHIFT_PX = 20.0  # a real operator must move the board between views
@@ -87,7 +88,9 @@ def _check_independently(
 
 def _calibrate_from_frame(
     frame: np.ndarray, marker_positions: list[tuple[float, float]]
-) -> tuple[PlaneCalibration, np.ndarray, IndependentChecks]:
+) -> tuple[PlaneCalibration, bytes, IndependentChecks]:
+    """The map, the annotated frame as PNG, and the checks; run in the image process
+    (`server.vision.process`), so only the PNG crosses back, not the frame."""
     detections = _detector().detect(frame)
     missing = missing_markers(detections, REQUIRED_MARKERS)
     if missing:
@@ -103,7 +106,8 @@ def _calibrate_from_frame(
     robot_mm = {i: marker_positions[i] for i in REQUIRED_MARKERS}
     calibration = fit_plane_calibration(pixels, robot_mm)
     checks = _check_independently(frame, calibration, detections, marker_positions)
-    return calibration, annotate_markers(frame, detections, calibration.residuals_mm), checks
+    annotated = annotate_markers(frame, detections, calibration.residuals_mm)
+    return calibration, encode_png(annotated), checks
 
 
 DEGRADING_SHARE = 0.5  # of calibration_max_error_mm: accepted, but warned of
@@ -120,8 +124,8 @@ async def calibrate_robot(ctx: OperationContext) -> OperationResult:
     settings = ctx.settings
     frame = await capture_undistorted(ctx, "robot calibration")
     ctx.report({"step": "detecting markers", "fraction": 0.3})
-    calibration, image, checks = await asyncio.to_thread(
-        _calibrate_from_frame, frame, settings.marker_positions_mm
+    calibration, image_png, checks = await IMAGE_PROCESS.call(
+        _calibrate_from_frame, settings.marker_positions_mm, frame=frame
     )
     limit = settings.calibration_max_error_mm
     if calibration.mean_error_mm > limit:
@@ -160,7 +164,7 @@ async def calibrate_robot(ctx: OperationContext) -> OperationResult:
         "scale_error_pct": round(scale_error, 4),
         "holdout_max_error_mm": round(holdout, 4),
     }
-    await asyncio.to_thread(store.save_robot, calibration, image, meta)
+    await asyncio.to_thread(store.save_robot, calibration, image_png, meta)
     ctx.report({"step": "saved", "fraction": 1.0})
     result: dict[str, Any] = {
         "mean_error_mm": round(calibration.mean_error_mm, 4),
@@ -212,7 +216,7 @@ async def calibrate_camera(ctx: OperationContext) -> OperationResult:
                 await asyncio.sleep(interval)
             frame = await capture(ctx, "camera calibration")
             size = (frame.shape[1], frame.shape[0])
-            corners = await asyncio.to_thread(find_chessboard, frame, pattern)
+            corners = await IMAGE_PROCESS.call(find_chessboard, pattern, frame=frame)
             if corners is None or (
                 corner_sets and _shift(corners, corner_sets[-1]) < MIN_VIEW_SHIFT_PX
             ):

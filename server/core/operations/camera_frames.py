@@ -17,6 +17,8 @@ from server.core.operations.base import OperationContext
 from server.errors import OperationError
 from server.storage.calibration import CalibrationStore
 from server.vision.homography import PlaneCalibration
+from server.vision.intrinsics import undistort_frame
+from server.vision.process import IMAGE_PROCESS
 
 MIN_WIDTH, MIN_HEIGHT = 1920, 1080
 
@@ -45,7 +47,13 @@ async def capture_undistorted(ctx: OperationContext, purpose: str) -> np.ndarray
     """A frame as `capture`, undistorted; kept as the latest frame (read-only from here on)."""
     frame = await capture(ctx, purpose)
     taken_at = time.time()
-    undistorted = await asyncio.to_thread(ctx.stores.calibration.undistort, frame)
+    intrinsics = ctx.stores.calibration.camera
+    undistorted = frame
+    if intrinsics is not None:  # in the image process, off the server's interpreter lock
+        shape = (frame.shape, frame.dtype)
+        undistorted = await IMAGE_PROCESS.call(
+            undistort_frame, intrinsics, frame=frame, frame_out=shape
+        )
     ctx.frames.keep(
         undistorted, source=ctx.operation or purpose, run_id=ctx.run_id, taken_at=taken_at
     )

@@ -1,0 +1,276 @@
+"""Image work in a child process, so a frame's analysis never holds the server's interpreter lock.
+
+Why a process and not a thread: marker detection, outline fitting and the
+simulated camera's rendering are long runs of numpy and OpenCV calls with
+Python between them. On a thread they hold the interpreter lock for up to
+several ms at a time, and the event loop (an e-stop's request among what it
+serves) waits for them. Measured with robot calibrations running, every thread
+of the server on one core: the loop's lag p99 5.1–5.7 ms with the work on
+threads (docs/benchmarks.md, issue 17's seventh pass). A process competes for
+the core through the kernel's scheduler, which lets a waking loop in at once;
+it also runs at a lower priority (`NICE`), as bulk work beside a control loop.
+
+How frames cross: through shared memory, never pickled. Pickling a 1920×1080
+colour frame holds the lock 2.5 ms; `np.copyto` into a shared block lets it
+go. A call's frame goes in that way and, when the call gives a frame back
+(`frame_out`), comes out that way too; everything else (arguments, results,
+exceptions) is pickled, so it must be small and picklable.
+
+One child does the work, one call after another, for the whole server
+process: it is started on first use (a second or so, once), and a child that
+died is replaced on the next call. A call cancelled by its caller (an e-stop
+ending the operation) cannot stop the child's work: the caller goes on at
+once, and the call's shared block is reused only once the child is done with
+it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import atexit
+import concurrent.futures
+import contextlib
+import multiprocessing
+import os
+import pickle
+import signal
+import threading
+from collections.abc import Callable
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from multiprocessing import shared_memory
+from typing import Any, TypeVar
+
+import cv2
+import numpy as np
+
+T = TypeVar("T")
+
+NICE = 5  # the child's priority below the server's: it yields the core to the control loop
+
+
+class ImageProcessFailed(RuntimeError):
+    """The child process ended in the middle of a call (killed, out of memory)."""
+
+
+@dataclass(frozen=True, slots=True)
+class FrameSlot:
+    """Where a frame lies in shared memory, as the child is told."""
+
+    name: str
+    shape: tuple[int, ...]
+    dtype: str
+
+
+class _Region:
+    """A shared memory block that grows to the largest frame it has carried (parent side)."""
+
+    def __init__(self) -> None:
+        self._memory: shared_memory.SharedMemory | None = None
+
+    def slot(self, shape: tuple[int, ...], dtype: np.dtype[Any]) -> FrameSlot:
+        size = max(int(np.prod(shape)) * dtype.itemsize, 1)
+        if self._memory is None or self._memory.size < size:
+            self.release()
+            self._memory = shared_memory.SharedMemory(create=True, size=size)
+        return FrameSlot(self._memory.name, tuple(shape), dtype.str)
+
+    def view(self, slot: FrameSlot) -> np.ndarray:
+        assert self._memory is not None and self._memory.name == slot.name
+        return np.ndarray(slot.shape, np.dtype(slot.dtype), buffer=self._memory.buf)
+
+    def release(self) -> None:
+        if self._memory is not None:
+            with contextlib.suppress(BufferError):  # a view still held: unmapped when it goes
+                self._memory.close()
+            with contextlib.suppress(FileNotFoundError):
+                self._memory.unlink()
+            self._memory = None
+
+
+class _Block:
+    """One call's way in and way out."""
+
+    def __init__(self) -> None:
+        self.into = _Region()
+        self.out = _Region()
+
+    def release(self) -> None:
+        self.into.release()
+        self.out.release()
+
+
+class ImageProcess:
+    """A child process for image work, shared by every caller in this process."""
+
+    def __init__(self) -> None:
+        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+        self._idle: list[_Block] = []
+        self._all: list[_Block] = []
+        self._lock = threading.Lock()  # callers on several event loops (tests) share it
+
+    async def call(
+        self,
+        fn: Callable[..., T],
+        *args: Any,
+        frame: np.ndarray | None = None,
+        frame_out: tuple[tuple[int, ...], Any] | None = None,
+    ) -> T:
+        """`fn(frame, *args)` (or `fn(*args)` without a frame), run in the child.
+
+        `fn` must be a module-level function. With `frame_out=(shape, dtype)`, fn
+        returns an array of that shape, which comes back through shared memory.
+        """
+        block = self._take()
+        try:
+            into = None
+            if frame is not None:
+                into = block.into.slot(frame.shape, frame.dtype)
+                await asyncio.to_thread(np.copyto, block.into.view(into), frame)
+            out = block.out.slot(tuple(frame_out[0]), np.dtype(frame_out[1])) if frame_out else None
+            job = self._submit(_run_in_child, fn, args, into, out)
+        except BaseException:
+            self._give_back(block)
+            raise
+        # The child cannot be stopped mid-call: a cancelled caller leaves, and the block
+        # is given back once the child has finished with it (and its result is read).
+        finishing = asyncio.ensure_future(self._finish(job, block, out))
+        finishing.add_done_callback(_retrieve)
+        return await asyncio.shield(finishing)
+
+    async def _finish(
+        self, job: concurrent.futures.Future[Any], block: _Block, out: FrameSlot | None
+    ) -> Any:
+        try:
+            try:
+                result = await asyncio.wrap_future(job)
+            except BrokenProcessPool as exc:
+                self._forget_pool()
+                raise ImageProcessFailed(
+                    "the image process ended in the middle of a call; "
+                    "the next call starts a new one"
+                ) from exc
+            if out is None:
+                return result
+            frame = np.empty(out.shape, np.dtype(out.dtype))
+            await asyncio.to_thread(np.copyto, frame, block.out.view(out))
+            return frame
+        finally:
+            self._give_back(block)
+
+    def warm_up(self) -> concurrent.futures.Future[Any]:
+        """Start the child now (it imports numpy and OpenCV), not on the first frame."""
+        return self._submit(_run_in_child, os.getpid, (), None, None)
+
+    def close(self) -> None:
+        """Stop the child and free the shared memory (at exit; a later call starts afresh)."""
+        with self._lock:
+            pool, self._pool = self._pool, None
+            blocks, self._all, self._idle = self._all, [], []
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+        for block in blocks:
+            block.release()
+
+    # --- internals ---------------------------------------------------------------------------
+
+    def _submit(self, *call: Any) -> concurrent.futures.Future[Any]:
+        with self._lock:
+            if self._pool is None:
+                self._pool = concurrent.futures.ProcessPoolExecutor(
+                    max_workers=1,
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_child_starts,
+                )
+            pool = self._pool
+        try:
+            return pool.submit(*call)
+        except BrokenProcessPool:
+            self._forget_pool(pool)
+            return self._submit(*call)
+
+    def _forget_pool(self, pool: concurrent.futures.ProcessPoolExecutor | None = None) -> None:
+        with self._lock:
+            broken = self._pool if pool is None or pool is self._pool else None
+            if broken is not None:
+                self._pool = None
+        if broken is not None:
+            broken.shutdown(wait=False, cancel_futures=True)
+
+    def _take(self) -> _Block:
+        with self._lock:
+            if self._idle:
+                return self._idle.pop()
+            block = _Block()
+            self._all.append(block)
+            return block
+
+    def _give_back(self, block: _Block) -> None:
+        with self._lock:
+            if block in self._all:
+                self._idle.append(block)
+
+
+def encode_png(image: np.ndarray) -> bytes | None:
+    """An image as PNG bytes (None if OpenCV cannot encode it): what crosses back instead
+    of a frame, when the child's result is an image to store."""
+    ok, png = cv2.imencode(".png", image)
+    return png.tobytes() if ok else None
+
+
+def _retrieve(task: asyncio.Future[Any]) -> None:
+    """A cancelled caller's call still ends; its outcome is read so nothing is logged as lost."""
+    if not task.cancelled():
+        task.exception()
+
+
+# --- in the child --------------------------------------------------------------------------
+
+_attached: dict[str, shared_memory.SharedMemory] = {}  # oldest first
+ATTACHED_AT_MOST = 16  # two per call under way; more only once blocks grew
+
+
+def _child_starts() -> None:
+    """Ctrl-C is the server's to handle (the child ends with it); the child works at NICE."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with contextlib.suppress(OSError):
+        os.nice(NICE)
+
+
+def _view(slot: FrameSlot) -> np.ndarray:
+    memory = _attached.get(slot.name)
+    if memory is None:
+        if len(_attached) >= ATTACHED_AT_MOST:  # the oldest: a block the parent has replaced
+            _attached.pop(next(iter(_attached))).close()
+        memory = shared_memory.SharedMemory(name=slot.name)
+        _attached[slot.name] = memory
+    return np.ndarray(slot.shape, np.dtype(slot.dtype), buffer=memory.buf)
+
+
+def _run_in_child(
+    fn: Callable[..., Any], args: tuple[Any, ...], into: FrameSlot | None, out: FrameSlot | None
+) -> Any:
+    if into is not None:
+        frame = _view(into)
+        frame.flags.writeable = False  # the caller's frame, as it was handed over
+        args = (frame, *args)
+    try:
+        result = fn(*args)
+    except Exception as exc:
+        try:
+            pickle.loads(pickle.dumps(exc))
+        except Exception:  # one that cannot cross would break the pool: its text crosses
+            raise RuntimeError(f"{type(exc).__name__}: {exc}") from None
+        raise
+    if out is None:
+        return result
+    target = _view(out)
+    if not isinstance(result, np.ndarray) or result.shape != target.shape:
+        got = getattr(result, "shape", type(result).__name__)
+        raise ValueError(f"{fn.__name__} gave {got}, not the frame of {target.shape} promised")
+    np.copyto(target, result, casting="unsafe")
+    return None
+
+
+IMAGE_PROCESS = ImageProcess()
+atexit.register(IMAGE_PROCESS.close)

@@ -1,0 +1,126 @@
+"""The image process (server/vision/process.py): a real child process, frames in shared memory."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from server.errors import OperationError
+from server.vision.process import ImageProcess, ImageProcessFailed
+
+
+# What the child runs: module-level, as the image process requires.
+def whose(frame: np.ndarray) -> tuple[int, float]:
+    return os.getpid(), float(frame.mean())
+
+
+def brighter(frame: np.ndarray, by: int) -> np.ndarray:
+    return (frame.astype(np.int16) + by).clip(0, 255).astype(np.uint8)
+
+
+def slow_sum(frame: np.ndarray, seconds: float, report: str = "") -> int:
+    time.sleep(seconds)
+    total = int(frame.sum())
+    if report:  # what the child saw, for a caller that left
+        Path(report).write_text(str(total))
+    return total
+
+
+def refuses(frame: np.ndarray) -> None:
+    raise OperationError("MARKER_NOT_FOUND", "marker 4 not found", recoverable=True)
+
+
+class Unpicklable(Exception):
+    def __init__(self, a: int, b: int) -> None:  # args (a message) no longer rebuild it
+        super().__init__(f"{a} and {b}")
+
+
+def raises_unpicklable() -> None:
+    raise Unpicklable(1, 2)
+
+
+def dies() -> None:
+    os._exit(3)
+
+
+def wrong_shape(frame: np.ndarray) -> np.ndarray:
+    return frame[:10]
+
+
+@pytest.fixture
+def images() -> Iterator[ImageProcess]:
+    process = ImageProcess()
+    yield process
+    process.close()
+
+
+def frame(value: int, shape: tuple[int, ...] = (1080, 1920, 3)) -> np.ndarray:
+    rng = np.random.default_rng(value)
+    return rng.integers(0, 200, shape, dtype=np.uint8)
+
+
+async def test_a_frame_is_worked_on_in_another_process_and_comes_back_whole(
+    images: ImageProcess,
+) -> None:
+    image = frame(1)
+    pid, mean = await images.call(whose, frame=image)
+    assert pid != os.getpid()
+    assert mean == pytest.approx(float(image.mean()))
+
+    out = await images.call(brighter, 30, frame=image, frame_out=(image.shape, np.uint8))
+    assert np.array_equal(out, brighter(image, 30))
+    smaller = frame(2, (480, 640))  # another size through the same blocks
+    out = await images.call(brighter, 5, frame=smaller, frame_out=(smaller.shape, np.uint8))
+    assert np.array_equal(out, brighter(smaller, 5))
+
+
+async def test_an_operation_error_in_the_child_reaches_the_caller_whole(
+    images: ImageProcess,
+) -> None:
+    with pytest.raises(OperationError) as raised:
+        await images.call(refuses, frame=frame(3))
+    assert (raised.value.code, str(raised.value), raised.value.recoverable) == (
+        "MARKER_NOT_FOUND",
+        "marker 4 not found",
+        True,
+    )
+    with pytest.raises(RuntimeError, match="Unpicklable: 1 and 2"):
+        await images.call(raises_unpicklable)
+    with pytest.raises(ValueError, match="not the frame of"):
+        await images.call(wrong_shape, frame=frame(4), frame_out=((1080, 1920, 3), np.uint8))
+    pid, _ = await images.call(whose, frame=frame(5))  # the child lived through all three
+    assert pid != os.getpid()
+
+
+async def test_a_child_that_died_is_replaced_on_the_next_call(images: ImageProcess) -> None:
+    first, _ = await images.call(whose, frame=frame(6))
+    with pytest.raises(ImageProcessFailed, match="next call starts a new one"):
+        await images.call(dies)
+    second, mean = await images.call(whose, frame=frame(7))
+    assert second not in (first, os.getpid())
+    assert mean == pytest.approx(float(frame(7).mean()))
+
+
+async def test_a_cancelled_call_keeps_its_frame_until_the_child_is_done(
+    images: ImageProcess, tmp_path: Path
+) -> None:
+    """The caller of the slow call leaves at once; the child still reads its own frame, and
+    a call made meanwhile gets a block of its own, never the one being read."""
+    slow_frame, quick_frame = frame(8), frame(9)
+    seen = tmp_path / "seen"
+    slow = asyncio.ensure_future(images.call(slow_sum, 0.5, str(seen), frame=slow_frame))
+    await asyncio.sleep(0.2)  # the child is working on it
+    slow.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await slow
+    quick = await images.call(slow_sum, 0.0, frame=quick_frame)
+    assert quick == int(quick_frame.sum())
+    later = await images.call(slow_sum, 0.0, frame=slow_frame)  # once the first call ended
+    assert later == int(slow_frame.sum())
+    assert seen.read_text() == str(int(slow_frame.sum()))  # its frame was never overwritten
