@@ -40,6 +40,7 @@ from server.orders.book import OrderBook, OrderRefused
 from server.storage import CellStores
 from server.storage.journal import Journal, records
 from server.storage.permissions import tighten_data_directory
+from server.vision.process import IMAGE_PROCESS
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +101,7 @@ class Cell:
                 factory = build_devices
             devices, self._release = await factory(self.settings)
         settings = self.settings
+        IMAGE_PROCESS.warm_up()  # its imports now, not in the first calibration's time
         for note in settings.compatibility_notes():
             log.warning("setting ignored: %s", note)
         # The data directory for the cell's user only, however the server was started.

@@ -31,6 +31,7 @@ import atexit
 import concurrent.futures
 import contextlib
 import multiprocessing
+import multiprocessing.connection
 import os
 import pickle
 import signal
@@ -121,29 +122,29 @@ class ImageProcess:
         `fn` must be a module-level function. With `frame_out=(shape, dtype)`, fn
         returns an array of that shape, which comes back through shared memory.
         """
+        # The child cannot be stopped mid-call: a cancelled caller leaves at once, and the
+        # call goes on to its end, so its block is given back only once nothing reads it.
+        calling = asyncio.ensure_future(self._call(fn, args, frame, frame_out))
+        calling.add_done_callback(_retrieve)
+        return await asyncio.shield(calling)
+
+    async def _call(
+        self,
+        fn: Callable[..., Any],
+        args: tuple[Any, ...],
+        frame: np.ndarray | None,
+        frame_out: tuple[tuple[int, ...], Any] | None,
+    ) -> Any:
         block = self._take()
         try:
-            into = None
+            into = out = None
             if frame is not None:
                 into = block.into.slot(frame.shape, frame.dtype)
                 await asyncio.to_thread(np.copyto, block.into.view(into), frame)
-            out = block.out.slot(tuple(frame_out[0]), np.dtype(frame_out[1])) if frame_out else None
-            job = self._submit(_run_in_child, fn, args, into, out)
-        except BaseException:
-            self._give_back(block)
-            raise
-        # The child cannot be stopped mid-call: a cancelled caller leaves, and the block
-        # is given back once the child has finished with it (and its result is read).
-        finishing = asyncio.ensure_future(self._finish(job, block, out))
-        finishing.add_done_callback(_retrieve)
-        return await asyncio.shield(finishing)
-
-    async def _finish(
-        self, job: concurrent.futures.Future[Any], block: _Block, out: FrameSlot | None
-    ) -> Any:
-        try:
+            if frame_out is not None:
+                out = block.out.slot(tuple(frame_out[0]), np.dtype(frame_out[1]))
             try:
-                result = await asyncio.wrap_future(job)
+                result = await asyncio.wrap_future(self._submit(_run_in_child, fn, args, into, out))
             except BrokenProcessPool as exc:
                 self._forget_pool()
                 raise ImageProcessFailed(
@@ -152,9 +153,9 @@ class ImageProcess:
                 ) from exc
             if out is None:
                 return result
-            frame = np.empty(out.shape, np.dtype(out.dtype))
-            await asyncio.to_thread(np.copyto, frame, block.out.view(out))
-            return frame
+            image = np.empty(out.shape, np.dtype(out.dtype))
+            await asyncio.to_thread(np.copyto, image, block.out.view(out))
+            return image
         finally:
             self._give_back(block)
 
@@ -231,10 +232,24 @@ ATTACHED_AT_MOST = 16  # two per call under way; more only once blocks grew
 
 
 def _child_starts() -> None:
-    """Ctrl-C is the server's to handle (the child ends with it); the child works at NICE."""
+    """Ctrl-C is the server's to handle; the child works at NICE, and ends with the server.
+
+    Why the watch: the child holds both ends of its call queue, so a server killed
+    outright (SIGKILL, out of memory) would leave it waiting for work forever, with its
+    shared memory kept. The parent's sentinel becomes ready when the server is gone.
+    """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     with contextlib.suppress(OSError):
         os.nice(NICE)
+    parent = multiprocessing.parent_process()
+    if parent is not None:
+        watch = threading.Thread(target=_end_with, args=(parent.sentinel,), daemon=True)
+        watch.start()
+
+
+def _end_with(sentinel: int) -> None:
+    multiprocessing.connection.wait([sentinel])
+    os._exit(0)
 
 
 def _view(slot: FrameSlot) -> np.ndarray:

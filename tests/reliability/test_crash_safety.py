@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import httpx
+import pytest
 
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from tests.processes import server_process, simulator
@@ -122,3 +123,52 @@ def test_sigkill_at_random_moments(tmp_path: Path) -> None:
                 server.send_signal(signal.SIGKILL)
                 server.wait(10)
     assert died_mid_operation >= 1, "no kill landed during an operation; the test proved little"
+
+
+def _children(pid: int) -> list[int]:
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    return [int(p) for p in path.read_text().split()] if path.exists() else []
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def _shared_blocks(pid: int) -> set[str]:
+    """The shared memory blocks a process has mapped (the image process's frames)."""
+    maps = Path(f"/proc/{pid}/maps").read_text().splitlines()
+    return {line.split()[-1] for line in maps if "/dev/shm/psm_" in line}
+
+
+def test_the_image_process_ends_with_a_killed_server(tmp_path: Path) -> None:
+    """A server killed outright leaves no image process behind, nor its frames' memory.
+
+    On ad6615e (the first cut) the child waited for work forever: it holds both ends of
+    its call queue, so the server's death never reached it.
+    """
+    if not Path("/proc/self/task").exists():
+        pytest.skip("reads /proc (Linux)")
+    data = tmp_path / "cell"
+    data.mkdir()
+    port = free_port()
+    with server_process(port, data) as server:
+        client = httpx.Client(
+            base_url=f"http://127.0.0.1:{port}", timeout=30, headers=admin_headers(data)
+        )
+        wait_until(lambda: client.get("/state").json()["state"] == "IDLE", what="IDLE")
+        # The simulated camera's frames are drawn in the image process: it is running.
+        workers = [
+            pid
+            for pid in _children(server.pid)
+            if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text()
+        ]
+        assert workers, "no image process under the server"
+        blocks = set().union(*(_shared_blocks(pid) for pid in workers))
+        assert blocks, "the image process has no frame memory mapped"
+        server.send_signal(signal.SIGKILL)
+        server.wait(10)
+        wait_until(lambda: not any(_alive(pid) for pid in workers), what="the child to end")
+        wait_until(lambda: not any(Path(b).exists() for b in blocks), what="the frames freed")

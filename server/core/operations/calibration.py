@@ -88,7 +88,7 @@ def _check_independently(
 
 def _calibrate_from_frame(
     frame: np.ndarray, marker_positions: list[tuple[float, float]]
-) -> tuple[PlaneCalibration, bytes, IndependentChecks]:
+) -> tuple[PlaneCalibration, bytes | None, IndependentChecks]:
     """The map, the annotated frame as PNG, and the checks; run in the image process
     (`server.vision.process`), so only the PNG crosses back, not the frame."""
     detections = _detector().detect(frame)
