@@ -3,7 +3,8 @@
 Called by the trajectory operation once the path is done (inspection_enabled),
 so it is part of the run: a run cancelled or failed before it ends has no
 inspection, and the run's result carries the summary (the contract of
-docs/quality.md). The frame's vision work runs on a thread, off the loop.
+docs/quality.md). The frame's vision work runs in the image process
+(`server.vision.process`), off the server's interpreter lock.
 """
 
 from __future__ import annotations
@@ -32,7 +33,9 @@ from server.vision.bead import (
     expected_bead_width_mm,
     inspect_bead,
 )
+from server.vision.homography import PlaneCalibration
 from server.vision.outlines import transform_outline
+from server.vision.process import IMAGE_PROCESS
 
 JPEG_QUALITY = 85
 
@@ -86,32 +89,10 @@ async def inspect_run(
     library = {w.id: np.asarray(w.outline_mm, dtype=np.float64) for w in entries}
     tolerances = BeadTolerances.from_settings(settings)
 
-    def look() -> tuple[dict[str, Any], list[dict[str, Any]], list[Any], bytes | None]:
-        vision = marker_residuals(frame, calibration, list(settings.marker_positions_mm))
-        parts = relocate(frame, calibration, targets, library)
-        moved = {p.workpiece_id: p.transform for p in parts}
-        beads = [
-            BeadSegment(
-                s.index,
-                s.workpiece_id,
-                transform_outline(s.path_mm, moved[s.workpiece_id])
-                if s.workpiece_id in moved
-                else s.path_mm,
-                expected_bead_width_mm(s.flow_ml_min, s.speed_mm_s),
-            )
-            for s in segments
-        ]
-        findings = inspect_bead(frame, beads, calibration, tolerances)
-        annotated = annotate_bead(frame, beads, findings, calibration)
-        ok, jpeg = cv2.imencode(".jpg", annotated, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-        per_segment = []
-        for bead, finding in zip(beads, findings, strict=True):
-            per_segment.append(
-                {**finding.as_dict(), "expected_width_mm": round(bead.expected_width_mm, 3)}
-            )
-        return vision, per_segment, [p.as_dict() for p in parts], jpeg.tobytes() if ok else None
-
-    vision, per_segment, parts, jpeg = await asyncio.to_thread(look)
+    positions = list(settings.marker_positions_mm)
+    vision, per_segment, parts, jpeg = await IMAGE_PROCESS.call(
+        _look, calibration, positions, targets, library, segments, tolerances, frame=frame
+    )
     scores = [t.match["score"] for t in targets if t.match is not None]
     vision["match_score"] = max(scores) if scores else None
     vision["parts"] = parts
@@ -143,6 +124,42 @@ async def inspect_run(
         ctx, reasons, precision, dispensing, vision, per_segment, samples, started, jpeg
     )
     return Inspection(document, summary_of(document), jpeg, warnings)
+
+
+def _look(
+    frame: np.ndarray,
+    calibration: PlaneCalibration,
+    marker_positions: list[tuple[float, float]],
+    targets: list[Target],
+    library: dict[str, np.ndarray],
+    segments: list[PlannedSegment],
+    tolerances: BeadTolerances,
+) -> tuple[dict[str, Any], list[dict[str, Any]], list[Any], bytes | None]:
+    """The frame's vision work: markers, parts, the bead, the annotated JPEG. Run in the
+    image process (`server.vision.process`), so only the JPEG and the findings cross."""
+    vision = marker_residuals(frame, calibration, marker_positions)
+    parts = relocate(frame, calibration, targets, library)
+    moved = {p.workpiece_id: p.transform for p in parts}
+    beads = [
+        BeadSegment(
+            s.index,
+            s.workpiece_id,
+            transform_outline(s.path_mm, moved[s.workpiece_id])
+            if s.workpiece_id in moved
+            else s.path_mm,
+            expected_bead_width_mm(s.flow_ml_min, s.speed_mm_s),
+        )
+        for s in segments
+    ]
+    findings = inspect_bead(frame, beads, calibration, tolerances)
+    annotated = annotate_bead(frame, beads, findings, calibration)
+    ok, jpeg = cv2.imencode(".jpg", annotated, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    per_segment = []
+    for bead, finding in zip(beads, findings, strict=True):
+        per_segment.append(
+            {**finding.as_dict(), "expected_width_mm": round(bead.expected_width_mm, 3)}
+        )
+    return vision, per_segment, [p.as_dict() for p in parts], jpeg.tobytes() if ok else None
 
 
 def _document(

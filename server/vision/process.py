@@ -47,7 +47,7 @@ import numpy as np
 
 T = TypeVar("T")
 
-NICE = 5  # the child's priority below the server's: it yields the core to the control loop
+NICE = 19  # the lowest priority: the image work takes only what the control loop leaves
 
 
 class ImageProcessFailed(RuntimeError):

@@ -19,9 +19,10 @@ from pydantic import ValidationError
 from server.core.operations.base import OperationContext, OperationResult
 from server.core.operations.camera_frames import capture_undistorted, require_robot_calibration
 from server.errors import OperationError
-from server.storage.workpieces import SpraySettings, WorkpieceIn
+from server.storage.workpieces import SpraySettings, Workpiece, WorkpieceIn
 from server.vision.markers import MarkerDetector
 from server.vision.outlines import find_outlines, match_outline, outline_to_mm, transform_outline
+from server.vision.process import IMAGE_PROCESS
 
 THUMBNAIL_PX = 256
 MARKER_EXCLUSION_SCALE = 1.8  # the printed paper around a marker, with margin
@@ -61,19 +62,21 @@ def _not_found(what: str) -> OperationError:
     )
 
 
+def _measure(frame: np.ndarray, homography: np.ndarray) -> tuple[np.ndarray, bytes]:
+    """The largest part's outline (mm) and its thumbnail (PNG); run in the image process."""
+    outlines = _outlines_px(frame)
+    if not outlines:
+        raise _not_found("workpiece creation")
+    return outline_to_mm(outlines[0], homography), _thumbnail(frame, outlines[0])
+
+
 async def create_workpiece(ctx: OperationContext) -> OperationResult:
     """Capture the part on the table and store its outline (mm) in the library."""
     homography = require_robot_calibration(ctx, "workpiece creation").homography
     frame = await capture_undistorted(ctx, "workpiece creation")
     ctx.report({"step": "finding the outline", "fraction": 0.3})
 
-    def measure() -> tuple[np.ndarray, bytes]:
-        outlines = _outlines_px(frame)
-        if not outlines:
-            raise _not_found("workpiece creation")
-        return outline_to_mm(outlines[0], homography), _thumbnail(frame, outlines[0])
-
-    outline_mm, thumbnail = await asyncio.to_thread(measure)
+    outline_mm, thumbnail = await IMAGE_PROCESS.call(_measure, homography, frame=frame)
     library = ctx.stores.workpieces
     spray = SpraySettings.model_validate(ctx.params.get("spray") or {})
     try:
@@ -125,6 +128,38 @@ class Target:
     match: dict[str, Any] | None = None
 
 
+def _match_all(
+    frame: np.ndarray,
+    homography: np.ndarray,
+    library: dict[str, np.ndarray],
+    by_id: dict[str, Workpiece],
+) -> list[Target]:
+    """Each part outline in the frame matched to the library; run in the image process."""
+    targets = []
+    for contour in _outlines_px(frame):
+        detected = outline_to_mm(contour, homography)
+        match = match_outline(detected, library)
+        if match is None:
+            continue
+        entry = by_id[match.workpiece_id]
+        placed = transform_outline(library[match.workpiece_id], match.transform)
+        targets.append(
+            Target(
+                entry.id,
+                entry.name,
+                placed,
+                entry.spray,
+                {
+                    "score": round(match.score, 5),
+                    "rotation_deg": round(match.rotation_deg, 3),
+                    "translation_mm": [round(v, 3) for v in match.translation_mm],
+                    "fit_error_mm": round(match.fit_error_mm, 3),
+                },
+            )
+        )
+    return targets
+
+
 async def locate_workpieces(ctx: OperationContext, only: str | None) -> list[Target]:
     """Find the parts on the table and match each to the library (or to `only`)."""
     homography = require_robot_calibration(ctx, "contour matching").homography
@@ -141,32 +176,7 @@ async def locate_workpieces(ctx: OperationContext, only: str | None) -> list[Tar
     by_id = {w.id: w for w in entries}
     frame = await capture_undistorted(ctx, "contour matching")
 
-    def match_all() -> list[Target]:
-        targets = []
-        for contour in _outlines_px(frame):
-            detected = outline_to_mm(contour, homography)
-            match = match_outline(detected, library)
-            if match is None:
-                continue
-            entry = by_id[match.workpiece_id]
-            placed = transform_outline(library[match.workpiece_id], match.transform)
-            targets.append(
-                Target(
-                    entry.id,
-                    entry.name,
-                    placed,
-                    entry.spray,
-                    {
-                        "score": round(match.score, 5),
-                        "rotation_deg": round(match.rotation_deg, 3),
-                        "translation_mm": [round(v, 3) for v in match.translation_mm],
-                        "fit_error_mm": round(match.fit_error_mm, 3),
-                    },
-                )
-            )
-        return targets
-
-    targets = await asyncio.to_thread(match_all)
+    targets = await IMAGE_PROCESS.call(_match_all, homography, library, by_id, frame=frame)
     if not targets:
         raise OperationError(
             "WORKPIECE_NOT_MATCHED",
