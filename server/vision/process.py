@@ -6,9 +6,10 @@ Python between them. On a thread they hold the interpreter lock for up to
 several ms at a time, and the event loop (an e-stop's request among what it
 serves) waits for them. Measured with robot calibrations running, every thread
 of the server on one core: the loop's lag p99 5.1–5.7 ms with the work on
-threads (docs/benchmarks.md, issue 17's seventh pass). A process competes for
-the core through the kernel's scheduler, which lets a waking loop in at once;
-it also runs at a lower priority (`NICE`), as bulk work beside a control loop.
+threads, 1.1 ms with it here (docs/benchmarks.md, issue 17's seventh pass). A
+process competes for the core through the kernel's scheduler, not for the
+lock, and runs at the lowest priority (`NICE`): bulk work beside a control
+loop takes only what the loop leaves.
 
 How frames cross: through shared memory, never pickled. Pickling a 1920×1080
 colour frame holds the lock 2.5 ms; `np.copyto` into a shared block lets it
@@ -17,11 +18,14 @@ go. A call's frame goes in that way and, when the call gives a frame back
 exceptions) is pickled, so it must be small and picklable.
 
 One child does the work, one call after another, for the whole server
-process: it is started on first use (a second or so, once), and a child that
-died is replaced on the next call. A call cancelled by its caller (an e-stop
-ending the operation) cannot stop the child's work: the caller goes on at
-once, and the call's shared block is reused only once the child is done with
-it.
+process: the cell starts it as it starts (`warm_up`; its imports take a second
+or so, once), and a child that died is replaced on the next call. It is
+started with `spawn`, which imports the parent's main module again: a script
+of your own that runs a cell needs the `if __name__ == "__main__":` guard.
+
+A call cancelled by its caller (an e-stop ending the operation) cannot stop
+the child's work: the caller goes on at once, and the call's shared block is
+reused only once the child is done with it.
 """
 
 from __future__ import annotations
