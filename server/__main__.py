@@ -17,6 +17,7 @@ from server.config import Settings
 from server.errors import ConfigurationError
 from server.logging_setup import configure as configure_logging
 from server.runtime import (
+    end_image_process_on_shutdown,
     freeze_once_started,
     limit_malloc_arenas,
     raise_open_file_limit,
@@ -97,6 +98,7 @@ def main(argv: list[str] | None = None) -> None:
     logging.getLogger(__name__).info("open-file limit %d", files)
     tune_garbage_collection()
     freeze_once_started(app)  # and again once the cell, OPC UA and MQTT have started
+    end_image_process_on_shutdown(app)
     uvicorn.run(
         app,
         host=args.host,

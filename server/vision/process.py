@@ -34,6 +34,7 @@ import asyncio
 import atexit
 import concurrent.futures
 import contextlib
+import gc
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -147,10 +148,11 @@ class ImageProcess:
                 await asyncio.to_thread(np.copyto, block.into.view(into), frame)
             if frame_out is not None:
                 out = block.out.slot(tuple(frame_out[0]), np.dtype(frame_out[1]))
+            pool, job = self._submit(_run_in_child, fn, args, into, out)
             try:
-                result = await asyncio.wrap_future(self._submit(_run_in_child, fn, args, into, out))
+                result = await asyncio.wrap_future(job)
             except BrokenProcessPool as exc:
-                self._forget_pool()
+                self._forget_pool(pool)
                 raise ImageProcessFailed(
                     "the image process ended in the middle of a call; "
                     "the next call starts a new one"
@@ -163,23 +165,35 @@ class ImageProcess:
         finally:
             self._give_back(block)
 
-    def warm_up(self) -> concurrent.futures.Future[Any]:
+    def warm_up(self) -> None:
         """Start the child now (it imports numpy and OpenCV), not on the first frame."""
-        return self._submit(_run_in_child, os.getpid, (), None, None)
+        self._submit(_run_in_child, os.getpid, (), None, None)
 
     def close(self) -> None:
-        """Stop the child and free the shared memory (at exit; a later call starts afresh)."""
+        """End the child and free the shared memory (at exit; a later call starts afresh).
+
+        The child is ended, not waited for: a call stuck in it must not hold the
+        server's exit.
+        """
         with self._lock:
             pool, self._pool = self._pool, None
             blocks, self._all, self._idle = self._all, [], []
         if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+            children = list(getattr(pool, "_processes", {}).values())
+            for child in children:
+                child.terminate()
+            pool.shutdown(wait=True, cancel_futures=True)  # quick: its child has ended
+            del pool
+            gc.collect()  # its queues' semaphores are freed now, not left to be warned of
         for block in blocks:
             block.release()
 
     # --- internals ---------------------------------------------------------------------------
 
-    def _submit(self, *call: Any) -> concurrent.futures.Future[Any]:
+    def _submit(
+        self, *call: Any
+    ) -> tuple[concurrent.futures.ProcessPoolExecutor, concurrent.futures.Future[Any]]:
+        """The call handed to the child, and the pool that has it (replaced if it broke)."""
         with self._lock:
             if self._pool is None:
                 self._pool = concurrent.futures.ProcessPoolExecutor(
@@ -189,18 +203,18 @@ class ImageProcess:
                 )
             pool = self._pool
         try:
-            return pool.submit(*call)
+            return pool, pool.submit(*call)
         except BrokenProcessPool:
             self._forget_pool(pool)
             return self._submit(*call)
 
-    def _forget_pool(self, pool: concurrent.futures.ProcessPoolExecutor | None = None) -> None:
+    def _forget_pool(self, pool: concurrent.futures.ProcessPoolExecutor) -> None:
+        """A broken pool is let go (the next call starts another), once."""
         with self._lock:
-            broken = self._pool if pool is None or pool is self._pool else None
-            if broken is not None:
-                self._pool = None
-        if broken is not None:
-            broken.shutdown(wait=False, cancel_futures=True)
+            if pool is not self._pool:
+                return  # already replaced by a call before this one
+            self._pool = None
+        pool.shutdown(wait=False, cancel_futures=True)
 
     def _take(self) -> _Block:
         with self._lock:

@@ -53,6 +53,12 @@ def wrong_shape(frame: np.ndarray) -> np.ndarray:
     return frame[:10]
 
 
+def _ended(pid: int) -> bool:
+    """Gone, or only its exit status left for its parent to collect."""
+    stat = Path(f"/proc/{pid}/stat")
+    return not stat.exists() or stat.read_text().split()[2] == "Z"
+
+
 @pytest.fixture
 def images() -> Iterator[ImageProcess]:
     process = ImageProcess()
@@ -124,3 +130,16 @@ async def test_a_cancelled_call_keeps_its_frame_until_the_child_is_done(
     later = await images.call(slow_sum, 0.0, frame=slow_frame)  # once the first call ended
     assert later == int(slow_frame.sum())
     assert seen.read_text() == str(int(slow_frame.sum()))  # its frame was never overwritten
+
+
+async def test_closing_ends_a_child_stuck_in_a_call(images: ImageProcess) -> None:
+    """A call that never ends must not hold the server's exit: close ends the child."""
+    child, _ = await images.call(whose, frame=frame(10))
+    stuck = asyncio.ensure_future(images.call(slow_sum, 3600.0, frame=frame(11)))
+    await asyncio.sleep(0.2)  # the child is in the call
+    images.close()
+    with pytest.raises(ImageProcessFailed):
+        await stuck
+    assert _ended(child)
+    again, _ = await images.call(whose, frame=frame(12))  # a later call starts afresh
+    assert again != child

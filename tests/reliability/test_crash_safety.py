@@ -172,3 +172,25 @@ def test_the_image_process_ends_with_a_killed_server(tmp_path: Path) -> None:
         server.wait(10)
         wait_until(lambda: not any(_alive(pid) for pid in workers), what="the child to end")
         wait_until(lambda: not any(Path(b).exists() for b in blocks), what="the frames freed")
+
+
+def test_a_stopped_server_ends_its_image_process_and_frees_all_it_had(tmp_path: Path) -> None:
+    """SIGTERM: the app's shutdown ends the child; nothing is left for the resource
+    tracker to warn of (it did, of semaphores and shared memory, with the child ended
+    only at exit: uvicorn raises the signal again and the exit handlers never run)."""
+    if not Path("/proc/self/task").exists():
+        pytest.skip("reads /proc (Linux)")
+    data = tmp_path / "cell"
+    data.mkdir()
+    port = free_port()
+    with server_process(port, data) as server:
+        client = httpx.Client(base_url=f"http://127.0.0.1:{port}", headers=admin_headers(data))
+        wait_until(lambda: client.get("/state").json()["state"] == "IDLE", what="IDLE")
+        workers = _children(server.pid)
+        assert workers, "no child process under the server"
+        server.send_signal(signal.SIGTERM)
+        server.wait(30)
+    wait_until(lambda: not any(_alive(pid) for pid in workers), what="the children to end")
+    log = (data / "server.log").read_text()
+    assert "Application shutdown complete" in log
+    assert "leaked" not in log, log[-2000:]
