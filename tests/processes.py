@@ -73,6 +73,15 @@ def simulator(module: str, *args: str, timeout: float = 60.0) -> Iterator[Runnin
         stop(process)
 
 
+def has_ended(pid: int) -> bool:
+    """The process is gone, or only its exit status is left for its parent (Linux /proc)."""
+    stat = Path(f"/proc/{pid}/stat")
+    try:
+        return stat.read_text().split()[2] == "Z"
+    except FileNotFoundError:
+        return True
+
+
 def stop(process: subprocess.Popen[str]) -> None:
     if process.poll() is None:
         process.send_signal(signal.SIGTERM)

@@ -470,26 +470,28 @@ class SimulatedCamera(_CameraBase):
     async def _render(self, *, advance: bool) -> np.ndarray:
         """The next frame, rendered in the image process (`server.vision.process`): the
         simulator's work is a device's own, and would otherwise hold the server's
-        interpreter lock for several ms at a time while it draws."""
-        draw, args = self._next_render(advance=advance)
-        if self._mode == "table" and self.bead_source is not None:
-            source, since, shifts = self.bead_source, self._bead_since, list(self._part_shifts)
-            args[0].bead = await asyncio.to_thread(source, since, shifts)
-        shape = (self.model.height, self.model.width, 3)
-        return await IMAGE_PROCESS.call(draw, *args, frame_out=(shape, np.uint8))
-
-    def _next_render(self, *, advance: bool) -> tuple[Callable[..., np.ndarray], list[Any]]:
-        """What to render now, taken on the event loop: the drawing and its arguments."""
+        interpreter lock for several ms at a time while it draws. What to draw is
+        taken on the event loop, as it is now."""
         model = self.model
         rng = np.random.default_rng(int(self._rng.integers(0, 2**63 - 1)))
+        draw: Callable[..., np.ndarray]
+        args: tuple[Any, ...]
         if self._mode == "table":
-            return render_table, [self.scene.snapshot(), model, rng]
-        board, pose = self.chessboard, self.chessboard_poses[self._next_view]
-        if advance:
-            self._next_view = (self._next_view + 1) % len(self.chessboard_poses)
-            self.last_chessboard_pose = pose
-        light = (self.scene.noise_sigma, self.scene.vignetting, self.scene.light_gradient)
-        return _chessboard_view, [model, board, pose, rng, *light]
+            scene = self.scene.snapshot()
+            source = self.bead_source
+            if source is not None:  # the in-process simulators' glue, gathered on a thread
+                shifts = list(self._part_shifts)
+                scene.bead = await asyncio.to_thread(source, self._bead_since, shifts)
+            draw, args = render_table, (scene, model, rng)
+        else:
+            board, pose = self.chessboard, self.chessboard_poses[self._next_view]
+            if advance:
+                self._next_view = (self._next_view + 1) % len(self.chessboard_poses)
+                self.last_chessboard_pose = pose
+            light = (self.scene.noise_sigma, self.scene.vignetting, self.scene.light_gradient)
+            draw, args = _chessboard_view, (model, board, pose, rng, *light)
+        shape = (model.height, model.width, 3)
+        return await IMAGE_PROCESS.call(draw, *args, frame_out=(shape, np.uint8))
 
 
 def _chessboard_view(

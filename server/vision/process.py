@@ -47,7 +47,6 @@ from dataclasses import dataclass
 from multiprocessing import shared_memory
 from typing import Any, TypeVar
 
-import cv2
 import numpy as np
 
 T = TypeVar("T")
@@ -228,13 +227,6 @@ class ImageProcess:
         with self._lock:
             if block in self._all:
                 self._idle.append(block)
-
-
-def encode_png(image: np.ndarray) -> bytes | None:
-    """An image as PNG bytes (None if OpenCV cannot encode it): what crosses back instead
-    of a frame, when the child's result is an image to store."""
-    ok, png = cv2.imencode(".png", image)
-    return png.tobytes() if ok else None
 
 
 def _retrieve(task: asyncio.Future[Any]) -> None:

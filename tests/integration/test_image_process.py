@@ -13,6 +13,7 @@ import pytest
 
 from server.errors import OperationError
 from server.vision.process import ImageProcess, ImageProcessFailed
+from tests.processes import has_ended
 
 
 # What the child runs: module-level, as the image process requires.
@@ -51,12 +52,6 @@ def dies() -> None:
 
 def wrong_shape(frame: np.ndarray) -> np.ndarray:
     return frame[:10]
-
-
-def _ended(pid: int) -> bool:
-    """Gone, or only its exit status left for its parent to collect."""
-    stat = Path(f"/proc/{pid}/stat")
-    return not stat.exists() or stat.read_text().split()[2] == "Z"
 
 
 @pytest.fixture
@@ -140,6 +135,6 @@ async def test_closing_ends_a_child_stuck_in_a_call(images: ImageProcess) -> Non
     images.close()
     with pytest.raises(ImageProcessFailed):
         await stuck
-    assert _ended(child)
+    assert has_ended(child)
     again, _ = await images.call(whose, frame=frame(12))  # a later call starts afresh
     assert again != child

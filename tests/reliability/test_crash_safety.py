@@ -9,17 +9,20 @@ real devices would.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import random
 import signal
 import sqlite3
+import subprocess
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
 
 from server.drivers.glue_modbus import ModbusGlueDispenser
-from tests.processes import server_process, simulator
+from tests.processes import has_ended, server_process, simulator
 from tests.serving import admin_headers, free_port
 
 KILLS = 6  # bounded for CI; each cycle starts, runs and kills a real server
@@ -125,32 +128,13 @@ def test_sigkill_at_random_moments(tmp_path: Path) -> None:
     assert died_mid_operation >= 1, "no kill landed during an operation; the test proved little"
 
 
-def _children(pid: int) -> list[int]:
-    path = Path(f"/proc/{pid}/task/{pid}/children")
-    return [int(p) for p in path.read_text().split()] if path.exists() else []
+# The image process's tests read the process table from /proc: Linux, as CI is.
+linux_only = pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="reads /proc")
 
 
-def _alive(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
-    except FileNotFoundError:
-        return False
-
-
-def _shared_blocks(pid: int) -> set[str]:
-    """The shared memory blocks a process has mapped (the image process's frames)."""
-    maps = Path(f"/proc/{pid}/maps").read_text().splitlines()
-    return {line.split()[-1] for line in maps if "/dev/shm/psm_" in line}
-
-
-def test_the_image_process_ends_with_a_killed_server(tmp_path: Path) -> None:
-    """A server killed outright leaves no image process behind, nor its frames' memory.
-
-    On ad6615e (the first cut) the child waited for work forever: it holds both ends of
-    its call queue, so the server's death never reached it.
-    """
-    if not Path("/proc/self/task").exists():
-        pytest.skip("reads /proc (Linux)")
+@contextlib.contextmanager
+def idle_server(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], Path]]:
+    """`python -m server` on a fresh data directory, once its cell is IDLE; and that directory."""
     data = tmp_path / "cell"
     data.mkdir()
     port = free_port()
@@ -159,6 +143,28 @@ def test_the_image_process_ends_with_a_killed_server(tmp_path: Path) -> None:
             base_url=f"http://127.0.0.1:{port}", timeout=30, headers=admin_headers(data)
         )
         wait_until(lambda: client.get("/state").json()["state"] == "IDLE", what="IDLE")
+        yield server, data
+
+
+def _children(pid: int) -> list[int]:
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    return [int(p) for p in path.read_text().split()] if path.exists() else []
+
+
+def _shared_blocks(pid: int) -> set[str]:
+    """The shared memory blocks a process has mapped (the image process's frames)."""
+    maps = Path(f"/proc/{pid}/maps").read_text().splitlines()
+    return {line.split()[-1] for line in maps if "/dev/shm/psm_" in line}
+
+
+@linux_only
+def test_the_image_process_ends_with_a_killed_server(tmp_path: Path) -> None:
+    """A server killed outright leaves no image process behind, nor its frames' memory.
+
+    On ad6615e (the first cut) the child waited for work forever: it holds both ends of
+    its call queue, so the server's death never reached it.
+    """
+    with idle_server(tmp_path) as (server, _):
         # The simulated camera's frames are drawn in the image process: it is running.
         workers = [
             pid
@@ -170,27 +176,21 @@ def test_the_image_process_ends_with_a_killed_server(tmp_path: Path) -> None:
         assert blocks, "the image process has no frame memory mapped"
         server.send_signal(signal.SIGKILL)
         server.wait(10)
-        wait_until(lambda: not any(_alive(pid) for pid in workers), what="the child to end")
+        wait_until(lambda: all(has_ended(pid) for pid in workers), what="the child to end")
         wait_until(lambda: not any(Path(b).exists() for b in blocks), what="the frames freed")
 
 
+@linux_only
 def test_a_stopped_server_ends_its_image_process_and_frees_all_it_had(tmp_path: Path) -> None:
     """SIGTERM: the app's shutdown ends the child; nothing is left for the resource
     tracker to warn of (it did, of semaphores and shared memory, with the child ended
     only at exit: uvicorn raises the signal again and the exit handlers never run)."""
-    if not Path("/proc/self/task").exists():
-        pytest.skip("reads /proc (Linux)")
-    data = tmp_path / "cell"
-    data.mkdir()
-    port = free_port()
-    with server_process(port, data) as server:
-        client = httpx.Client(base_url=f"http://127.0.0.1:{port}", headers=admin_headers(data))
-        wait_until(lambda: client.get("/state").json()["state"] == "IDLE", what="IDLE")
+    with idle_server(tmp_path) as (server, data):
         workers = _children(server.pid)
         assert workers, "no child process under the server"
         server.send_signal(signal.SIGTERM)
         server.wait(30)
-    wait_until(lambda: not any(_alive(pid) for pid in workers), what="the children to end")
+    wait_until(lambda: all(has_ended(pid) for pid in workers), what="the children to end")
     log = (data / "server.log").read_text()
     assert "Application shutdown complete" in log
     assert "leaked" not in log, log[-2000:]

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from functools import cache
 from typing import Any
 
+import cv2
 import numpy as np
 
 from server.core.operations.base import OperationContext, OperationResult, OperationWarning
@@ -22,7 +23,7 @@ from server.vision.homography import (
 )
 from server.vision.intrinsics import calibrate_intrinsics, find_chessboard
 from server.vision.markers import MarkerDetection, MarkerDetector, border_corners, missing_markers
-from server.vision.process import IMAGE_PROCESS, encode_png
+from server.vision.process import IMAGE_PROCESS
 
 REQUIRED_MARKERS = range(9)
 MIN_VIEW_SHIFT_PX = 20.0  # a real operator must move the board between views
@@ -107,7 +108,8 @@ def _calibrate_from_frame(
     calibration = fit_plane_calibration(pixels, robot_mm)
     checks = _check_independently(frame, calibration, detections, marker_positions)
     annotated = annotate_markers(frame, detections, calibration.residuals_mm)
-    return calibration, encode_png(annotated), checks
+    ok, png = cv2.imencode(".png", annotated)
+    return calibration, png.tobytes() if ok else None, checks
 
 
 DEGRADING_SHARE = 0.5  # of calibration_max_error_mm: accepted, but warned of
