@@ -123,7 +123,7 @@ class Cell:
                 settings.data_file(settings.persistence_file, "state.json"),
                 settings.persistence_interval,
             )
-            previous = snapshot_file.load()
+            previous = await asyncio.to_thread(last_state, self.journal, snapshot_file.load())
             snapshot_file.start()
         self._snapshot_file = snapshot_file
         interruption = await asyncio.to_thread(find_interruption, self.journal, previous)
@@ -253,6 +253,36 @@ def record_journal_damage(journal: Journal) -> None:
             State.INITIALIZING.value,
         )
         journal.append([record], durable=False)
+
+
+def last_state(journal: Journal, previous: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The state the last run of the server left: its snapshot's, unless the journal
+    recorded a later change.
+
+    Why: a change's snapshot is written once the change's commit is durable
+    (`Recorder.commit`), so a server killed between the two leaves a snapshot one
+    change behind what was answered. A reset acknowledged that way must not come
+    back as ERROR, nor an e-stop as IDLE. The journal's newer transition then
+    stands, with the fault that took the cell to ERROR if it did.
+    """
+    newest = journal.query("transitions", limit=1)
+    if not newest:
+        return previous
+    last = newest[0]
+    if previous is not None and (
+        last["new_state"] == previous.get("state") or last["time"] <= previous.get("since", 0)
+    ):
+        return previous
+    state: dict[str, Any] = {"state": last["new_state"], "since": last["time"]}
+    faults = journal.faults_of(last["event_id"]) if last["new_state"] == State.ERROR.value else []
+    if faults:
+        state["stop_reason"] = {"code": faults[0]["code"], "message": faults[0]["message"]}
+    log.warning(
+        "the state snapshot was behind the journal (%s, journal %s); the journal's stands",
+        (previous or {}).get("state", "none"),
+        last["new_state"],
+    )
+    return state
 
 
 def find_interruption(journal: Journal, previous: dict[str, Any] | None) -> str | None:

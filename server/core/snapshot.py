@@ -1,7 +1,12 @@
 """The state snapshot file: what the cell was doing, rewritten atomically.
 
 Only the latest snapshot matters, so writes coalesce: a background thread
-writes whatever is newest when it gets to it, and the worker never waits. The
+writes whatever is newest when it gets to it, and the worker never waits. A
+change's snapshot is handed to that thread once the change's commit is
+durable, so its write (a temporary file, an fsync, a rename) never competes
+with that commit for the disk; the journal is therefore never behind the
+snapshot, and a restart takes the journal's last transition when it is the
+newer of the two (`server/cell.py`, `last_state`). The
 file is also refreshed every persistence_interval seconds (its `saved_at` says
 how fresh it is). At start a missing, truncated or corrupt file is logged,
 kept aside for inspection, and the cell starts safely without it.
@@ -9,6 +14,7 @@ kept aside for inspection, and the cell starts safely without it.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import threading
@@ -59,9 +65,22 @@ class SnapshotFile:
         self._thread = threading.Thread(target=self._write_loop, name="state-snapshot", daemon=True)
         self._thread.start()
 
-    def save(self, snapshot: dict[str, Any]) -> None:
-        """Take a copy now (the caller goes on changing its dicts); written soon after."""
-        copy = json.loads(json.dumps(snapshot, default=str))
+    @staticmethod
+    def copy(snapshot: dict[str, Any]) -> dict[str, Any]:
+        """A copy to save: plain JSON values, sharing none of the caller's dicts (it goes
+        on changing them)."""
+        copied: dict[str, Any] = json.loads(json.dumps(snapshot, default=str))
+        return copied
+
+    def save(self, copy: dict[str, Any], after: asyncio.Future[Any] | None = None) -> None:
+        """Write `copy` (from `copy`) soon, and not before `after` is done (the change's
+        commit, see `Recorder.commit`)."""
+        if after is None or after.done():
+            self._hand_over(copy)
+        else:
+            after.add_done_callback(lambda _: self._hand_over(copy))
+
+    def _hand_over(self, copy: dict[str, Any]) -> None:
         with self._lock:
             self._latest = copy
         self._dirty.set()

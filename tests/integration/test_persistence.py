@@ -153,6 +153,34 @@ async def test_error_is_latched_across_a_restart(tmp_path) -> None:
     await cell.stop()
 
 
+async def test_a_snapshot_one_change_behind_the_journal_gives_way_to_it(tmp_path) -> None:
+    """A server killed after a change's commit and before its snapshot's write (written
+    once the commit is durable) restarts as the journal says: a reset that was answered
+    stays done, and so does an e-stop, with its reason."""
+    snapshot = tmp_path / "state.json"
+    cell = await started(tmp_path)
+    await cell.command(Command.ESTOP, source="test", payload=StopPayload("guard door"))
+    await asyncio.sleep(0.1)
+    in_error = snapshot.read_text()
+    assert json.loads(in_error)["state"] == "ERROR"
+    assert (await cell.command(Command.RESET, source="test")).state is State.IDLE
+    await cell.stop()
+    snapshot.write_text(in_error)  # as if killed before the reset's snapshot was written
+    cell = await started(tmp_path)
+    assert cell.worker.ctx.state is State.IDLE
+    await asyncio.sleep(0.1)
+    idle = snapshot.read_text()
+    await cell.command(Command.ESTOP, source="test", payload=StopPayload("guard door"))
+    await cell.stop()
+    snapshot.write_text(idle)  # as if killed before the e-stop's snapshot was written
+    cell = await started(tmp_path)
+    assert cell.worker.ctx.state is State.ERROR
+    message = cell.worker.ctx.stop_reason.message
+    assert message.startswith("the cell was in ERROR when the server stopped")
+    assert "guard door" in message
+    await cell.stop()
+
+
 async def test_text_sqlite_cannot_store_does_not_stop_the_journal(tmp_path) -> None:
     journal = Journal(tmp_path / "journal.db")
     journal.open()

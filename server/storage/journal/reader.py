@@ -130,6 +130,16 @@ class Reader:
             ).fetchall()
         return [dict(zip(columns, row, strict=True)) for row in rows]
 
+    def faults_of(self, event_id: str) -> list[dict[str, Any]]:
+        """The `errors` rows an event recorded (the fault that took the cell to ERROR)."""
+        _, columns = TABLES["errors"]
+        with self._reader() as connection:
+            rows = connection.execute(
+                f"SELECT {', '.join(columns)} FROM errors WHERE event_id = ? ORDER BY seq",
+                (event_id,),
+            ).fetchall()
+        return [dict(zip(columns, row, strict=True)) for row in rows]
+
     def mark_interrupted(self, run_ids: Iterable[str], at: float) -> None:
         """Close the rows of operations a restart found unfinished (synchronously)."""
         with self._reader() as connection, connection:

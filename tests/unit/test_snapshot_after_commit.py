@@ -1,0 +1,55 @@
+"""A change's state snapshot is written once the change's commit is durable, never
+beside it: its fsync would compete with the commit's, which every answer waits for."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from pathlib import Path
+
+from server.core.context import MachineContext
+from server.core.event_queue import Envelope, Priority
+from server.core.events import Outcome, payload_of
+from server.core.recorder import Recorder
+from server.core.snapshot import SnapshotFile
+from server.core.transitions import Event, State
+
+
+class HeldJournal:
+    """Takes the commit and reports it durable only when the test says so."""
+
+    backlog = 0
+    last_error = None
+    damage = ()
+
+    def __init__(self, durable: asyncio.Future[None]) -> None:
+        self.durable = durable
+
+    def append(self, records, *, durable=True):
+        return self.durable
+
+
+def written(path: Path) -> dict:
+    deadline = time.monotonic() + 10  # a hang guard, not a measure
+    while not path.exists():
+        assert time.monotonic() < deadline, "the snapshot was never written"
+        time.sleep(0.01)
+    return json.loads(path.read_text())
+
+
+async def test_the_snapshot_waits_for_its_changes_commit(tmp_path: Path) -> None:
+    durable: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+    path = tmp_path / "state.json"
+    snapshot_file = SnapshotFile(path, interval=3600)
+    snapshot_file.start()
+    recorder = Recorder(HeldJournal(durable), lambda _: None, MachineContext(10), snapshot_file)
+    event = Event.EMERGENCY_STOP
+    envelope = Envelope("e-1", event, "test", payload_of(event, None), Priority.EMERGENCY)
+    recorder.save_snapshot({"state": "ERROR", "since": 1.0}, None)
+    recorder.commit(envelope, Outcome(True, "e-1", event, State.ERROR, "stopped"))
+    await asyncio.sleep(0.3)  # time enough for the writer thread, had it been handed over
+    assert not path.exists()
+    durable.set_result(None)
+    assert (await asyncio.to_thread(written, path))["state"] == "ERROR"
+    snapshot_file.stop()
