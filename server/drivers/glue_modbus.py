@@ -133,6 +133,10 @@ class _LineArbiter:
         self._queues: list[deque[asyncio.Future[None]]] = [deque() for _ in range(levels)]
         self._droppable: set[asyncio.Future[None]] = set()
 
+    @property
+    def busy(self) -> bool:
+        return self._busy
+
     async def acquire(self, priority: int, *, droppable: bool = False) -> None:
         if not self._busy and not any(self._queues):
             self._busy = True
@@ -374,6 +378,12 @@ class ModbusGlueDispenser:
             await self._call(what, COMMAND, body, droppable=True)
         finally:
             self._opening -= 1
+
+    @property
+    def line_busy(self) -> bool:
+        """An exchange is on the line now: a valve close asked for now is written once
+        its reply is in (Modbus RTU carries one exchange at a time)."""
+        return self._line.busy
 
     def drop_waiting_openings(self) -> int:
         """Refuse every valve opening still waiting for the line; how many there were.

@@ -133,6 +133,7 @@ def test_estop_latency_measures_every_condition(results_in_tmp: Path) -> None:
         assert row["n"] == 3
         # The answer comes after both devices had the stop (it waits for their replies).
         assert row["answer_p50_ms"] >= row["to_sockets_p50_ms"] > 0
+        assert 0 <= row["line_busy_stops"] <= row["n"]
 
 
 def test_reset_probe_measures_every_condition(results_in_tmp: Path) -> None:
