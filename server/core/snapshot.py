@@ -3,10 +3,11 @@
 Only the latest snapshot matters, so writes coalesce: a background thread
 writes whatever is newest when it gets to it, and the worker never waits. A
 change's snapshot is handed to that thread once the change's commit is
-durable, so its write (a temporary file, an fsync, a rename) never competes
-with that commit for the disk; the journal is therefore never behind the
-snapshot, and a restart takes the journal's last transition when it is the
-newer of the two (`server/cell.py`, `last_state`). The
+durable and its sender answered (`Recorder.answer_when_durable`), so its
+write (a temporary file, an fsync, a rename) competes with neither; the
+journal is therefore never behind the snapshot, and a restart takes the
+journal's last transition when it is the newer of the two (`server/cell.py`,
+`last_state`). The
 file is also refreshed every persistence_interval seconds (its `saved_at` says
 how fresh it is). At start a missing, truncated or corrupt file is logged,
 kept aside for inspection, and the cell starts safely without it.
@@ -14,7 +15,6 @@ kept aside for inspection, and the cell starts safely without it.
 
 from __future__ import annotations
 
-import asyncio
 import json
 import logging
 import threading
@@ -72,15 +72,8 @@ class SnapshotFile:
         copied: dict[str, Any] = json.loads(json.dumps(snapshot, default=str))
         return copied
 
-    def save(self, copy: dict[str, Any], after: asyncio.Future[Any] | None = None) -> None:
-        """Write `copy` (from `copy`) soon, and not before `after` is done (the change's
-        commit, see `Recorder.commit`)."""
-        if after is None or after.done():
-            self._hand_over(copy)
-        else:
-            after.add_done_callback(lambda _: self._hand_over(copy))
-
-    def _hand_over(self, copy: dict[str, Any]) -> None:
+    def save(self, copy: dict[str, Any]) -> None:
+        """Write `copy` (made by `copy`) soon, in the writer thread."""
         with self._lock:
             self._latest = copy
         self._dirty.set()

@@ -45,11 +45,55 @@ async def test_the_snapshot_waits_for_its_changes_commit(tmp_path: Path) -> None
     snapshot_file.start()
     recorder = Recorder(HeldJournal(durable), lambda _: None, MachineContext(10), snapshot_file)
     event = Event.EMERGENCY_STOP
-    envelope = Envelope("e-1", event, "test", payload_of(event, None), Priority.EMERGENCY)
+    envelope = Envelope(
+        "e-1",
+        event,
+        "test",
+        payload_of(event, None),
+        Priority.EMERGENCY,
+        future=asyncio.get_running_loop().create_future(),
+    )
     recorder.save_snapshot({"state": "ERROR", "since": 1.0}, None)
-    recorder.commit(envelope, Outcome(True, "e-1", event, State.ERROR, "stopped"))
+    outcome = Outcome(True, "e-1", event, State.ERROR, "stopped")
+    recorder.answer_when_durable(envelope, outcome, recorder.commit(envelope, outcome))
     await asyncio.sleep(0.3)  # time enough for the writer thread, had it been handed over
     assert not path.exists()
     durable.set_result(None)
     assert (await asyncio.to_thread(written, path))["state"] == "ERROR"
+    assert envelope.future.result() is outcome
+
+
+async def test_the_snapshot_follows_the_answer(tmp_path: Path) -> None:
+    """Its writer thread is woken a turn of the loop after the sender's answer, so the
+    sender's task writes the answer before that thread can take the interpreter."""
+    loop = asyncio.get_running_loop()
+    durable: asyncio.Future[None] = loop.create_future()
+    snapshot_file = SnapshotFile(tmp_path / "state.json", interval=3600)
+    order: list[str] = []
+    snapshot_file.save = lambda copy: order.append("snapshot handed over")  # type: ignore[method-assign]
+    recorder = Recorder(HeldJournal(durable), lambda _: None, MachineContext(10), snapshot_file)
+    event = Event.EMERGENCY_STOP
+    envelope = Envelope(
+        "e-1",
+        event,
+        "test",
+        payload_of(event, None),
+        Priority.EMERGENCY,
+        future=loop.create_future(),
+    )
+
+    async def sender() -> None:
+        await envelope.future
+        order.append("answer written")
+
+    answering = asyncio.ensure_future(sender())
+    await asyncio.sleep(0)  # the sender waits for its answer
+    recorder.save_snapshot({"state": "ERROR", "since": 1.0}, None)
+    outcome = Outcome(True, "e-1", event, State.ERROR, "stopped")
+    recorder.answer_when_durable(envelope, outcome, recorder.commit(envelope, outcome))
+    durable.set_result(None)
+    await answering
+    for _ in range(5):
+        await asyncio.sleep(0)
+    assert order == ["answer written", "snapshot handed over"]
     snapshot_file.stop()
