@@ -259,20 +259,22 @@ def last_state(journal: Journal, previous: dict[str, Any] | None) -> dict[str, A
     """The state the last run of the server left: its snapshot's, unless the journal
     recorded a later change.
 
-    Why: a change's snapshot is written once the change's commit is durable
-    (`Recorder.commit`), so a server killed between the two leaves a snapshot one
-    change behind what was answered. A reset acknowledged that way must not come
-    back as ERROR, nor an e-stop as IDLE. The journal's newer transition then
-    stands, with the fault that took the cell to ERROR if it did.
+    Why: a change's snapshot is written once the change's commit is durable and
+    its sender answered (`Recorder.answer_when_durable`), so a server killed in
+    between leaves a snapshot one change behind what was answered. A reset
+    acknowledged that way must not come back as ERROR, nor an e-stop as IDLE.
+    The journal's newer transition then stands, with the fault that took the
+    cell to ERROR if it did.
     """
     newest = journal.query("transitions", limit=1)
     if not newest:
         return previous
     last = newest[0]
-    if previous is not None and (
-        last["new_state"] == previous.get("state") or last["time"] <= previous.get("since", 0)
-    ):
-        return previous
+    if previous is not None:
+        since = previous.get("since")
+        since = since if isinstance(since, int | float) else 0.0  # a file written by hand
+        if last["new_state"] == previous.get("state") or last["time"] <= since:
+            return previous
     state: dict[str, Any] = {"state": last["new_state"], "since": last["time"]}
     faults = journal.faults_of(last["event_id"]) if last["new_state"] == State.ERROR.value else []
     if faults:

@@ -7,7 +7,7 @@ the event's own row; the sender is answered only once that commit is durable,
 so an acknowledged command is never lost to a crash. Progress, retries and
 warnings are written without waiting: they are not acknowledgements. The
 state snapshot a restart reads (`snapshot.py`) is saved here too, on each
-change, once that change's commit is durable.
+change, once that change is durable and answered.
 
 The recorder speaks in the cell's terms (a transition, a fault, a run); the
 SQL behind each record lives in storage (`server.storage.journal`).
@@ -56,7 +56,7 @@ class Recorder:
         self._ctx = ctx
         self._clock = clock
         self._pending: list[Record] = []
-        self._snapshot: dict[str, Any] | None = None  # the change's, saved with its commit
+        self._snapshot: dict[str, Any] | None = None  # the change's, saved after its answer
 
     @property
     def behind(self) -> bool:
