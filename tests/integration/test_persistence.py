@@ -140,22 +140,27 @@ async def test_a_command_answers_only_once_its_event_is_on_disk(tmp_path) -> Non
     await cell.stop()
 
 
+def assert_restarted_in_error(cell: Cell, reason: str) -> None:
+    """The cell came back in ERROR saying it was in ERROR before, and why."""
+    assert cell.worker.ctx.state is State.ERROR
+    message = cell.worker.ctx.stop_reason.message
+    assert message.startswith("the cell was in ERROR when the server stopped")
+    assert reason in message
+
+
 async def test_error_is_latched_across_a_restart(tmp_path) -> None:
     cell = await started(tmp_path)
     await cell.command(Command.ESTOP, source="test", payload=StopPayload("guard door"))
     await asyncio.sleep(0.1)  # the snapshot is written behind the state change
     await cell.stop()
     cell = await started(tmp_path)
-    assert cell.worker.ctx.state is State.ERROR
-    message = cell.worker.ctx.stop_reason.message
-    assert message.startswith("the cell was in ERROR when the server stopped")
-    assert "guard door" in message
+    assert_restarted_in_error(cell, "guard door")
     await cell.stop()
 
 
 async def test_a_snapshot_one_change_behind_the_journal_gives_way_to_it(tmp_path) -> None:
     """A server killed after a change's commit and before its snapshot's write (written
-    once the commit is durable) restarts as the journal says: a reset that was answered
+    after the change's answer) restarts as the journal says: a reset that was answered
     stays done, and so does an e-stop, with its reason."""
     snapshot = tmp_path / "state.json"
     cell = await started(tmp_path)
@@ -174,10 +179,7 @@ async def test_a_snapshot_one_change_behind_the_journal_gives_way_to_it(tmp_path
     await cell.stop()
     snapshot.write_text(idle)  # as if killed before the e-stop's snapshot was written
     cell = await started(tmp_path)
-    assert cell.worker.ctx.state is State.ERROR
-    message = cell.worker.ctx.stop_reason.message
-    assert message.startswith("the cell was in ERROR when the server stopped")
-    assert "guard door" in message
+    assert_restarted_in_error(cell, "guard door")
     await cell.stop()
 
 

@@ -38,49 +38,43 @@ def written(path: Path) -> dict:
     return json.loads(path.read_text())
 
 
+def decide_a_stop(recorder: Recorder) -> tuple[Envelope, Outcome]:
+    """An e-stop's change as the worker makes it: its snapshot, its commit, its answer."""
+    event = Event.EMERGENCY_STOP
+    future = asyncio.get_running_loop().create_future()
+    envelope = Envelope(
+        "e-1", event, "test", payload_of(event, None), Priority.EMERGENCY, future=future
+    )
+    outcome = Outcome(True, "e-1", event, State.ERROR, "stopped")
+    recorder.save_snapshot({"state": "ERROR", "since": 1.0}, None)
+    recorder.answer_when_durable(envelope, outcome, recorder.commit(envelope, outcome))
+    return envelope, outcome
+
+
 async def test_the_snapshot_waits_for_its_changes_commit(tmp_path: Path) -> None:
     durable: asyncio.Future[None] = asyncio.get_running_loop().create_future()
     path = tmp_path / "state.json"
     snapshot_file = SnapshotFile(path, interval=3600)
     snapshot_file.start()
     recorder = Recorder(HeldJournal(durable), lambda _: None, MachineContext(10), snapshot_file)
-    event = Event.EMERGENCY_STOP
-    envelope = Envelope(
-        "e-1",
-        event,
-        "test",
-        payload_of(event, None),
-        Priority.EMERGENCY,
-        future=asyncio.get_running_loop().create_future(),
-    )
-    recorder.save_snapshot({"state": "ERROR", "since": 1.0}, None)
-    outcome = Outcome(True, "e-1", event, State.ERROR, "stopped")
-    recorder.answer_when_durable(envelope, outcome, recorder.commit(envelope, outcome))
+    envelope, outcome = decide_a_stop(recorder)
     await asyncio.sleep(0.3)  # time enough for the writer thread, had it been handed over
     assert not path.exists()
     durable.set_result(None)
     assert (await asyncio.to_thread(written, path))["state"] == "ERROR"
     assert envelope.future.result() is outcome
+    snapshot_file.stop()
 
 
 async def test_the_snapshot_follows_the_answer(tmp_path: Path) -> None:
     """Its writer thread is woken a turn of the loop after the sender's answer, so the
     sender's task writes the answer before that thread can take the interpreter."""
-    loop = asyncio.get_running_loop()
-    durable: asyncio.Future[None] = loop.create_future()
+    durable: asyncio.Future[None] = asyncio.get_running_loop().create_future()
     snapshot_file = SnapshotFile(tmp_path / "state.json", interval=3600)
     order: list[str] = []
     snapshot_file.save = lambda copy: order.append("snapshot handed over")  # type: ignore[method-assign]
     recorder = Recorder(HeldJournal(durable), lambda _: None, MachineContext(10), snapshot_file)
-    event = Event.EMERGENCY_STOP
-    envelope = Envelope(
-        "e-1",
-        event,
-        "test",
-        payload_of(event, None),
-        Priority.EMERGENCY,
-        future=loop.create_future(),
-    )
+    envelope, _ = decide_a_stop(recorder)
 
     async def sender() -> None:
         await envelope.future
@@ -88,12 +82,8 @@ async def test_the_snapshot_follows_the_answer(tmp_path: Path) -> None:
 
     answering = asyncio.ensure_future(sender())
     await asyncio.sleep(0)  # the sender waits for its answer
-    recorder.save_snapshot({"state": "ERROR", "since": 1.0}, None)
-    outcome = Outcome(True, "e-1", event, State.ERROR, "stopped")
-    recorder.answer_when_durable(envelope, outcome, recorder.commit(envelope, outcome))
     durable.set_result(None)
     await answering
     for _ in range(5):
         await asyncio.sleep(0)
     assert order == ["answer written", "snapshot handed over"]
-    snapshot_file.stop()
