@@ -142,16 +142,14 @@ class StopStages:
     def __init__(self, app: ASGIApp, cell: Cell) -> None:
         self.app = app
         self.cell = cell
+        self.clear()
+
+    def clear(self) -> None:
         self.arrived: float | None = None
         self.halted: float | None = None
         # Whether the dispenser's line had an exchange under way when the halt was made.
         self.line_busy = False
         self.written: dict[str, float] = {}
-
-    def clear(self) -> None:
-        self.arrived = self.halted = None
-        self.line_busy = False
-        self.written = {}
 
     def watch_sockets(self, robot_port: int, glue_port: int) -> None:
         """Stamp the moment each stop frame is handed to its device's socket."""

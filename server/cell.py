@@ -123,7 +123,8 @@ class Cell:
                 settings.data_file(settings.persistence_file, "state.json"),
                 settings.persistence_interval,
             )
-            previous = await asyncio.to_thread(last_state, self.journal, snapshot_file.load())
+            journal, load = self.journal, snapshot_file.load  # reads: off the loop
+            previous = await asyncio.to_thread(lambda: last_state(journal, load()))
             snapshot_file.start()
         self._snapshot_file = snapshot_file
         interruption = await asyncio.to_thread(find_interruption, self.journal, previous)

@@ -9,6 +9,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import uvicorn
 
 from server.__main__ import uvicorn_options
@@ -20,6 +21,13 @@ def admin_headers(data_path: Path) -> dict[str, str]:
     """The Authorization header of the admin token the server created on first start."""
     token = (Path(data_path) / "admin.token").read_text(encoding="utf-8").strip()
     return {"Authorization": f"Bearer {token}"}
+
+
+def admin_client(port: int, data_path: Path) -> httpx.Client:
+    """A client of `python -m server` on loopback `port`, holding the admin token of `data_path`."""
+    return httpx.Client(
+        base_url=f"http://127.0.0.1:{port}", timeout=30, headers=admin_headers(data_path)
+    )
 
 
 def free_port() -> int:

@@ -24,7 +24,7 @@ import httpx
 import pytest
 
 from tests.processes import run_module, server_process
-from tests.serving import admin_headers, free_port
+from tests.serving import admin_client, admin_headers, free_port
 
 FAST = {"GLUE_APP_SIMULATION_SPEED_FACTOR": "10"}
 
@@ -96,9 +96,7 @@ def backed_up(tmp_path_factory: pytest.TempPathFactory) -> Iterator[BackedUp]:
     archive = root / "cell.tar.gz"
     port = free_port()
     with server_process(port, data, FAST, log_path=root / "server.log"):
-        client = httpx.Client(
-            base_url=f"http://127.0.0.1:{port}", headers=admin_headers(data), timeout=30
-        )
+        client = admin_client(port, data)
         wait_idle(client)  # commissioned: both calibrations and the demo part
         assert client.post("/tokens", json={"name": "line-3", "role": "viewer"}).status_code == 201
         flow = Flow(httpx.Client(base_url=client.base_url, headers=client.headers, timeout=30))

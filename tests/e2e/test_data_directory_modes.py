@@ -7,10 +7,8 @@ import stat
 import time
 from pathlib import Path
 
-import httpx
-
 from tests.processes import server_process
-from tests.serving import admin_headers, free_port
+from tests.serving import admin_client, free_port
 
 LOG_MODE = 0o640  # group may read the log (never a secret in it); nobody else
 FILE_MODE = 0o600
@@ -40,9 +38,7 @@ def test_every_file_and_directory_the_server_keeps_is_private(tmp_path) -> None:
     data.chmod(0o755)
     port = free_port()
     with server_process(port, data, {"GLUE_APP_SIMULATION_SPEED_FACTOR": "10"}):
-        client = httpx.Client(
-            base_url=f"http://127.0.0.1:{port}", headers=admin_headers(data), timeout=30
-        )
+        client = admin_client(port, data)
         deadline = time.monotonic() + 60
         while client.get("/state").json()["state"] != "IDLE":  # commissioned: calibrated, a part
             assert time.monotonic() < deadline

@@ -20,7 +20,7 @@ from pathlib import Path
 import httpx
 
 from tests.processes import ROOT, server_process
-from tests.serving import admin_headers, free_port
+from tests.serving import admin_client, free_port
 
 FAILED = re.compile(r"^FAILED\((\d+)\) at line (\d+)$", re.MULTILINE)
 TRAP = "trap 'echo \"FAILED($?) at line $LINENO\" >&2' ERR\n"
@@ -50,9 +50,7 @@ def test_the_readme_curl_cycle_runs_as_pasted(tmp_path: Path) -> None:
     script = TRAP + block.replace("localhost:8000", f"localhost:{port}")
     data = tmp_path / "data"  # the block reads data/admin.token, as after `make run`
     with server_process(port, data, log_path=tmp_path / "server.log"):
-        client = httpx.Client(
-            base_url=f"http://127.0.0.1:{port}", headers=admin_headers(data), timeout=30
-        )
+        client = admin_client(port, data)
         wait_idle(client)
         pasted = subprocess.run(
             ["bash"],

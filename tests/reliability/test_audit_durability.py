@@ -19,7 +19,7 @@ import httpx
 
 from tests.processes import server_process
 from tests.reliability.test_crash_safety import settled_state, wait_until
-from tests.serving import admin_headers, free_port
+from tests.serving import admin_client, free_port
 
 ROUNDS = 2  # bounded for CI: each round kills the server once per kind of action
 OUTLINE = [[0.0, 0.0], [50.0, 0.0], [50.0, 30.0], [0.0, 30.0]]
@@ -131,9 +131,7 @@ def test_every_audited_action_keeps_its_row_through_a_kill_at_the_answer(tmp_pat
         action = ACTIONS[trail.cycle % len(ACTIONS)]
         port = free_port()
         with server_process(port, data) as server:
-            client = httpx.Client(
-                base_url=f"http://127.0.0.1:{port}", timeout=30, headers=admin_headers(data)
-            )
+            client = admin_client(port, data)
             if settled_state(client)["state"] == "ERROR":  # after an e-stop
                 assert client.post("/reset").status_code == 202
             wait_until(lambda c=client: c.get("/state").json()["state"] == "IDLE", what="IDLE")

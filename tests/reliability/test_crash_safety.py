@@ -23,7 +23,7 @@ import pytest
 
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from tests.processes import has_ended, server_process, simulator
-from tests.serving import admin_headers, free_port
+from tests.serving import admin_client, free_port
 
 KILLS = 6  # bounded for CI; each cycle starts, runs and kills a real server
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
@@ -85,9 +85,7 @@ def test_sigkill_at_random_moments(tmp_path: Path) -> None:
             unfinished = unfinished_operations(data / "journal.db")
             port = free_port()
             with server_process(port, data, env) as server:
-                client = httpx.Client(
-                    base_url=f"http://127.0.0.1:{port}", timeout=30, headers=admin_headers(data)
-                )
+                client = admin_client(port, data)
                 state = settled_state(client)
                 journal = data / "journal.db"
                 # After every crash: everything acknowledged is on disk, the file is sound.
@@ -139,9 +137,7 @@ def idle_server(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], Path]]:
     data.mkdir()
     port = free_port()
     with server_process(port, data) as server:
-        client = httpx.Client(
-            base_url=f"http://127.0.0.1:{port}", timeout=30, headers=admin_headers(data)
-        )
+        client = admin_client(port, data)
         wait_until(lambda: client.get("/state").json()["state"] == "IDLE", what="IDLE")
         yield server, data
 

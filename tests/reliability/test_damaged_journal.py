@@ -19,7 +19,7 @@ from pathlib import Path
 import httpx
 
 from tests.processes import server_process
-from tests.serving import admin_headers, free_port
+from tests.serving import admin_client, free_port
 
 WAL_FRAME = 24 + 4096  # frame header + one page (the journal's page size)
 WAL_HEADER = 32
@@ -48,9 +48,7 @@ def test_a_wal_damaged_after_a_kill_is_reported_and_the_cell_still_works(tmp_pat
     data.mkdir()
     port = free_port()
     with server_process(port, data) as server:
-        client = httpx.Client(
-            base_url=f"http://127.0.0.1:{port}", timeout=30, headers=admin_headers(data)
-        )
+        client = admin_client(port, data)
         wait_for_state(client, "IDLE")
         for _ in range(6):
             assert client.post("/estop").status_code == 202
@@ -71,9 +69,7 @@ def test_a_wal_damaged_after_a_kill_is_reported_and_the_cell_still_works(tmp_pat
 
     port = free_port()
     with server_process(port, data) as server:
-        client = httpx.Client(
-            base_url=f"http://127.0.0.1:{port}", timeout=30, headers=admin_headers(data)
-        )
+        client = admin_client(port, data)
         wait_for_state(client, "IDLE")
         damage = client.get("/health").json()["journal"]["damage"]
         assert len(damage) == 1, damage

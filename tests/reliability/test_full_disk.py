@@ -26,7 +26,7 @@ from tests.conftest import demo_stores
 from tests.processes import Running, server_process, simulator
 from tests.reliability._small_disk import MIB, SmallDisk, small_disk
 from tests.reliability.test_crash_safety import valve_reads_closed, wait_until
-from tests.serving import admin_headers, free_port
+from tests.serving import admin_client, free_port
 
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
 OUTLINE = [[0.0, 0.0], [50.0, 0.0], [50.0, 30.0], [0.0, 30.0]]
@@ -71,9 +71,7 @@ def cell_factory(tmp_path: Path) -> Iterator[Callable[..., Cell]]:
             log = tmp_path / "server.log"
             with server_process(port, data, env, log_path=log, preexec_fn=disk.preexec()) as server:
                 disk.attach(server.pid)
-                with httpx.Client(
-                    base_url=f"http://127.0.0.1:{port}", timeout=30, headers=admin_headers(data)
-                ) as client:
+                with admin_client(port, data) as client:
                     wait_until(lambda: state(client)["state"] == "IDLE", what="IDLE")
                     yield client
 
@@ -235,9 +233,7 @@ def test_a_fresh_server_starts_on_a_2_mb_disk(tmp_path: Path) -> None:
         data = disk.path / "data"
         port = free_port()
         with server_process(port, data, env, log_path=log, preexec_fn=disk.preexec()):
-            client = httpx.Client(
-                base_url=f"http://127.0.0.1:{port}", timeout=30, headers=admin_headers(data)
-            )
+            client = admin_client(port, data)
             wait_until(lambda: state(client)["state"] == "IDLE", what="IDLE")
             assert client.post("/home").status_code == 202
             client.close()
