@@ -33,7 +33,12 @@ is cancelled and the stop is on record (its journal commit, fsync included).
 
 Conditions, each with --trials e-stops (default 500):
 - idle: the cell in IDLE, nothing running;
-- trajectory running: a spraying run started, the stop sent once it is on the spray path;
+- trajectory running: a spraying run started, the stop sent at a random moment in
+  its first 0.3 s on the spray path (the valve open, the robot drawing the first
+  bead). Not at once: a stop sent as the run reached the path always arrived
+  while the run's own flow and valve-open commands were on the dispenser's line
+  (7 stops in 10 found it busy; an operator's stop lands at any moment, and then
+  finds the line busy about 1 time in 100: the monitor's poll every 0.1 s);
 - event queue full: the request lane filled to event_queue_size with requests
   just before the stop is sent (the worker is still draining them);
 - 1000 WebSocket clients: 1000 live /ws clients reading every message, the cell IDLE;
@@ -198,12 +203,16 @@ async def to_idle(worker: Worker) -> None:
     await wait_state(worker, State.IDLE)
 
 
-async def start_spraying(worker: Worker) -> None:
+async def start_spraying(worker: Worker, rng: random.Random) -> None:
     outcome = await worker.request(Event.START_REQUESTED, source="bench", payload=SPRAY_DEMO)
     assert outcome.accepted, outcome.message
-    # Past the approach move: on the spray path, the valve open.
+    # Past the approach move: on the spray path, the valve opening.
     while (running := worker.ctx.operation) is None or running.progress.get("waypoint", 0) < 2:
         await asyncio.sleep(0.001)
+    await asyncio.sleep(rng.uniform(0.0, 0.3))
+    progress = running.progress
+    on_path = progress.get("waypoint", 0) < progress.get("of", 0) - 1  # the lift not reached
+    assert worker.ctx.state is State.EXECUTING_TRAJECTORY and on_path, "the spray ended first"
 
 
 async def fill_queue(worker: Worker) -> None:
@@ -278,7 +287,7 @@ async def trials_in(
     rng: random.Random,
 ) -> dict[str, list[float]]:
     prepare: dict[str, Callable[[], Awaitable[None]]] = {
-        "trajectory running": lambda: start_spraying(worker),
+        "trajectory running": lambda: start_spraying(worker, rng),
         "event queue full": lambda: fill_queue(worker),
         "vision operation running": lambda: start_vision(worker, rng),
     }
