@@ -17,7 +17,7 @@ from typing import Any
 from server.core.eager import Started, start_task, together, within
 from server.drivers.base import Camera, FaultListener, GlueDispenser, Robot
 from server.errors import DeviceTimeout
-from server.runtime import collection_deferred
+from server.runtime import background_held, collection_deferred
 
 log = logging.getLogger(__name__)
 
@@ -84,9 +84,10 @@ class CellDevices:
         Not a coroutine, and each command a task started at once (`start_task`):
         when this returns, each command's frame is written (unless its line is
         busy with an exchange already under way), not left for a later turn of a
-        possibly busy loop, nor behind a garbage collection (`collection_deferred`).
+        possibly busy loop, nor behind a garbage collection (`collection_deferred`) or
+        a journal commit (`background_held`).
         """
-        with collection_deferred():
+        with collection_deferred(), background_held():
             valve = start_task(within(self.glue.set_valve(False), timeout))
             stop = start_task(within(self.robot.stop(), timeout))
         return asyncio.ensure_future(_halt_report(valve, stop))

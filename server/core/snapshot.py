@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from server.runtime import background_thread
 from server.storage.files import write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -85,6 +86,10 @@ class SnapshotFile:
             self._thread.join(timeout=10)
 
     def _write_loop(self) -> None:
+        with background_thread():  # held back while an e-stop's frames are written
+            self._write_latest()
+
+    def _write_latest(self) -> None:
         while True:
             self._dirty.wait(timeout=self.interval)
             self._dirty.clear()

@@ -5,20 +5,30 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
+import os
 import platform
 import resource
+import threading
 from collections.abc import AsyncIterator
+from pathlib import Path
 
+import pytest
 from starlette.applications import Starlette
 
+from server.core.devices import CellDevices
+from server.core.snapshot import SnapshotFile
 from server.runtime import (
     GC_THRESHOLDS,
+    background_held,
+    background_thread,
     collection_deferred,
     freeze_once_started,
     limit_malloc_arenas,
     raise_open_file_limit,
     tune_garbage_collection,
 )
+from server.storage.journal import Journal
+from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
 
 def test_malloc_arenas_are_capped_where_the_c_library_is_glibc() -> None:
@@ -83,3 +93,78 @@ def test_a_deferred_collection_leaves_the_collector_as_it_found_it() -> None:
         assert not gc.isenabled()  # not turned on by a block that found it off
     finally:
         gc.enable()
+
+
+LINUX_SCHEDULER = pytest.mark.skipif(
+    not hasattr(os, "SCHED_BATCH"), reason="the kernel's SCHED_BATCH is Linux's"
+)
+
+
+def native_id_of(name: str) -> int:
+    thread = next(t for t in threading.enumerate() if t.name == name)
+    assert thread.native_id is not None
+    return thread.native_id
+
+
+@LINUX_SCHEDULER
+def test_background_threads_are_bulk_work_only_while_held() -> None:
+    inside, leave = threading.Event(), threading.Event()
+
+    def background() -> None:
+        with background_thread():
+            inside.set()
+            leave.wait(10)
+
+    worker = threading.Thread(target=background, name="background")
+    bystander = threading.Thread(target=leave.wait, args=(10,), name="bystander")
+    worker.start()
+    bystander.start()
+    inside.wait(10)
+    try:
+        ids = native_id_of("background"), native_id_of("bystander")
+        with background_held():
+            held = [os.sched_getscheduler(i) for i in ids]
+        released = [os.sched_getscheduler(i) for i in ids]
+    finally:
+        leave.set()
+        worker.join()
+        bystander.join()
+    assert held == [os.SCHED_BATCH, os.SCHED_OTHER]
+    assert released == [os.SCHED_OTHER, os.SCHED_OTHER]
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the holder itself untouched
+    with background_held():  # the thread has ended: its id is no longer held
+        pass
+
+
+@LINUX_SCHEDULER
+async def test_the_journal_and_snapshot_writers_are_held_while_a_stop_is_sent(
+    tmp_path: Path,
+) -> None:
+    """Woken to write, they preempted the event loop between an e-stop's two device
+    frames (docs/benchmarks.md, issue 17's ninth pass): `start_halt` holds them back
+    while it sends both commands, and only then."""
+    journal = Journal(tmp_path / "journal.db")
+    journal.open()
+    journal.start(asyncio.get_running_loop())
+    snapshot_file = SnapshotFile(tmp_path / "state.json", interval=3600)
+    snapshot_file.start()
+    await asyncio.sleep(0.05)  # each thread has entered its background block
+    ids = native_id_of("journal-writer"), native_id_of("state-snapshot")
+    seen: dict[str, list[int]] = {}
+
+    class Witnessing(FakeGlue):
+        async def set_valve(self, open_: bool) -> None:
+            seen["as the valve is closed"] = [os.sched_getscheduler(i) for i in ids]
+            await super().set_valve(open_)
+
+    try:
+        halt = CellDevices(FakeRobot(), Witnessing(), FakeCamera()).start_halt(1.0)
+        seen["once both are sent"] = [os.sched_getscheduler(i) for i in ids]
+        await halt
+    finally:
+        snapshot_file.stop()
+        journal.stop()
+    assert seen == {
+        "as the valve is closed": [os.SCHED_BATCH] * 2,
+        "once both are sent": [os.SCHED_OTHER] * 2,
+    }

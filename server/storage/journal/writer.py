@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from server.runtime import background_thread
 from server.storage.journal.commit_chain import COMMIT_COLUMNS, CommitChain, Head, head_of
 from server.storage.journal.records import Record
 from server.storage.journal.schema import COMMIT_SEQ, SEALED, TABLES
@@ -188,6 +189,10 @@ class Writer:
         await waiter
 
     def _run(self) -> None:
+        with background_thread():  # held back while an e-stop's frames are written
+            self._write_until_stopped()
+
+    def _write_until_stopped(self) -> None:
         connection = self._connect()
         last_prune = time.monotonic()
         while True:
