@@ -88,7 +88,6 @@ def raise_open_file_limit() -> int:
 
 _BACKGROUND: set[int] = set()  # native ids of the live threads in `background_thread` blocks
 _BATCH = getattr(os, "SCHED_BATCH", None)  # Linux only; elsewhere nothing is held back
-_NO_PRIORITY = os.sched_param(0) if hasattr(os, "sched_param") else None
 
 
 @contextlib.contextmanager
@@ -109,18 +108,21 @@ def background_held() -> Iterator[None]:
     Short blocks only: an e-stop's frames (see the module docstring). Two system
     calls per background thread, neither of which lets the interpreter go.
     """
+    if _BATCH is None:
+        yield
+        return
+    param = os.sched_param(0)
     held: list[int] = []
-    if _BATCH is not None:
-        for native_id in tuple(_BACKGROUND):
-            with contextlib.suppress(OSError):  # the thread ended meanwhile
-                os.sched_setscheduler(native_id, _BATCH, _NO_PRIORITY)
-                held.append(native_id)
+    for native_id in tuple(_BACKGROUND):
+        with contextlib.suppress(OSError):  # the thread ended meanwhile
+            os.sched_setscheduler(native_id, _BATCH, param)
+            held.append(native_id)
     try:
         yield
     finally:
         for native_id in held:
             with contextlib.suppress(OSError):
-                os.sched_setscheduler(native_id, os.SCHED_OTHER, _NO_PRIORITY)
+                os.sched_setscheduler(native_id, os.SCHED_OTHER, param)
 
 
 GC_THRESHOLDS = (10_000, 50, 100)
