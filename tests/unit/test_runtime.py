@@ -106,6 +106,16 @@ def native_id_of(name: str) -> int:
     return thread.native_id
 
 
+async def entered_background(ids: tuple[int, ...]) -> None:
+    """Return once every thread of `ids` runs inside its `background_thread` block."""
+    for _ in range(500):
+        with background_held():
+            if all(os.sched_getscheduler(i) == os.SCHED_BATCH for i in ids):
+                return
+        await asyncio.sleep(0.01)
+    raise AssertionError(f"threads {ids} never entered their background block")
+
+
 @LINUX_SCHEDULER
 def test_background_threads_are_bulk_work_only_while_held() -> None:
     inside, leave = threading.Event(), threading.Event()
@@ -148,8 +158,8 @@ async def test_the_journal_and_snapshot_writers_are_held_while_a_stop_is_sent(
     journal.start(asyncio.get_running_loop())
     snapshot_file = SnapshotFile(tmp_path / "state.json", interval=3600)
     snapshot_file.start()
-    await asyncio.sleep(0.05)  # each thread has entered its background block
     ids = native_id_of("journal-writer"), native_id_of("state-snapshot")
+    await entered_background(ids)
     seen: dict[str, list[int]] = {}
 
     class Witnessing(FakeGlue):
