@@ -19,6 +19,7 @@ import argparse
 import asyncio
 import json
 import logging
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -77,6 +78,7 @@ async def run(runs: int) -> tuple[list[dict[str, Any]], dict[str, Any]]:
                 verdicts[record["verdict"]] = verdicts.get(record["verdict"], 0) + 1
     finally:
         await cell.stop()
+        shutil.rmtree(data, ignore_errors=True)  # a journal and images per run: not worth keeping
     rows = [
         {"measure": "cycle, inspection on", **percentiles_ms(cycles[True])},
         {"measure": "cycle, inspection off", **percentiles_ms(cycles[False])},

@@ -324,7 +324,18 @@ async def trials_in(
 async def run(
     trials: int, queue_size: int, ws_clients: int, others: set[int] | None = None
 ) -> list[dict[str, Any]]:
-    """The conditions' rows; `others`: the cores of the witness and the crowd, when pinned."""
+    """The conditions' rows; `others`: the cores of the witness and the crowd, when pinned.
+
+    The cell's data (a journal of some 50 MB after a full run) goes with the run.
+    """
+    with tempfile.TemporaryDirectory(prefix="bench-cell-") as data:
+        return await run_in(Path(data), trials, queue_size, ws_clients, others)
+
+
+async def run_in(
+    data: Path, trials: int, queue_size: int, ws_clients: int, others: set[int] | None
+) -> list[dict[str, Any]]:
+    """`run` with the cell's data in `data`."""
     witness = await asyncio.to_thread(StopWitness, others)
     settings = Settings(
         robot_ip="127.0.0.1",
@@ -334,7 +345,7 @@ async def run(
         max_broadcast_clients=ws_clients + 10,
         max_broadcast_clients_per_token=ws_clients + 10,  # the crowd shares one token
         emergency_stop_timeout=1.0,
-        data_path=Path(tempfile.mkdtemp(prefix="bench-cell-")),
+        data_path=data,
     )
     cell = Cell(settings)
     port = free_port()

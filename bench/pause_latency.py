@@ -34,6 +34,7 @@ import argparse
 import asyncio
 import logging
 import random
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -131,6 +132,7 @@ async def run(trials: int, speed_factor: float, seed: int) -> list[dict[str, Any
     finally:
         await cell.stop()
         await asyncio.to_thread(host.stop)
+        shutil.rmtree(data, ignore_errors=True)  # a journal per run: not worth keeping
     return [
         {
             "measure": key,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import gc
 import json
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -44,6 +45,22 @@ LATENCY_KEYS = {"p50_ms", "p99_ms", "max_ms", "n"}
 def results_in_tmp(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     monkeypatch.setenv(RESULTS_ENV, str(tmp_path))
     return tmp_path
+
+
+@pytest.fixture(autouse=True)
+def leaves_no_temporary_files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """A benchmark removes what it made: the e-stop run left 50 MB per run behind.
+
+    multiprocessing's own directory (pymp-*) lives as long as the process that
+    made it, so it is not counted.
+    """
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    monkeypatch.setenv("TMPDIR", str(scratch))
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    yield
+    left = sorted(p.name for p in scratch.iterdir() if not p.name.startswith("pymp-"))
+    assert not left, f"the benchmark left {left} in the temporary directory"
 
 
 @pytest.fixture(autouse=True)
