@@ -242,6 +242,11 @@ def _install_error_handlers(app: FastAPI) -> None:
     async def invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
         problems = []
         for error in exc.errors():
+            if error["type"] == "json_invalid":  # its loc is ("body", character position)
+                at, why = error["loc"][-1], error.get("ctx", {}).get("error", "")
+                message = f"not valid JSON at character {at}" + (f": {why}" if why else "")
+                problems.append({"field": "body", "message": message, "type": error["type"]})
+                continue
             where = ".".join(str(part) for part in error["loc"] if part != "body") or "body"
             problems.append({"field": where, "message": error["msg"], "type": error["type"]})
         summary = "; ".join(f"{p['field']}: {p['message']}" for p in problems)

@@ -11,7 +11,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
-from server.storage.workpieces import IDENTIFIER, SpraySettings
+from server.storage.workpieces import IDENTIFIER, SpraySettingsIn
 from server.values import FiniteNumber, Name
 
 
@@ -50,7 +50,7 @@ class CreateWorkpieceRequest(Strict):
     workpiece_id: str | None = Field(
         None, pattern=IDENTIFIER, description="store under this id (default: the next wp-NNNN)"
     )
-    spray: SpraySettings | None = None
+    spray: SpraySettingsIn | None = None
 
 
 class JogRequest(Strict):

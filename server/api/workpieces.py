@@ -12,6 +12,7 @@ import asyncio
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Request, Response
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
@@ -53,6 +54,20 @@ class WorkpieceList(BaseModel):
     )
 
 
+async def _refuse_unplannable(body: WorkpieceIn) -> None:
+    """A part the planner would refuse is a 422 naming the field, now.
+
+    Accepted, it would be refused only by the run that sprays it: PATH_INVALID, and the
+    cell in ERROR for a maintenance reset. The check takes up to half a second for the
+    largest part allowed, so it runs off the event loop.
+    """
+    problem = await asyncio.to_thread(body.path_problem)
+    if problem is not None:
+        field, reason = problem
+        loc = ("body", *field.split("."))
+        raise RequestValidationError([{"type": "path_invalid", "loc": loc, "msg": reason}])
+
+
 def _library(request: Request) -> WorkpieceLibrary:
     cell: Cell = request.app.state.cell
     assert cell.stores is not None
@@ -86,6 +101,7 @@ async def list_workpieces(request: Request) -> WorkpieceList:
 )
 async def create_workpiece_from_outline(request: Request, body: WorkpieceIn) -> Workpiece:
     """Add a workpiece from a given outline (mm, table frame) and spray settings."""
+    await _refuse_unplannable(body)
     library = _library(request)
     workpiece_id = await asyncio.to_thread(library.new_id)
     what = f"created workpiece {workpiece_id} ({body.name})"
@@ -119,6 +135,7 @@ async def put_workpiece(
     request: Request, workpiece_id: WorkpieceId, body: WorkpieceIn
 ) -> Workpiece:
     """Create or replace the workpiece under this identifier (repairs a damaged file)."""
+    await _refuse_unplannable(body)
     library = _library(request)
     what = f"stored workpiece {workpiece_id} ({body.name})"
     await audit.record_before_change(request, what)

@@ -26,12 +26,13 @@ from pydantic import (
     ValidationError,
     ValidationInfo,
     field_validator,
+    model_validator,
 )
 
 from server.storage.files import read_json, write_bytes_atomic, write_json_atomic
 from server.storage.permissions import private_directory
 from server.values import FiniteNumber, Name
-from server.vision.paths import fill_size
+from server.vision.paths import clean_outline, fill_size, offset_polygon, simple_outline
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +62,31 @@ class SpraySettings(BaseModel):
     flow_rate_ml_min: FiniteNumber = Field(30.0, ge=0, le=1000)
 
 
+class SpraySettingsIn(SpraySettings):
+    """Spray settings as an edit gives them: something to spray, as the schema says too.
+
+    No bead and no fill gave a part whose every run failed with PATH_EMPTY, leaving the
+    cell in ERROR for a reset. A part stored that way before is still read
+    (`Workpiece` takes plain `SpraySettings`).
+    """
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "anyOf": [
+                {"properties": {"outline": {"const": True}}},
+                {"required": ["fill"], "properties": {"fill": {"enum": ["zigzag", "raster"]}}},
+            ]
+        },
+    )
+
+    @model_validator(mode="after")
+    def _something_to_spray(self) -> SpraySettingsIn:
+        if not self.outline and self.fill == "none":
+            raise ValueError("nothing to spray: outline is false and fill is none")
+        return self
+
+
 # Table-frame millimetres: far beyond any table, so only a typo or garbage is refused.
 OUTLINE_LIMIT_MM = 5000
 Coordinate = Annotated[FiniteNumber, Field(ge=-OUTLINE_LIMIT_MM, le=OUTLINE_LIMIT_MM)]
@@ -81,7 +107,16 @@ class WorkpieceIn(BaseModel):
         max_length=MAX_OUTLINE_POINTS,
         description=f"(x, y) mm in the table frame, each within ±{OUTLINE_LIMIT_MM} mm",
     )
-    spray: SpraySettings = Field(default_factory=SpraySettings)
+    spray: SpraySettingsIn = Field(default_factory=SpraySettingsIn)
+
+    @field_validator("outline_mm")
+    @classmethod
+    def _has_an_inside(cls, outline: list[Point]) -> list[Point]:
+        """Three points on a line, or one point thrice, are no part: refused here, where the
+        run would fail with PATH_INVALID and leave the cell in ERROR for a reset."""
+        if cls.edit_limits:
+            clean_outline(outline)
+        return outline
 
     @field_validator("spray")
     @classmethod
@@ -102,7 +137,7 @@ class WorkpieceIn(BaseModel):
                 max_lines=MAX_FILL_LINES,
             )
         except ValueError:
-            return spray  # a degenerate outline: the planner says why (PATH_INVALID)
+            return spray  # a degenerate outline, refused as outline_mm
         if strokes is None:
             wanted = math.ceil(spray.fill_spacing_mm * lines / MAX_FILL_LINES * 10) / 10
             raise ValueError(
@@ -119,6 +154,28 @@ class WorkpieceIn(BaseModel):
             )
         return spray
 
+    def path_problem(self) -> tuple[str, str] | None:
+        """What the path planner would refuse of this part, as (field, reason); None if nothing.
+
+        The checks validation leaves out because they cost: whether the outline crosses
+        itself, and whether the bead's offset leaves an outline (up to half a second for
+        the largest part allowed). So call it off the event loop.
+        """
+        try:
+            outline = simple_outline(self.outline_mm)
+        except ValueError as exc:
+            return "outline_mm", str(exc)
+        try:
+            offset_polygon(outline, self.spray.outline_offset_mm, checkpoint=_give_way)
+        except ValueError as exc:
+            return "spray.outline_offset_mm", str(exc)
+        return None
+
+
+def _give_way() -> None:
+    """The offset's checkpoint: lets the event loop have the interpreter between steps."""
+    time.sleep(0)
+
 
 class Workpiece(WorkpieceIn):
     """A library entry."""
@@ -127,6 +184,7 @@ class Workpiece(WorkpieceIn):
     # Why looser than WorkpieceIn: a file stored before a limit was tightened stays readable.
     name: str = Field(min_length=1, max_length=100)
     outline_mm: list[Point] = Field(min_length=3, max_length=STORED_MAX_POINTS)
+    spray: SpraySettings = Field(default_factory=SpraySettings)  # type: ignore[assignment]
     id: str = Field(pattern=IDENTIFIER)
     created_at: float
     updated_at: float

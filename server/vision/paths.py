@@ -80,7 +80,7 @@ def _signed_area(pts: Array) -> float:
     return 0.5 * float((x * np.roll(y, -1) - np.roll(x, -1) * y).sum())
 
 
-def _clean(outline: ArrayLike) -> Array:
+def clean_outline(outline: ArrayLike) -> Array:
     """Open, counter-clockwise, without repeated or collinear vertices."""
     pts = np.asarray(outline, dtype=np.float64).reshape(-1, 2)
     if len(pts) > 1 and np.allclose(pts[0], pts[-1]):
@@ -103,6 +103,21 @@ def _clean(outline: ArrayLike) -> Array:
         raise ValueError("an outline needs at least three distinct, non-collinear points")
     if _signed_area(pts) < 0:
         pts = pts[::-1].copy()
+    return pts
+
+
+def simple_outline(outline_mm: ArrayLike) -> Array:
+    """The outline as `clean_outline` gives it, refused (ValueError) when two of its edges cross.
+
+    A part's outline goes round it once: one that crosses itself (a bow-tie, points
+    typed in the wrong order) has no inside to fill and no side to offset the bead to.
+    """
+    pts = clean_outline(outline_mm)
+    if _self_intersects(pts):
+        raise ValueError(
+            "the outline crosses itself: list the points in order around the part, "
+            "so that no two edges cross"
+        )
     return pts
 
 
@@ -180,7 +195,7 @@ def offset_polygon(
     Raises ValueError when an inward offset makes the part vanish or split, or an outward
     offset makes the outline run into itself.
     """
-    pts = _clean(outline_mm)
+    pts = clean_outline(outline_mm)
     offset = float(offset_mm)
     if abs(offset) < 1e-9:
         return pts.copy()
@@ -352,7 +367,7 @@ def fill_lines(
     """
     if not spacing_mm > 0:
         raise ValueError(f"fill spacing must be positive, got {spacing_mm}")
-    pts = _clean(outline_mm)
+    pts = clean_outline(outline_mm)
     a = math.radians(angle_deg)
     rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
     local = pts @ rot  # rotate by -angle: scan lines run along local x
@@ -428,7 +443,7 @@ def spray_polylines(
     inward-offset outline, or the part's own outline when the bead is on or outside it (glue
     is never filled onto the table).
     """
-    outline = _clean(outline_mm)
+    outline = simple_outline(outline_mm)
     bead = offset_polygon(outline, pattern.outline_offset_mm, checkpoint=checkpoint)
     paths: list[Array] = []
     if pattern.outline:
@@ -460,7 +475,7 @@ def fill_size(
     """
     if not spacing_mm > 0:
         raise ValueError(f"fill spacing must be positive, got {spacing_mm}")
-    pts = _clean(outline_mm)
+    pts = clean_outline(outline_mm)
     a = math.radians(angle_deg)
     rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
     local = pts @ rot  # as fill_lines: scan lines run along local x

@@ -89,7 +89,7 @@ def filter_case(context: schemathesis.HookContext, case: schemathesis.Case) -> b
     """Applies to the coverage phase's cases too (filter_path_parameters would not)."""
     token_id = (case.path_parameters or {}).get("token_id")
     spared = isinstance(token_id, str) and token_id in _SPARED_TOKEN_IDS
-    return not spared and not breaks_a_stated_order(case) and not fills_too_finely(case)
+    return not spared and not breaks_a_stated_order(case) and not refused_for_its_shape(case)
 
 
 def breaks_a_stated_order(case: schemathesis.Case) -> bool:
@@ -116,23 +116,28 @@ def breaks_a_stated_order(case: schemathesis.Case) -> bool:
     return False
 
 
-def fills_too_finely(case: schemathesis.Case) -> bool:
-    """A valid-by-schema workpiece whose fill spacing gives its outline too many strokes.
+SHAPE_REFUSALS = ("fill strokes", "fill lines", "distinct, non-collinear")
 
-    How many strokes a spacing gives depends on the outline's shape, which no schema can
-    say; the server refuses such a part with a 422 naming `spray` and the spacing to use
-    (MAX_FILL_STROKES). Only that refusal is spared, read from the server's own model:
-    any other way the model and the document disagree still fails.
+
+def refused_for_its_shape(case: schemathesis.Case) -> bool:
+    """A valid-by-schema workpiece the planner would refuse for its outline's shape.
+
+    Whether an outline has an inside, crosses itself, survives its bead's offset, or how
+    many strokes a fill spacing gives it, no schema can say; the server refuses such a
+    part with a 422 naming the field. Only those refusals are spared, read from the
+    server's own model: any other way the model and the document disagree still fails.
     """
     if case.meta is None or not case.meta.generation.mode.is_positive:
         return False
-    if case.operation.label != "PUT /workpieces/{workpiece_id}":
+    if case.operation.label not in ("PUT /workpieces/{workpiece_id}", "POST /workpieces"):
         return False
     try:
-        WorkpieceIn.model_validate(case.body)
+        part = WorkpieceIn.model_validate(case.body)
     except ValidationError as error:
-        return all("fill strokes" in str(e.get("msg", "")) for e in error.errors())
-    return False
+        return all(
+            any(words in str(e.get("msg", "")) for words in SHAPE_REFUSALS) for e in error.errors()
+        )
+    return part.path_problem() is not None
 
 
 @dataclass

@@ -96,3 +96,63 @@ async def test_create_workpiece_never_replaces_an_existing_part(api) -> None:
 async def test_a_good_start_is_still_accepted(api) -> None:
     answer = await api.post("/start", json={"contour_matching": False, "workpiece_id": "demo"})
     assert answer.status_code == 202 and answer.json()["state"] == "EXECUTING_TRAJECTORY"
+
+
+SQUARE = [[300.0, -50.0], [400.0, -50.0], [400.0, 50.0], [300.0, 50.0]]
+UNPLANNABLE = [
+    # (what was sent, the field the 422 names, words of its reason)
+    ({"outline_mm": [[0, 0], [0, 0], [0, 0]]}, "outline_mm", "three distinct"),
+    ({"outline_mm": [[0, 0], [10, 10], [20, 20]]}, "outline_mm", "non-collinear"),
+    (  # a bow-tie: the points of a square in the wrong order
+        {"outline_mm": [SQUARE[0], SQUARE[2], SQUARE[1], SQUARE[3]]},
+        "outline_mm",
+        "crosses itself",
+    ),
+    (
+        {"outline_mm": SQUARE, "spray": {"outline_offset_mm": -50}},
+        "spray.outline_offset_mm",
+        "inward offset of 50 mm",
+    ),
+    (
+        {"outline_mm": SQUARE, "spray": {"outline": False, "fill": "none"}},
+        "spray",
+        "nothing to spray",
+    ),
+]
+
+
+@pytest.mark.parametrize(("sent", "field", "reason"), UNPLANNABLE)
+async def test_a_part_the_planner_would_refuse_is_a_422_at_edit_never_a_run_in_error(
+    api, sent, field, reason
+) -> None:
+    """Accepted before, each started a run that failed with PATH_INVALID (or PATH_EMPTY)
+    and left the cell in ERROR, which needs a maintenance reset."""
+    before = (await api.get("/workpieces")).json()
+    for answer in (
+        await api.post("/workpieces", json={"name": "typo", **sent}),
+        await api.put("/workpieces/typo", json={"name": "typo", **sent}),
+    ):
+        assert answer.status_code == 422, answer.text
+        problem = answer.json()["errors"][0]
+        assert problem["field"] == field and reason in problem["message"], problem
+    assert (await api.get("/workpieces")).json() == before
+    assert (await api.get("/state")).json()["state"] == "IDLE"
+
+
+async def test_an_unreadable_body_names_the_body_and_where_it_breaks(api) -> None:
+    answer = await api.post(
+        "/workpieces", content=b'{"name":"x",,}', headers={"content-type": "application/json"}
+    )
+    assert answer.status_code == 422
+    problem = answer.json()["errors"][0]
+    assert problem["field"] == "body", problem  # was "12", the character position
+    assert problem["message"].startswith("not valid JSON at character 12")
+
+
+async def test_create_workpiece_with_nothing_to_spray_is_a_422_before_the_camera_runs(api) -> None:
+    spray = {"outline": False, "fill": "none"}
+    answer = await api.post("/create-workpiece", json={"name": "x", "spray": spray})
+    assert answer.status_code == 422
+    problem = answer.json()["errors"][0]
+    assert problem["field"] == "spray" and "nothing to spray" in problem["message"]
+    assert (await api.get("/state")).json()["state"] == "IDLE"

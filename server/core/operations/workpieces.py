@@ -78,12 +78,11 @@ async def create_workpiece(ctx: OperationContext) -> OperationResult:
 
     outline_mm, thumbnail = await IMAGE_PROCESS.call(_measure, homography, frame=frame)
     library = ctx.stores.workpieces
-    spray = SpraySettings.model_validate(ctx.params.get("spray") or {})
     try:
         entry = WorkpieceIn(
             name=ctx.params.get("name") or ctx.params.get("workpiece_id") or "part from camera",
             outline_mm=[(float(x), float(y)) for x, y in outline_mm],
-            spray=spray,
+            spray=ctx.params.get("spray") or {},
         )
     except ValidationError as exc:  # the library's limits on what a path may ask of the planner
         first = exc.errors()[0]
@@ -93,6 +92,11 @@ async def create_workpiece(ctx: OperationContext) -> OperationResult:
             f"{first['msg']}; create it with a coarser fill, or store a simplified outline "
             "with POST /workpieces",
         ) from exc
+    problem = await asyncio.to_thread(entry.path_problem)  # as POST /workpieces checks
+    if problem is not None:
+        raise OperationError(
+            "PATH_INVALID", f"the measured part cannot be stored: {problem[0]}: {problem[1]}"
+        )
     wanted = ctx.params.get("workpiece_id")
     try:
         stored = await asyncio.to_thread(
