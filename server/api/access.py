@@ -11,6 +11,7 @@ same gate in openapi.json, from the same table.
 
 from __future__ import annotations
 
+import asyncio
 import ipaddress
 import logging
 from collections.abc import Callable
@@ -52,6 +53,7 @@ class Access:
         self._rewrite_logged = False
         # Told of every revocation (the WebSocket hub closes the token's live views).
         self.revocation_listeners: list[Callable[[str], object]] = []
+        self.revoking = asyncio.Lock()  # one revocation at a time (the last admin stays)
 
     def revoke(self, token_id: str) -> TokenEntry:
         """Revoke a token everywhere at once; KeyError for an unknown id.

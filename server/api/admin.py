@@ -27,7 +27,7 @@ from server.api.runtime_settings import SettingsChange, plan_change
 from server.api.schemas import ErrorView
 from server.api.time_window import Since, Until, time_window
 from server.config import Settings
-from server.security.tokens import Role
+from server.security.tokens import Role, last_admin_refusal
 from server.storage.journal import Journal
 from server.values import Name
 
@@ -77,19 +77,27 @@ async def create_token(request: Request, body: TokenRequest) -> dict[str, Any]:
     "/tokens/{token_id}",
     status_code=204,
     response_class=Response,
-    responses={404: {"model": ErrorView, "description": "no such token"}, **audit.STORAGE_REFUSALS},
+    responses={
+        404: {"model": ErrorView, "description": "no such token"},
+        409: {"model": ErrorView, "description": "the last admin token: create another first"},
+        **audit.STORAGE_REFUSALS,
+    },
 )
 async def revoke_token(request: Request, token_id: str) -> Response:
     """Revoke a token at once (once saved: a revocation that cannot be saved is refused)."""
-    tokens = access_of(request).tokens
+    access = access_of(request)
     try:
-        entry = tokens.get(token_id)
+        entry = access.tokens.get(token_id)
     except KeyError:
         raise HTTPException(404, f"no token {token_id!r}") from None
-    what = f"revoked token {entry.id} ({entry.name})"
-    await audit.record_before_change(request, what)
-    # Saved first, then its tickets void and its live views closed (server/api/access.py).
-    await audit.save(request, what, lambda: access_of(request).revoke(token_id))
+    async with access.revoking:  # two revocations at once cannot both pass the check below
+        if access.tokens.is_last_admin(token_id):
+            request.state.audit_reason = last_admin_refusal(entry)
+            raise HTTPException(409, last_admin_refusal(entry))
+        what = f"revoked token {entry.id} ({entry.name})"
+        await audit.record_before_change(request, what)
+        # Saved first, then its tickets void and its live views closed (server/api/access.py).
+        await audit.save(request, what, lambda: access.revoke(token_id))
     return Response(status_code=204)
 
 

@@ -83,6 +83,18 @@ class TokenEntry:
         return {k: v for k, v in asdict(self).items() if k != "secret_sha256"}
 
 
+class LastAdminToken(ValueError):
+    """Revoking this token would leave no admin token: nobody could make or revoke one."""
+
+
+def last_admin_refusal(entry: TokenEntry) -> str:
+    return (
+        f"token {entry.id} ({entry.name}) is the last admin token: revoked, it would leave "
+        "nobody able to make or revoke tokens. Create another admin token first "
+        "(POST /tokens, role admin), then revoke this one"
+    )
+
+
 def _digest(secret: str) -> str:
     return hashlib.sha256(secret.encode("utf-8")).hexdigest()
 
@@ -121,17 +133,34 @@ class TokenStore:
         os.chmod(self.path, 0o600)
 
     def ensure_admin(self) -> Path | None:
-        """Create the first admin token if there is no token at all; where it was written."""
+        """Create an admin token if no unrevoked one exists; where it was written.
+
+        On first start there is no token at all. Later, a tokens.json whose admin
+        tokens are all revoked (edited by hand, or from before revoking the last one
+        was refused) would leave nobody able to make or revoke a token: a restart
+        recovers, with a new admin token beside the data.
+        """
         with self._lock:
-            if self._entries:
+            if self._live_admins():
                 return None
-        _, secret = self.create("initial admin", Role.ADMIN)
+            first = not self._entries
+        name = "initial admin" if first else "recovery admin"
+        _, secret = self.create(name, Role.ADMIN)
         write_bytes_atomic(self.admin_token_path, (secret + "\n").encode("utf-8"))
         os.chmod(self.admin_token_path, 0o600)
-        log.warning(
-            "no API token existed: created an admin token in %s (mode 0600)", self.admin_token_path
-        )
+        why = "no API token existed" if first else "every admin token was revoked"
+        log.warning("%s: created an admin token in %s (mode 0600)", why, self.admin_token_path)
         return self.admin_token_path
+
+    def _live_admins(self) -> list[str]:
+        """The ids of the unrevoked admin tokens (call with the lock held)."""
+        admin = Role.ADMIN.label
+        return [e.id for e in self._entries.values() if e.role == admin and e.revoked_at is None]
+
+    def is_last_admin(self, token_id: str) -> bool:
+        """Is `token_id` the only unrevoked admin token?"""
+        with self._lock:
+            return self._live_admins() == [token_id]
 
     def create(self, name: str, role: Role) -> tuple[TokenEntry, str]:
         """A new token, saved; the secret is returned once and never stored."""
@@ -174,6 +203,8 @@ class TokenStore:
             entry = self._entries[token_id]
             if entry.revoked_at is not None:
                 return entry
+            if self._live_admins() == [token_id]:
+                raise LastAdminToken(last_admin_refusal(entry))
             revoked = replace(entry, revoked_at=time.time())
             entries = {**self._entries, token_id: revoked}
             self._save(entries)

@@ -146,6 +146,8 @@ def _self_intersects(pts: Array) -> bool:
     i, j = np.triu_indices(n, k=2)
     keep = ~((i == 0) & (j == n - 1))  # the last and first edge share a vertex
     i, j = i[keep], j[keep]
+    if not len(i):  # a triangle: every two edges share a vertex, none can cross
+        return False
     return bool(_crosses(a[i], b[i], a[j], b[j]).any())
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import os
 import stat
 import time
@@ -20,7 +21,7 @@ from server.config import Settings
 from server.core.devices import CellDevices
 from server.security.policy import POLICY, required_role
 from server.security.tickets import TicketBook
-from server.security.tokens import Principal, Role
+from server.security.tokens import Principal, Role, TokenStore
 from tests.conftest import demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, serve
@@ -126,6 +127,47 @@ async def test_revocation_takes_effect_immediately(server) -> None:
     assert revoked.status_code == 204
     refused = await server.get("/state", headers=operator)
     assert refused.status_code == 401 and "revoked" in refused.json()["detail"]
+
+
+async def test_the_last_admin_token_cannot_be_revoked_and_a_second_one_frees_it(server) -> None:
+    """Revoking the only admin token answered 204 and left nobody able to make or revoke
+    a token; with no other token every route, the software STOP included, was closed."""
+    admin = auth(server.tokens["admin"])
+    listed = (await server.get("/tokens", headers=admin)).json()["tokens"]
+    first = next(t["id"] for t in listed if t["role"] == "admin")
+    refused = await server.delete(f"/tokens/{first}", headers=admin)
+    assert refused.status_code == 409, refused.text
+    assert "last admin token" in refused.json()["detail"]
+    assert "POST /tokens" in refused.json()["detail"]
+    assert (await server.get("/tokens", headers=admin)).status_code == 200  # still works
+    audit = (await server.get("/audit", params={"outcome": "refused (409)"}, headers=admin)).json()
+    assert any("last admin token" in (row["detail"] or "") for row in audit["audit"])
+    second = await server.post("/tokens", json={"name": "admin 2", "role": "admin"}, headers=admin)
+    assert (await server.delete(f"/tokens/{first}", headers=admin)).status_code == 204
+    again = auth(second.json()["token"])
+    last = await server.delete(f"/tokens/{second.json()['id']}", headers=again)
+    assert last.status_code == 409
+
+
+def test_a_restart_with_every_admin_token_revoked_makes_a_recovery_token(tmp_path) -> None:
+    """A tokens.json from before that refusal (or edited by hand) with no admin token left:
+    the server started and refused every request, and said nothing."""
+    store = TokenStore(tmp_path)
+    assert store.ensure_admin() == tmp_path / "admin.token"
+    first = (tmp_path / "admin.token").read_text().strip()
+    store.create("line HMI", Role.OPERATOR)
+    entries = json.loads((tmp_path / "tokens.json").read_text())
+    for entry in entries["tokens"]:
+        if entry["role"] == "admin":
+            entry["revoked_at"] = time.time()
+    (tmp_path / "tokens.json").write_text(json.dumps(entries))
+    restarted = TokenStore(tmp_path)
+    assert restarted.verify(first) is None
+    assert restarted.ensure_admin() == tmp_path / "admin.token"
+    recovered = restarted.verify((tmp_path / "admin.token").read_text().strip())
+    assert recovered is not None and recovered.role is Role.ADMIN
+    assert recovered.name == "recovery admin"
+    assert TokenStore(tmp_path).ensure_admin() is None  # one admin is enough
 
 
 async def test_the_admin_token_file_is_private_and_tokens_are_stored_hashed(

@@ -130,6 +130,22 @@ def test_outward_offset_that_closes_a_slot_is_refused() -> None:
         offset_polygon(U_SHAPE, 12.0)
 
 
+@pytest.mark.parametrize("d", [-5.0, 5.0])
+def test_a_triangle_can_be_offset(d: float) -> None:
+    """Every triangular part with a bead offset failed its run with PATH_INVALID: "zero-size
+    array to reduction operation" (the crossing check found no pair of edges to test)."""
+    triangle = np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 100.0]])
+    grown = offset_polygon(triangle, d)
+    assert len(grown) >= 3 and (area(grown) > area(triangle)) == (d > 0)
+
+
+def test_an_outline_that_crosses_itself_is_refused() -> None:
+    bow_tie = SQUARE[[0, 2, 1, 3]]
+    with pytest.raises(ValueError, match="crosses itself"):
+        spray_polylines(bow_tie, SprayPattern())
+    assert len(spray_polylines(SQUARE, SprayPattern())) == 1
+
+
 # --- fill ------------------------------------------------------------------------------------
 
 
