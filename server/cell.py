@@ -36,7 +36,7 @@ from server.core.worker import Worker
 from server.drivers.base import DeviceFault
 from server.logging_setup import log_path
 from server.notify.notifier import Notifier
-from server.orders.book import OrderBook, OrderRefused
+from server.orders.book import OrderBook
 from server.storage import CellStores
 from server.storage.journal import Journal, records
 from server.storage.permissions import tighten_data_directory
@@ -155,7 +155,8 @@ class Cell:
         # The simulated cell presents a fresh part after each one (a real cell: a person or
         # a conveyor does; the next start finds the part by contour matching, or fails).
         next_part = getattr(devices.camera, "present_next_part", None)
-        self.orders = OrderBook(self, self.journal, next_part=next_part)
+        self.orders = book = OrderBook(self, self.journal, next_part=next_part)
+        self.worker.preconditions.active_order = lambda: book.active
         await self.orders.start()
 
     async def stop(self) -> None:
@@ -203,13 +204,10 @@ class Cell:
                 source=source, payload=stop, audit=audit, halt=halt
             )
         if command is Command.START and self.orders is not None:
-            try:  # a start while an order is active makes a part of that order
-                payload = self.orders.claim_start(
-                    payload if isinstance(payload, StartPayload) else StartPayload()
-                )
-            except OrderRefused as refused:
-                state = self.view.state
-                return Outcome(False, "", event, state, refused.message)  # 409: not now
+            # A start while an order is active makes a part of that order.
+            payload = self.orders.claim_start(
+                payload if isinstance(payload, StartPayload) else StartPayload()
+            )
         return await self.worker.request(event, source=source, payload=payload, audit=audit)
 
     def report_fault(self, fault: DeviceFault) -> None:

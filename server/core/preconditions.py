@@ -15,7 +15,9 @@ without one it is the cell's precondition (HTTP 409 saying what to do first).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 from server.config import Settings
 from server.core.events import CreateWorkpiecePayload, JogPayload, Payload, StartPayload
@@ -35,12 +37,21 @@ class Refusal:
     field: str | None = None
 
 
+class ActiveOrder(Protocol):
+    """What a start needs to know of the production order the cell works through."""
+
+    order_id: str
+    workpiece_id: str
+
+
 class Preconditions:
-    """The checks of each command against the library and the calibrations on disk."""
+    """The checks of each command against the library, the calibrations and the orders."""
 
     def __init__(self, stores: CellStores, settings: Settings) -> None:
         self.stores = stores
         self.settings = settings
+        # The order the cell works through, if any (the cell's order book sets it).
+        self.active_order: Callable[[], ActiveOrder | None] = lambda: None
 
     def check(self, event: Event, payload: Payload) -> Refusal | None:
         """Why `event` with `payload` cannot be accepted now, or None when it can."""
@@ -63,6 +74,15 @@ class Preconditions:
         return None
 
     def _start(self, start: StartPayload) -> Refusal | None:
+        order = self.active_order()
+        if order is not None and start.workpiece_id not in (None, order.workpiece_id):
+            # A person's start of the order's own part (or of none named) is one of its
+            # parts (OrderBook.claim_start); a start of another workpiece is not now.
+            return Refusal(
+                f"order {order.order_id} is active and makes {order.workpiece_id!r}: close "
+                "it first to spray another workpiece (this start: workpiece_id "
+                f"{start.workpiece_id!r})"
+            )
         library = self.stores.workpieces
         if not start.contour_matching and not start.workpiece_id:
             return Refusal(

@@ -230,19 +230,14 @@ class OrderBook:
     def claim_start(self, payload: StartPayload) -> StartPayload:
         """A person's start while an order is active: it makes a part of the order.
 
-        Raises OrderRefused (409, naming workpiece_id) when the start names another
-        workpiece: not now, while the order is active.
+        A start naming another workpiece is left as it is: the worker refuses it
+        (`Preconditions`), with its event id, on record like every refusal.
         """
         order = self.active
         if order is None or payload.order_id is not None:
             return payload
         if payload.workpiece_id not in (None, order.workpiece_id):
-            raise OrderRefused(
-                409,
-                f"workpiece_id: order {order.order_id} is active and makes {order.workpiece_id!r}: "
-                "close it first to spray another workpiece",
-                "workpiece_id",
-            )
+            return payload
         return StartPayload(payload.contour_matching, order.workpiece_id, order.order_id)
 
     # --- the cell's side -----------------------------------------------------

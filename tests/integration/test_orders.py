@@ -128,6 +128,14 @@ async def test_after_an_estop_the_order_is_held_until_resumed(tmp_path) -> None:
         # A start while the order is active makes its part; another workpiece is refused.
         refused = await rig.api.post("/start", json={"workpiece_id": "other-part"})
         assert refused.status_code == 409 and "workpiece_id" in refused.text
+        # On record like every refusal: it had no event id, no event row and no audit row.
+        event_id = refused.json()["event_id"]
+        assert event_id and "is active and makes 'demo'" in refused.json()["message"]
+        await asyncio.sleep(0.2)  # the audit row is written as the answer leaves
+        events = (await rig.api.get("/events", params={"outcome": "refused"})).json()
+        assert event_id in [row["id"] for row in events["events"]]
+        audit = (await rig.api.get("/audit", params={"action": "POST /start"})).json()["audit"]
+        assert any(event_id in (row["detail"] or "") for row in audit)
         resumed = await rig.api.post(f"/orders/{order_id}/resume")
         assert resumed.status_code == 200, resumed.text
         order = await wait_order(rig, order_id, "completed")
