@@ -151,6 +151,11 @@ class Recorder:
 
     # --- records written at once, not waited on ------------------------------
 
+    def planned(self, run_id: str, workpieces: int) -> None:
+        """A run's parts on record as it is planned: a run the server's stop cuts short
+        (closed as interrupted at the next start) still counts them as failed."""
+        self.journal.append([records.operation_planned(run_id, workpieces)], durable=False)
+
     def progress(self, run_id: str, progress: dict[str, Any]) -> None:
         self.journal.append([records.operation_progress(run_id, progress)], durable=False)
 

@@ -210,6 +210,7 @@ class Runs:
                 "planned_path": plan.waypoints,
                 "workpieces": plan.workpieces,
             }
+            self.recorder.planned(run_id, len(plan.workpieces))
 
     def on_progress(self, run_id: str, progress: dict[str, Any]) -> None:
         running = self.ctx.operation

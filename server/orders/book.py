@@ -92,7 +92,7 @@ class OrderBook:
 
     async def start(self) -> None:
         """Load the orders; one that was running is held (never continued by itself)."""
-        rows, parts = await asyncio.to_thread(self._read)
+        rows, parts, interrupted = await asyncio.to_thread(self._read)
         for row in rows:
             order = Order(
                 order_id=row["order_id"],
@@ -113,6 +113,7 @@ class OrderBook:
         changed = []
         for order in self.orders.values():
             if order.state is OrderState.RUNNING:
+                changed.extend(self._count_interrupted(order, interrupted))
                 self._set(order, OrderState.HELD, RESTARTED)
                 changed.append(self._row(order))
                 log.warning("order %s held: %s", order.order_id, RESTARTED)
@@ -127,10 +128,35 @@ class OrderBook:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
 
-    def _read(self) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    def _read(self) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
         orders = self._journal.query("orders", limit=1_000_000, newest_first=False)
         parts = self._journal.query("order_parts", limit=1_000_000, newest_first=False)
-        return orders, parts
+        interrupted = self._journal.query(
+            "operations",
+            filters={"kind": "trajectory", "outcome": "interrupted"},
+            limit=1_000_000,
+            newest_first=False,
+        )
+        return orders, parts, interrupted
+
+    def _count_interrupted(self, order: Order, runs: list[dict[str, Any]]) -> list[Record]:
+        """The part a restart cut short, counted defective: it did not get its whole bead.
+
+        The server stopped during the run, so no run end reached the order; the start-up
+        closed the run's row as interrupted (server/cell.py: find_interruption).
+        """
+        counted = {part.run_id for part in order.parts}
+        rows = []
+        for run in runs:
+            params = json.loads(run["params"] or "{}")
+            if params.get("order_id") != order.order_id or run["run_id"] in counted:
+                continue
+            part = part_of_run(
+                run["run_id"], "interrupted", run["started_at"], run["ended_at"], None, run["error"]
+            )
+            order.count(part)
+            rows.append(self._part_row(order, part))
+        return rows
 
     # --- queries -------------------------------------------------------------
 

@@ -193,6 +193,14 @@ async def test_a_restart_leaves_the_order_held(tmp_path) -> None:
         await asyncio.sleep(1.0)
         runs = await trajectory_runs(rig)
         assert len(runs) == 1 and runs[0]["outcome"] == "interrupted"
+        # The part cut short is the order's first, defective; it had vanished from the
+        # order (and its run counted no workpiece, so the KPIs missed a failed one).
+        assert (order["parts_made"], order["defective"], order["good"]) == (1, 1, 0), order
+        report = (await rig.api.get(f"/orders/{order_id}/report")).json()
+        assert [p["run_id"] for p in report["parts"]] == [runs[0]["run_id"]]
+        assert "the server stopped" in report["parts"][0]["reasons"][0]
+        assert runs[0]["workpieces"] == 1
+        assert (await rig.api.get("/kpis")).json()["workpieces_failed"] == 1
         assert (await rig.reset()).status_code == 202
         await rig.wait_state("IDLE")
         await asyncio.sleep(1.0)  # nor after the reset

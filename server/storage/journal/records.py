@@ -110,6 +110,14 @@ def operation_progress(run_id: str, progress: dict[str, Any]) -> Record:
     return Record("UPDATE operations SET progress = ? WHERE run_id = ?", (_json(progress), run_id))
 
 
+def operation_planned(run_id: str, workpieces: int) -> Record:
+    """The parts a run's plan sprays, before it sprays them (its end may never be recorded)."""
+    return Record(
+        "UPDATE operations SET workpieces = ? WHERE run_id = ? AND ended_at IS NULL",
+        (workpieces, run_id),
+    )
+
+
 def operation_ended(
     run_id: str, at: float, outcome: str, result: Any, error: str | None, workpieces: int
 ) -> Record:
