@@ -112,8 +112,9 @@ class OrderBook:
                 owner.parts.append(_part_of_row(row))
         changed = []
         for order in self.orders.values():
-            if order.state is OrderState.RUNNING:
+            if order.state in ACTIVE_STATES:  # held too: its part may have been paused
                 changed.extend(self._count_interrupted(order, interrupted))
+            if order.state is OrderState.RUNNING:
                 self._set(order, OrderState.HELD, RESTARTED)
                 changed.append(self._row(order))
                 log.warning("order %s held: %s", order.order_id, RESTARTED)
@@ -262,7 +263,7 @@ class OrderBook:
         order = self.active
         if order is None or payload.order_id is not None:
             return payload
-        if payload.workpiece_id not in (None, order.workpiece_id):
+        if payload.workpiece_id not in (None, order.workpiece_id):  # not this order's part
             return payload
         return StartPayload(payload.contour_matching, order.workpiece_id, order.order_id)
 

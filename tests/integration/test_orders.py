@@ -208,6 +208,21 @@ async def test_a_restart_leaves_the_order_held(tmp_path) -> None:
         assert (await order_of(rig, order_id))["state"] == "held"
 
 
+async def test_a_restart_counts_the_paused_part_of_a_held_order(tmp_path) -> None:
+    """A pause holds the order with its part still to finish; a restart ends that part."""
+    async with open_rig(tmp_path, robot_speed_factor=1) as rig:
+        created = await rig.api.post("/orders", json={"workpiece_id": "demo", "quantity": 5})
+        order_id = created.json()["order"]["order_id"]
+        await wait_running(rig)
+        assert (await rig.api.post("/pause")).status_code == 202
+        await wait_order(rig, order_id, "held")
+    async with open_rig(tmp_path, robot_speed_factor=1, wait_idle=False) as rig:
+        await rig.wait_state("ERROR")
+        order = await order_of(rig, order_id)
+        assert order["state"] == "held"
+        assert (order["parts_made"], order["defective"]) == (1, 1), order
+
+
 async def test_gluectl_order_start_show_list_report_close_resume(tmp_path) -> None:
     from tests.integration.test_gluectl import gluectl_process
 
