@@ -13,7 +13,10 @@ every (state, event) pair without an event loop:
   go: the run commands nothing after them, and an opening it had waiting for
   the dispenser's line is refused (`operations/leash.py`). So one HALT holds.
 * An operation's task is cancelled (CANCEL_RUN) before the state changes.
-* The fault is recorded (RECORD_FAULT) before anyone sees the ERROR state.
+* The fault is recorded (RECORD_FAULT) before anyone sees the ERROR state, and
+  what IDLE keeps and clears (ENTER_IDLE: the run's result, the stop reason on
+  a reset) is set before anyone sees the IDLE state: the state's message and
+  snapshot show it as entered, not with the fault a reset just cleared.
 * Into PAUSED, HOLD comes before the state changes: the valve is commanded
   closed and the robot stopped at once (both on their way together, as for a
   halt), and the run confirms it holds where it stopped, so PAUSED is never
@@ -98,13 +101,13 @@ def actions_of(row: Transition) -> tuple[Action, ...]:
     # the change
     if row.target is State.ERROR:
         actions.append(Action.RECORD_FAULT)
+    if row.target is State.IDLE and changes_state:
+        actions.append(Action.ENTER_IDLE)  # never a move: the robot stays where it is
     if changes_state:
         actions.append(Action.CHANGE_STATE)
     # entry
     if row.event in READINESS_EVENTS:
         actions.append(Action.NOTE_READY)
-    if row.target is State.IDLE and changes_state:
-        actions.append(Action.ENTER_IDLE)  # never a move: the robot stays where it is
     if row.event is Event.HOME_REQUESTED:
         actions.append(Action.START_HOMING)
     if row.event is Event.JOG_REQUESTED:

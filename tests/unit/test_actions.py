@@ -59,9 +59,10 @@ def test_exit_actions_come_before_the_change_and_the_fault_before_the_state(stat
     actions = list(decision.actions)
     kinds = [action in EXIT_ACTIONS for action in actions]
     assert kinds == sorted(kinds, reverse=True), f"exit actions not first: {actions}"
-    if Action.RECORD_FAULT in actions and Action.CHANGE_STATE in actions:
-        assert actions.index(Action.RECORD_FAULT) < actions.index(Action.CHANGE_STATE)
-    for entry in (Action.START_RUN, Action.START_HOMING, Action.ENTER_IDLE):
+    for before in (Action.RECORD_FAULT, Action.ENTER_IDLE):  # what the new state's snapshot shows
+        if before in actions and Action.CHANGE_STATE in actions:
+            assert actions.index(before) < actions.index(Action.CHANGE_STATE)
+    for entry in (Action.START_RUN, Action.START_HOMING):
         if entry in actions and Action.CHANGE_STATE in actions:
             assert actions.index(Action.CHANGE_STATE) < actions.index(entry)
 

@@ -560,3 +560,20 @@ async def test_a_long_queue_of_refusals_lets_the_loop_run_while_it_drains(make_w
     outcomes = [await envelope.future for envelope in queued]
     assert not any(outcome.accepted for outcome in outcomes)  # PAUSE in IDLE: refused
     assert left_when_the_loop_ran and left_when_the_loop_ran[0] > 500
+
+
+async def test_the_idle_a_reset_enters_is_published_without_the_cleared_stop_reason(
+    make_worker,
+) -> None:
+    """The reset's state_changed message (what MQTT keeps retained, OPC UA, the webhooks
+    and the state file show) carried the stop reason the reset had just cleared."""
+    worker = await make_worker()
+    await worker.emergency_stop(source="test", payload=StopPayload(reason="guard door"))
+    assert worker.view.snapshot()["stop_reason"] is not None
+    states = worker.bus.subscribe(10, types=["state_changed"])
+    outcome = await worker.request(Event.RESET_REQUESTED, source="test")
+    assert outcome.accepted and outcome.state is State.IDLE
+    message = await states.get()
+    assert message.data["new_state"] == "IDLE"
+    assert message.data["snapshot"]["stop_reason"] is None, message.data["snapshot"]
+    assert message.data["snapshot"]["error"] is None
