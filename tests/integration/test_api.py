@@ -69,7 +69,7 @@ async def test_an_invalid_body_gets_422_naming_the_field(api, body, field) -> No
 
 @pytest.mark.parametrize(
     ("body", "field"),
-    [({"reason": "x" * 201}, "reason"), ({"why": "jammed"}, "why"), (b"{not json", "1")],
+    [({"reason": "x" * 201}, "reason"), ({"why": "jammed"}, "why"), (b"{not json", "body")],
 )
 async def test_an_estop_with_an_invalid_body_still_stops_the_cell(api, body, field) -> None:
     """A stop is never refused over its optional reason: it is made, and the 422 says so."""
