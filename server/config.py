@@ -581,7 +581,8 @@ class Settings(BaseSettings):
     # Cell geometry and motion
     safe_position: tuple[Millimetres, Millimetres, Millimetres, Degrees, Degrees, Degrees] = Field(
         (400.0, 0.0, 200.0, 180.0, 0.0, 0.0),
-        description="where `home` sends the robot: x, y, z mm and rx, ry, rz degrees",
+        description="where `home` sends the robot: x, y, z mm (inside the workspace) and rx, "
+        "ry, rz degrees",
     )
     spray_height_mm: float = Field(20.0, ge=0, le=500, description="nozzle height over the part")
     travel_speed_mm_s: float = Field(250.0, gt=0, le=2000, description="mm/s between beads")
@@ -754,6 +755,21 @@ class Settings(BaseSettings):
                 raise ValueError(
                     f"workspace_min_mm must be below workspace_max_mm on every axis; "
                     f"{axis}: {low:g} is not below {high:g}"
+                )
+        return self
+
+    @model_validator(mode="after")
+    def _safe_position_inside(self) -> Settings:
+        """Every run's first move and `home` go to the safe position: outside the workspace,
+        `home` was refused and every run accepted, then failed with WORKSPACE_VIOLATION."""
+        position = self.safe_position[:3]
+        for axis, value, low, high in zip(
+            "xyz", position, self.workspace_min_mm, self.workspace_max_mm, strict=True
+        ):
+            if not low <= value <= high:
+                raise ValueError(
+                    f"safe_position {axis}={value:g} mm is outside the workspace "
+                    f"(workspace_min_mm/workspace_max_mm: {axis} {low:g}..{high:g} mm)"
                 )
         return self
 

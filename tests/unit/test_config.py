@@ -213,6 +213,12 @@ def test_an_empty_workspace_is_refused_naming_the_axis() -> None:
         Settings(workspace_min_mm=(100.0, -400.0, 500.0), workspace_max_mm=(800.0, 400.0, 100.0))
 
 
+def test_a_safe_position_outside_the_workspace_is_refused_naming_the_axis() -> None:
+    """It was accepted: `home` was refused, and every run failed into ERROR."""
+    with pytest.raises(ValidationError, match=r"safe_position x=900 mm is outside the workspace"):
+        Settings(safe_position=(900.0, 0.0, 200.0, 180.0, 0.0, 0.0))
+
+
 def test_readmes_short_settings_table_agrees_with_docs_settings() -> None:
     """README lists the most used settings and points to docs/settings.md for the rest;
     what it says of each (variable, default, accepted values) is what the model says."""
