@@ -23,6 +23,7 @@ import re
 import socket
 from pathlib import Path
 from typing import Annotated, Any, Literal
+from urllib.parse import urlsplit
 
 from pydantic import AliasChoices, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import (
@@ -690,6 +691,31 @@ class Settings(BaseSettings):
         """The pattern takes five digits; a port past 65535 is refused here, at load."""
         if value is not None and not 1 <= int(value.rstrip("/").rsplit(":", 1)[1]) <= 65535:
             raise ValueError("the OPC UA endpoint's port must be 1 to 65535")
+        return value
+
+    @field_validator("mqtt_url")
+    @classmethod
+    def _mqtt_port(cls, value: str | None) -> str | None:
+        """The pattern takes five digits: 99999 crashed the start, 0 meant 1883 silently."""
+        port = re.search(r":([0-9]+)/?$", value.split("//", 1)[1]) if value else None
+        if port is not None and not 1 <= int(port.group(1)) <= 65535:
+            raise ValueError("the broker's port must be 1 to 65535")
+        return value
+
+    @field_validator("glue_controller_port")
+    @classmethod
+    def _glue_tcp_port(cls, value: str) -> str:
+        """tcp://host:port (the network simulator, a serial server): checked at load, where a
+        port past 65535 crashed the start and a missing one failed at the first connect."""
+        if not value.startswith("tcp://"):
+            return value
+        parts = urlsplit(value)
+        try:
+            port = parts.port
+        except ValueError:  # past 65535
+            port = None
+        if not parts.hostname or not port:
+            raise ValueError("a TCP dispenser is tcp://HOST:PORT, PORT 1 to 65535")
         return value
 
     @field_validator("webhooks")

@@ -237,3 +237,19 @@ def test_readmes_short_settings_table_agrees_with_docs_settings() -> None:
         assert variable.strip("`") in setting.variables, name
         assert default in (f"`{setting.default}`", "the simulated table"), name
         assert accepted == setting.accepted, name
+
+
+@pytest.mark.parametrize("url", ["mqtt://broker:99999", "mqtt://broker:0", "mqtts://broker:65536/"])
+def test_an_mqtt_port_out_of_range_is_refused_naming_the_setting(url) -> None:
+    """99999 crashed the start with a traceback; 0 connected to 1883 without a word."""
+    with pytest.raises(ValidationError, match=r"mqtt_url[\s\S]*port must be 1 to 65535"):
+        Settings(mqtt_url=url)
+    Settings(mqtt_url="mqtt://broker:1884")
+
+
+@pytest.mark.parametrize("port", ["tcp://127.0.0.1:99999", "tcp://127.0.0.1:0", "tcp://host"])
+def test_a_tcp_dispenser_needs_a_port_in_range(port) -> None:
+    """A port past 65535 crashed the start with a traceback."""
+    with pytest.raises(ValidationError, match="tcp://HOST:PORT, PORT 1 to 65535"):
+        Settings(glue_controller_port=port)
+    Settings(glue_controller_port="tcp://[::1]:5020")
