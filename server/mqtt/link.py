@@ -262,7 +262,8 @@ class MqttLink:
         signature = _health_signature(health)
         if anyway or signature != self._last_health:
             self._last_health = signature
-            self.outbox.put(Entry(self.topics.health, encode(health), retain=True))
+            payload = encode({"cell_id": self.topics.cell_id, **health})
+            self.outbox.put(Entry(self.topics.health, payload, retain=True))
 
     async def _ticker(self) -> None:
         settings = self.settings

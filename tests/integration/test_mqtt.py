@@ -85,6 +85,7 @@ async def test_a_run_in_order_and_the_state_for_a_late_subscriber(tmp_path: Path
                 assert (await late.wait(lambda: late.on(f"{BASE}/status"))) == ["online"]
                 health = await late.wait(lambda: late.on(f"{BASE}/health"))
                 assert health[-1]["mqtt"]["connected"] is True
+                assert health[-1]["cell_id"] == CELL  # every topic names its cell; not health
                 kpis = await late.wait(lambda: late.on(f"{BASE}/kpis"))
                 assert kpis[-1]["cell_id"] == CELL and "oee" in json.dumps(kpis[-1])
                 assert not late.on(f"{BASE}/event")  # not retained: history is not replayed
