@@ -60,7 +60,7 @@ def time_window(since: float | None, until: float | None) -> TimeWindow:
                 {
                     "type": "value_error",
                     "loc": ("query", "since"),
-                    "msg": f"must be before until (since={since:g} is not before until={until:g})",
+                    "msg": f"must be before until (since={since!r} is not before until={until!r})",
                     "input": since,
                 }
             ]

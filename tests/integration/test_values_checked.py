@@ -140,6 +140,12 @@ async def test_since_after_until_is_a_422_naming_since(api, path) -> None:
         assert "before until" in response.json()["detail"]
 
 
+async def test_the_refusal_shows_both_times_as_sent(api) -> None:
+    """Formatted with :g, any real Unix time read 1.79576e+09 on both sides."""
+    response = await api.get("/history", params={"since": 1795759700, "until": 1795759600})
+    assert "since=1795759700.0 is not before until=1795759600.0" in response.json()["detail"]
+
+
 async def test_since_after_until_on_an_export_is_a_422_naming_since(api) -> None:
     response = await api.get("/export/events.csv", params={"since": 5, "until": 1})
     assert _fields(response) == ["query.since"]
