@@ -183,11 +183,11 @@ class OpcUaInterface:
             await self._write_state(message.data["snapshot"], None, message.time)
         elif message.type == "progress":
             # The run's steps in the state they belong to (the state_changed snapshot
-            # that enters a state is taken before its run starts, so it names no run yet).
-            if "waypoint" in message.data and message.data.get("state") == self._snapshot.get(
-                "state"
-            ):
-                self._progress = dict(message.data)
+            # that enters a state is taken before its run starts, so it names no run yet):
+            # a spray run's waypoints and a calibration's steps alike.
+            data = message.data
+            if data.get("run_id") and data.get("state") == self._snapshot.get("state"):
+                self._progress = dict(data)
                 await self._write_cell_state(message.time)
         else:  # a fault: the devices' health has changed
             await self._write_cell_state(message.time)

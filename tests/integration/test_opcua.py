@@ -144,6 +144,18 @@ async def test_the_plant_reads_follows_and_commands_the_cell(tmp_path: Path) -> 
             run = [json.loads(v) for v in recorder.values if json.loads(v)["waypoint"]]
             assert run and all(d["run_id"] == accepted.OutputArguments[3].Value for d in run)
             assert await tag(running, "Status.StateCurrent") == 4
+            # A calibration's steps name it too: CellState took only progress with a waypoint.
+            calibrating = await rig.api.post("/calibrate-robot")
+            assert calibrating.status_code == 202, calibrating.text
+            await rig.wait_state("IDLE")
+            await until(lambda: _seen_idle_again(recorder))
+            named = [
+                json.loads(v)
+                for v in recorder.values
+                if json.loads(v)["state"] == "CALIBRATING_ROBOT" and json.loads(v)["operation"]
+            ]
+            assert named, [json.loads(v) for v in recorder.values][-5:]
+            assert {d["run_id"] for d in named} == {calibrating.json()["run_id"]}
 
         async with client(port, viewer) as stopping:  # every role may stop, as on HTTP
             stopped = await call(stopping, "EmergencyStop")
