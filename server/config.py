@@ -21,6 +21,7 @@ import math
 import os
 import re
 import socket
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 from urllib.parse import urlsplit
@@ -49,6 +50,41 @@ Celsius = Annotated[float, Field(ge=-40, le=150)]
 DEFAULT_MARKER_POSITIONS_MM: list[tuple[float, float]] = [
     (x, y) for y in (-150.0, 0.0, 150.0) for x in (250.0, 400.0, 550.0)
 ]
+
+
+def marker_layout_problems(
+    positions: Sequence[Sequence[float]],
+    workspace_min: Sequence[float],
+    workspace_max: Sequence[float],
+    marker_size: float,
+) -> list[str]:
+    """Every way a marker layout fails (`Settings._marker_layout` says why each rule), each
+    naming its markers: a taught draft is corrected in one pass, not one marker a try."""
+    points = [(float(x), float(y)) for x, y in positions]
+    (x_low, y_low, *_), (x_high, y_high, *_) = workspace_min, workspace_max
+    problems = [
+        f"marker {i} at ({x:g}, {y:g}) mm is outside the workspace (workspace_min_mm/"
+        f"workspace_max_mm: x {x_low:g}..{x_high:g}, y {y_low:g}..{y_high:g} mm)"
+        for i, (x, y) in enumerate(points)
+        if not (x_low <= x <= x_high and y_low <= y <= y_high)
+    ]
+    diagonal = marker_size * math.sqrt(2.0)
+    problems += [
+        f"markers {i} and {j} are {math.dist(p, q):.1f} mm apart, less than a marker's "
+        f"diagonal ({diagonal:.1f} mm for marker_size_mm={marker_size:g}): they would overlap"
+        for (i, p), (j, q) in itertools.combinations(enumerate(points), 2)
+        if math.dist(p, q) < diagonal
+    ]
+    for left_out in range(len(points)):
+        rest = [p for i, p in enumerate(points) if i != left_out]
+        if not _has_four_in_general_position(rest, marker_size):
+            problems.append(
+                f"the layout is degenerate: a calibration needs four markers no three of which "
+                f"lie on one line (within marker_size_mm={marker_size:g} mm), also with any "
+                f"one marker left out; without marker {left_out} there are not"
+            )
+            break
+    return problems
 
 
 def _has_four_in_general_position(points: list[tuple[float, float]], tolerance: float) -> bool:
@@ -816,31 +852,14 @@ class Settings(BaseSettings):
                 f"{self.vision_camera_id!r}): the default is the simulated table's grid, "
                 "not your table's marker layout"
             )
-        points = [(float(x), float(y)) for x, y in self.marker_positions_mm]
-        (x_low, y_low, _), (x_high, y_high, _) = self.workspace_min_mm, self.workspace_max_mm
-        for i, (x, y) in enumerate(points):
-            if not (x_low <= x <= x_high and y_low <= y <= y_high):
-                raise ValueError(
-                    f"{name}: marker {i} at ({x:g}, {y:g}) mm is outside the workspace "
-                    f"(workspace_min_mm/workspace_max_mm: x {x_low:g}..{x_high:g}, "
-                    f"y {y_low:g}..{y_high:g} mm)"
-                )
-        diagonal = self.marker_size_mm * math.sqrt(2.0)
-        for (i, p), (j, q) in itertools.combinations(enumerate(points), 2):
-            if math.dist(p, q) < diagonal:
-                raise ValueError(
-                    f"{name}: markers {i} and {j} are {math.dist(p, q):.1f} mm apart, less than "
-                    f"a marker's diagonal ({diagonal:.1f} mm for marker_size_mm="
-                    f"{self.marker_size_mm:g}): they would overlap"
-                )
-        for left_out in range(len(points)):
-            rest = [p for i, p in enumerate(points) if i != left_out]
-            if not _has_four_in_general_position(rest, self.marker_size_mm):
-                raise ValueError(
-                    f"{name} is degenerate: a calibration needs four markers no three of which "
-                    f"lie on one line (within marker_size_mm={self.marker_size_mm:g} mm), also "
-                    f"with any one marker left out; without marker {left_out} there are not"
-                )
+        problems = marker_layout_problems(
+            self.marker_positions_mm,
+            self.workspace_min_mm,
+            self.workspace_max_mm,
+            self.marker_size_mm,
+        )
+        if problems:
+            raise ValueError("; ".join(f"{name}: {problem}" for problem in problems))
         return self
 
     @classmethod

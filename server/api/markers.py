@@ -26,7 +26,7 @@ from server.api.declared_query import DeclaredQueryRoute
 from server.api.runtime_settings import plan_change
 from server.api.schemas import ErrorView, Strict
 from server.cell import Cell
-from server.config import Millimetres, Settings
+from server.config import Millimetres, Settings, marker_layout_problems
 from server.core.jog import read_pose_within
 from server.core.transitions import State
 from server.storage.marker_layout import MARKERS, MarkerLayoutStore
@@ -170,14 +170,15 @@ _MARKER_IN_MESSAGE = re.compile(r"\bmarkers? (\d)\b")
 
 
 def _layout_errors(exc: ValidationError) -> list[LayoutProblem]:
-    """The settings' layout refusals as field errors naming the marker (`markers.N`)."""
-    errors = []
-    for error in exc.errors():
-        message = str(error["msg"]).removeprefix("Value error, ")
-        named = _MARKER_IN_MESSAGE.search(message)
-        where = f"markers.{named.group(1)}" if named else "marker_positions_mm"
-        errors.append(LayoutProblem(field=where, message=message, type="layout"))
-    return errors
+    """The settings' other refusals of the layout as field errors."""
+    return [_layout_problem(str(e["msg"]).removeprefix("Value error, ")) for e in exc.errors()]
+
+
+def _layout_problem(message: str) -> LayoutProblem:
+    """A layout problem as a field error naming its (first) marker, `markers.N`."""
+    named = _MARKER_IN_MESSAGE.search(message)
+    where = f"markers.{named.group(1)}" if named else "marker_positions_mm"
+    return LayoutProblem(field=where, message=message, type="layout")
 
 
 def _refused(errors: list[LayoutProblem]) -> JSONResponse:
@@ -226,6 +227,11 @@ async def apply_markers(request: Request) -> dict[str, Any] | JSONResponse:
             ]
         )
     layout = store.draft_layout()
+    problems = marker_layout_problems(
+        layout, settings.workspace_min_mm, settings.workspace_max_mm, settings.marker_size_mm
+    )
+    if problems:  # each one, not the first the settings' check raises
+        return _refused([_layout_problem(problem) for problem in problems])
     try:
         changes = plan_change(settings, MarkerLayoutChange(marker_positions_mm=layout))
     except ValidationError as exc:

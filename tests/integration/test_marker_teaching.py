@@ -122,6 +122,15 @@ async def test_an_incomplete_or_invalid_layout_is_refused_naming_the_marker(tmp_
         assert refused.status_code == 409, refused.text
         assert refused.json()["errors"][0]["field"] == "markers.7"
         assert "marker 7" in refused.json()["detail"] and "workspace" in refused.json()["detail"]
+        # Every marker at fault at once: it named only the first.
+        for i, (x, y) in ((0, (50.0, -150.0)), (5, (410.0, 10.0))):
+            typed = await rig.api.put(
+                f"/calibration/markers/draft/{i}", json={"x_mm": x, "y_mm": y}
+            )
+            assert typed.status_code == 200, typed.text
+        refused = await rig.api.post("/calibration/markers/apply")
+        fields = [e["field"] for e in refused.json()["errors"]]
+        assert fields == ["markers.0", "markers.7", "markers.4"], refused.json()
         bad_marker = await rig.api.put("/calibration/markers/draft/9", json={"x_mm": 1, "y_mm": 1})
         assert bad_marker.status_code == 422 and "marker" in bad_marker.json()["detail"]
         bad_value = await rig.api.put("/calibration/markers/draft/3", json={"x_mm": "1", "y_mm": 1})

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from server.config import Settings
+from server.config import Settings, marker_layout_problems
 from server.settings_reference import facts
 from tests.schema_bounds import unbounded_numbers
 
@@ -146,7 +146,7 @@ def test_overlapping_markers_are_refused() -> None:
     ids=["one line", "one marker left out"],
 )
 def test_a_degenerate_marker_layout_is_refused(layout) -> None:
-    with pytest.raises(ValidationError, match="marker_positions_mm is degenerate"):
+    with pytest.raises(ValidationError, match="marker_positions_mm: the layout is degenerate"):
         Settings(marker_positions_mm=layout)
 
 
@@ -253,3 +253,14 @@ def test_a_tcp_dispenser_needs_a_port_in_range(port) -> None:
     with pytest.raises(ValidationError, match="tcp://HOST:PORT, PORT 1 to 65535"):
         Settings(glue_controller_port=port)
     Settings(glue_controller_port="tcp://[::1]:5020")
+
+
+def test_every_marker_at_fault_is_named_at_once() -> None:
+    """A layout with three problems was refused for the first alone."""
+    layout = [(50.0, -150.0), *GRID[1:5], (410.0, 10.0), *GRID[6:8], (900.0, 150.0)]
+    problems = marker_layout_problems(layout, (100.0, -400.0, -5.0), (800.0, 400.0, 500.0), 30.0)
+    assert [p.split(" ")[:2] for p in problems] == [
+        ["marker", "0"],
+        ["marker", "8"],
+        ["markers", "4"],
+    ], problems
