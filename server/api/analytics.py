@@ -30,7 +30,7 @@ from server.api.time_window import Since, TimeWindow, Until, time_window
 from server.cell import Cell
 from server.core.kpis import Window, compute_kpis
 from server.quality.csv_columns import INSPECTION_COLUMNS, with_inspection
-from server.storage.journal import FILTERS, TABLES, Cursor, Journal
+from server.storage.journal import FILTERS, TABLES, Cursor, Filter, Journal
 
 router = APIRouter(tags=["analytics"], route_class=DeclaredQueryRoute)
 
@@ -89,15 +89,19 @@ def _decode(row: dict[str, Any]) -> dict[str, Any]:
     return row
 
 
-def _filter_parameter(column: str, type_: type, description: str) -> inspect.Parameter:
-    """An optional query parameter filtering `column` by equality. Text is bounded in
-    length and characters (TEXT_MAX_LENGTH, TEXT_PATTERN): a value is never anything odd."""
-    if type_ is str:
-        query = Query(max_length=TEXT_MAX_LENGTH, pattern=TEXT_PATTERN, description=description)
+def _filter_parameter(spec: Filter) -> inspect.Parameter:
+    """An optional query parameter filtering a column by equality. Text is bounded in
+    length and characters (TEXT_MAX_LENGTH, TEXT_PATTERN), or one of the column's values
+    when they are a closed set: a value is never anything odd."""
+    kind: Any = spec.type
+    if spec.values:
+        kind, query = Literal[spec.values], Query(description=spec.meaning)
+    elif spec.type is str:
+        query = Query(max_length=TEXT_MAX_LENGTH, pattern=TEXT_PATTERN, description=spec.meaning)
     else:
-        query = Query(description=description)
+        query = Query(description=spec.meaning)
     return inspect.Parameter(
-        column, KEYWORD_ONLY, default=None, annotation=Annotated[type_ | None, query]
+        spec.column, KEYWORD_ONLY, default=None, annotation=Annotated[kind | None, query]
     )
 
 
@@ -123,11 +127,7 @@ def table_route(table: str, name: str, doc: str) -> Callable[..., Awaitable[dict
             inspect.Parameter("request", KEYWORD_ONLY, annotation=Request),
             inspect.Parameter("since", KEYWORD_ONLY, default=None, annotation=Since),
             inspect.Parameter("until", KEYWORD_ONLY, default=None, annotation=Until),
-            *(
-                _filter_parameter(f.column, f.type, f.meaning)
-                for f in FILTERS[table]
-                if f.on_json_route
-            ),
+            *(_filter_parameter(f) for f in FILTERS[table] if f.on_json_route),
             inspect.Parameter("limit", KEYWORD_ONLY, default=100, annotation=Limit),
             inspect.Parameter("offset", KEYWORD_ONLY, default=0, annotation=Offset),
         ],
@@ -196,7 +196,7 @@ def _export_route(table: str) -> Callable[..., Awaitable[Response]]:
             inspect.Parameter("request", KEYWORD_ONLY, annotation=Request),
             inspect.Parameter("since", KEYWORD_ONLY, default=None, annotation=Since),
             inspect.Parameter("until", KEYWORD_ONLY, default=None, annotation=Until),
-            *(_filter_parameter(f.column, f.type, f.meaning) for f in FILTERS[table]),
+            *(_filter_parameter(f) for f in FILTERS[table]),
         ],
         return_annotation=Response,
     )

@@ -179,3 +179,28 @@ async def test_kpis_since_a_time_still_to_come_is_an_empty_shift(api) -> None:
     report = response.json()
     assert report["window"]["start"] == 9e10 and report["window"]["hours"] == 8.0
     assert report["operations_ended"] == 0 and report["available_time_s"] == 0.0
+
+
+@pytest.mark.parametrize(
+    ("path", "parameter", "wrong", "right"),
+    [
+        ("/operations", "outcome", "faild", "failed"),
+        ("/operations", "kind", "trajectroy", "trajectory"),
+        ("/events", "outcome", "rejected", "refused"),
+        ("/errors", "classification", "fatal", "critical"),
+        ("/export/operations.csv", "outcome", "interupted", "interrupted"),
+    ],
+)
+async def test_a_filter_of_a_closed_set_refuses_a_value_outside_it(
+    api, path, parameter, wrong, right
+) -> None:
+    """A typo matched no row and answered an empty page, as if nothing had failed."""
+    assert _fields(await api.get(path, params={parameter: wrong})) == [f"query.{parameter}"]
+    assert (await api.get(path, params={parameter: right})).status_code == 200
+
+
+def test_the_operation_kinds_a_filter_takes_are_the_cells_operations() -> None:
+    from server.core.transitions import OPERATION_OF_STATE
+    from server.storage.journal.schema import OPERATION_KINDS
+
+    assert set(OPERATION_KINDS) == set(OPERATION_OF_STATE.values())

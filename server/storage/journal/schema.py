@@ -203,13 +203,23 @@ class Filter:
     meaning: str  # one line: what the column holds (documents the query parameter)
     # False: only the CSV export offers it, not the table's JSON route (which never did).
     on_json_route: bool = True
+    # The values the column can hold, when they are a closed set: any other is a 422
+    # naming the parameter (a typo such as outcome=faild matched no row, silently).
+    values: tuple[str, ...] = ()
 
+
+OPERATION_KINDS = ("trajectory", "calibrate_robot", "calibrate_camera", "create_workpiece")
 
 FILTERS: dict[str, tuple[Filter, ...]] = {
     "events": (
         Filter("type", str, "the event's type, e.g. START_REQUESTED"),
-        Filter("source", str, "who sent the event: api, system, operation, a device, ..."),
-        Filter("outcome", str, "the worker's verdict: accepted or refused"),
+        Filter(
+            "source",
+            str,
+            "who sent the event, matched whole: api:<client address>, mqtt:<token name>, "
+            "opcua:<client address>, order, system, operation, robot, glue, camera, ...",
+        ),
+        Filter("outcome", str, "the worker's verdict", values=("accepted", "refused")),
         Filter("state", str, "the cell's state once the event was decided"),
     ),
     "transitions": (
@@ -219,13 +229,18 @@ FILTERS: dict[str, tuple[Filter, ...]] = {
         Filter("event_id", str, "the id of that event", on_json_route=False),
     ),
     "operations": (
-        Filter("kind", str, "the operation, e.g. trajectory or calibrate_robot"),
-        Filter("outcome", str, "how it ended: completed, failed, cancelled or interrupted"),
+        Filter("kind", str, "the operation", values=OPERATION_KINDS),
+        Filter(
+            "outcome",
+            str,
+            "how it ended",
+            values=("completed", "failed", "cancelled", "interrupted"),
+        ),
     ),
     "errors": (
         Filter("code", str, "the fault code, e.g. EMERGENCY_STOP"),
         Filter("component", str, "the component that reported the fault"),
-        Filter("classification", str, "critical, recoverable or warning"),
+        Filter("classification", str, "how grave", values=("critical", "recoverable", "warning")),
         Filter("state", str, "the cell's state when the fault was recorded"),
     ),
     "recoveries": (
@@ -240,17 +255,27 @@ FILTERS: dict[str, tuple[Filter, ...]] = {
     ),
     "webhook_deliveries": (
         Filter("webhook", str, "the webhook's name"),
-        Filter("kind", str, "the notice: fault, alert, state or run_completed"),
-        Filter("outcome", str, "delivered, refused, failed, dropped or abandoned"),
+        Filter("kind", str, "the notice", values=("fault", "alert", "state", "run_completed")),
+        Filter(
+            "outcome",
+            str,
+            "how its delivery ended",
+            values=("delivered", "refused", "failed", "dropped", "abandoned"),
+        ),
         Filter("delivery_id", str, "the notice's id, as the receiver got it"),
     ),
     "inspections": (
         Filter("run_id", str, "the spray run inspected"),
-        Filter("verdict", str, "good or defective"),
+        Filter("verdict", str, "the part's verdict", values=("good", "defective")),
     ),
     "orders": (
         Filter("workpiece_id", str, "the workpiece the order makes"),
-        Filter("state", str, "queued, running, held, completed or closed"),
+        Filter(
+            "state",
+            str,
+            "the order's state",
+            values=("queued", "running", "held", "completed", "closed"),
+        ),
     ),
     "order_parts": (
         Filter("order_id", str, "the order the part was made for"),
