@@ -14,9 +14,11 @@ from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING, Any
 
 from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from server.api import (
     access,
@@ -233,6 +235,13 @@ def _install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(WorkerStopped, try_again_later)
     app.add_exception_handler(JournalUnavailable, try_again_later)
 
+    @app.exception_handler(StarletteHTTPException)
+    async def refused(request: Request, exc: StarletteHTTPException) -> Response:
+        """The framework's answer, and the reason in the refusal's audit row (it was empty)."""
+        if isinstance(exc.detail, str) and not getattr(request.state, "audit_reason", None):
+            request.state.audit_reason = exc.detail
+        return await http_exception_handler(request, exc)
+
     @app.exception_handler(ChangeNotSaved)
     async def not_saved(request: Request, exc: ChangeNotSaved) -> JSONResponse:
         """507 (no room) or 503: the change was on record but could not be written; not applied."""
@@ -251,6 +260,7 @@ def _install_error_handlers(app: FastAPI) -> None:
             problems.append({"field": where, "message": error["msg"], "type": error["type"]})
         summary = "; ".join(f"{p['field']}: {p['message']}" for p in problems)
         body: dict[str, Any] = {"detail": f"invalid request: {summary}", "errors": problems}
+        request.state.audit_reason = body["detail"]  # the refusal's audit row says why
         if commands.is_estop(request):
             # A stop is never refused over its body: it is made, and the 422 says so.
             body.update(await commands.stop_anyway(request))

@@ -181,10 +181,11 @@ def _layout_problem(message: str) -> LayoutProblem:
     return LayoutProblem(field=where, message=message, type="layout")
 
 
-def _refused(errors: list[LayoutProblem]) -> JSONResponse:
+def _refused(request: Request, errors: list[LayoutProblem]) -> JSONResponse:
     """409: the draft, not the request, is what is wrong (the request has no body)."""
     summary = "; ".join(f"{e.field}: {e.message}" for e in errors)
     body = LayoutRefusal(detail=f"the draft layout cannot be applied: {summary}", errors=errors)
+    request.state.audit_reason = body.detail
     return JSONResponse(body.model_dump(), status_code=409)
 
 
@@ -217,6 +218,7 @@ async def apply_markers(request: Request) -> dict[str, Any] | JSONResponse:
     missing = store.missing()
     if missing:
         return _refused(
+            request,
             [
                 LayoutProblem(
                     field=f"markers.{i}",
@@ -224,18 +226,18 @@ async def apply_markers(request: Request) -> dict[str, Any] | JSONResponse:
                     type="missing",
                 )
                 for i in missing
-            ]
+            ],
         )
     layout = store.draft_layout()
     problems = marker_layout_problems(
         layout, settings.workspace_min_mm, settings.workspace_max_mm, settings.marker_size_mm
     )
     if problems:  # each one, not the first the settings' check raises
-        return _refused([_layout_problem(problem) for problem in problems])
+        return _refused(request, [_layout_problem(problem) for problem in problems])
     try:
         changes = plan_change(settings, MarkerLayoutChange(marker_positions_mm=layout))
     except ValidationError as exc:
-        return _refused(_layout_errors(exc))
+        return _refused(request, _layout_errors(exc))
     old = [list(p) for p in settings.marker_positions_mm]
     detail = f"marker_positions_mm: {old} -> {[list(p) for p in layout]} (taught layout applied)"
     await audit.record_before_change(request, detail)

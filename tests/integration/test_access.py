@@ -275,6 +275,20 @@ async def test_each_action_has_one_audit_row_and_the_observer_adds_none(server) 
     assert [o for o, _ in rows_of("POST /pause", paused["event_id"])] == ["refused (409)"]
 
 
+async def test_a_refusals_audit_row_says_why(server) -> None:
+    """A refused settings change or library edit left an audit row with an empty detail."""
+    admin = auth(server.tokens["admin"])
+    bad = await server.patch("/settings", json={"shift_hours": -1}, headers=admin)
+    assert bad.status_code == 422
+    missing = await server.delete("/workpieces/no-such-part", headers=admin)
+    assert missing.status_code == 404
+    await asyncio.sleep(0.2)  # the observer's rows go out behind the answers
+    rows = (await server.get("/audit", params={"limit": 1000}, headers=admin)).json()["audit"]
+    details = {r["action"]: r["detail"] for r in rows if r["outcome"].startswith("refused")}
+    assert "shift_hours" in details["PATCH /settings"], details
+    assert "'no-such-part' is not in the library" in details["DELETE /workpieces/no-such-part"]
+
+
 async def test_settings_changes_are_validated_and_limited(server) -> None:
     admin = auth(server.tokens["admin"])
     bad = await server.patch("/settings", json={"error_state_timeout": -1}, headers=admin)
