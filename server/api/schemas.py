@@ -60,8 +60,10 @@ class JogRequest(Strict):
     distance_mm: FiniteNumber = Field(
         ge=-200,
         le=200,
-        description="the step in mm, negative to go back; at most jog_max_step_mm either way "
-        "(GET /calibration/markers shows it), and the target must lie in the workspace",
+        description="the step in mm, negative to go back, never 0; at most jog_max_step_mm "
+        "either way (GET /calibration/markers shows it), and the target must lie in the "
+        "workspace",
+        json_schema_extra={"not": {"const": 0}},
     )
 
 

@@ -34,6 +34,8 @@ def step_problem(axis: str, distance_mm: float, settings: Settings) -> tuple[str
     """(field, why) when the step itself is wrong, before anything is read or moved."""
     if axis not in AXES:
         return "axis", f"axis must be one of {', '.join(AXES)}, not {axis!r}"
+    if distance_mm == 0:  # a move command to where the arm stands: nothing a person meant
+        return "distance_mm", "a jog step of 0 mm moves nothing: give the step in mm"
     limit = settings.jog_max_step_mm
     if not abs(distance_mm) <= limit:
         return "distance_mm", (

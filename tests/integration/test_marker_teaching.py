@@ -63,6 +63,8 @@ async def test_a_jog_moves_the_robot_by_its_step_and_nothing_else(tmp_path) -> N
         assert "outside the workspace" in outside.json()["detail"]
         wrong_axis = await rig.api.post("/jog", json={"axis": "rx", "distance_mm": 1.0})
         assert wrong_axis.status_code == 422 and "axis" in wrong_axis.json()["detail"]
+        nothing = await rig.api.post("/jog", json={"axis": "x", "distance_mm": 0})
+        assert nothing.status_code == 422 and "0 mm moves nothing" in nothing.json()["detail"]
         assert (await settled(rig)) == pytest.approx(before, abs=0.01)
         assert (await rig.state())["state"] == "IDLE"
 
