@@ -76,13 +76,16 @@ class CommandDoor:
                 f"this needs the {needed.label} role; {principal.name} has {principal.role.label}"
             )
             return self._refuse(principal, action, 403, detail)
-        payload, problem = _payload(command, message.get("body"))
-        if problem is not None:
+        payload, errors = _payload(command, message.get("body"))
+        if errors:  # as HTTP's 422: the detail, and each field with its message
+            summary = "; ".join(f"{e['field']}: {e['message']}" for e in errors)
+            problem = f"invalid request: {summary}"
             if command is Command.ESTOP:  # a stop is never refused over its body
                 _, answer = await self._run(principal, action, command, StopPayload(None))
                 answer["message"] = f"the stop was made without its reason: {answer['message']}"
-                return 422, {"detail": problem, **answer}
-            return self._refuse(principal, action, 422, problem)
+                return 422, {"detail": problem, "errors": errors, **answer}
+            status, body = self._refuse(principal, action, 422, problem)
+            return status, {**body, "errors": errors}
         return await self._run(principal, action, command, payload)
 
     async def _run(
@@ -118,18 +121,21 @@ class CommandDoor:
         journal.append([row], durable=False)
 
 
-def _payload(command: Command, body: Any) -> tuple[Payload | None, str | None]:
-    """The worker's payload from the message's body, or why the body is not valid."""
+def _payload(command: Command, body: Any) -> tuple[Payload | None, list[dict[str, str]]]:
+    """The worker's payload from the message's body, or each way the body is not valid."""
     declared = REQUEST_BODIES.get(command)
     if declared is None:
-        return None, None  # the command takes no body (as over HTTP, one sent is not read)
+        return None, []  # the command takes no body (as over HTTP, one sent is not read)
     model, build = declared
     try:
         parsed: BaseModel = model.model_validate({} if body is None else body)
     except ValidationError as exc:
-        problems = []
-        for error in exc.errors():
-            where = ".".join(str(part) for part in error["loc"]) or "body"
-            problems.append(f"{where}: {error['msg']}")
-        return None, f"invalid request: {'; '.join(problems)}"
-    return build(parsed), None
+        return None, [
+            {
+                "field": ".".join(str(part) for part in error["loc"]) or "body",
+                "message": error["msg"],
+                "type": error["type"],
+            }
+            for error in exc.errors()
+        ]
+    return build(parsed), []

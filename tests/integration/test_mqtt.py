@@ -263,6 +263,8 @@ async def test_commands_need_a_valid_token_and_the_role(tmp_path: Path) -> None:
             assert answer["status"] == 403 and "operator" in answer["detail"]
             answer, _ = await ask("start", {"token": tokens["operator"], "body": {"speed": 3}})
             assert answer["status"] == 422
+            # Each field with its message, as HTTP's 422 has them (only the detail was sent).
+            assert [e["field"] for e in answer["errors"]] == ["speed"], answer
             assert (await rig.state())["state"] == "IDLE"  # nothing of that reached the cell
 
             answer, _ = await ask("start", {"token": tokens["operator"], "body": SPRAY_DEMO})
