@@ -22,7 +22,9 @@ import { $ } from "./dom.js";
 import { connect, dropConnection, dropSocket, watchdog } from "./live.js";
 import { initOrders } from "./orders.js";
 import { refreshLibrary, refreshPanels } from "./panels.js";
-import { applyState, renderCommands, setLive, showAnswer, showMessage, tick } from "./render.js";
+import {
+  applyState, clearMessage, renderCommands, setLive, showAnswer, showMessage, tick,
+} from "./render.js";
 import { hmi, REFRESH_MS, TOKEN_KEY } from "./store.js";
 import { drawTrajectory, refreshCalibration, refreshFrame, refreshTrajectory } from "./trajectory.js";
 
@@ -62,6 +64,7 @@ function showLogin(message) {
 function signOut(message) {
   sessionStorage.removeItem(TOKEN_KEY);
   stopSession();
+  clearMessage(); // the next person does not see the last one's answers
   showLogin(message);
 }
 
@@ -113,7 +116,9 @@ async function emergencyStop() {
     showAnswer(response.status, await errorText(response));
   } catch (error) {
     if (!(error instanceof AuthError)) {
-      showMessage("error", `STOP could not reach the server (${error.message}): use the e-stop`);
+      showMessage(
+        "error", `STOP could not reach the server (${error.message}): use the e-stop`, "live",
+      );
     }
   }
 }

@@ -77,7 +77,8 @@ function renderPart(run, image) {
   verdict.dataset.kind = { good: "ok", defective: "fault" }[part.verdict] || "";
   $("part").dataset.verdict = part.verdict;
   $("part").dataset.run = run ? run.run_id : "";
-  $("part-run").textContent = run ? `${run.run_id.slice(0, 8)} · ${part.note}` : "";
+  // The whole id: its first part is the server process's, the same for every run of it.
+  $("part-run").textContent = run ? `run ${run.run_id} · ${part.note}` : "";
   $("part-reasons").replaceChildren(...part.reasons.map((text) => element("li", "", text)));
   $("part-figures").replaceChildren(...(part.figures.length ? [facts(part.figures)] : []));
   if (hmi.partImage) URL.revokeObjectURL(hmi.partImage);

@@ -10,6 +10,7 @@ import { applyDeviceSample, refreshLibrary, refreshPanels } from "./panels.js";
 import {
   applyIfNewer,
   applyState,
+  renderOperation,
   renderProgress,
   setLive,
   showBanner,
@@ -179,6 +180,7 @@ function onProgress(message) {
     startProgress(message.operation, message.run_id);
   }
   updateProgress(message);
+  renderOperation();
   // A new run, or this run not planned yet when last asked (its plan comes after its
   // first progress messages): ask again.
   const shown = hmi.trajectory;
@@ -189,7 +191,7 @@ function onProgress(message) {
 }
 
 function onFault(fault) {
-  showMessage("error", `fault ${fault.code} (${fault.component}): ${fault.message}`);
+  showMessage("error", `fault ${fault.code} (${fault.component}): ${fault.message}`, "reset");
 }
 
 function onAlert(alert) {

@@ -46,7 +46,14 @@ function renderOrders(listing) {
   $("order-resume").disabled = shown?.state !== "held";
 }
 
+// One order request at a time: a double tap on "Start order" made two orders, both run.
+let sending = false;
+
 async function send(method, path, body, label) {
+  if (sending) return;
+  sending = true;
+  const buttons = ["order-start", "order-close", "order-resume"].map((id) => $(id));
+  buttons.forEach((button) => { button.disabled = true; });
   try {
     const response = await api(method, path, body);
     const ok = response.status === 200 || response.status === 201;
@@ -54,8 +61,11 @@ async function send(method, path, body, label) {
       `${label}: ${response.status}${ok ? "" : `: ${await errorText(response)}`}`);
   } catch (error) {
     if (!(error instanceof AuthError)) showMessage("error", `${label}: ${error.message}`);
+  } finally {
+    sending = false;
+    $("order-start").disabled = false;
   }
-  await refreshOrders();
+  await refreshOrders();  // close and resume as the order now allows
 }
 
 function startOrder(event) {

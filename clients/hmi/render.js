@@ -2,7 +2,7 @@
  * bar: drawn from `hmi` (store.js), never from anything the page guessed. */
 
 import { $, clockTime, duration } from "./dom.js";
-import { hmi, STATE_TONE } from "./store.js";
+import { hmi, isOperational, STATE_TONE } from "./store.js";
 
 // --- state ------------------------------------------------------------------
 
@@ -13,6 +13,7 @@ export function applyIfNewer(view) {
 
 export function applyState(view) {
   hmi.view = view;
+  if (!view.stop_reason) clearMessage("reset");
   hmi.enteredAtMs = performance.now() - (view.time_in_state || 0) * 1000;
   renderState();
   renderCommands();
@@ -26,7 +27,10 @@ export function setLive(live, text) {
   $("link-text").textContent = live ? "live" : text || "not live";
   $("state").dataset.stale = String(!live);
   $("app").dataset.live = String(live);
-  if (live) $("banner").hidden = true;
+  if (live) {
+    $("banner").hidden = true;
+    clearMessage("live");
+  }
   renderCommands();
 }
 
@@ -45,10 +49,21 @@ function renderState() {
   $("state-previous").textContent = view.previous_state
     ? `from ${view.previous_state.replaceAll("_", " ")}`
     : "";
-  const op = view.operation;
-  $("state-operation").textContent = op ? `operation ${op.name} · run ${op.run_id}` : "";
+  renderOperation();
   renderFault(view);
   tick();
+}
+
+/** The run the state belongs to. The snapshot that enters a run's state is taken before
+ * the run starts, so it names none: the run's own progress names it until the next
+ * snapshot does (the line stayed empty for a whole run unless the page was reloaded). */
+export function renderOperation() {
+  const view = hmi.view;
+  if (!view) return;
+  const progress = hmi.progress;
+  const running = isOperational(view.state) && progress && !progress.ended && progress.run_id;
+  const op = view.operation || (running ? { name: progress.operation, run_id: progress.run_id } : null);
+  $("state-operation").textContent = op ? `operation ${op.name} · run ${op.run_id}` : "";
 }
 
 function renderFault(view) {
@@ -88,11 +103,24 @@ export function showAnswer(status, text) {
   showMessage(kind, `${status}: ${text}`);
 }
 
-export function showMessage(kind, text) {
+/** Show one message. `clears`: what ends it before the next one does: "reset" (a fault
+ * or alert: gone once the cell has no stop reason), "live" (the server unreachable: gone
+ * once the page is live again); a red fault stayed on screen after the reset. */
+export function showMessage(kind, text, clears = "") {
   const box = $("message");
   box.hidden = false;
   box.dataset.kind = kind;
+  box.dataset.clears = clears;
   box.textContent = `${clockTime(Date.now() / 1000)}  ${text}`;
+}
+
+/** Hide the message if it is one that `condition` ends (any, without a condition). */
+export function clearMessage(condition) {
+  const box = $("message");
+  if (condition && box.dataset.clears !== condition) return;
+  box.hidden = true;
+  box.textContent = "";
+  box.dataset.clears = "";
 }
 
 // --- progress ---------------------------------------------------------------

@@ -309,6 +309,34 @@ async def test_a_cycle_then_stop_mid_run_then_reset(dashboard: Dashboard, browse
     assert problems == []
 
 
+async def test_the_state_card_names_the_live_run_and_a_reset_clears_the_fault_message(
+    dashboard: Dashboard, browser: Browser
+) -> None:
+    """Two things a page left as they were: the run's line stayed empty for a run started
+    while the page watched (the state's snapshot is taken before the run starts), and the
+    red fault message stayed after a reset another client made."""
+    page, problems = await open_page(browser, dashboard, PANEL)
+    await log_in(page, dashboard.token)
+    await expect_state(page, "IDLE")
+    api = dashboard.rig.api
+    started = await api.post("/start", json={"contour_matching": False, "workpiece_id": "demo"})
+    assert started.status_code == 202, started.text
+    await expect_state(page, "EXECUTING_TRAJECTORY")
+    run_id = started.json()["run_id"]
+    await expect(page.locator("#state-operation")).to_have_text(
+        f"operation trajectory · run {run_id}"
+    )
+    assert (await api.post("/estop", json={"reason": "guard door 2 opened"})).status_code == 202
+    await expect_state(page, "ERROR")
+    message = page.locator("#message")
+    await expect(message).to_contain_text("fault EMERGENCY_STOP")
+    assert (await api.post("/reset")).status_code == 202
+    await expect_state(page, "IDLE")
+    await expect(message).to_be_hidden()
+    await expect(page.locator("#state-operation")).to_have_text("")
+    assert problems == []
+
+
 async def test_the_devices_card_is_live_and_does_not_poll(
     dashboard: Dashboard, browser: Browser
 ) -> None:
@@ -376,6 +404,8 @@ async def test_the_last_part_card_shows_the_verdict_live_and_on_load(
     [real] = (await api.get("/operations", params={"limit": 1})).json()["operations"]
     inspection = (await api.get(f"/runs/{real['run_id']}/inspection")).json()
     await expect(part).to_have_attribute("data-run", real["run_id"])
+    # The whole run id: its first 8 characters are the server process's, every run's alike.
+    await expect(page.locator("#part-run")).to_contain_text(f"run {real['run_id']}")
     await expect(verdict).to_have_text(inspection["verdict"])
     await expect(part).to_have_attribute("data-verdict", inspection["verdict"])
     await expect(page.locator("#part-reasons li")).to_have_count(len(inspection["reasons"]))

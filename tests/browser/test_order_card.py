@@ -59,3 +59,21 @@ async def test_the_order_card_starts_holds_resumes_and_closes(
     await expect(page.locator("#order-state")).to_have_text("closed")
     await expect(page.locator("#order-close")).to_be_disabled()
     assert not problems, problems
+
+
+async def test_a_double_tap_on_start_order_makes_one_order(
+    dashboard: Dashboard,  # noqa: F811 - the fixture imported above
+    browser: Browser,
+) -> None:
+    """Two orders were made, and the second ran after the first: twice the parts."""
+    page, problems = await open_page(browser, dashboard, PANEL)
+    await log_in(page, dashboard.token)
+    await expect_state(page, "IDLE")
+    await page.fill("#order-quantity", "1")
+    await page.dblclick("#order-start")
+    await expect(page.locator("#message")).to_contain_text("order: 201")
+    orders = (await dashboard.rig.api.get("/orders")).json()["orders"]
+    assert len(orders) == 1, orders
+    closed = await dashboard.rig.api.post(f"/orders/{orders[0]['order_id']}/close")
+    assert closed.status_code == 200, closed.text
+    assert not problems, problems
