@@ -52,6 +52,28 @@ DEFAULT_MARKER_POSITIONS_MM: list[tuple[float, float]] = [
 ]
 
 
+def outside_workspace(
+    point: Sequence[float], low: Sequence[float], high: Sequence[float]
+) -> str | None:
+    """Which axis of `point` (x, y, z mm; more is ignored) leaves [low, high], or None."""
+    for axis, value, lo, hi in zip("xyz", point[:3], low, high, strict=True):
+        if not lo <= value <= hi:
+            return f"{axis}={value:.1f} mm, allowed {lo:.0f}..{hi:.0f} mm"
+    return None
+
+
+def parse_tcp_address(value: str) -> tuple[str, int]:
+    """`tcp://host:port` → (host, port); ValueError naming the setting otherwise."""
+    parts = urlsplit(value)
+    try:
+        port = parts.port
+    except ValueError:  # past 65535
+        port = None
+    if parts.scheme != "tcp" or not parts.hostname or not port:
+        raise ValueError(f"GLUE_CONTROLLER_PORT={value!r}: expected tcp://host:port")
+    return parts.hostname, port
+
+
 def marker_layout_problems(
     positions: Sequence[Sequence[float]],
     workspace_min: Sequence[float],
@@ -733,8 +755,11 @@ class Settings(BaseSettings):
     @classmethod
     def _mqtt_port(cls, value: str | None) -> str | None:
         """The pattern takes five digits: 99999 crashed the start, 0 meant 1883 silently."""
-        port = re.search(r":([0-9]+)/?$", value.split("//", 1)[1]) if value else None
-        if port is not None and not 1 <= int(port.group(1)) <= 65535:
+        try:
+            port = urlsplit(value).port if value else None
+        except ValueError:  # past 65535
+            port = 0
+        if port is not None and not 1 <= port <= 65535:
             raise ValueError("the broker's port must be 1 to 65535")
         return value
 
@@ -743,15 +768,11 @@ class Settings(BaseSettings):
     def _glue_tcp_port(cls, value: str) -> str:
         """tcp://host:port (the network simulator, a serial server): checked at load, where a
         port past 65535 crashed the start and a missing one failed at the first connect."""
-        if not value.startswith("tcp://"):
-            return value
-        parts = urlsplit(value)
-        try:
-            port = parts.port
-        except ValueError:  # past 65535
-            port = None
-        if not parts.hostname or not port:
-            raise ValueError("a TCP dispenser is tcp://HOST:PORT, PORT 1 to 65535")
+        if value.startswith("tcp://"):
+            try:
+                parse_tcp_address(value)
+            except ValueError:
+                raise ValueError("a TCP dispenser is tcp://HOST:PORT, PORT 1 to 65535") from None
         return value
 
     @field_validator("webhooks")
@@ -824,15 +845,14 @@ class Settings(BaseSettings):
     def _safe_position_inside(self) -> Settings:
         """Every run's first move and `home` go to the safe position: outside the workspace,
         `home` was refused and every run accepted, then failed with WORKSPACE_VIOLATION."""
-        position = self.safe_position[:3]
-        for axis, value, low, high in zip(
-            "xyz", position, self.workspace_min_mm, self.workspace_max_mm, strict=True
-        ):
-            if not low <= value <= high:
-                raise ValueError(
-                    f"safe_position {axis}={value:g} mm is outside the workspace "
-                    f"(workspace_min_mm/workspace_max_mm: {axis} {low:g}..{high:g} mm)"
-                )
+        problem = outside_workspace(
+            self.safe_position, self.workspace_min_mm, self.workspace_max_mm
+        )
+        if problem is not None:
+            raise ValueError(
+                f"safe_position is outside the workspace ({problem}; workspace_min_mm, "
+                "workspace_max_mm)"
+            )
         return self
 
     @model_validator(mode="after")

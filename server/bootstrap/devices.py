@@ -22,9 +22,8 @@ import asyncio
 import logging
 from collections.abc import Awaitable, Callable
 from typing import Any
-from urllib.parse import urlsplit
 
-from server.config import Settings
+from server.config import Settings, parse_tcp_address
 from server.core.devices import CellDevices
 from server.drivers.camera import OpenCVCamera, SimulatedCamera
 from server.drivers.glue_modbus import ModbusGlueDispenser
@@ -33,14 +32,6 @@ from server.drivers.sim.camera_bead import dispensed_by
 from server.drivers.sim.camera_scene import Scene
 
 log = logging.getLogger(__name__)
-
-
-def parse_tcp_address(value: str) -> tuple[str, int]:
-    """`tcp://host:port` → (host, port); ValueError naming the setting otherwise."""
-    parts = urlsplit(value)
-    if parts.scheme != "tcp" or not parts.hostname or not parts.port:
-        raise ValueError(f"GLUE_CONTROLLER_PORT={value!r}: expected tcp://host:port")
-    return parts.hostname, parts.port
 
 
 def glue_supervision(settings: Settings) -> dict[str, Any]:

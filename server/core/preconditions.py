@@ -23,7 +23,9 @@ from server.config import Settings
 from server.core.events import CreateWorkpiecePayload, JogPayload, Payload, StartPayload
 from server.core.jog import step_problem
 from server.core.operations.camera_frames import robot_calibration_problem
+from server.core.operations.safe_position import workspace_problem
 from server.core.transitions import Event
+from server.drivers.base import Pose
 from server.storage import CellStores
 
 
@@ -60,6 +62,15 @@ class Preconditions:
         if isinstance(payload, JogPayload):
             wrong = step_problem(payload.axis, payload.distance_mm, self.settings)
             return Refusal(wrong[1], field=wrong[0]) if wrong is not None else None
+        if event is Event.HOME_REQUESTED:  # checked at load too; again before anything moves
+            problem = workspace_problem(
+                Pose.from_sequence(self.settings.safe_position), self.settings
+            )
+            if problem is not None:
+                return Refusal(
+                    f"the safe position is outside the workspace ({problem}): correct "
+                    "safe_position or the workspace bounds in the settings"
+                )
         return None
 
     def _start(self, start: StartPayload) -> Refusal | None:

@@ -215,7 +215,9 @@ def test_an_empty_workspace_is_refused_naming_the_axis() -> None:
 
 def test_a_safe_position_outside_the_workspace_is_refused_naming_the_axis() -> None:
     """It was accepted: `home` was refused, and every run failed into ERROR."""
-    with pytest.raises(ValidationError, match=r"safe_position x=900 mm is outside the workspace"):
+    with pytest.raises(
+        ValidationError, match=r"safe_position is outside the workspace \(x=900.0 mm"
+    ):
         Settings(safe_position=(900.0, 0.0, 200.0, 180.0, 0.0, 0.0))
 
 

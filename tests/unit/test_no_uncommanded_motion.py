@@ -47,6 +47,22 @@ async def test_home_sends_the_robot_to_its_safe_position_and_stays_idle(
     assert robot.moves == [Pose.from_sequence(fast_settings.safe_position)]
 
 
+async def test_home_is_refused_when_the_safe_position_is_outside_the_workspace(
+    make_worker, fast_settings
+) -> None:
+    """The settings refuse such a position at load; the worker checks it again before it
+    moves the robot (a settings object changed after load is not checked again)."""
+    robot = FakeRobot()
+    outside = (900.0, 0.0, 200.0, 180.0, 0.0, 0.0)  # x beyond workspace_max_mm
+    worker = await make_worker(
+        fast_settings.model_copy(update={"safe_position": outside}), robot=robot
+    )
+    outcome = await worker.request(Event.HOME_REQUESTED, source="test")
+    assert not outcome.accepted and "outside the workspace (x=900.0 mm" in outcome.message
+    await _quiet()
+    assert robot.moves == [] and worker.ctx.state is State.IDLE
+
+
 async def test_a_run_begins_at_the_safe_position_and_its_end_moves_nothing_more(
     make_worker, fast_settings
 ) -> None:

@@ -9,7 +9,7 @@ command), and its target is checked against the workspace before it moves.
 
 from __future__ import annotations
 
-from server.config import Settings
+from server.config import Settings, outside_workspace
 from server.core.eager import within
 from server.core.operations.base import OperationContext
 from server.core.operations.motion import pausable_move
@@ -19,11 +19,7 @@ from server.errors import OperationError
 
 def workspace_problem(pose: Pose, settings: Settings) -> str | None:
     """Which axis of `pose` leaves the workspace (the message), or None when it is inside."""
-    low, high = settings.workspace_min_mm, settings.workspace_max_mm
-    for axis, value, lo, hi in zip("xyz", pose[:3], low, high, strict=True):
-        if not lo <= value <= hi:
-            return f"{axis}={value:.1f} mm, allowed {lo:.0f}..{hi:.0f} mm"
-    return None
+    return outside_workspace(pose, settings.workspace_min_mm, settings.workspace_max_mm)
 
 
 def safe_pose(settings: Settings) -> Pose:
