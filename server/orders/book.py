@@ -110,14 +110,17 @@ class OrderBook:
             owner = self.orders.get(row["order_id"])
             if owner is not None:
                 owner.parts.append(_part_of_row(row))
-        changed = []
+        changed: list[Record] = []
         for order in self.orders.values():
-            if order.state in ACTIVE_STATES:  # held too: its part may have been paused
-                changed.extend(self._count_interrupted(order, interrupted))
-            if order.state is OrderState.RUNNING:
-                self._set(order, OrderState.HELD, RESTARTED)
+            cut_short = self._parts_cut_short(order, interrupted)
+            changed.extend(self._part_row(order, part) for part in cut_short)
+            if order.state is OrderState.RUNNING or (cut_short and order.state in ACTIVE_STATES):
+                # Held, a paused part's order too: its part is counted now, not to come.
+                limit = order.defects_in_row >= order.defect_limit
+                reason = order.defect_limit_reason() if limit else RESTARTED
+                self._set(order, OrderState.HELD, reason)
                 changed.append(self._row(order))
-                log.warning("order %s held: %s", order.order_id, RESTARTED)
+                log.warning("order %s held: %s", order.order_id, reason)
         if changed:
             self._journal.append(changed, durable=False)
         self._cell.view.on_run_ended(self._run_ended)
@@ -140,14 +143,16 @@ class OrderBook:
         )
         return orders, parts, interrupted
 
-    def _count_interrupted(self, order: Order, runs: list[dict[str, Any]]) -> list[Record]:
-        """The part a restart cut short, counted defective: it did not get its whole bead.
+    @staticmethod
+    def _parts_cut_short(order: Order, runs: list[dict[str, Any]]) -> list[Part]:
+        """The order's parts a server stop cut short, added to it, defective: they did not get
+        their whole bead. A closed order's too, as a part that ends after the close is.
 
         The server stopped during the run, so no run end reached the order; the start-up
         closed the run's row as interrupted (server/cell.py: find_interruption).
         """
         counted = {part.run_id for part in order.parts}
-        rows = []
+        parts = []
         for run in runs:
             params = json.loads(run["params"] or "{}")
             if params.get("order_id") != order.order_id or run["run_id"] in counted:
@@ -155,9 +160,9 @@ class OrderBook:
             part = part_of_run(
                 run["run_id"], "interrupted", run["started_at"], run["ended_at"], None, run["error"]
             )
-            order.count(part)
-            rows.append(self._part_row(order, part))
-        return rows
+            order.parts.append(part)
+            parts.append(part)
+        return parts
 
     # --- queries -------------------------------------------------------------
 

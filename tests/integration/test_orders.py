@@ -223,6 +223,34 @@ async def test_a_restart_counts_the_paused_part_of_a_held_order(tmp_path) -> Non
         assert (order["parts_made"], order["defective"]) == (1, 1), order
 
 
+async def test_a_part_cut_short_counts_toward_the_defect_limit_and_a_closed_order(
+    tmp_path,
+) -> None:
+    """The part a restart counts is a defective part like any: at the defect limit the
+    order is held with that reason (a resume made one more part past it), and a closed
+    order whose last run was cut short gets that part too."""
+    async with open_rig(tmp_path, robot_speed_factor=1, order_defect_limit=1) as rig:
+        limited = await rig.api.post("/orders", json={"workpiece_id": "demo", "quantity": 5})
+        limited_id = limited.json()["order"]["order_id"]
+        await wait_running(rig)
+    async with open_rig(tmp_path, robot_speed_factor=1, wait_idle=False) as rig:
+        await rig.wait_state("ERROR")
+        order = await order_of(rig, limited_id)
+        assert order["state"] == "held" and "defective parts in a row" in order["reason"], order
+        assert (await rig.reset()).status_code == 202
+        await rig.wait_state("IDLE")
+        closed = await rig.api.post(f"/orders/{limited_id}/close")
+        assert closed.status_code == 200, closed.text
+        other = await rig.api.post("/orders", json={"workpiece_id": "demo", "quantity": 5})
+        other_id = other.json()["order"]["order_id"]
+        await wait_running(rig)
+        assert (await rig.api.post(f"/orders/{other_id}/close")).status_code == 200
+    async with open_rig(tmp_path, robot_speed_factor=1, wait_idle=False) as rig:
+        await rig.wait_state("ERROR")
+        order = await order_of(rig, other_id)
+        assert order["state"] == "closed" and order["parts_made"] == 1, order
+
+
 async def test_gluectl_order_start_show_list_report_close_resume(tmp_path) -> None:
     from tests.integration.test_gluectl import gluectl_process
 
