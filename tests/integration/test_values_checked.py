@@ -197,10 +197,3 @@ async def test_a_filter_of_a_closed_set_refuses_a_value_outside_it(
     """A typo matched no row and answered an empty page, as if nothing had failed."""
     assert _fields(await api.get(path, params={parameter: wrong})) == [f"query.{parameter}"]
     assert (await api.get(path, params={parameter: right})).status_code == 200
-
-
-def test_the_operation_kinds_a_filter_takes_are_the_cells_operations() -> None:
-    from server.core.transitions import OPERATION_OF_STATE
-    from server.storage.journal.schema import OPERATION_KINDS
-
-    assert set(OPERATION_KINDS) == set(OPERATION_OF_STATE.values())
