@@ -62,16 +62,23 @@ async function send(method, path, body, label) {
   } catch (error) {
     if (!(error instanceof AuthError)) showMessage("error", `${label}: ${error.message}`);
   } finally {
+    await refreshOrders(); // the card shows the new order before Start is offered again
     sending = false;
     $("order-start").disabled = false;
   }
-  await refreshOrders();  // close and resume as the order now allows
 }
 
 function startOrder(event) {
   event.preventDefault();
+  if (sending) return;
   const workpiece_id = $("order-workpiece").value.trim();
   const quantity = Number($("order-quantity").value);
+  // With an order active a new one is queued behind it: asked first, so that a second
+  // tap a moment after the first (the answer takes milliseconds) does not make one.
+  const active = hmi.order && ["running", "held", "queued"].includes(hmi.order.state);
+  const queue = `Order ${hmi.order?.order_id} is ${hmi.order?.state}. Queue another order ` +
+    `of ${quantity} × ${workpiece_id} behind it?`;
+  if (active && !window.confirm(queue)) return;
   send("POST", "/orders", { workpiece_id, quantity }, "order");
 }
 

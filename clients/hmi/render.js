@@ -14,6 +14,7 @@ export function applyIfNewer(view) {
 export function applyState(view) {
   hmi.view = view;
   if (!view.stop_reason) clearMessage("reset");
+  if (view.state === "ERROR") clearMessage("stopped");
   hmi.enteredAtMs = performance.now() - (view.time_in_state || 0) * 1000;
   renderState();
   renderCommands();
@@ -29,7 +30,7 @@ export function setLive(live, text) {
   $("app").dataset.live = String(live);
   if (live) {
     $("banner").hidden = true;
-    clearMessage("live");
+    stopNotDelivered();
   }
   renderCommands();
 }
@@ -103,15 +104,34 @@ export function showAnswer(status, text) {
   showMessage(kind, `${status}: ${text}`);
 }
 
-/** Show one message. `clears`: what ends it before the next one does: "reset" (a fault
- * or alert: gone once the cell has no stop reason), "live" (the server unreachable: gone
- * once the page is live again); a red fault stayed on screen after the reset. */
+/** Show one message. `clears`: what ends it before the next one does: "reset" (a fault:
+ * gone once the cell has no stop reason; it stayed on screen after the reset), "live" (a
+ * STOP that could not reach the server: see stopNotDelivered), "stopped" (gone once the
+ * cell is in ERROR). */
 export function showMessage(kind, text, clears = "") {
   const box = $("message");
   box.hidden = false;
   box.dataset.kind = kind;
   box.dataset.clears = clears;
   box.textContent = `${clockTime(Date.now() / 1000)}  ${text}`;
+}
+
+/** Live again after a STOP that could not be sent: that stop was never made. Unless the
+ * cell stopped anyway, say so with the state it is in, until it stops. */
+function stopNotDelivered() {
+  if ($("message").dataset.clears !== "live") return;
+  const state = hmi.view?.state;
+  if (state === "ERROR") {
+    clearMessage("live");
+    return;
+  }
+  const now = state ? state.replaceAll("_", " ") : "unknown";
+  showMessage(
+    "error",
+    `a STOP pressed while the server was unreachable was not made; the cell is ${now}: ` +
+      "press STOP again, or use the e-stop",
+    "stopped",
+  );
 }
 
 /** Hide the message if it is one that `condition` ends (any, without a condition). */

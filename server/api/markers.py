@@ -205,7 +205,7 @@ def _refused(request: Request, errors: list[LayoutProblem]) -> JSONResponse:
 async def apply_markers(request: Request) -> dict[str, Any] | JSONResponse:
     """Put the draft in force as marker_positions_mm, once all nine pass the layout check.
 
-    409 naming each marker still missing, or the marker the check refuses (outside
+    409 naming each marker still missing, or each marker the check refuses (outside
     the workspace, overlapping, degenerate), as `errors[].field` `markers.N`;
     nothing changes then. Refused while a robot calibration runs (409). Audited
     with the old and new layout; kept in the data directory, so a restart keeps

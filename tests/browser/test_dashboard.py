@@ -337,6 +337,35 @@ async def test_the_state_card_names_the_live_run_and_a_reset_clears_the_fault_me
     assert problems == []
 
 
+async def test_a_stop_that_could_not_be_sent_is_not_forgotten_when_the_page_is_live_again(
+    dashboard: Dashboard, browser: Browser
+) -> None:
+    """The "could not reach the server" message went with the reconnection, though that
+    stop was never made; now the page says so, with the state the cell is in."""
+    page, problems = await open_page(browser, dashboard, PANEL)
+    page.on("dialog", lambda dialog: asyncio.ensure_future(dialog.accept()))
+    await log_in(page, dashboard.token)
+    await expect_state(page, "IDLE")
+    hub = dashboard.app.state.ws_hub
+    limit, hub.max_clients = hub.max_clients, 0
+    assert dashboard.drop_websockets_server_side() == 1
+    await expect(page.locator("#banner")).to_be_visible()
+    await page.route("**/estop", lambda route: route.abort())  # the server out of reach
+    await page.click("#estop")
+    message = page.locator("#message")
+    await expect(message).to_contain_text("STOP could not reach the server")
+    await page.unroute("**/estop")
+    hub.max_clients = limit
+    await expect_live(page, timeout=15_000)
+    await expect(message).to_contain_text("a STOP pressed while the server was unreachable")
+    await expect(message).to_contain_text("the cell is IDLE")
+    assert (await dashboard.rig.api.post("/estop")).status_code == 202
+    await expect_state(page, "ERROR")
+    await expect(message).not_to_contain_text("was not made")
+    problems[:] = [p for p in problems if "ERR_FAILED" not in p and "estop" not in p]
+    assert problems == []
+
+
 async def test_the_devices_card_is_live_and_does_not_poll(
     dashboard: Dashboard, browser: Browser
 ) -> None:

@@ -4,6 +4,9 @@ resume it from the card, and close it."""
 
 from __future__ import annotations
 
+import asyncio
+from typing import Any
+
 from playwright.async_api import Browser, expect
 
 from tests.browser.test_dashboard import (  # noqa: F401 - the fixture is used by name
@@ -65,15 +68,29 @@ async def test_a_double_tap_on_start_order_makes_one_order(
     dashboard: Dashboard,  # noqa: F811 - the fixture imported above
     browser: Browser,
 ) -> None:
-    """Two orders were made, and the second ran after the first: twice the parts."""
+    """Two orders were made, and the second ran after the first: twice the parts. A tap
+    while the request is out is ignored; a tap once an order is active asks first."""
     page, problems = await open_page(browser, dashboard, PANEL)
+    asked: list[str] = []
+
+    async def decline(dialog: Any) -> None:
+        asked.append(dialog.message)
+        await dialog.dismiss()
+
+    page.on("dialog", decline)
     await log_in(page, dashboard.token)
     await expect_state(page, "IDLE")
     await page.fill("#order-quantity", "1")
-    await page.dblclick("#order-start")
+    await page.dblclick("#order-start")  # both taps while the first is on its way
     await expect(page.locator("#message")).to_contain_text("order: 201")
+    await page.wait_for_timeout(200)  # a slower double tap: the first answered by now
+    await page.click("#order-start")
+    async with asyncio.timeout(10):
+        while not asked:
+            await asyncio.sleep(0.05)
     orders = (await dashboard.rig.api.get("/orders")).json()["orders"]
     assert len(orders) == 1, orders
+    assert asked and "Queue another order" in asked[0], asked
     closed = await dashboard.rig.api.post(f"/orders/{orders[0]['order_id']}/close")
     assert closed.status_code == 200, closed.text
     assert not problems, problems
