@@ -91,8 +91,7 @@ async def revoke_token(request: Request, token_id: str) -> Response:
     except KeyError:
         raise HTTPException(404, f"no token {token_id!r}") from None
     async with access.revoking:  # two revocations at once cannot both pass the check below
-        if access.tokens.is_last_admin(token_id):
-            request.state.audit_reason = last_admin_refusal(entry)
+        if access.tokens.is_last_admin(token_id):  # its audit row says why (app.py)
             raise HTTPException(409, last_admin_refusal(entry))
         what = f"revoked token {entry.id} ({entry.name})"
         await audit.record_before_change(request, what)

@@ -266,9 +266,11 @@ class OrderBook:
         (`Preconditions`), with its event id, on record like every refusal.
         """
         order = self.active
-        if order is None or payload.order_id is not None:
-            return payload
-        if payload.workpiece_id not in (None, order.workpiece_id):  # not this order's part
+        if (
+            order is None
+            or payload.order_id is not None  # the order's own start
+            or payload.workpiece_id not in (None, order.workpiece_id)  # not this order's part
+        ):
             return payload
         return StartPayload(payload.contour_matching, order.workpiece_id, order.order_id)
 
