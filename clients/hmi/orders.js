@@ -8,6 +8,11 @@ import { $, element, facts } from "./dom.js";
 import { showMessage } from "./render.js";
 import { hmi } from "./store.js";
 
+/** Running, held or queued: an order the cell still works through or will. */
+function isActive(order) {
+  return Boolean(order) && ["running", "held", "queued"].includes(order.state);
+}
+
 /** The active order, or the newest one, as the card shows it. */
 export async function refreshOrders() {
   const card = document.querySelector(".card-order");
@@ -41,8 +46,7 @@ function renderOrders(listing) {
     body.replaceChildren(...children);
     body.dataset.orderId = shown.order_id;
   }
-  const active = shown && ["running", "held", "queued"].includes(shown.state);
-  $("order-close").disabled = !active;
+  $("order-close").disabled = !isActive(shown);
   $("order-resume").disabled = shown?.state !== "held";
 }
 
@@ -75,10 +79,9 @@ function startOrder(event) {
   const quantity = Number($("order-quantity").value);
   // With an order active a new one is queued behind it: asked first, so that a second
   // tap a moment after the first (the answer takes milliseconds) does not make one.
-  const active = hmi.order && ["running", "held", "queued"].includes(hmi.order.state);
   const queue = `Order ${hmi.order?.order_id} is ${hmi.order?.state}. Queue another order ` +
     `of ${quantity} × ${workpiece_id} behind it?`;
-  if (active && !window.confirm(queue)) return;
+  if (isActive(hmi.order) && !window.confirm(queue)) return;
   send("POST", "/orders", { workpiece_id, quantity }, "order");
 }
 
