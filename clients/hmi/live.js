@@ -10,7 +10,6 @@ import { applyDeviceSample, refreshLibrary, refreshPanels } from "./panels.js";
 import {
   applyIfNewer,
   applyState,
-  renderOperation,
   renderProgress,
   setLive,
   showBanner,
@@ -160,6 +159,11 @@ function onStateChanged(message) {
     hmi.progress.ended = ENDINGS[event] || event.toLowerCase();
   }
   applyState(message.snapshot);
+  if (isOperational(to) && !message.snapshot.operation) {
+    // The snapshot that enters a run's state is taken before the run starts, so it names
+    // none (the state card showed no run until the page was reloaded): ask once it has.
+    getJson("/state").then(applyIfNewer).catch(() => {});
+  }
   refreshPanels(true); // link figures and faults; `device` messages carry the readings
   setTimeout(refreshPanels, 1000); // KPIs and history settle a moment after a transition
   if (from === "CALIBRATING_ROBOT" || from === "CALIBRATING_CAMERA") refreshCalibration();
@@ -180,7 +184,6 @@ function onProgress(message) {
     startProgress(message.operation, message.run_id);
   }
   updateProgress(message);
-  renderOperation();
   // A new run, or this run not planned yet when last asked (its plan comes after its
   // first progress messages): ask again.
   const shown = hmi.trajectory;

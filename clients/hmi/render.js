@@ -2,7 +2,7 @@
  * bar: drawn from `hmi` (store.js), never from anything the page guessed. */
 
 import { $, clockTime, duration } from "./dom.js";
-import { hmi, isOperational, STATE_TONE } from "./store.js";
+import { hmi, STATE_TONE } from "./store.js";
 
 // --- state ------------------------------------------------------------------
 
@@ -50,21 +50,10 @@ function renderState() {
   $("state-previous").textContent = view.previous_state
     ? `from ${view.previous_state.replaceAll("_", " ")}`
     : "";
-  renderOperation();
+  const op = view.operation;
+  $("state-operation").textContent = op ? `operation ${op.name} · run ${op.run_id}` : "";
   renderFault(view);
   tick();
-}
-
-/** The run the state belongs to. The snapshot that enters a run's state is taken before
- * the run starts, so it names none: the run's own progress names it until the next
- * snapshot does (the line stayed empty for a whole run unless the page was reloaded). */
-export function renderOperation() {
-  const view = hmi.view;
-  if (!view) return;
-  const progress = hmi.progress;
-  const running = isOperational(view.state) && progress && !progress.ended && progress.run_id;
-  const op = view.operation || (running ? { name: progress.operation, run_id: progress.run_id } : null);
-  $("state-operation").textContent = op ? `operation ${op.name} · run ${op.run_id}` : "";
 }
 
 function renderFault(view) {
