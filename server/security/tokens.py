@@ -22,7 +22,7 @@ import re
 import secrets
 import threading
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from enum import IntEnum
 from pathlib import Path
 from typing import Any
@@ -71,10 +71,13 @@ class Principal:
 
 @dataclass
 class TokenEntry:
+    """One stored token. Its `secret_sha256` is out of the repr: it is the key a signed
+    MQTT command is checked with, so it is as secret as the token (docs/security.md)."""
+
     id: str
     name: str
     role: str
-    secret_sha256: str
+    secret_sha256: str = field(repr=False)
     created_at: float
     revoked_at: float | None = None
 
