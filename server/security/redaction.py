@@ -49,7 +49,8 @@ _ASSIGNED = re.compile(
     r"(?i)(\b(?:access_token|token|ticket|password|passwd|secret|api_key|sig|signature)"
     r"[\"']?\s*[:=]\s*)([\"'])((?:\\.|(?!\2).)*)\2",
 )
-_AUTHORIZATION = re.compile(r"(?i)\b(bearer|basic)(\s+)[A-Za-z0-9._~+/=\-]+")
+# A credential after its scheme; at least 12 characters, so "a bearer token" stays prose.
+_AUTHORIZATION = re.compile(r"(?i)\b(bearer|basic)(\s+)[A-Za-z0-9._~+/=\-]{12,}")
 _USERINFO = re.compile(r"(?i)\b([a-z][a-z0-9+.\-]*://)[^/\s@:\"'<>]*:[^/\s@\"'<>]*@")
 
 
