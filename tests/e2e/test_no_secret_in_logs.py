@@ -19,6 +19,7 @@ import asyncio
 import hashlib
 import http.server
 import json
+import re
 import secrets
 import threading
 import uuid
@@ -181,7 +182,7 @@ async def test_no_secret_reaches_any_log_through_any_transport(tmp_path: Path) -
         "the webhook URL's query": hook_query,
     }
     leaks = [
-        f"{what} in {path.name}: {_line_with(text, value)}"
+        f"{what} in {path.name}, from {_loggers_with(text, value)}: {_line_with(text, value)}"
         for what, value in secret_values.items()
         for path, text in written.items()
         if value in text
@@ -208,6 +209,12 @@ def _server_logs(data: Path) -> list[Path]:
     files |= {p for p in data.rglob("*.log*") if p.is_file()}
     assert files, f"the server wrote no log under {data}"
     return sorted(files)
+
+
+def _loggers_with(text: str, value: str) -> list[str]:
+    """The loggers whose lines carry `value` (the line's `[LEVEL] name:`)."""
+    found = {re.search(r"\] ([\w.]+): ", line) for line in text.splitlines() if value in line}
+    return sorted({match.group(1) for match in found if match} or {"?"})
 
 
 def _line_with(text: str, value: str) -> str:
