@@ -39,7 +39,7 @@ async def test_a_run_in_order_and_the_state_for_a_late_subscriber(tmp_path: Path
         async with (
             # Every waypoint (plant_progress_interval 0), to check them all in order.
             open_rig(
-                tmp_path / "data", mqtt_url=broker.url, cell_id=CELL, plant_progress_interval=0
+                tmp_path / "data", **broker.cell_login, cell_id=CELL, plant_progress_interval=0
             ) as rig,
             subscriber(broker.port, f"{BASE}/#") as early,
         ):
@@ -104,7 +104,7 @@ async def test_a_runs_progress_is_thinned_and_ends_with_its_final_waypoint(
     with mosquitto(tmp_path / "broker") as broker:
         async with (
             open_rig(
-                tmp_path / "data", mqtt_url=broker.url, cell_id=CELL, plant_progress_interval=10
+                tmp_path / "data", **broker.cell_login, cell_id=CELL, plant_progress_interval=10
             ) as rig,
             subscriber(broker.port, f"{BASE}/#") as plant,
         ):
@@ -139,7 +139,7 @@ async def test_what_happened_while_the_broker_was_away(tmp_path: Path, caplog) -
         async with (
             open_rig(
                 tmp_path / "data",
-                mqtt_url=broker.url,
+                **broker.cell_login,
                 cell_id=CELL,
                 mqtt_buffer=buffer,
                 mqtt_reconnect_max=0.5,
@@ -225,7 +225,7 @@ async def test_commands_need_a_valid_token_and_the_role(tmp_path: Path) -> None:
     with mosquitto(tmp_path / "broker") as broker:
         async with (
             open_rig(
-                tmp_path / "data", mqtt_url=broker.url, cell_id=CELL, mqtt_commands=True
+                tmp_path / "data", **broker.cell_login, cell_id=CELL, mqtt_commands=True
             ) as rig,
             aiomqtt.Client(
                 "127.0.0.1", broker.port, protocol=aiomqtt.ProtocolVersion.V5
@@ -302,7 +302,7 @@ async def test_offline_when_stopped_and_when_killed(tmp_path: Path) -> None:
         "GLUE_APP_MQTT_KEEPALIVE": "1",
     }
     with mosquitto(tmp_path / "broker") as broker:
-        env["GLUE_APP_MQTT_URL"] = broker.url
+        env.update(broker.cell_environment)
         data = tmp_path / "data"
         data.mkdir()
         async with subscriber(broker.port, f"{BASE}/status") as plant:
@@ -354,7 +354,7 @@ async def test_the_stop_is_answered_before_the_link_publishes_it(
     monkeypatch.setattr(MqttLink, "_put_state", noting_put)
     with mosquitto(tmp_path / "broker") as broker:
         async with (
-            open_rig(tmp_path / "data", mqtt_url=broker.url, cell_id=CELL) as rig,
+            open_rig(tmp_path / "data", **broker.cell_login, cell_id=CELL) as rig,
             subscriber(broker.port, f"{BASE}/#") as plant,
         ):
             await rig.start_spraying()
