@@ -145,6 +145,24 @@ class AsyncMqttCommands:
         """A command as the HTTP clients build it (builders.start(...) and the like)."""
         return await self.command(call.path.lstrip("/"), call.json)
 
+    async def start(
+        self, workpiece_id: str | None = None, contour_matching: bool = True
+    ) -> CommandResult:
+        """Start spraying (IDLE → EXECUTING_TRAJECTORY)."""
+        return await self.send(builders.start(workpiece_id, contour_matching))
+
+    async def estop(self, reason: str | None = None) -> CommandResult:
+        """Software stop (any role)."""
+        return await self.send(builders.estop(reason))
+
+    async def jog(self, axis: str, distance_mm: float) -> CommandResult:
+        return await self.send(builders.jog(axis, distance_mm))
+
+    async def create_workpiece(
+        self, name: str | None = None, workpiece_id: str | None = None
+    ) -> CommandResult:
+        return await self.send(builders.create_workpiece(name, workpiece_id))
+
 
 def _result(payload: Any) -> CommandResult:
     """The answer on the response topic, read as the HTTP clients read an answer."""
