@@ -119,7 +119,7 @@ class AsyncMqttCommands:
         topic = f"{self.target.prefix}/{self.target.cell_id}/command/{name}"
         message = sign_command(self._token, topic, body)
         correlation = uuid.uuid4().bytes
-        properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
+        properties = Properties(PacketTypes.PUBLISH)
         properties.ResponseTopic = self._reply_to
         properties.CorrelationData = correlation
         async with self._lock:

@@ -24,8 +24,8 @@ import httpx
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
-from server.mqtt.link import BUS_TYPES
 from clients.client.mqtt_signing import sign_command
+from server.mqtt.link import BUS_TYPES
 from tests.mosquitto import WAIT_S, login_of, mosquitto, subscriber
 from tests.processes import server_process
 from tests.rig import SPRAY_DEMO, open_rig, run
