@@ -17,6 +17,7 @@ give, lets an anonymous client read what `line-view` may (the state), nothing mo
 
 from __future__ import annotations
 
+import getpass
 import shutil
 import socket
 import subprocess
@@ -80,6 +81,9 @@ def broker_config(ports: BrokerPorts, directory: Path) -> str:
     return (
         "# Written by server/line_broker.py for a line of cells on one machine.\n"
         "per_listener_settings true\n"
+        # Started as root, mosquitto would drop to its own user, who cannot read the
+        # password file (0600) in this directory; as anyone else this line is ignored.
+        f"user {getpass.getuser()}\n"
         "persistence false\n"
         "log_dest stdout\n"
         "log_type error\nlog_type warning\nlog_type notice\n"
