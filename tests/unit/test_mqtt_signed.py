@@ -140,3 +140,25 @@ def test_a_script_mistake_is_caught_when_signing() -> None:
         sign_command("hunter2", TOPIC, None)
     with pytest.raises(ValueError, match="nonce"):
         sign_command(TOKEN, TOPIC, None, nonce="x")
+
+
+def test_the_token_store_gives_the_key_the_client_signs_with(tmp_path) -> None:
+    """The client's key (the token's hex SHA-256) is what the store keeps; revoked: none."""
+    from server.security.tokens import TokenStore
+
+    store = TokenStore(tmp_path)
+    entry, token = store.create("mes", Role.OPERATOR)
+    message = sign_command(token, TOPIC, {"workpiece_id": "demo"}, now_ms=NOW)
+    checked = verify(
+        message,
+        TOPIC,
+        now_ms=NOW,
+        keys=store.mqtt_key,
+        nonces=NonceCache(),
+        max_age_ms=30_000,
+        max_skew_ms=5_000,
+    )
+    assert isinstance(checked, Verified) and checked.principal.token_id == entry.id
+    store.revoke(entry.id)
+    assert store.mqtt_key(entry.id) is None
+    assert store.mqtt_key("ffffffff") is None
