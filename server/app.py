@@ -199,7 +199,13 @@ def mqtt_link(app: FastAPI, settings: Settings, cell: Cell) -> MqttLink | None:
         return None
     door = None
     if settings.mqtt_commands:
-        door = CommandDoor(cell, app.state.access.tokens, f"mqtt:{settings.mqtt_url}")
+        door = CommandDoor(
+            cell,
+            app.state.access.tokens,
+            f"mqtt:{settings.mqtt_url}",
+            max_age_s=settings.mqtt_command_max_age,
+            max_skew_s=settings.mqtt_command_max_skew,
+        )
     link = MqttLink(
         settings,
         cell,

@@ -393,8 +393,22 @@ class Settings(BaseSettings):
     )
     mqtt_commands: bool = Field(
         False,
-        description="accept commands on <prefix>/<cell_id>/command/<name>, each with a token "
-        "(same roles as HTTP); off by default",
+        description="accept commands on <prefix>/<cell_id>/command/<name>, each signed with "
+        "a token (same roles as HTTP); off by default",
+    )
+    mqtt_command_max_age: float = Field(
+        30.0,
+        ge=1,
+        le=600,
+        description="seconds a signed MQTT command stays valid after its ts_ms; an older one "
+        "is refused as stale (and its nonce need only be remembered this long)",
+    )
+    mqtt_command_max_skew: float = Field(
+        5.0,
+        ge=0,
+        le=60,
+        description="seconds a signed MQTT command's ts_ms may be ahead of the cell's clock "
+        "(the sender's clock running fast); further ahead is refused",
     )
 
     # Notifications (webhooks; docs/plant-integration.md)

@@ -214,6 +214,23 @@ class TokenStore:
             self._entries = entries
             return revoked
 
+    def mqtt_key(self, token_id: str) -> tuple[bytes, Principal] | None:
+        """The signing key of an unrevoked token and its principal, else None.
+
+        An MQTT command is signed with the token's stored digest (the hex SHA-256 of
+        the whole token, as bytes): the sender proves it holds the token without the
+        secret crossing the broker, and nothing new is stored (server/mqtt/signed.py).
+        """
+        entry = self._entries.get(token_id)
+        if entry is None or entry.revoked_at is not None:
+            return None
+        cached = self._principals.get(entry.id)
+        if cached is not None and cached[0] is entry:
+            return entry.secret_sha256.encode("utf-8"), cached[1]
+        principal = Principal(entry.id, entry.name, Role.parse(entry.role))
+        self._principals[entry.id] = (entry, principal)
+        return entry.secret_sha256.encode("utf-8"), principal
+
     def verify(self, token: str) -> Principal | None:
         """The principal of a valid, unrevoked token, else None."""
         match = TOKEN_PATTERN.match(token)
