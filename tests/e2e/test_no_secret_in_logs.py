@@ -33,8 +33,10 @@ import httpx
 import websockets
 from asyncua import Client, ua
 
+from clients.client.mqtt_signing import sign_command
+from server.line_broker import DEMO_PASSWORDS
 from server.opcua.address_space import NAMESPACE_URI
-from tests.mosquitto import WAIT_S, mosquitto
+from tests.mosquitto import WAIT_S, login_of, mosquitto
 from tests.processes import server_process
 from tests.serving import admin_headers, free_port
 
@@ -71,15 +73,6 @@ def webhook_receiver() -> Iterator[tuple[int, list[str]]]:
         server.server_close()
 
 
-def mqtt_command(token: str, topic: str, body: dict[str, Any]) -> dict[str, Any]:
-    """The payload of an MQTT command (the one place that knows its form)."""
-    try:
-        from clients.client.mqtt_signing import sign_command  # type: ignore[import-not-found]
-    except ImportError:  # before signed commands: the token in the payload
-        return {"token": token, "body": body}
-    return sign_command(token, topic, body)  # type: ignore[no-any-return]
-
-
 async def _until(check: Any, what: str) -> Any:
     async with asyncio.timeout(WAIT_S):
         while not (found := await check()):
@@ -107,7 +100,6 @@ async def test_no_secret_reaches_any_log_through_any_transport(tmp_path: Path) -
     data = tmp_path / "data"
     stdout = tmp_path / "server-output.log"
     port, opcua_port = free_port(), free_port()
-    mqtt_password = f"broker-pw-{secrets.token_hex(12)}"
     hook_path = f"pathsecret{secrets.token_hex(12)}"
     hook_query = f"querysecret{secrets.token_hex(12)}"
     hook_key = f"hmac-key-{secrets.token_hex(16)}"
@@ -118,10 +110,8 @@ async def test_no_secret_reaches_any_log_through_any_transport(tmp_path: Path) -
             "GLUE_APP_CELL_ID": CELL,
             "GLUE_APP_SIMULATION_SPEED_FACTOR": "10",
             "GLUE_APP_OPCUA_ENDPOINT": f"opc.tcp://127.0.0.1:{opcua_port}",
-            "GLUE_APP_MQTT_URL": broker.url,
+            **broker.cell_environment,
             "GLUE_APP_MQTT_COMMANDS": "true",
-            "GLUE_APP_MQTT_USERNAME": "cell",
-            "GLUE_APP_MQTT_PASSWORD": mqtt_password,
             "GLUE_APP_WEBHOOKS": json.dumps(
                 [{"name": "mes", "url": hook_url, "events": ["fault"], "secret": hook_key}]
             ),
@@ -158,8 +148,8 @@ async def test_no_secret_reaches_any_log_through_any_transport(tmp_path: Path) -
 
                 # MQTT: a command with the plant token, answered and audited.
                 topic = f"{PREFIX}/{CELL}/command/pause"
-                async with aiomqtt.Client("127.0.0.1", broker.port) as mqtt:
-                    payload = json.dumps(mqtt_command(plant, topic, {})).encode()
+                async with aiomqtt.Client("127.0.0.1", broker.port, **login_of("operator")) as mqtt:
+                    payload = json.dumps(sign_command(plant, topic, {})).encode()
                     await mqtt.publish(topic, payload, qos=1)
                 await _until(lambda: _audited_mqtt(http, bearer), "no MQTT command was audited")
 
@@ -176,7 +166,8 @@ async def test_no_secret_reaches_any_log_through_any_transport(tmp_path: Path) -
         "the plant token's secret": plant.split("_", 2)[2],
         "the plant token's SHA-256": hashlib.sha256(plant.encode()).hexdigest(),
         "the WebSocket ticket": ticket,
-        "the broker password": mqtt_password,
+        "the cell's broker password": DEMO_PASSWORDS["cell"],
+        "an operator's broker password": DEMO_PASSWORDS["operator"],
         "the webhook's HMAC key": hook_key,
         "the webhook URL's path": hook_path,
         "the webhook URL's query": hook_query,
