@@ -10,7 +10,8 @@
 
 Global options go before the command: --url (env GLUE_CELL_URL, default
 http://127.0.0.1:8000), --token (env GLUE_CELL_TOKEN, else <data dir>/admin.token),
---data-dir (env GLUE_APP_DATA_PATH, default ./data), --json.
+--data-dir (env GLUE_APP_DATA_PATH, default ./data), --ca-file (env
+GLUE_CELL_CA_FILE: the CA an https server's certificate must chain to), --json.
 
 Exit codes, stable for scripts (the reason is printed on stderr):
 
@@ -38,6 +39,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import ssl
 import sys
 import threading
 import time
@@ -58,6 +60,7 @@ from rich.table import Table
 from rich.text import Text
 
 from clients.client import (
+    CA_FILE_ENV,
     DATA_DIR_ENV,
     DEFAULT_URL,
     TOKEN_ENV,
@@ -77,6 +80,7 @@ from clients.client import (
     normalize_state,
     normalize_url,
     resolve_token,
+    trust,
 )
 from clients.line_model import DEFAULT_PREFIX, LineModel
 from clients.line_table import line_table
@@ -144,12 +148,13 @@ class Options:
     token_source: str
     json: bool
     timeout: float
+    ca_file: Path | None = None
 
     def client(self) -> CellClient:
-        return CellClient(self.url, self.token, timeout=self.timeout)
+        return CellClient(self.url, self.token, timeout=self.timeout, ca_file=self.ca_file)
 
     def async_client(self) -> AsyncCellClient:
-        return AsyncCellClient(self.url, self.token, timeout=self.timeout)
+        return AsyncCellClient(self.url, self.token, timeout=self.timeout, ca_file=self.ca_file)
 
 
 JsonFlag = Annotated[
@@ -194,6 +199,16 @@ def main_options(
             show_default=False,
         ),
     ] = None,
+    ca_file: Annotated[
+        Path | None,
+        typer.Option(
+            "--ca-file",
+            envvar=CA_FILE_ENV,
+            help="CA certificate (PEM) an https server's certificate must chain to "
+            "(default: the public CAs).",
+            show_default=False,
+        ),
+    ] = None,
     json_output: Annotated[
         bool, typer.Option("--json", help="Machine-readable output: one JSON document.")
     ] = False,
@@ -212,6 +227,12 @@ def main_options(
         url = str(httpx.URL(normalize_url(url)))
     except httpx.InvalidURL as exc:
         raise typer.BadParameter(str(exc), param_hint="--url") from None
+    if ca_file is not None:  # read now: a wrong path is a usage error, not "unreachable"
+        try:
+            trust(ca_file)
+        except (OSError, ssl.SSLError) as exc:
+            reason = getattr(exc, "strerror", None) or str(exc)
+            raise typer.BadParameter(f"{ca_file}: {reason}", param_hint="--ca-file") from None
     resolved = resolve_token(token, data_dir=data_dir)
     where = data_dir or f"${DATA_DIR_ENV} or ./data"
     if token:
@@ -220,7 +241,7 @@ def main_options(
         source = f"from admin.token in {where}"
     else:
         source = f"none found (--token, ${TOKEN_ENV}, or admin.token in {where})"
-    ctx.obj = Options(url, resolved, source, json_output, timeout)
+    ctx.obj = Options(url, resolved, source, json_output, timeout, ca_file)
 
 
 # --- output ------------------------------------------------------------------------
