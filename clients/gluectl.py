@@ -11,12 +11,14 @@
 
 Global options go before the command: --url (env GLUE_CELL_URL, default
 http://127.0.0.1:8000), --token (env GLUE_CELL_TOKEN, else <data dir>/admin.token),
---data-dir (env GLUE_APP_DATA_PATH, default ./data), --json. With --mqtt (env
-GLUE_MQTT_URL) the commands (start, pause, resume, cancel, estop, reset, home, jog,
-calibrations, create-workpiece) go to --cell-id over the broker instead, signed with
-the token (clients/client/mqtt_commands.py), and the answer is printed as over HTTP;
---mqtt-user, --mqtt-password (env GLUE_MQTT_PASSWORD, or --mqtt-password-file),
---mqtt-ca-file and --mqtt-prefix say how to reach the broker (docs/cli.md).
+--data-dir (env GLUE_APP_DATA_PATH, default ./data), --ca-file (env
+GLUE_CELL_CA_FILE: the CA an https server's certificate must chain to), --json. With
+--mqtt (env GLUE_MQTT_URL) the commands (start, pause, resume, cancel, estop, reset,
+home, jog, calibrations, create-workpiece) go to --cell-id over the broker instead,
+signed with the token (clients/client/mqtt_commands.py), and the answer is printed as
+over HTTP; --mqtt-user, --mqtt-password (env GLUE_MQTT_PASSWORD, or
+--mqtt-password-file), --mqtt-ca-file and --mqtt-prefix say how to reach the broker
+(docs/cli.md).
 
 Exit codes, stable for scripts (the reason is printed on stderr):
 
@@ -44,6 +46,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import ssl
 import sys
 import threading
 import time
@@ -64,6 +67,7 @@ from rich.table import Table
 from rich.text import Text
 
 from clients.client import (
+    CA_FILE_ENV,
     DATA_DIR_ENV,
     DEFAULT_URL,
     TOKEN_ENV,
@@ -83,6 +87,7 @@ from clients.client import (
     normalize_state,
     normalize_url,
     resolve_token,
+    trust,
 )
 from clients.client.mqtt_commands import MqttCellClient, MqttTarget
 from clients.line_model import DEFAULT_PREFIX, LineModel
@@ -152,9 +157,10 @@ class Options:
     json: bool
     timeout: float
     mqtt: MqttTarget | None = None  # commands go over this broker instead of HTTP
+    ca_file: Path | None = None
 
     def client(self) -> CellClient:
-        return CellClient(self.url, self.token, timeout=self.timeout)
+        return CellClient(self.url, self.token, timeout=self.timeout, ca_file=self.ca_file)
 
     def command_client(self) -> CellClient | MqttCellClient:
         """Where commands go: the broker with --mqtt, else the HTTP API."""
@@ -163,7 +169,7 @@ class Options:
         return self.client()
 
     def async_client(self) -> AsyncCellClient:
-        return AsyncCellClient(self.url, self.token, timeout=self.timeout)
+        return AsyncCellClient(self.url, self.token, timeout=self.timeout, ca_file=self.ca_file)
 
 
 JsonFlag = Annotated[
@@ -205,6 +211,16 @@ def main_options(
         typer.Option(
             "--data-dir",
             help=f"Where to find admin.token (default: ${DATA_DIR_ENV}, else ./data).",
+            show_default=False,
+        ),
+    ] = None,
+    ca_file: Annotated[
+        Path | None,
+        typer.Option(
+            "--ca-file",
+            envvar=CA_FILE_ENV,
+            help="CA certificate (PEM) an https server's certificate must chain to "
+            "(default: the public CAs).",
             show_default=False,
         ),
     ] = None,
@@ -268,6 +284,12 @@ def main_options(
         url = str(httpx.URL(normalize_url(url)))
     except httpx.InvalidURL as exc:
         raise typer.BadParameter(str(exc), param_hint="--url") from None
+    if ca_file is not None:  # read now: a wrong path is a usage error, not "unreachable"
+        try:
+            trust(ca_file)
+        except (OSError, ssl.SSLError) as exc:
+            reason = getattr(exc, "strerror", None) or str(exc)
+            raise typer.BadParameter(f"{ca_file}: {reason}", param_hint="--ca-file") from None
     resolved = resolve_token(token, data_dir=data_dir)
     where = data_dir or f"${DATA_DIR_ENV} or ./data"
     if token:
@@ -281,7 +303,7 @@ def main_options(
         target = _mqtt_target(
             mqtt, cell_id, mqtt_user, mqtt_password, mqtt_password_file, mqtt_ca_file, mqtt_prefix
         )
-    ctx.obj = Options(url, resolved, source, json_output, timeout, target)
+    ctx.obj = Options(url, resolved, source, json_output, timeout, target, ca_file)
 
 
 def _mqtt_target(

@@ -300,6 +300,18 @@ class Settings(BaseSettings):
         1024 * 1024, ge=1024, le=64 * 1024 * 1024, description="largest request body, bytes"
     )
 
+    # HTTPS: off unless both files are set (docs/security.md, "TLS")
+    tls_cert_file: Path | None = Field(
+        None,
+        description="the server's certificate (PEM, its chain after it): with tls_key_file, "
+        "the HTTP port serves https and wss only (TLS 1.2 or later)",
+    )
+    tls_key_file: Path | None = Field(
+        None,
+        description="the private key (PEM, not encrypted) of tls_cert_file; readable by the "
+        "server's user only",
+    )
+
     # The plant's interfaces (docs/plant-integration.md)
     cell_id: str = Field(
         default_factory=lambda: default_cell_id(),
@@ -841,6 +853,16 @@ class Settings(BaseSettings):
         if len(value) != 9:
             raise ValueError("marker_positions_mm needs the robot positions of markers 0-8 (nine)")
         return value
+
+    @model_validator(mode="after")
+    def _tls_pair(self) -> Settings:
+        """A certificate without its key (or the reverse) cannot serve https, and serving
+        plain http instead would send the tokens in clear that the setting was meant to
+        protect: refused at load. The files themselves are read at start (server/tls.py)."""
+        if (self.tls_cert_file is None) != (self.tls_key_file is None):
+            missing = "tls_key_file" if self.tls_key_file is None else "tls_cert_file"
+            raise ValueError(f"tls_cert_file and tls_key_file go together: {missing} is not set")
+        return self
 
     @model_validator(mode="after")
     def _workspace_ordered(self) -> Settings:
