@@ -138,6 +138,7 @@ def test_the_tls_overlay_serves_https_with_the_certificate_and_key_as_secrets(
         ROOT / "docker-compose.tls.yml",
         GLUE_TLS_CERT=str(cert),
         GLUE_TLS_KEY=str(key),
+        GLUE_MQTT_CELL_PASSWORD=DEMO_PASSWORDS["cell"],
     )
     server = tls["services"]["server"]
     assert server["environment"]["GLUE_APP_TLS_CERT_FILE"] == "/run/secrets/cell_tls_cert"
