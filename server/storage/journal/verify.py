@@ -34,7 +34,7 @@ from server.storage.journal.commit_chain import (
     head_of,
     rows_json,
 )
-from server.storage.journal.schema import COMMIT_SEQ, SEALED, TABLES
+from server.storage.journal.schema import COMMIT_SEQ, SEALED, TABLES, sealed_form
 
 WINDOW = 10_000  # the newest commits whose rows start-up digests again
 
@@ -265,7 +265,7 @@ def _rows_from(
             if seq > last:
                 beyond[table] = beyond.get(table, 0) + 1
             else:  # the row as the writer read it back: a tuple of TABLES' columns
-                found.setdefault(int(seq), Appended()).add(table, row[1:])
+                found.setdefault(int(seq), Appended()).add(table, sealed_form(table, row[1:]))
     return found, beyond
 
 
