@@ -137,9 +137,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     # The e-stop's devices commanded as soon as the gate lets it through (before routing).
     app.add_middleware(StopLane, stop_paths=commands.STOP_PATHS)
     # Every HTTP request, before routing: the policy in server/security/policy.py.
-    app.add_middleware(
-        access.AccessGate, access=app.state.access, stop_paths=commands.STOP_PATHS
-    )
+    app.add_middleware(access.AccessGate, access=app.state.access, stop_paths=commands.STOP_PATHS)
     # The commands being answered: the plant's interfaces hold their work until none is.
     app.state.answers = AnswersInFlight()
     # Identical refusals within audit_repeat_window: one audit row with a count.

@@ -58,9 +58,7 @@ def _answer(status: str, detail: str, *headers: str) -> bytes:
 REQUEST_TIMEOUT = _answer(
     "408 Request Timeout", "the request's headers did not arrive in time (http_header_timeout)"
 )
-BUSY = _answer(
-    "503 Service Unavailable", "too many connections busy: try again", "retry-after: 1"
-)
+BUSY = _answer("503 Service Unavailable", "too many connections busy: try again", "retry-after: 1")
 
 
 @dataclass(frozen=True, slots=True)
@@ -241,6 +239,4 @@ class GuardedHttpProtocol(HttpToolsProtocol):
 
 def guarded_http_protocol(limits: ConnectionLimits) -> type[asyncio.Protocol]:
     """The protocol class for one server (its own registry): uvicorn's `http` option."""
-    return type(
-        "GuardedHttpProtocol", (GuardedHttpProtocol,), {"registry": _Registry(limits)}
-    )
+    return type("GuardedHttpProtocol", (GuardedHttpProtocol,), {"registry": _Registry(limits)})

@@ -159,12 +159,10 @@ async def test_slow_clients_are_closed_once_the_header_timeout_passes(fast_setti
     settings = fast_settings.model_copy(update={"http_header_timeout": 1.0})
     async with served(settings) as url:
         stop = asyncio.Event()
-        slow = [
-            asyncio.create_task(dribble(ATTACKER, port_of(url), 0.3, stop)) for _ in range(30)
-        ]
+        slow = [asyncio.create_task(dribble(ATTACKER, port_of(url), 0.3, stop)) for _ in range(30)]
         try:
             # Closed by the server: well within 30 × the timeout (it was never, before).
-            done, pending = await asyncio.wait(slow, timeout=30)
+            _, pending = await asyncio.wait(slow, timeout=30)
             assert not pending, f"{len(pending)} of 30 slow clients still open"
         finally:
             stop.set()

@@ -213,6 +213,17 @@ def add_commit_seq(connection: sqlite3.Connection) -> None:
                 connection.execute(f"ALTER TABLE {table} ADD COLUMN {name} {declaration}")
 
 
+def stored_columns(connection: sqlite3.Connection, table: str) -> str:
+    """TABLES' columns of `table` for a SELECT, a LATER_COLUMNS one the file does not have
+    yet as its default (the journal is verified before it is opened and given it)."""
+    have = {row[1] for row in connection.execute(f"PRAGMA table_info({table})")}
+    defaults = {name: default for name, _, default in LATER_COLUMNS.get(table, ())}
+    return ", ".join(
+        name if name in have or name not in defaults else f"{defaults[name]!r} AS {name}"
+        for name in TABLES[table][1]
+    )
+
+
 def sealed_form(table: str, row: tuple[Any, ...]) -> tuple[Any, ...]:
     """A row (TABLES' columns) as the commit chain digests it: a LATER_COLUMNS column that
     ends the row and holds its default is left out, as the row was before the column was."""
