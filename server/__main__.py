@@ -12,6 +12,7 @@ from typing import Any
 import uvicorn
 
 from server import backup_cli, tls
+from server.api.connection_guard import ConnectionLimits, guarded_http_protocol
 from server.app import create_app
 from server.config import Settings
 from server.errors import ConfigurationError
@@ -124,6 +125,10 @@ def uvicorn_options(settings: Settings) -> dict[str, Any]:
         "ws_ping_interval": settings.ws_ping_interval,
         "ws_ping_timeout": settings.ws_ping_interval,
         "timeout_graceful_shutdown": 5,
+        # uvicorn has no header timeout and no bound on connections: its HTTP protocol
+        # with both (server/api/connection_guard.py), and idle keep-alives closed.
+        "http": guarded_http_protocol(ConnectionLimits.of(settings)),
+        "timeout_keep_alive": settings.http_keepalive_timeout,
         # uvicorn would otherwise replace a loopback peer's address with whatever its
         # X-Forwarded-For says, before the app sees it. The app reads forwarded
         # addresses itself, from trusted_proxies only (server/security/forwarded.py).

@@ -39,6 +39,7 @@ from server.api import (
     ws,
 )
 from server.api.answers_in_flight import AnswersInFlight
+from server.api.audit_repeats import AuditRepeats
 from server.api.dashboard import mount_dashboard
 from server.api.limits import BodySizeLimit
 from server.api.observe import ResponseObservers
@@ -86,6 +87,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
                 await opcua.stop()
             await app.state.metrics.detach()
             await app.state.camera_preview.close()
+            app.state.audit_repeats.close()  # the counts folded so far, before the journal closes
             await cell.stop()
 
     app = FastAPI(
@@ -135,14 +137,18 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     # The e-stop's devices commanded as soon as the gate lets it through (before routing).
     app.add_middleware(StopLane, stop_paths=commands.STOP_PATHS)
     # Every HTTP request, before routing: the policy in server/security/policy.py.
-    app.add_middleware(access.AccessGate, access=app.state.access)
+    app.add_middleware(access.AccessGate, access=app.state.access, stop_paths=commands.STOP_PATHS)
     # The commands being answered: the plant's interfaces hold their work until none is.
     app.state.answers = AnswersInFlight()
+    # Identical refusals within audit_repeat_window: one audit row with a count.
+    app.state.audit_repeats = AuditRepeats(settings.audit_repeat_window, lambda: cell.journal)
     app.add_middleware(
         ResponseObservers,
         answers=app.state.answers,
         observers=[
-            audit.audit_observer(lambda scope: scope["app"].state.cell.journal),
+            audit.audit_observer(
+                lambda scope: scope["app"].state.cell.journal, app.state.audit_repeats
+            ),
             app.state.metrics.observe_response,
         ],
     )

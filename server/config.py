@@ -312,6 +312,52 @@ class Settings(BaseSettings):
         "server's user only",
     )
 
+    # Guessing and slow clients (docs/security.md, "Guessing and slow clients")
+    auth_failure_limit: int = Field(
+        20,
+        ge=1,
+        le=10_000,
+        description="bad tokens or tickets from one address within auth_failure_window "
+        "that lock it out (429 with Retry-After; never the e-stop)",
+    )
+    auth_failure_window: float = Field(
+        60.0, ge=1, le=86_400, description="seconds over which auth_failure_limit is counted"
+    )
+    auth_lockout_s: float = Field(
+        60.0, ge=1, le=86_400, description="seconds a locked-out address is answered 429"
+    )
+    audit_repeat_window: float = Field(
+        60.0,
+        ge=1,
+        le=3600,
+        description="seconds within which identical refusals (same who, address, action, "
+        "outcome and reason) are one audit row with a count",
+    )
+    http_header_timeout: float = Field(
+        10.0,
+        ge=0.5,
+        le=300,
+        description="seconds a connection has to send a request's headers (from its first "
+        "byte, or from connecting); then it is closed",
+    )
+    http_keepalive_timeout: float = Field(
+        5.0, ge=0.5, le=3600, description="seconds an idle keep-alive connection stays open"
+    )
+    http_max_connections: int = Field(
+        512,
+        ge=16,
+        le=100_000,
+        description="open HTTP and WebSocket connections in all; at the limit the oldest one "
+        "still waiting for its headers is closed for a new one",
+    )
+    http_max_connections_per_address: int = Field(
+        64,
+        ge=1,
+        le=100_000,
+        description="open HTTP connections from one address (not a trusted proxy), used up "
+        "to http_max_connections",
+    )
+
     # The plant's interfaces (docs/plant-integration.md)
     cell_id: str = Field(
         default_factory=lambda: default_cell_id(),
