@@ -14,6 +14,13 @@ a refusal is a Bad status (BadUserAccessDenied for a missing token or role,
 BadInvalidState where HTTP says 409, BadInvalidArgument for 422,
 BadResourceUnavailable for 503) with the same output arguments, so the cell's
 message comes back with it.
+
+The inputs are checked by the HTTP route's own request model and turned into the
+worker's payload by the same function (server/api/commands.py: `payload_of`, which
+MQTT calls too): a part id HTTP refuses with 422 is refused here with
+BadInvalidArgument, the 422's detail as the message and the audit row's detail.
+A Call request too large to be a method's (server/opcua/protection.py) never
+reaches a method: BadRequestTooLarge, as HTTP answers 413.
 """
 
 from __future__ import annotations
@@ -26,8 +33,9 @@ from typing import Any, Final
 
 from asyncua import Node, Server, ua
 
+from server.api.commands import Problem, invalid_request, payload_of
 from server.cell import Cell
-from server.core.events import AuditNote, Outcome, Payload, StartPayload, StopPayload
+from server.core.events import AuditNote, Outcome
 from server.core.transitions import Command, Event
 from server.errors import EventQueueFull, JournalUnavailable, WorkerStopped
 from server.opcua.address_space import node_id_of
@@ -125,17 +133,29 @@ def peer_of(server: Server, user: CellUser | None) -> str:
     return "unknown"
 
 
-def _payload(method: Method, args: tuple[Any, ...]) -> Payload | None:
+def body_of(method: Method, args: tuple[Any, ...]) -> tuple[Any, list[Problem]]:
+    """The HTTP request body a method's input arguments stand for, for the route's model.
+
+    Start's WorkpieceId is `{"contour_matching": false, "workpiece_id": ...}` (empty or
+    null: `{}`, find the part on the table), its value passed as the client sent it: a
+    number or an array where the string belongs is refused by the model, naming
+    `workpiece_id`, as HTTP refuses it. More arguments than the method declares are a
+    problem too (HTTP refuses a field it does not know). The other methods take none.
+    """
+    declared = INPUTS.get(method.name, ())
+    values = [arg.Value if isinstance(arg, ua.Variant) else arg for arg in args]
+    if declared and len(values) > len(declared):
+        names = ", ".join(name for name, _ in declared)
+        message = (
+            f"{method.name} takes {len(declared)} input argument(s) ({names}), got {len(values)}"
+        )
+        return None, [{"field": "arguments", "message": message, "type": "too_many_arguments"}]
     if method.command is Command.START:
-        # asyncua hands the input arguments over as Variants.
-        first = args[0].Value if args and isinstance(args[0], ua.Variant) else None
-        workpiece = str(first) if first else None
-        if workpiece:
-            return StartPayload(contour_matching=False, workpiece_id=workpiece)
-        return StartPayload()
-    if method.command is Command.ESTOP:
-        return StopPayload(None)
-    return None
+        workpiece = values[0] if values else None
+        if workpiece is None or workpiece == "":
+            return {}, []
+        return {"contour_matching": False, "workpiece_id": workpiece}, []
+    return None, []
 
 
 class CellMethods:
@@ -195,13 +215,19 @@ class CellMethods:
         if needed is not None and principal.role < needed:
             why = f"this needs the {needed.label} role; {principal.name} has {principal.role.label}"
             return self._refuse(principal.describe(), address, action, why)
+        # The route's own model checks the inputs, as over HTTP and MQTT: the same
+        # refusal (the 422's detail as the message), audited alike, nothing sent.
+        body, problems = body_of(method, args)
+        payload, problems = payload_of(method.command, body) if not problems else (None, problems)
+        if problems:
+            why = invalid_request(problems)
+            return self._refuse(
+                principal.describe(), address, action, why, ua.StatusCodes.BadInvalidArgument
+            )
         note = AuditNote(principal.describe(), address, action, _label)
         try:
             outcome = await self.cell.command(
-                method.command,
-                source=f"opcua:{address}",
-                payload=_payload(method, args),
-                audit=note,
+                method.command, source=f"opcua:{address}", payload=payload, audit=note
             )
         except (EventQueueFull, WorkerStopped, JournalUnavailable) as exc:
             return self._refuse(
