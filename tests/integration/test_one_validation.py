@@ -224,3 +224,33 @@ async def _until_mqtt_linked(rig: Rig) -> None:
     async with asyncio.timeout(WAIT_S):
         while not (await rig.api.get("/health")).json().get("mqtt", {}).get("connected"):
             await asyncio.sleep(0.05)
+
+
+async def test_a_5_mb_opcua_argument_is_refused_before_it_is_read(tmp_path: Path) -> None:
+    """The issue's case: a 5 MB WorkpieceId took 1.2 s and left a 15 MB journal plus
+    a 15 MB WAL. Now the call is refused by its size before asyncua decodes it."""
+    port = free_port()
+    data = tmp_path / "data"
+    async with open_rig(data, cell_id=CELL, opcua_endpoint=endpoint(port)) as rig:
+        operator = await make_token(rig, "operator")
+        opc = Client(endpoint(port), timeout=WAIT_S)
+        opc.set_user("plc")
+        opc.set_password(operator)
+        size_before = _size(data)
+        async with opc:
+            with pytest.raises(ua.UaStatusCodeError) as too_large:
+                await _opc_start(opc, FIVE_MB)
+            assert too_large.value.code == ua.StatusCodes.BadRequestTooLarge
+            # The session goes on: the next call is answered by the cell.
+            resumed = await _opc_call(opc, "Resume")
+            assert resumed.StatusCode.value == ua.StatusCodes.BadInvalidState
+        assert (await rig.state())["state"] == "IDLE"
+        grown = _size(data) - size_before
+        assert grown < 512 * 1024, f"the data directory grew by {grown} bytes"
+        (row,) = [
+            r
+            for r in (await rig.api.get("/audit", params={"limit": 100})).json()["audit"]
+            if r["action"] == "OPC UA Call"
+        ]
+        assert row["outcome"] == "refused (BadRequestTooLarge)"
+        assert row["principal"].startswith("plc-operator (operator")
