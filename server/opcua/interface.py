@@ -23,6 +23,7 @@ from typing import Any
 from urllib.parse import urlparse
 
 from asyncua import Server, ua
+from asyncua.common.callback import CallbackType
 
 from server.api.analytics import kpis_of
 from server.api.answers_in_flight import AnswersInFlight, after_answers
@@ -125,6 +126,8 @@ class OpcUaInterface:
         server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
         self.nodes = await address_space.build(server, settings.cell_id)
         await self.methods.add(self.nodes.cell, self.nodes.cell_id, self.nodes.namespace)
+        # Each session reads its own UserExecutable: false where a call would be refused.
+        server.subscribe_server_callback(CallbackType.PostRead, self.methods.user_executable)
         # Subscribe before the first values are written: nothing falls between the two.
         view = self.cell.view
         subscription = self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED)

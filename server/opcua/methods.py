@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 from asyncua import Node, Server, ua
+from asyncua.common.callback import ServerItemCallback
 
 from server.api.commands import Problem, invalid_request, payload_of
 from server.cell import Cell
@@ -165,13 +166,16 @@ class CellMethods:
         self.server = server
         self.cell = cell
         self.tokens = tokens
+        self.nodes: dict[ua.NodeId, Method] = {}
 
     async def add(self, parent: Node, cell_id: str, namespace: int) -> None:
         for method in METHODS:
             inputs = [self._argument(name, kind) for name, kind in INPUTS.get(method.name, ())]
             outputs = [self._argument(name, kind) for name, kind in OUTPUTS]
+            node_id = node_id_of(namespace, f"{cell_id}.{method.name}")
+            self.nodes[node_id] = method
             node = await parent.add_method(
-                node_id_of(namespace, f"{cell_id}.{method.name}"),
+                node_id,
                 ua.QualifiedName(method.name, namespace),
                 self._callback(method),
                 inputs,
@@ -183,6 +187,33 @@ class CellMethods:
                     ua.Variant(ua.LocalizedText(f"PackML {method.packml}: {method.description}"))
                 ),
             )
+
+    def may_call(self, user: object, method: Method) -> bool:
+        """Whether `user` holds a token with the role `method` needs (anonymous: never)."""
+        principal = user.principal(self.tokens) if isinstance(user, CellUser) else None
+        needed = required_role("POST", method.route)
+        return principal is not None and (needed is None or principal.role >= needed)
+
+    def user_executable(self, event: ServerItemCallback, dispatcher: object) -> None:
+        """asyncua's PostRead callback: a method's UserExecutable as this session may call it.
+
+        asyncua keeps one UserExecutable per node (true); a client reads it to grey out a
+        method it may not call, so each session is told its own: false for anonymous and
+        for a role too low, as the call itself would be refused. The stored value is left
+        alone: the answer's entry is replaced, not changed.
+        """
+        results = event.response_params
+        for index, item in enumerate(event.request_params.NodesToRead):
+            method = self.nodes.get(item.NodeId)
+            if (
+                method is None
+                or item.AttributeId != ua.AttributeIds.UserExecutable
+                or index >= len(results)
+                or not results[index].StatusCode.is_good()
+            ):
+                continue
+            allowed = self.may_call(event.user, method)
+            results[index] = ua.DataValue(ua.Variant(allowed, ua.VariantType.Boolean))
 
     @staticmethod
     def _argument(name: str, kind: ua.VariantType) -> ua.Argument:

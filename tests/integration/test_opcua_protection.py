@@ -19,6 +19,7 @@ import pytest
 from asyncua import Client, ua
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 
+from server.opcua.address_space import NAMESPACE_URI
 from server.opcua.certificate import CERTIFICATE, DIRECTORY
 from tests.integration.test_opcua import CELL, call, endpoint, make_token, tag
 from tests.rig import WAIT_S, open_rig
@@ -119,6 +120,15 @@ async def test_a_password_is_accepted_only_where_nobody_can_read_it(
         assert operator.split("_")[-1] not in str(audit)
 
 
+async def _executable(opc: Client, method: str) -> tuple[bool, bool]:
+    """(Executable, UserExecutable) of one of the cell's methods, as this session reads them."""
+    ns = await opc.get_namespace_index(NAMESPACE_URI)
+    node = opc.get_node(f"ns={ns};s={CELL}.{method}")
+    executable = await node.read_attribute(ua.AttributeIds.Executable)
+    user_executable = await node.read_attribute(ua.AttributeIds.UserExecutable)
+    return executable.Value.Value, user_executable.Value.Value
+
+
 async def test_anonymous_may_read_on_every_endpoint_but_never_call(tmp_path: Path) -> None:
     port = free_port()
     data = tmp_path / "data"
@@ -127,8 +137,26 @@ async def test_anonymous_may_read_on_every_endpoint_but_never_call(tmp_path: Pat
             opc = await _secured(Client(endpoint(port), timeout=WAIT_S), tmp_path, data, mode)
             async with opc:
                 assert await tag(opc, "Status.StateCurrent") == 4  # Idle
+                # The methods say so before a call: executable, not by this session.
+                assert await _executable(opc, "Start") == (True, False)
+                assert await _executable(opc, "EmergencyStop") == (True, False)
                 refused = await call(opc, "Start", "demo")
                 assert refused.StatusCode.value == ua.StatusCodes.BadUserAccessDenied, mode
                 stop = await call(opc, "EmergencyStop")
                 assert stop.StatusCode.value == ua.StatusCodes.BadUserAccessDenied, mode
         assert (await rig.state())["state"] == "IDLE"
+
+
+async def test_user_executable_follows_the_sessions_role(tmp_path: Path) -> None:
+    """A viewer may stop the cell but not start it; an operator may do both."""
+    port = free_port()
+    async with open_rig(tmp_path / "data", cell_id=CELL, opcua_endpoint=endpoint(port)) as rig:
+        for role, start, stop, reset in (
+            ("viewer", False, True, False),
+            ("operator", True, True, False),
+            ("maintenance", True, True, True),
+        ):
+            async with _client(port, await make_token(rig, role), plain=False) as opc:
+                assert await _executable(opc, "Start") == (True, start), role
+                assert await _executable(opc, "EmergencyStop") == (True, stop), role
+                assert await _executable(opc, "Reset") == (True, reset), role
