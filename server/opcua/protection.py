@@ -121,7 +121,12 @@ class PasswordGuard:
         secret = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else str(raw or "")
         principal = self.tokens.verify(secret) if secret else None
         channel = (
-            "SecurityPolicy None" if mode in (None, ua.MessageSecurityMode.None_) else mode.name
+            {
+                ua.MessageSecurityMode.None_: "SecurityPolicy None",
+                ua.MessageSecurityMode.Sign: "Sign (not encrypted)",
+            }.get(mode, "unidentified")
+            if mode is not None
+            else "unidentified"
         )
         detail = (
             f"a password sent in plain text on a {channel} channel is refused: encrypt it with "
