@@ -120,14 +120,11 @@ class PasswordGuard:
         raw = token.Password
         secret = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else str(raw or "")
         principal = self.tokens.verify(secret) if secret else None
-        channel = (
-            {
-                ua.MessageSecurityMode.None_: "SecurityPolicy None",
-                ua.MessageSecurityMode.Sign: "Sign (not encrypted)",
-            }.get(mode, "unidentified")
-            if mode is not None
-            else "unidentified"
-        )
+        names: dict[ua.MessageSecurityMode | None, str] = {
+            ua.MessageSecurityMode.None_: "SecurityPolicy None",
+            ua.MessageSecurityMode.Sign: "Sign (not encrypted)",
+        }
+        channel = names.get(mode, "unidentified")
         detail = (
             f"a password sent in plain text on a {channel} channel is refused: encrypt it with "
             "the server's certificate (asyncua and most clients do) or use SignAndEncrypt"
