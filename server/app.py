@@ -268,10 +268,8 @@ def _install_error_handlers(app: FastAPI) -> None:
                 message = f"not valid JSON at character {at}" + (f": {why}" if why else "")
                 problems.append({"field": "body", "message": message, "type": error["type"]})
                 continue
-            where = ".".join(str(part) for part in error["loc"] if part != "body") or "body"
-            problems.append({"field": where, "message": error["msg"], "type": error["type"]})
-        summary = "; ".join(f"{p['field']}: {p['message']}" for p in problems)
-        body: dict[str, Any] = {"detail": f"invalid request: {summary}", "errors": problems}
+            problems.append(commands.problem_of(error))  # as MQTT and OPC UA word it
+        body: dict[str, Any] = {"detail": commands.invalid_request(problems), "errors": problems}
         request.state.audit_reason = body["detail"]  # the refusal's audit row says why
         if commands.is_estop(request):
             # A stop is never refused over its body: it is made, and the 422 says so.

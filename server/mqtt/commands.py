@@ -32,9 +32,13 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from pydantic import BaseModel, ValidationError
-
-from server.api.commands import REQUEST_BODIES, answer_of, audit_label, command_path
+from server.api.commands import (
+    answer_of,
+    audit_label,
+    command_path,
+    invalid_request,
+    payload_of,
+)
 from server.api.schemas import RETRY_AFTER_S
 from server.cell import Cell
 from server.core.events import AuditNote, Payload, StopPayload
@@ -99,10 +103,9 @@ class CommandDoor:
                 f"this needs the {needed.label} role; {principal.name} has {principal.role.label}"
             )
             return self._refuse(principal, action, 403, detail)
-        payload, errors = _payload(command, body)
+        payload, errors = payload_of(command, body)
         if errors:  # as HTTP's 422: the detail, and each field with its message
-            summary = "; ".join(f"{e['field']}: {e['message']}" for e in errors)
-            problem = f"invalid request: {summary}"
+            problem = invalid_request(errors)
             if command is Command.ESTOP:  # a stop is never refused over its body
                 _, answer = await self._run(principal, action, command, StopPayload(None))
                 answer["message"] = f"the stop was made without its reason: {answer['message']}"
@@ -142,23 +145,3 @@ class CommandDoor:
         who = principal.describe() if principal else "anonymous"
         row = records.audit(time.time(), who, self.address, action, outcome, detail)
         journal.append([row], durable=False)
-
-
-def _payload(command: Command, body: Any) -> tuple[Payload | None, list[dict[str, str]]]:
-    """The worker's payload from the message's body, or each way the body is not valid."""
-    declared = REQUEST_BODIES.get(command)
-    if declared is None:
-        return None, []  # the command takes no body (as over HTTP, one sent is not read)
-    model, build = declared
-    try:
-        parsed: BaseModel = model.model_validate({} if body is None else body)
-    except ValidationError as exc:
-        return None, [
-            {
-                "field": ".".join(str(part) for part in error["loc"]) or "body",
-                "message": error["msg"],
-                "type": error["type"],
-            }
-            for error in exc.errors()
-        ]
-    return build(parsed), []
