@@ -34,6 +34,7 @@ from pydantic_settings import (
 )
 
 from server.errors import ConfigurationError
+from server.notify import destinations
 from server.notify.targets import WebhookTarget, named
 from server.values import BYTE_SIZE_ACCEPTS, byte_size
 
@@ -419,6 +420,14 @@ class Settings(BaseSettings):
             "holds_secrets": True,
         },
     )
+    webhook_allowed_networks: list[str] = Field(
+        default_factory=list,
+        max_length=256,
+        description="networks (CIDR or address) a webhook may post to although the "
+        "destination policy refuses them: loopback, link-local, unspecified and this host's "
+        "own addresses are refused, at load and at each connection (docs/security.md); "
+        "none by default",
+    )
     webhook_queue_size: int = Field(
         100,
         ge=1,
@@ -786,6 +795,28 @@ class Settings(BaseSettings):
     @classmethod
     def _webhooks_named(cls, value: list[WebhookTarget]) -> list[WebhookTarget]:
         return named(value)
+
+    @field_validator("webhook_allowed_networks")
+    @classmethod
+    def _webhook_networks(cls, value: list[str]) -> list[str]:
+        destinations.parse_networks(value)  # a typo refused at load, naming the entry
+        return value
+
+    @model_validator(mode="after")
+    def _webhook_destinations(self) -> Settings:
+        """A webhook to the cell itself, loopback or link-local is refused at load, naming the
+        webhook (never its path or query): it was accepted and posted to (issue 32)."""
+        allowed = destinations.parse_networks(self.webhook_allowed_networks)
+        for target in self.webhooks:
+            host = urlsplit(target.url).hostname or ""
+            why = destinations.load_refusal(host, allowed)
+            if why is not None:
+                raise ValueError(
+                    f"webhook {target.name!r} posts to {host}, {why}: refused by the webhook "
+                    f"destination policy (add its network to {destinations.SETTING} to "
+                    "allow it)"
+                )
+        return self
 
     @field_validator("glue_pressure_range_psi")
     @classmethod
