@@ -191,6 +191,7 @@ ZERO_MEANS_SOMETHING = {
     "default_flow_rate_ml_min",
     "default_pressure_psi",
     "camera_calibration_view_interval_s",
+    "mqtt_command_max_skew",  # 0: a command may not be ahead of the cell's clock at all
 }
 
 
