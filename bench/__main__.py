@@ -20,6 +20,7 @@ BENCHMARKS = (
     ("device_latency", []),
     ("device_feed", []),
     ("estop_latency", []),
+    ("estop_under_attack", []),
     ("reset_probe", []),
     ("pause_latency", []),
     ("ws_fanout", []),

@@ -70,7 +70,7 @@ import httpx
 
 from bench.estop_latency import StopWitness
 from bench.report import emit, percentiles_ms
-from server.line_broker import BrokerPorts, start_broker
+from server.line_broker import DEMO_PASSWORDS, BrokerPorts, start_broker
 
 ROOT = Path(__file__).resolve().parents[1]
 READY_S = 600.0  # four cells commissioning at once on a shared machine: a hang guard
@@ -168,7 +168,8 @@ async def mqtt_events(
     ready = asyncio.Event()
 
     async def listen() -> None:
-        async with aiomqtt.Client(broker.host, broker.mqtt) as client:
+        login = {"username": "line-view", "password": DEMO_PASSWORDS["line-view"]}
+        async with aiomqtt.Client(broker.host, broker.mqtt, **login) as client:
             await client.subscribe("glue/+/event", qos=1)
             ready.set()
             async for message in client.messages:
@@ -321,7 +322,9 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
     for name in names:
         extra = {"GLUE_APP_CELL_ID": name, "GLUE_APP_SIMULATION_SPEED_FACTOR": SPEED_FACTOR}
         if name not in WITHOUT_INTERFACES:
-            extra["GLUE_APP_MQTT_URL"] = mqtt_url
+            extra["GLUE_APP_MQTT_URL"] = mqtt_url  # the line broker's demo `cell` user
+            extra["GLUE_APP_MQTT_USERNAME"] = "cell"
+            extra["GLUE_APP_MQTT_PASSWORD"] = DEMO_PASSWORDS["cell"]
         witness = await asyncio.to_thread(StopWitness) if name in WITNESSED else None
         if witness is not None:
             extra["GLUE_APP_ROBOT_IP"] = "127.0.0.1"

@@ -7,10 +7,18 @@
     gluectl order start demo 20          make 20 good parts, one run after another
     gluectl line --broker mqtt://host:1883   every cell of a line, live from the broker
     gluectl --json history --limit 5     anything as JSON (--json before or after the command)
+    gluectl --mqtt mqtt://broker:1883 --cell-id cell-1 start   the same command, signed, over MQTT
 
 Global options go before the command: --url (env GLUE_CELL_URL, default
 http://127.0.0.1:8000), --token (env GLUE_CELL_TOKEN, else <data dir>/admin.token),
---data-dir (env GLUE_APP_DATA_PATH, default ./data), --json.
+--data-dir (env GLUE_APP_DATA_PATH, default ./data), --ca-file (env
+GLUE_CELL_CA_FILE: the CA an https server's certificate must chain to), --json. With
+--mqtt (env GLUE_MQTT_URL) the commands (start, pause, resume, cancel, estop, reset,
+home, jog, calibrations, create-workpiece) go to --cell-id over the broker instead,
+signed with the token (clients/client/mqtt_commands.py), and the answer is printed as
+over HTTP; --mqtt-user, --mqtt-password (env GLUE_MQTT_PASSWORD, or
+--mqtt-password-file), --mqtt-ca-file and --mqtt-prefix say how to reach the broker
+(docs/cli.md).
 
 Exit codes, stable for scripts (the reason is printed on stderr):
 
@@ -38,6 +46,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import ssl
 import sys
 import threading
 import time
@@ -58,6 +67,7 @@ from rich.table import Table
 from rich.text import Text
 
 from clients.client import (
+    CA_FILE_ENV,
     DATA_DIR_ENV,
     DEFAULT_URL,
     TOKEN_ENV,
@@ -77,7 +87,9 @@ from clients.client import (
     normalize_state,
     normalize_url,
     resolve_token,
+    trust,
 )
+from clients.client.mqtt_commands import MqttCellClient, MqttTarget
 from clients.line_model import DEFAULT_PREFIX, LineModel
 from clients.line_table import line_table
 from clients.line_watch import Broker, LineUnreachable, LineWatcher
@@ -144,12 +156,20 @@ class Options:
     token_source: str
     json: bool
     timeout: float
+    mqtt: MqttTarget | None = None  # commands go over this broker instead of HTTP
+    ca_file: Path | None = None
 
     def client(self) -> CellClient:
-        return CellClient(self.url, self.token, timeout=self.timeout)
+        return CellClient(self.url, self.token, timeout=self.timeout, ca_file=self.ca_file)
+
+    def command_client(self) -> CellClient | MqttCellClient:
+        """Where commands go: the broker with --mqtt, else the HTTP API."""
+        if self.mqtt is not None:
+            return MqttCellClient(self.mqtt, self.token, timeout=self.timeout)
+        return self.client()
 
     def async_client(self) -> AsyncCellClient:
-        return AsyncCellClient(self.url, self.token, timeout=self.timeout)
+        return AsyncCellClient(self.url, self.token, timeout=self.timeout, ca_file=self.ca_file)
 
 
 JsonFlag = Annotated[
@@ -194,6 +214,16 @@ def main_options(
             show_default=False,
         ),
     ] = None,
+    ca_file: Annotated[
+        Path | None,
+        typer.Option(
+            "--ca-file",
+            envvar=CA_FILE_ENV,
+            help="CA certificate (PEM) an https server's certificate must chain to "
+            "(default: the public CAs).",
+            show_default=False,
+        ),
+    ] = None,
     json_output: Annotated[
         bool, typer.Option("--json", help="Machine-readable output: one JSON document.")
     ] = False,
@@ -206,12 +236,60 @@ def main_options(
             "--version", is_eager=True, callback=_show_version, help="Print the version and exit."
         ),
     ] = False,
+    mqtt: Annotated[
+        str | None,
+        typer.Option(
+            "--mqtt",
+            envvar="GLUE_MQTT_URL",
+            help="Send commands over this broker (mqtt://host:1883, mqtts://host:8883), signed.",
+            show_default=False,
+        ),
+    ] = None,
+    cell_id: Annotated[
+        str | None,
+        typer.Option(
+            "--cell-id",
+            envvar="GLUE_CELL_ID",
+            help="The cell to command (--mqtt).",
+            show_default=False,
+        ),
+    ] = None,
+    mqtt_user: Annotated[
+        str | None,
+        typer.Option("--mqtt-user", envvar="GLUE_MQTT_USER", help="User name at the broker."),
+    ] = None,
+    mqtt_password: Annotated[
+        str | None,
+        typer.Option(
+            "--mqtt-password",
+            envvar="GLUE_MQTT_PASSWORD",
+            help="Password at the broker (better: the env var or --mqtt-password-file).",
+            show_default=False,
+        ),
+    ] = None,
+    mqtt_password_file: Annotated[
+        Path | None,
+        typer.Option("--mqtt-password-file", help="A file whose first line is the password."),
+    ] = None,
+    mqtt_ca_file: Annotated[
+        Path | None,
+        typer.Option("--mqtt-ca-file", help="CA certificate (PEM) for an mqtts:// broker."),
+    ] = None,
+    mqtt_prefix: Annotated[
+        str, typer.Option("--mqtt-prefix", help="The cell's topic prefix.")
+    ] = DEFAULT_PREFIX,
 ) -> None:
     """Drive and watch the glue cell over its HTTP and WebSocket API."""
     try:
         url = str(httpx.URL(normalize_url(url)))
     except httpx.InvalidURL as exc:
         raise typer.BadParameter(str(exc), param_hint="--url") from None
+    if ca_file is not None:  # read now: a wrong path is a usage error, not "unreachable"
+        try:
+            trust(ca_file)
+        except (OSError, ssl.SSLError) as exc:
+            reason = getattr(exc, "strerror", None) or str(exc)
+            raise typer.BadParameter(f"{ca_file}: {reason}", param_hint="--ca-file") from None
     resolved = resolve_token(token, data_dir=data_dir)
     where = data_dir or f"${DATA_DIR_ENV} or ./data"
     if token:
@@ -220,7 +298,40 @@ def main_options(
         source = f"from admin.token in {where}"
     else:
         source = f"none found (--token, ${TOKEN_ENV}, or admin.token in {where})"
-    ctx.obj = Options(url, resolved, source, json_output, timeout)
+    target = None
+    if mqtt:
+        target = _mqtt_target(
+            mqtt, cell_id, mqtt_user, mqtt_password, mqtt_password_file, mqtt_ca_file, mqtt_prefix
+        )
+    ctx.obj = Options(url, resolved, source, json_output, timeout, target, ca_file)
+
+
+def _mqtt_target(
+    url: str,
+    cell_id: str | None,
+    user: str | None,
+    password: str | None,
+    password_file: Path | None,
+    ca_file: Path | None,
+    prefix: str,
+) -> MqttTarget:
+    """The broker and cell of --mqtt, checked before anything is sent."""
+    if not cell_id:
+        raise typer.BadParameter(
+            "--mqtt needs --cell-id (or $GLUE_CELL_ID)", param_hint="--cell-id"
+        )
+    if password_file is not None:
+        try:
+            lines = password_file.read_text(encoding="utf-8").splitlines()
+        except OSError as error:
+            raise typer.BadParameter(str(error), param_hint="--mqtt-password-file") from None
+        password = lines[0] if lines else ""
+    target = MqttTarget(url, cell_id, prefix, user, password, ca_file)
+    try:
+        target.address()
+    except ValueError as error:
+        raise typer.BadParameter(str(error), param_hint="--mqtt") from None
+    return target
 
 
 # --- output ------------------------------------------------------------------------
@@ -267,6 +378,11 @@ def _fail(options: Options, error: CellError) -> NoReturn:
 
 
 def _call(options: Options, action: Callable[[CellClient], T]) -> T:
+    if options.mqtt is not None:
+        raise typer.BadParameter(
+            "only commands go over MQTT; ask the cell's HTTP API (--url) for the rest",
+            param_hint="--mqtt",
+        )
     try:
         with options.client() as client:
             return action(client)
@@ -274,12 +390,17 @@ def _call(options: Options, action: Callable[[CellClient], T]) -> T:
         _fail(options, error)
 
 
-def _command(
-    ctx: typer.Context, json_flag: bool, action: Callable[[CellClient], CommandResult]
-) -> None:
-    """Run a command; print the decision. Refusals and errors exit through `_fail`."""
+def _command(ctx: typer.Context, json_flag: bool, action: Callable[[Any], CommandResult]) -> None:
+    """Run a command (over HTTP, or signed over MQTT with --mqtt); print the decision.
+    Refusals and errors exit through `_fail`."""
     options = _options(ctx, json_flag)
-    result = _call(options, action)
+    try:
+        with options.command_client() as client:
+            result = action(client)
+    except CellError as error:
+        _fail(options, error)
+    except ValueError as error:  # e.g. no token to sign with, or not an API token
+        raise typer.BadParameter(str(error), param_hint="--token") from None
     if options.json:
         _print_json(result.as_dict())
     else:

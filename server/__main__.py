@@ -11,7 +11,8 @@ from typing import Any
 
 import uvicorn
 
-from server import backup_cli
+from server import backup_cli, tls
+from server.api.connection_guard import ConnectionLimits, guarded_http_protocol
 from server.app import create_app
 from server.config import Settings
 from server.errors import ConfigurationError
@@ -85,7 +86,10 @@ def main(argv: list[str] | None = None) -> None:
     log.info("logging to %s", log_file)
     for warning in misspelt:
         log.warning("%s", warning)
+    if (clear := tls.plain_http_warning(args.host, settings)) is not None:
+        log.warning("%s", clear)
     try:
+        tls.check_files(settings)  # before the cell starts: one line, not uvicorn's traceback
         app = create_app(settings)
         if settings.opcua_endpoint is not None:  # a port in use: one line now, not a traceback
             from server.opcua.interface import check_endpoint_free
@@ -121,10 +125,15 @@ def uvicorn_options(settings: Settings) -> dict[str, Any]:
         "ws_ping_interval": settings.ws_ping_interval,
         "ws_ping_timeout": settings.ws_ping_interval,
         "timeout_graceful_shutdown": 5,
+        # uvicorn has no header timeout and no bound on connections: its HTTP protocol
+        # with both (server/api/connection_guard.py), and idle keep-alives closed.
+        "http": guarded_http_protocol(ConnectionLimits.of(settings)),
+        "timeout_keep_alive": settings.http_keepalive_timeout,
         # uvicorn would otherwise replace a loopback peer's address with whatever its
         # X-Forwarded-For says, before the app sees it. The app reads forwarded
         # addresses itself, from trusted_proxies only (server/security/forwarded.py).
         "proxy_headers": False,
+        **tls.uvicorn_options(settings),  # https and wss when tls_cert_file is set
     }
 
 

@@ -39,6 +39,7 @@ from server.api import (
     ws,
 )
 from server.api.answers_in_flight import AnswersInFlight
+from server.api.audit_repeats import AuditRepeats
 from server.api.dashboard import mount_dashboard
 from server.api.limits import BodySizeLimit
 from server.api.observe import ResponseObservers
@@ -86,6 +87,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
                 await opcua.stop()
             await app.state.metrics.detach()
             await app.state.camera_preview.close()
+            app.state.audit_repeats.close()  # the counts folded so far, before the journal closes
             await cell.stop()
 
     app = FastAPI(
@@ -135,14 +137,18 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     # The e-stop's devices commanded as soon as the gate lets it through (before routing).
     app.add_middleware(StopLane, stop_paths=commands.STOP_PATHS)
     # Every HTTP request, before routing: the policy in server/security/policy.py.
-    app.add_middleware(access.AccessGate, access=app.state.access)
+    app.add_middleware(access.AccessGate, access=app.state.access, stop_paths=commands.STOP_PATHS)
     # The commands being answered: the plant's interfaces hold their work until none is.
     app.state.answers = AnswersInFlight()
+    # Identical refusals within audit_repeat_window: one audit row with a count.
+    app.state.audit_repeats = AuditRepeats(settings.audit_repeat_window, lambda: cell.journal)
     app.add_middleware(
         ResponseObservers,
         answers=app.state.answers,
         observers=[
-            audit.audit_observer(lambda scope: scope["app"].state.cell.journal),
+            audit.audit_observer(
+                lambda scope: scope["app"].state.cell.journal, app.state.audit_repeats
+            ),
             app.state.metrics.observe_response,
         ],
     )
@@ -199,7 +205,13 @@ def mqtt_link(app: FastAPI, settings: Settings, cell: Cell) -> MqttLink | None:
         return None
     door = None
     if settings.mqtt_commands:
-        door = CommandDoor(cell, app.state.access.tokens, f"mqtt:{settings.mqtt_url}")
+        door = CommandDoor(
+            cell,
+            app.state.access.tokens,
+            f"mqtt:{settings.mqtt_url}",
+            max_age_s=settings.mqtt_command_max_age,
+            max_skew_s=settings.mqtt_command_max_skew,
+        )
     link = MqttLink(
         settings,
         cell,
@@ -256,10 +268,8 @@ def _install_error_handlers(app: FastAPI) -> None:
                 message = f"not valid JSON at character {at}" + (f": {why}" if why else "")
                 problems.append({"field": "body", "message": message, "type": error["type"]})
                 continue
-            where = ".".join(str(part) for part in error["loc"] if part != "body") or "body"
-            problems.append({"field": where, "message": error["msg"], "type": error["type"]})
-        summary = "; ".join(f"{p['field']}: {p['message']}" for p in problems)
-        body: dict[str, Any] = {"detail": f"invalid request: {summary}", "errors": problems}
+            problems.append(commands.problem_of(error))  # as MQTT and OPC UA word it
+        body: dict[str, Any] = {"detail": commands.invalid_request(problems), "errors": problems}
         request.state.audit_reason = body["detail"]  # the refusal's audit row says why
         if commands.is_estop(request):
             # A stop is never refused over its body: it is made, and the 422 says so.

@@ -308,6 +308,64 @@ class Settings(BaseSettings):
         1024 * 1024, ge=1024, le=64 * 1024 * 1024, description="largest request body, bytes"
     )
 
+    # HTTPS: off unless both files are set (docs/security.md, "TLS")
+    tls_cert_file: Path | None = Field(
+        None,
+        description="the server's certificate (PEM, its chain after it): with tls_key_file, "
+        "the HTTP port serves https and wss only (TLS 1.2 or later)",
+    )
+    tls_key_file: Path | None = Field(
+        None,
+        description="the private key (PEM, not encrypted) of tls_cert_file; readable by the "
+        "server's user only",
+    )
+
+    # Guessing and slow clients (docs/security.md, "Guessing and slow clients")
+    auth_failure_limit: int = Field(
+        20,
+        ge=1,
+        le=10_000,
+        description="bad tokens or tickets from one address within auth_failure_window "
+        "that lock it out (429 with Retry-After; never the e-stop)",
+    )
+    auth_failure_window: float = Field(
+        60.0, ge=1, le=86_400, description="seconds over which auth_failure_limit is counted"
+    )
+    auth_lockout_s: float = Field(
+        60.0, ge=1, le=86_400, description="seconds a locked-out address is answered 429"
+    )
+    audit_repeat_window: float = Field(
+        60.0,
+        ge=1,
+        le=3600,
+        description="seconds within which identical refusals (same who, address, action, "
+        "outcome and reason) are one audit row with a count",
+    )
+    http_header_timeout: float = Field(
+        10.0,
+        ge=0.5,
+        le=300,
+        description="seconds a connection has to send a request's headers (from its first "
+        "byte, or from connecting); then it is closed",
+    )
+    http_keepalive_timeout: float = Field(
+        5.0, ge=0.5, le=3600, description="seconds an idle keep-alive connection stays open"
+    )
+    http_max_connections: int = Field(
+        512,
+        ge=16,
+        le=100_000,
+        description="open HTTP and WebSocket connections in all; at the limit the oldest one "
+        "still waiting for its headers is closed for a new one",
+    )
+    http_max_connections_per_address: int = Field(
+        64,
+        ge=1,
+        le=100_000,
+        description="open HTTP connections from one address (not a trusted proxy), used up "
+        "to http_max_connections",
+    )
+
     # The plant's interfaces (docs/plant-integration.md)
     cell_id: str = Field(
         default_factory=lambda: default_cell_id(),
@@ -401,8 +459,22 @@ class Settings(BaseSettings):
     )
     mqtt_commands: bool = Field(
         False,
-        description="accept commands on <prefix>/<cell_id>/command/<name>, each with a token "
-        "(same roles as HTTP); off by default",
+        description="accept commands on <prefix>/<cell_id>/command/<name>, each signed with "
+        "a token (same roles as HTTP); off by default",
+    )
+    mqtt_command_max_age: float = Field(
+        30.0,
+        ge=1,
+        le=600,
+        description="seconds a signed MQTT command stays valid after its ts_ms; an older one "
+        "is refused as stale (and its nonce need only be remembered this long)",
+    )
+    mqtt_command_max_skew: float = Field(
+        5.0,
+        ge=0,
+        le=60,
+        description="seconds a signed MQTT command's ts_ms may be ahead of the cell's clock "
+        "(the sender's clock running fast); further ahead is refused",
     )
 
     # Notifications (webhooks; docs/plant-integration.md)
@@ -865,6 +937,16 @@ class Settings(BaseSettings):
         if len(value) != 9:
             raise ValueError("marker_positions_mm needs the robot positions of markers 0-8 (nine)")
         return value
+
+    @model_validator(mode="after")
+    def _tls_pair(self) -> Settings:
+        """A certificate without its key (or the reverse) cannot serve https, and serving
+        plain http instead would send the tokens in clear that the setting was meant to
+        protect: refused at load. The files themselves are read at start (server/tls.py)."""
+        if (self.tls_cert_file is None) != (self.tls_key_file is None):
+            missing = "tls_key_file" if self.tls_key_file is None else "tls_cert_file"
+            raise ValueError(f"tls_cert_file and tls_key_file go together: {missing} is not set")
+        return self
 
     @model_validator(mode="after")
     def _workspace_ordered(self) -> Settings:

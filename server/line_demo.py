@@ -29,7 +29,7 @@ from types import FrameType
 
 import httpx
 
-from server.line_broker import BrokerNotStarted, BrokerPorts, start_broker
+from server.line_broker import DEMO_PASSWORDS, BrokerNotStarted, BrokerPorts, start_broker
 
 STOP_GRACE_S = 15.0
 START_TIMEOUT_S = 900.0
@@ -67,8 +67,15 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 
 
 def cell_environment(cell_id: str, broker: BrokerPorts) -> dict[str, str]:
-    """The environment of one cell: the caller's, with its id and the line's broker."""
-    return {**os.environ, "GLUE_APP_CELL_ID": cell_id, "GLUE_APP_MQTT_URL": broker.mqtt_url}
+    """The environment of one cell: the caller's, with its id and the line's broker, where
+    it signs in as the demo's `cell` user (server/line_broker.py)."""
+    return {
+        **os.environ,
+        "GLUE_APP_CELL_ID": cell_id,
+        "GLUE_APP_MQTT_URL": broker.mqtt_url,
+        "GLUE_APP_MQTT_USERNAME": "cell",
+        "GLUE_APP_MQTT_PASSWORD": DEMO_PASSWORDS["cell"],
+    }
 
 
 def _spawn(name: str, argv: list[str], log: Path, env: dict[str, str] | None = None) -> Child:
@@ -147,6 +154,10 @@ def running_line(args: argparse.Namespace) -> Iterator[list[Child]]:
         for child, url in cells:
             wait_http(child, f"{url}/health", deadline)
             say(f"{child.name} up: {url} (token in {data / child.name / 'admin.token'})")
+        say(
+            f"broker users (demo passwords, in server/line_broker.py): cell, operator, "
+            f"line-view; e.g. gluectl line --broker {broker.login_url('line-view')}"
+        )
         say(f"ready: line view {view_url} · broker {broker.mqtt_url} · Ctrl-C stops all")
         yield children
     finally:

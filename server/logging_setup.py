@@ -9,6 +9,13 @@ Every line logged while the worker handles an event, or by the operation that
 event started, carries the event id, so a technician can go from a log line to
 the journal's record of that event and back. Files rotate at log_rotation_size
 and are deleted after log_retention_days.
+
+No secret reaches a line (docs/security.md, "Logs"): every handler carries a
+`RedactingFilter` that rewrites each record's final text, arguments and
+exception included, through server/security/redaction.py, whichever library made
+it. uvicorn's lines keep a request's path and drop its query (where `?token=` and
+`?ticket=` ride), and httpx and httpcore log warnings only: their per-request lines
+name a webhook's whole URL, whose path and query are its receiver's secret.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ import time
 from pathlib import Path
 
 from server.config import Settings
+from server.security.redaction import Redactor, path_only
 from server.storage.permissions import LOG_FILE_MODE, private_directory
 from server.values import byte_size
 
@@ -41,6 +49,59 @@ class EventIdFilter(logging.Filter):
             f" (event {event_id})" if event_id and event_id not in record.getMessage() else ""
         )
         return True
+
+
+# Libraries whose per-request INFO and DEBUG lines carry URLs, headers or payloads.
+QUIETED_LOGGERS = ("httpx", "httpcore")
+
+
+class RedactingFilter(logging.Filter):
+    """Rewrites a record so that what any handler writes of it carries no secret.
+
+    A filter on the handlers, not on the loggers: a handler's filters see every record
+    that reaches it, also those of libraries' loggers that propagate to the root. The
+    record's message is formatted here and redacted (its arguments are then dropped),
+    and so are its exception text, stack and the `error` and `context` extras.
+    """
+
+    def __init__(self, redactor: Redactor) -> None:
+        super().__init__()
+        self.redact = redactor
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if getattr(record, "glue_redacted", False):
+            return True  # the other handler's filter did it already
+        if record.name.startswith("uvicorn.") and isinstance(record.args, tuple):
+            # The access line and the WebSocket lines: the request target without its query.
+            record.args = tuple(
+                path_only(a) if isinstance(a, str) and a.startswith("/") else a for a in record.args
+            )
+        record.msg = self.redact(record.getMessage())
+        record.args = None
+        if record.exc_info and not record.exc_text:
+            record.exc_text = _EXCEPTION_FORMATTER.formatException(record.exc_info)
+        if record.exc_text:
+            record.exc_text = self.redact(record.exc_text)
+        if record.stack_info:
+            record.stack_info = self.redact(record.stack_info)
+        error = getattr(record, "error", None)
+        if error is not None:
+            record.error = self.redact(str(error))
+        context = getattr(record, "context", None)
+        if context:
+            record.context = _Shown(self.redact(repr(context)))
+        record.glue_redacted = True
+        return True
+
+
+class _Shown(str):
+    """Text that a formatter's `!r` writes as it is (a redacted repr)."""
+
+    def __repr__(self) -> str:
+        return str(self)
+
+
+_EXCEPTION_FORMATTER = logging.Formatter()
 
 
 class SpecFormatter(logging.Formatter):
@@ -95,10 +156,11 @@ def log_path(settings: Settings) -> Path:
 
 
 def configure(settings: Settings) -> Path:
-    """Console and file logging at the configured level; the log file's path."""
+    """Console and file logging at the configured level, secrets redacted; the file's path."""
     path = log_path(settings)
     formatter = SpecFormatter(FORMAT, DATE_FORMAT)
     event_filter = EventIdFilter()
+    redacting = RedactingFilter(Redactor(target.url for target in settings.webhooks))
     console = logging.StreamHandler()
     file = RetainingFileHandler(
         path, byte_size(settings.log_rotation_size), settings.log_retention_days
@@ -109,6 +171,9 @@ def configure(settings: Settings) -> Path:
     for handler in (console, file):
         handler.setFormatter(formatter)
         handler.addFilter(event_filter)
+        handler.addFilter(redacting)
         root.addHandler(handler)
     root.setLevel(settings.logging_level)
+    for name in QUIETED_LOGGERS:
+        logging.getLogger(name).setLevel(logging.WARNING)
     return path

@@ -23,6 +23,8 @@ from typing import Any
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
+from server.line_broker import DEMO_PASSWORDS
+
 PREFIX = "glue"
 
 
@@ -46,6 +48,7 @@ def kpis_message(oee: float | None) -> dict[str, Any]:
 
 def connected_client(port: int, cell_id: str, keepalive: int = 60) -> mqtt.Client:
     client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"test-{cell_id}")
+    client.username_pw_set("cell", DEMO_PASSWORDS["cell"])  # the demo broker's cell user
     client.will_set(f"{PREFIX}/{cell_id}/status", b"offline", qos=1, retain=True)
     connected = threading.Event()
     client.on_connect = lambda *_: connected.set()

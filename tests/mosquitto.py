@@ -1,6 +1,12 @@
 """Debian's mosquitto as a process of the test: a config file in the test's directory,
 a listener on a free loopback port, stopped and started again on the same port.
 
+It has the shipped access control (deploy/mosquitto/acl, the password file made as
+the line demo makes it, with its demo passwords): anonymous clients are refused, the
+cell signs in as `cell`, a plant's subscriber as `line-view`, a sender of commands as
+`operator`. One line is added for the tests alone: every user may read and write
+`tests/#`, where `subscriber` publishes the marker that tells it it is subscribed.
+
 Persistence is on, so a subscriber's persistent session (clean session off, QoS 1)
 and the messages queued for it outlive a restart of the broker, as in a plant."""
 
@@ -20,6 +26,7 @@ from typing import Any
 
 import aiomqtt
 
+from server.line_broker import DEMO_PASSWORDS, write_access_files
 from tests.serving import free_port
 
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
@@ -33,9 +40,15 @@ class Mosquitto:
         self.directory = directory
         self.port = free_port()
         self.config = directory / "mosquitto.conf"
+        write_access_files(directory)
+        with (directory / "acl").open("a") as acl:
+            acl.write("\n# The tests' marker topic, for every user.\npattern readwrite tests/#\n")
         self.config.write_text(
+            "per_listener_settings true\n"
             f"listener {self.port} 127.0.0.1\n"
-            "allow_anonymous true\n"
+            "allow_anonymous false\n"
+            f"password_file {directory / 'passwd'}\n"
+            f"acl_file {directory / 'acl'}\n"
             # Started as root, mosquitto would drop to its own user, who cannot write here.
             f"user {getpass.getuser()}\n"
             "persistence true\n"
@@ -47,6 +60,20 @@ class Mosquitto:
     @property
     def url(self) -> str:
         return f"mqtt://127.0.0.1:{self.port}"
+
+    @property
+    def cell_login(self) -> dict[str, str]:
+        """The cell's settings for this broker: its URL, user and password."""
+        return {
+            "mqtt_url": self.url,
+            "mqtt_username": "cell",
+            "mqtt_password": DEMO_PASSWORDS["cell"],
+        }
+
+    @property
+    def cell_environment(self) -> dict[str, str]:
+        """The same as a server process's environment."""
+        return {f"GLUE_APP_{key.upper()}": value for key, value in self.cell_login.items()}
 
     def start(self) -> None:
         self.process = subprocess.Popen([MOSQUITTO, "-c", str(self.config)])
@@ -100,6 +127,11 @@ class Subscriber:
         self._arrived.set()
 
 
+def login_of(user: str) -> dict[str, str]:
+    """aiomqtt's username and password for one of the demo users."""
+    return {"username": user, "password": DEMO_PASSWORDS[user]}
+
+
 def _decoded(payload: Any) -> Any:
     import json
 
@@ -112,12 +144,19 @@ def _decoded(payload: Any) -> Any:
 
 @contextlib.asynccontextmanager
 async def subscriber(
-    port: int, topic: str, *, identifier: str | None = None, persistent: bool = False
+    port: int,
+    topic: str,
+    *,
+    identifier: str | None = None,
+    persistent: bool = False,
+    user: str = "line-view",
 ) -> AsyncIterator[Subscriber]:
     """An aiomqtt client subscribed to `topic` at QoS 1, collecting in the background;
     `persistent`: a session the broker keeps (and queues for) while it is away, which
-    reconnects by itself when the broker restarts."""
+    reconnects by itself when the broker restarts. It signs in as `user` (the line view
+    by default: what a plant's dashboard may read)."""
     received = Subscriber()
+    login = login_of(user)
 
     async def collect() -> None:
         while True:
@@ -128,6 +167,7 @@ async def subscriber(
                     identifier=identifier,
                     clean_session=not persistent,
                     keepalive=5,
+                    **login,
                 ) as client:
                     await client.subscribe(topic, qos=1)
                     await client.subscribe(marker, qos=1)  # after it: once here, both are
@@ -141,7 +181,7 @@ async def subscriber(
     # Subscribed once a message we publish ourselves comes back (retained ones may be none).
     marker = f"tests/subscribed/{uuid.uuid4().hex}"
     task = asyncio.create_task(collect())
-    async with aiomqtt.Client("127.0.0.1", port) as probe:
+    async with aiomqtt.Client("127.0.0.1", port, **login) as probe:
         async with asyncio.timeout(WAIT_S):
             while not received.on(marker):
                 await probe.publish(marker, b"1", qos=1)

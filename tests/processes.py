@@ -11,6 +11,7 @@ import contextlib
 import os
 import re
 import signal
+import ssl
 import subprocess
 import sys
 import time
@@ -105,11 +106,14 @@ def server_process(
     *,
     log_path: Path | None = None,
     preexec_fn: Callable[[], None] | None = None,
+    ca_file: Path | None = None,
 ) -> Iterator[subprocess.Popen[str]]:
-    """Run `python -m server` on `port`; wait until GET /state answers.
+    """Run `python -m server` on `port`; wait until GET /health answers.
 
     Its output goes to `log_path` (default `<data_dir>/server.log`); `preexec_fn`
-    runs in the child before the server (e.g. to set a resource limit).
+    runs in the child before the server (e.g. to set a resource limit). With
+    `ca_file` the server serves https (GLUE_APP_TLS_*) and is asked over https,
+    trusting that CA.
     """
     log_path = log_path or data_dir / "server.log"
     log = log_path.open("w")
@@ -128,6 +132,8 @@ def server_process(
 
     process = start()
     retries = BIND_RETRIES
+    scheme = "https" if ca_file else "http"
+    verify = ssl.create_default_context(cafile=str(ca_file)) if ca_file else True
     try:
         deadline = time.monotonic() + timeout
         while True:
@@ -141,7 +147,8 @@ def server_process(
                     continue
                 raise RuntimeError(f"server exited with {process.returncode}: {output[-2000:]}")
             try:
-                httpx.get(f"http://127.0.0.1:{port}/health", timeout=1).raise_for_status()
+                health = f"{scheme}://127.0.0.1:{port}/health"
+                httpx.get(health, timeout=1, verify=verify).raise_for_status()
                 break
             except httpx.HTTPError:
                 if time.monotonic() > deadline:

@@ -40,7 +40,8 @@ def free_port() -> int:
 async def serve(
     cell: Cell, port: int | None = None, **uvicorn_overrides: Any
 ) -> AsyncIterator[str]:
-    """Serve `cell` over HTTP as `python -m server` does (unless overridden); yields the URL.
+    """Serve `cell` over HTTP as `python -m server` does (unless overridden); yields the URL
+    (https when the cell's settings name a certificate).
 
     `port`: a free one unless given (a restarted server answers at the same address)."""
     port = port or free_port()
@@ -62,8 +63,9 @@ async def serve(
             if task.done():
                 task.result()
             await asyncio.sleep(0.01)
+    scheme = "https" if cell.settings.tls_cert_file else "http"
     try:
-        yield f"http://127.0.0.1:{port}"
+        yield f"{scheme}://127.0.0.1:{port}"
     finally:
         server.should_exit = True
         await asyncio.wait_for(task, 20)

@@ -45,6 +45,7 @@ from __future__ import annotations
 from clients.client.async_client import AsyncCellClient
 from clients.client.config import (
     ADMIN_TOKEN_FILE,
+    CA_FILE_ENV,
     COMMANDS,
     DATA_DIR_ENV,
     DEFAULT_DATA_DIR,
@@ -57,6 +58,7 @@ from clients.client.config import (
     normalize_state,
     normalize_url,
     resolve_token,
+    trust,
 )
 from clients.client.errors import (
     Busy,
@@ -77,6 +79,7 @@ from clients.client.sync_client import CellClient
 
 __all__ = [
     "ADMIN_TOKEN_FILE",
+    "CA_FILE_ENV",
     "COMMANDS",
     "DATA_DIR_ENV",
     "DEFAULT_DATA_DIR",
@@ -104,4 +107,5 @@ __all__ = [
     "normalize_state",
     "normalize_url",
     "resolve_token",
+    "trust",
 ]

@@ -5,6 +5,7 @@ plus `messages()`, which follows /ws across reconnects.
 from __future__ import annotations
 
 import asyncio
+import os
 from collections.abc import Iterable
 from types import TracebackType
 from typing import Any, Self, TypeVar
@@ -13,7 +14,7 @@ import httpx
 
 from clients.client import builders
 from clients.client.builders import Call
-from clients.client.config import DEFAULT_URL, default_headers, normalize_url
+from clients.client.config import DEFAULT_URL, default_headers, normalize_url, trust
 from clients.client.errors import CommandResult
 from clients.client.stream import MessageStream
 from clients.client.wait import StateWait
@@ -30,12 +31,20 @@ class AsyncCellClient:
         token: str | None = None,
         *,
         timeout: float = 10.0,
+        ca_file: str | os.PathLike[str] | None = None,
     ) -> None:
+        """`ca_file`: the CA certificate(s), PEM, that the server's https certificate must
+        chain to (a plant's own CA); None trusts the usual public CAs. OSError or
+        ssl.SSLError here when it cannot be read."""
         self.base_url = normalize_url(base_url)
         self.timeout = timeout
+        self.tls = trust(ca_file)
         self.token = token
         self._http = httpx.AsyncClient(
-            base_url=self.base_url, headers=default_headers(token), timeout=timeout
+            base_url=self.base_url,
+            headers=default_headers(token),
+            timeout=timeout,
+            verify=self.tls if self.tls is not None else True,
         )
 
     async def __aenter__(self) -> Self:

@@ -7,11 +7,13 @@ by both clients and by `gluectl`.
 from __future__ import annotations
 
 import os
+import ssl
 from pathlib import Path
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 URL_ENV = "GLUE_CELL_URL"
 TOKEN_ENV = "GLUE_CELL_TOKEN"
+CA_FILE_ENV = "GLUE_CELL_CA_FILE"
 DATA_DIR_ENV = "GLUE_APP_DATA_PATH"  # the server's own data directory setting
 DEFAULT_DATA_DIR = "data"
 ADMIN_TOKEN_FILE = "admin.token"
@@ -84,6 +86,19 @@ def normalize_state(state: str) -> str:
     if canonical not in STATES:
         raise ValueError(f"unknown state {state!r}; states: {', '.join(STATES)}")
     return canonical
+
+
+def trust(ca_file: str | os.PathLike[str] | None) -> ssl.SSLContext | None:
+    """How https and wss check the server: only the CA certificates (PEM) in `ca_file`,
+    or None for the libraries' default (the publicly trusted CAs).
+
+    A plant's cell has a certificate from the plant's own CA, which no default store
+    holds; trusting that CA alone is what `curl --cacert` does. Raises OSError when the
+    file cannot be read and ssl.SSLError when it holds no certificate.
+    """
+    if ca_file is None:
+        return None
+    return ssl.create_default_context(cafile=os.fspath(ca_file))
 
 
 def default_headers(token: str | None) -> dict[str, str]:

@@ -124,9 +124,13 @@ class MessageStream:
             url = self._client.ws_url(ticket, after_seq=self.last_seq, boot=self.boot)
         else:
             url = self._client.ws_url(ticket)
+        # wss: the server's certificate is checked as https checks it (the client's CA
+        # file); websockets refuses an ssl context for a ws:// URL.
+        tls = self._client.tls if url.startswith("wss:") else None
         try:
             return await connect(
                 url,
+                ssl=tls,
                 open_timeout=self._client.timeout,
                 close_timeout=2,
                 max_size=WS_MAX_MESSAGE_BYTES,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Iterable
 from types import TracebackType
@@ -11,7 +12,7 @@ import httpx
 
 from clients.client import builders
 from clients.client.builders import Call
-from clients.client.config import DEFAULT_URL, default_headers, normalize_url
+from clients.client.config import DEFAULT_URL, default_headers, normalize_url, trust
 from clients.client.errors import CommandResult
 from clients.client.wait import StateWait
 
@@ -27,11 +28,19 @@ class CellClient:
         token: str | None = None,
         *,
         timeout: float = 10.0,
+        ca_file: str | os.PathLike[str] | None = None,
     ) -> None:
+        """`ca_file`: the CA certificate(s), PEM, that the server's https certificate must
+        chain to (a plant's own CA); None trusts the usual public CAs. OSError or
+        ssl.SSLError here when it cannot be read."""
         self.base_url = normalize_url(base_url)
         self.timeout = timeout
+        self.tls = trust(ca_file)
         self._http = httpx.Client(
-            base_url=self.base_url, headers=default_headers(token), timeout=timeout
+            base_url=self.base_url,
+            headers=default_headers(token),
+            timeout=timeout,
+            verify=self.tls if self.tls is not None else True,
         )
 
     def __enter__(self) -> Self:

@@ -14,7 +14,8 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import logging
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Collection
 
 from fastapi import WebSocket
 from fastapi.responses import JSONResponse
@@ -29,10 +30,14 @@ from server.security.forwarded import (
     rewritten_by_server,
 )
 from server.security.policy import WEBSOCKET_ROLE, role_for_request
+from server.security.throttle import AuthThrottle
 from server.security.tickets import TicketBook
 from server.security.tokens import Principal, TokenEntry, TokenStore
 
 log = logging.getLogger(__name__)
+CHALLENGE = {"WWW-Authenticate": "Bearer"}  # on every 401
+LOCKED_OUT = "locked_out"  # in a WebSocket's scope state: (seconds to wait, why)
+CLOSE_LOCKED_OUT = 4429  # a WebSocket from a locked-out address: 429's close code
 REWRITTEN = (
     "the server in front of the app replaced this request's address with one from its "
     "X-Forwarded-For, which cannot be checked; serve the app with proxy headers off "
@@ -54,6 +59,41 @@ class Access:
         # Told of every revocation (the WebSocket hub closes the token's live views).
         self.revocation_listeners: list[Callable[[str], object]] = []
         self.revoking = asyncio.Lock()  # one revocation at a time (the last admin stays)
+        # Bad tokens and tickets per client address (server/security/throttle.py).
+        self.throttle = AuthThrottle(
+            settings.auth_failure_limit, settings.auth_failure_window, settings.auth_lockout_s
+        )
+
+    def locked_out(self, host: str) -> tuple[int, str] | None:
+        """Seconds `host` must wait after too many bad tokens, and why; None if it need not."""
+        wait = self.throttle.retry_after(host, time.monotonic())
+        if wait is None:
+            return None
+        # The same words for every refusal of one lockout: its audit rows fold into one.
+        return wait, (
+            f"too many bad tokens from {host}: try again after Retry-After "
+            f"(auth_failure_limit {self.settings.auth_failure_limit} within "
+            f"{self.settings.auth_failure_window:g} s)"
+        )
+
+    def bad_credential(self, host: str) -> None:
+        """Count a bad token or ticket from `host`; the lockout it may start is logged once."""
+        if self.throttle.failed(host, time.monotonic()):
+            log.warning(
+                "%s sent %d bad tokens or tickets within %g s: answered 429 for %g s "
+                "(the e-stop excepted)",
+                host,
+                self.settings.auth_failure_limit,
+                self.settings.auth_failure_window,
+                self.settings.auth_lockout_s,
+            )
+
+    def verify_token(self, host: str, token: str) -> Principal | None:
+        """The token's principal; a bad one counts against `host`."""
+        principal = self.tokens.verify(token)
+        if principal is None:
+            self.bad_credential(host)
+        return principal
 
     def revoke(self, token_id: str) -> TokenEntry:
         """Revoke a token everywhere at once; KeyError for an unknown id.
@@ -123,9 +163,10 @@ class AccessGate:
     they are in server/api/ws.py (`authenticate_websocket`).
     """
 
-    def __init__(self, app: ASGIApp, access: Access) -> None:
+    def __init__(self, app: ASGIApp, access: Access, stop_paths: Collection[str] = ()) -> None:
         self.app = app
         self.access = access
+        self.stop_paths = frozenset(stop_paths)  # never locked out (throttle.py)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -135,49 +176,74 @@ class AccessGate:
         if refusal is None:
             await self.app(scope, receive, send)
             return
-        status, reason = refusal
+        status, reason, headers = refusal
         scope.setdefault("state", {})["audit_reason"] = reason
-        headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
         await JSONResponse({"detail": reason}, status, headers=headers)(scope, receive, send)
 
-    def _check(self, scope: Scope) -> tuple[int, str] | None:
-        """None if the request may pass, else the status and the reason."""
+    def _check(self, scope: Scope) -> tuple[int, str, dict[str, str] | None] | None:
+        """None if the request may pass, else the status, the reason and headers to add."""
         access = self.access
         host, refusal = access.screen(scope)
         scope.setdefault("state", {})["client_address"] = host
         if refusal is not None:
-            return 403, refusal
+            return 403, refusal, None
         needed = role_for_request(scope["method"], scope["path"])
         if needed is None:
             return None
+        is_stop = scope["method"] == "POST" and scope["path"] in self.stop_paths
+        locked = None if is_stop else access.locked_out(host)
+        if locked is not None:
+            wait, why = locked
+            return 429, why, {"Retry-After": str(wait)}
         token = bearer_token(scope)
         if token is None:
-            return 401, "authentication required: send Authorization: Bearer <token>"
-        principal = access.tokens.verify(token)
+            return 401, "authentication required: send Authorization: Bearer <token>", CHALLENGE
+        principal = access.verify_token(host, token)
         if principal is None:
-            return 401, "the token is unknown or revoked"
+            return 401, "the token is unknown or revoked", CHALLENGE
         scope.setdefault("state", {})["principal"] = principal
         if principal.role < needed:
             return (
                 403,
                 f"this needs the {needed.label} role; {principal.name} has {principal.role.label}",
+                None,
             )
         return None
 
 
 def websocket_principal(websocket: WebSocket) -> Principal | None:
     """A WebSocket's principal from its one-shot ticket or bearer token, whatever its role
-    (the caller checks the role it needs); None from a refused network or without either."""
+    (the caller checks the role it needs); None from a refused network or without either.
+
+    From an address locked out after too many bad tokens it is None too, and
+    `websocket_lockout` says so (the close code 4429 and the reason); a bad ticket
+    or token counts against the address as on HTTP.
+    """
     access = access_of(websocket)
-    if access.screen(websocket.scope)[1] is not None:
+    host, refusal = access.screen(websocket.scope)
+    if refusal is not None:
+        return None
+    locked = access.locked_out(host)
+    if locked is not None:
+        websocket.scope.setdefault("state", {})[LOCKED_OUT] = locked
         return None
     ticket = websocket.query_params.get("ticket")
     token = bearer_token(websocket.scope)
-    return (
-        access.tickets.redeem(ticket)
-        if ticket
-        else (access.tokens.verify(token) if token else None)
-    )
+    if ticket:
+        principal = access.tickets.redeem(ticket)
+        if principal is None:
+            access.bad_credential(host)
+        return principal
+    return access.verify_token(host, token) if token else None
+
+
+def websocket_lockout(websocket: WebSocket) -> tuple[int, str] | None:
+    """The close code and reason of a WebSocket refused for its address's lockout, if it was."""
+    locked: tuple[int, str] | None = websocket.scope.get("state", {}).get(LOCKED_OUT)
+    if locked is None:
+        return None
+    wait, _ = locked
+    return CLOSE_LOCKED_OUT, f"too many bad tokens from this address: try again in {wait} s"
 
 
 def authenticate_websocket(websocket: WebSocket) -> Principal | None:

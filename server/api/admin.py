@@ -124,6 +124,7 @@ async def get_audit(
     """Who did what, when, from where, with what outcome; newest first, filterable."""
     window = time_window(since, until)
     journal: Journal = request.app.state.cell.journal
+    request.app.state.audit_repeats.flush()  # the refusals being folded, counted so far
     await journal.caught_up()
     filters = _audit_filters(principal, action, outcome)
     rows, total = await asyncio.gather(
@@ -154,6 +155,7 @@ async def export_audit(
 ) -> Response:
     """The audit trail as CSV, oldest first."""
     window = time_window(since, until)
+    request.app.state.audit_repeats.flush()  # the refusals being folded, counted so far
     return await csv_export(
         request.app.state.cell.journal,
         "audit",

@@ -187,6 +187,8 @@ def _export_route(table: str) -> Callable[..., Awaitable[Response]]:
     ) -> Response:
         window = time_window(since, until)
         given = {column: value for column, value in filters.items() if value is not None}
+        if table == "audit":  # the refusals being folded, counted so far (audit_repeats.py)
+            request.app.state.audit_repeats.flush()
         return await csv_export(_journal(request), table, window.since, window.until, given)
 
     endpoint.__name__ = endpoint.__qualname__ = f"export_{table}_csv"

@@ -16,10 +16,12 @@ leave a change nobody is named for:
   then the file is written (`save`), and if that fails (a full disk) the
   answer is 507, memory is left as it was, and the failure gets its own row.
 
-What is left, the refusals (401/403 from the gate, 422 and the like) and the
-few requests that change nothing kept (a WebSocket ticket), is written by an
-observer of server/api/observe.py once the answer has gone, without waiting
-for the disk. Reads are not audited, unless they were refused.
+What is left, the refusals (401/403/429 from the gate, 422 and the like) and
+the few requests that change nothing kept (a WebSocket ticket), is written by
+an observer of server/api/observe.py once the answer has gone, without waiting
+for the disk; identical refusals within `audit_repeat_window` are one row with
+a count (server/api/audit_repeats.py). Reads are not audited, unless they were
+refused.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from typing import Any, TypeVar
 from fastapi import Request
 from starlette.types import Scope
 
+from server.api.audit_repeats import AuditRepeats
 from server.api.observe import Observer
 from server.api.schemas import ErrorView, QueueFullResult
 from server.core.events import AuditNote, Outcome
@@ -125,12 +128,22 @@ async def save(request: Request, what: str, write: Callable[[], T]) -> T:
         raise ChangeNotSaved(what, problem, status) from exc
 
 
-def audit_observer(journal_of: Callable[[Scope], Journal | None]) -> Observer:
-    """Record what no route put on record itself: refusals, and changes kept nowhere."""
+# The refusals of a read that are audited: the gate's (no token, too low a role, locked out).
+AUDITED_READ_REFUSALS = frozenset({401, 403, 429})
+
+
+def audit_observer(
+    journal_of: Callable[[Scope], Journal | None], repeats: AuditRepeats | None = None
+) -> Observer:
+    """Record what no route put on record itself: refusals, and changes kept nowhere.
+
+    With `repeats`, identical refusals within its window are one row with a count
+    (server/api/audit_repeats.py).
+    """
 
     def observe(scope: Scope, status: int, seconds: float) -> None:
         method = scope["method"]
-        if method in ("GET", "HEAD", "OPTIONS") and status not in (401, 403):
+        if method in ("GET", "HEAD", "OPTIONS") and status not in AUDITED_READ_REFUSALS:
             return
         state = scope.get("state") or {}
         if state.get("audited"):  # committed before the answer, with the action
@@ -140,6 +153,9 @@ def audit_observer(journal_of: Callable[[Scope], Journal | None]) -> Observer:
             return
         outcome = "accepted" if status < 400 else f"refused ({status})"
         detail = state.get("audit_reason", "") or ""
+        if repeats is not None and status >= 400:
+            repeats.refused((*_who(scope), outcome, detail))
+            return
         journal.append([row(scope, outcome, detail)], durable=False)
 
     return observe

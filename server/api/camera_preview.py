@@ -10,8 +10,9 @@ for a slow client (it sends the newest when the last send is done).
 Each frame is two messages: a text message, the figures (`"type": "frame"`), then a
 binary message, the JPEG. As on /ws, a refused stream is accepted and closed at once with a
 code and the reason, which a browser can read (an HTTP denial of the handshake it cannot;
-and uvicorn logs an error after each one): 4401 no valid ticket or token, 4403 not
-maintenance, 4409 the cell is not IDLE, 1013 camera_preview_clients reached. A stream ended
+and uvicorn logs an error after each one): 4429 too many bad tokens from the address,
+4401 no valid ticket or token, 4403 not maintenance, 4409 the cell is not IDLE, 1013
+camera_preview_clients reached. A stream ended
 by the server: 4409 the cell left IDLE, 1011 the camera failed, 4401 the token was
 revoked, 4001 the client fell behind (a send did not complete in SEND_TIMEOUT), 1012 the
 server is stopping. GET /camera/preview says beforehand whether a stream may open.
@@ -27,7 +28,7 @@ from typing import Any
 from fastapi import APIRouter, Request, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, Field
 
-from server.api.access import websocket_principal
+from server.api.access import websocket_lockout, websocket_principal
 from server.api.declared_query import DeclaredQueryRoute
 from server.core.camera_preview import (
     ALLOWED,
@@ -100,6 +101,10 @@ async def _refuse(websocket: WebSocket, code: int, reason: str) -> None:
 async def stream(websocket: WebSocket) -> None:
     """Annotated frames and their figures while the client watches (see the module)."""
     principal = websocket_principal(websocket)
+    locked = websocket_lockout(websocket)
+    if locked is not None:
+        await _refuse(websocket, *locked)
+        return
     if principal is None:
         await _refuse(
             websocket,

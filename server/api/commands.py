@@ -15,12 +15,12 @@ has stopped, even when the journal could not record it (the message says so).
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Request
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from server.api import audit
 from server.api.declared_query import IGNORES_UNKNOWN_QUERY, DeclaredQueryRoute
@@ -157,6 +157,43 @@ REQUEST_BODIES: dict[Command, tuple[type[BaseModel], Callable[[Any], Payload]]] 
     Command.ESTOP: (EstopRequest, estop_payload),
     Command.JOG: (JogRequest, jog_payload),
 }
+
+
+# One way a request is wrong, as a 422 names it: {"field", "message", "type"}.
+Problem = dict[str, str]
+
+
+def problem_of(error: Mapping[str, Any]) -> Problem:
+    """One pydantic error as every door words it: the dotted field (HTTP's leading
+    "body" left out), pydantic's message (never the value: it may be megabytes, or
+    characters that would rewrite a log line), and its type."""
+    where = ".".join(str(part) for part in error["loc"] if part != "body") or "body"
+    return {"field": where, "message": str(error["msg"]), "type": str(error["type"])}
+
+
+def invalid_request(problems: list[Problem]) -> str:
+    """The 422's detail, which is also the refusal's audit detail, on every door."""
+    return "invalid request: " + "; ".join(f"{p['field']}: {p['message']}" for p in problems)
+
+
+def payload_of(command: Command, body: Any) -> tuple[Payload | None, list[Problem]]:
+    """The worker's payload from a command's body, checked by the HTTP route's own model.
+
+    The one validation every door shares: MQTT (server/mqtt/commands.py) and OPC UA
+    (server/opcua/methods.py) call it with the body they were given (None: none), HTTP
+    has FastAPI check the same model and build the payload with the same function, so
+    a body is refused alike, with the same fields named, whichever way it came. A
+    command that takes no body gets None, whatever was sent (as HTTP does not read it).
+    """
+    declared = REQUEST_BODIES.get(command)
+    if declared is None:
+        return None, []
+    model, build = declared
+    try:
+        parsed: BaseModel = model.model_validate({} if body is None else body)
+    except ValidationError as exc:
+        return None, [problem_of(error) for error in exc.errors()]
+    return build(parsed), []
 
 
 def command_path(command: Command) -> str:

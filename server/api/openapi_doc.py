@@ -16,6 +16,7 @@ from typing import Any
 
 from fastapi import FastAPI
 
+from server.api.commands import STOP_PATHS
 from server.api.schemas import ErrorView
 from server.security.policy import required_role
 from server.security.tokens import Role
@@ -137,6 +138,18 @@ def document_access(schema: dict[str, Any]) -> None:
                     }
                 },
             )
+            if not (method == "post" and path in STOP_PATHS):  # the e-stop never waits
+                responses["429"] = _refusal(
+                    "this client's address sent `auth_failure_limit` bad tokens within "
+                    "`auth_failure_window`: refused, whatever the token, until `Retry-After`",
+                    headers={
+                        "Retry-After": {
+                            "description": "seconds until the address may try again",
+                            "required": True,
+                            "schema": {"type": "integer", "minimum": 1},
+                        }
+                    },
+                )
             responses["403"] = _refusal(
                 _UNTRUSTED
                 if needed == Role.VIEWER  # no role is below it

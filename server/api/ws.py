@@ -46,6 +46,8 @@ Close codes (also in docs/api.md):
         (max_broadcast_clients_per_token), or only the slots kept for maintenance
         and admin are left (broadcast_clients_reserved); try again later
   4001  slow consumer: the client fell behind and was dropped
+  4429  too many bad tokens or tickets from this address (auth_failure_limit):
+        try again in the seconds the reason names
   4401  unauthorized: no valid one-shot ticket (POST /ws-ticket) or bearer token,
         or the token was revoked while the view was open (server/api/live_views.py)
   1012  the server is restarting or shutting down (sent by uvicorn)
@@ -71,7 +73,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.datastructures import QueryParams
 
-from server.api.access import authenticate_websocket
+from server.api.access import authenticate_websocket, websocket_lockout
 from server.api.live_views import CLOSE_UNAUTHORIZED, REVOKED_REASON, LiveViews
 from server.api.ws_frames import FrameWriter, text_frame
 from server.core.bus import Bus, BusMessage, DirectConsumer, Subscription, SubscriptionClosed
@@ -231,6 +233,10 @@ async def live(websocket: WebSocket) -> None:
     bus: Bus = cell.bus
     principal = authenticate_websocket(websocket)
     await websocket.accept()
+    locked = websocket_lockout(websocket)
+    if locked is not None:
+        await websocket.close(*locked)
+        return
     if principal is None:
         await websocket.close(
             CLOSE_UNAUTHORIZED,

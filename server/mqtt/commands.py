@@ -1,9 +1,11 @@
 """Commands received over MQTT: the same path, roles, audit and answers as HTTP.
 
-A message on `<prefix>/<cell_id>/command/<name>` carries `{"token": ..., "body":
-{...}}`; `name` is the HTTP route's (start, pause, resume, cancel, reset,
-estop, home, jog, calibrate-robot, calibrate-camera, create-workpiece). The
-token is checked by the HTTP gate's store and the role is the one
+A message on `<prefix>/<cell_id>/command/<name>` is a signed command
+(server/mqtt/signed.py: `token_id`, `ts_ms`, `nonce`, `body`, `sig`); `name` is
+the HTTP route's (start, pause, resume, cancel, reset, estop, home, jog,
+calibrate-robot, calibrate-camera, create-workpiece). The token is found by its
+id in the HTTP gate's store, the signature proves the sender holds it, the time
+and nonce that the message is fresh and new; the role is the one
 server/security/policy.py gives the route (`POST /<name>`), so the two doors
 cannot drift apart. The body is validated by the route's own model and turned
 into the worker's payload by the same function (server/api/commands.py), and
@@ -11,12 +13,15 @@ the command goes to `Cell.command` with an audit note, whose row is committed
 with the event. The answer is the HTTP answer's JSON with its status beside it
 (`"status": 202` and so on).
 
-What no command reaches the worker with (no token, a wrong one, too low a
-role, an unknown command, a body that is not valid) is refused here and
-written to the audit trail like the HTTP gate's refusals. An e-stop goes by
-the e-stop path (`Cell.command` → `Worker.emergency_stop`: the devices halted
+What no command reaches the worker with (unsigned, the old `{"token": ...}`
+form, a bad signature, an unknown or revoked token id, stale, from the future,
+a nonce already used, too low a role, an unknown command, a body that is not
+valid) is refused here and written to the audit trail like the HTTP gate's
+refusals; no refusal repeats what the message carried. An e-stop goes by the
+e-stop path (`Cell.command` → `Worker.emergency_stop`: the devices halted
 before the event is queued) and is never refused over its body: it is made,
-and the 422 says so, as over HTTP.
+and the 422 says so, as over HTTP. It is refused, like any command, when it is
+not signed, fresh and new: a replayed stop must not stop the cell again.
 """
 
 from __future__ import annotations
@@ -24,16 +29,22 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
-from pydantic import BaseModel, ValidationError
-
-from server.api.commands import REQUEST_BODIES, answer_of, audit_label, command_path
+from server.api.commands import (
+    answer_of,
+    audit_label,
+    command_path,
+    invalid_request,
+    payload_of,
+)
 from server.api.schemas import RETRY_AFTER_S
 from server.cell import Cell
 from server.core.events import AuditNote, Payload, StopPayload
 from server.core.transitions import Command, normalize_command
 from server.errors import EventQueueFull, JournalUnavailable, WorkerStopped
+from server.mqtt.signed import NonceCache, Refusal, verify
 from server.security.policy import required_role
 from server.security.tokens import Principal, TokenStore
 from server.storage.journal import records
@@ -46,10 +57,23 @@ Answer = tuple[int, dict[str, Any]]
 class CommandDoor:
     """Runs one MQTT command message and says what to answer."""
 
-    def __init__(self, cell: Cell, tokens: TokenStore, address: str) -> None:
+    def __init__(
+        self,
+        cell: Cell,
+        tokens: TokenStore,
+        address: str,
+        *,
+        max_age_s: float = 30.0,
+        max_skew_s: float = 5.0,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
         self.cell = cell
         self.tokens = tokens
         self.address = address  # what the audit records as "from where": the broker
+        self.max_age_ms = int(max_age_s * 1000)
+        self.max_skew_ms = int(max_skew_s * 1000)
+        self.nonces = NonceCache()
+        self._clock = clock
 
     async def handle(self, topic: str, name: str, raw: bytes) -> Answer:
         """Check, run and answer one command message; every refusal is audited."""
@@ -61,25 +85,27 @@ class CommandDoor:
             message = json.loads(raw or b"{}")
         except (ValueError, UnicodeDecodeError):
             return self._refuse(None, action, 400, "the payload is not JSON")
-        if not isinstance(message, dict):
-            return self._refuse(None, action, 400, 'the payload must be {"token": ..., "body": {}}')
-        token = message.get("token")
-        if not isinstance(token, str) or not token:
-            detail = 'authentication required: put the token in the payload ("token")'
-            return self._refuse(None, action, 401, detail)
-        principal = self.tokens.verify(token)
-        if principal is None:
-            return self._refuse(None, action, 401, "the token is unknown or revoked")
+        checked = verify(
+            message,
+            topic,
+            now_ms=int(self._clock() * 1000),
+            keys=self.tokens.mqtt_key,
+            nonces=self.nonces,
+            max_age_ms=self.max_age_ms,
+            max_skew_ms=self.max_skew_ms,
+        )
+        if isinstance(checked, Refusal):
+            return self._refuse(None, action, checked.status, checked.detail)
+        principal, body = checked.principal, checked.body
         needed = required_role("POST", command_path(command))
         if needed is not None and principal.role < needed:
             detail = (
                 f"this needs the {needed.label} role; {principal.name} has {principal.role.label}"
             )
             return self._refuse(principal, action, 403, detail)
-        payload, errors = _payload(command, message.get("body"))
+        payload, errors = payload_of(command, body)
         if errors:  # as HTTP's 422: the detail, and each field with its message
-            summary = "; ".join(f"{e['field']}: {e['message']}" for e in errors)
-            problem = f"invalid request: {summary}"
+            problem = invalid_request(errors)
             if command is Command.ESTOP:  # a stop is never refused over its body
                 _, answer = await self._run(principal, action, command, StopPayload(None))
                 answer["message"] = f"the stop was made without its reason: {answer['message']}"
@@ -119,23 +145,3 @@ class CommandDoor:
         who = principal.describe() if principal else "anonymous"
         row = records.audit(time.time(), who, self.address, action, outcome, detail)
         journal.append([row], durable=False)
-
-
-def _payload(command: Command, body: Any) -> tuple[Payload | None, list[dict[str, str]]]:
-    """The worker's payload from the message's body, or each way the body is not valid."""
-    declared = REQUEST_BODIES.get(command)
-    if declared is None:
-        return None, []  # the command takes no body (as over HTTP, one sent is not read)
-    model, build = declared
-    try:
-        parsed: BaseModel = model.model_validate({} if body is None else body)
-    except ValidationError as exc:
-        return None, [
-            {
-                "field": ".".join(str(part) for part in error["loc"]) or "body",
-                "message": error["msg"],
-                "type": error["type"],
-            }
-            for error in exc.errors()
-        ]
-    return build(parsed), []

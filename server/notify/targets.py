@@ -16,6 +16,7 @@ secret too.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Literal
 from urllib.parse import urlsplit
@@ -113,6 +114,11 @@ class WebhookTarget(BaseModel):
     @property
     def shown_url(self) -> str:
         return shown_url(self.url)
+
+    def __repr_args__(self) -> Iterator[tuple[str | None, Any]]:
+        """Its repr and str (a Settings repr, a traceback's locals) show the URL as shown."""
+        for name, value in super().__repr_args__():
+            yield name, shown_url(value) if name == "url" else value
 
     @field_serializer("url", when_used="json")
     def _url_shown(self, value: str) -> str:

@@ -21,7 +21,7 @@ after the other).
 from __future__ import annotations
 
 from contextvars import ContextVar
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from asyncua import ua
@@ -40,9 +40,13 @@ _SESSION_REQUESTS = frozenset(ua.NodeId(ua.Int32(type_id)) for type_id in USER_T
 
 @dataclass
 class CellUser(User):
-    """asyncua's user with the token it signed in with (kept in memory only)."""
+    """asyncua's user with the token it signed in with (kept in memory only).
 
-    token: str | None = None
+    The token is left out of the repr: asyncua logs the user of every request
+    ("call request (CellUser(...))"), and that line must not carry the secret.
+    """
+
+    token: str | None = field(default=None, repr=False)
     user_name: str | None = None
 
     def principal(self, tokens: TokenStore) -> Principal | None:

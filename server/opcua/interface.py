@@ -23,6 +23,7 @@ from typing import Any
 from urllib.parse import urlparse
 
 from asyncua import Server, ua
+from asyncua.common.callback import CallbackType
 
 from server.api.analytics import kpis_of
 from server.api.answers_in_flight import AnswersInFlight, after_answers
@@ -35,9 +36,10 @@ from server.errors import ConfigurationError
 from server.opcua import address_space, tags
 from server.opcua.address_space import CellNodes, data_value
 from server.opcua.certificate import application_uri, ensure_certificate
-from server.opcua.identity import CallerRuleset, TokenUsers
+from server.opcua.identity import TokenUsers
 from server.opcua.methods import CellMethods
 from server.opcua.packml import packml_state, unit_mode
+from server.opcua.protection import CallGuard, PasswordGuard
 from server.security.tokens import TokenStore
 
 log = logging.getLogger(__name__)
@@ -89,6 +91,7 @@ class OpcUaInterface:
         self.endpoint = settings.opcua_endpoint
         self.server = Server(user_manager=TokenUsers(tokens))  # type: ignore[arg-type]
         self.methods = CellMethods(self.server, cell, tokens)
+        self.tokens = tokens
         self.nodes: CellNodes | None = None
         self._feed: PacedFeed | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -101,6 +104,8 @@ class OpcUaInterface:
         settings = self.settings
         server = self.server
         await server.init()
+        # A password only where nobody else can read it (server/opcua/protection.py).
+        PasswordGuard(server, self.cell, self.tokens).install()
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"glue cell {settings.cell_id}")
         await server.set_application_uri(application_uri(settings.cell_id))
@@ -115,10 +120,14 @@ class OpcUaInterface:
         ]
         if settings.opcua_allow_unsecured:
             policies.insert(0, ua.SecurityPolicyType.NoSecurity)
-        server.set_security_policy(policies, permission_ruleset=CallerRuleset())
+        server.set_security_policy(
+            policies, permission_ruleset=CallGuard(server, self.cell, self.tokens)
+        )
         server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
         self.nodes = await address_space.build(server, settings.cell_id)
         await self.methods.add(self.nodes.cell, self.nodes.cell_id, self.nodes.namespace)
+        # Each session reads its own UserExecutable: false where a call would be refused.
+        server.subscribe_server_callback(CallbackType.PostRead, self.methods.user_executable)
         # Subscribe before the first values are written: nothing falls between the two.
         view = self.cell.view
         subscription = self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED)

@@ -14,6 +14,13 @@ a refusal is a Bad status (BadUserAccessDenied for a missing token or role,
 BadInvalidState where HTTP says 409, BadInvalidArgument for 422,
 BadResourceUnavailable for 503) with the same output arguments, so the cell's
 message comes back with it.
+
+The inputs are checked by the HTTP route's own request model and turned into the
+worker's payload by the same function (server/api/commands.py: `payload_of`, which
+MQTT calls too): a part id HTTP refuses with 422 is refused here with
+BadInvalidArgument, the 422's detail as the message and the audit row's detail.
+A Call request too large to be a method's (server/opcua/protection.py) never
+reaches a method: BadRequestTooLarge, as HTTP answers 413.
 """
 
 from __future__ import annotations
@@ -25,9 +32,11 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 from asyncua import Node, Server, ua
+from asyncua.common.callback import ServerItemCallback
 
+from server.api.commands import Problem, invalid_request, payload_of
 from server.cell import Cell
-from server.core.events import AuditNote, Outcome, Payload, StartPayload, StopPayload
+from server.core.events import AuditNote, Outcome
 from server.core.transitions import Command, Event
 from server.errors import EventQueueFull, JournalUnavailable, WorkerStopped
 from server.opcua.address_space import node_id_of
@@ -125,17 +134,29 @@ def peer_of(server: Server, user: CellUser | None) -> str:
     return "unknown"
 
 
-def _payload(method: Method, args: tuple[Any, ...]) -> Payload | None:
+def body_of(method: Method, args: tuple[Any, ...]) -> tuple[Any, list[Problem]]:
+    """The HTTP request body a method's input arguments stand for, for the route's model.
+
+    Start's WorkpieceId is `{"contour_matching": false, "workpiece_id": ...}` (empty or
+    null: `{}`, find the part on the table), its value passed as the client sent it: a
+    number or an array where the string belongs is refused by the model, naming
+    `workpiece_id`, as HTTP refuses it. More arguments than the method declares are a
+    problem too (HTTP refuses a field it does not know). The other methods take none.
+    """
+    declared = INPUTS.get(method.name, ())
+    values = [arg.Value if isinstance(arg, ua.Variant) else arg for arg in args]
+    if declared and len(values) > len(declared):
+        names = ", ".join(name for name, _ in declared)
+        message = (
+            f"{method.name} takes {len(declared)} input argument(s) ({names}), got {len(values)}"
+        )
+        return None, [{"field": "arguments", "message": message, "type": "too_many_arguments"}]
     if method.command is Command.START:
-        # asyncua hands the input arguments over as Variants.
-        first = args[0].Value if args and isinstance(args[0], ua.Variant) else None
-        workpiece = str(first) if first else None
-        if workpiece:
-            return StartPayload(contour_matching=False, workpiece_id=workpiece)
-        return StartPayload()
-    if method.command is Command.ESTOP:
-        return StopPayload(None)
-    return None
+        workpiece = values[0] if values else None
+        if workpiece is None or workpiece == "":
+            return {}, []
+        return {"contour_matching": False, "workpiece_id": workpiece}, []
+    return None, []
 
 
 class CellMethods:
@@ -145,13 +166,16 @@ class CellMethods:
         self.server = server
         self.cell = cell
         self.tokens = tokens
+        self.nodes: dict[ua.NodeId, Method] = {}
 
     async def add(self, parent: Node, cell_id: str, namespace: int) -> None:
         for method in METHODS:
             inputs = [self._argument(name, kind) for name, kind in INPUTS.get(method.name, ())]
             outputs = [self._argument(name, kind) for name, kind in OUTPUTS]
+            node_id = node_id_of(namespace, f"{cell_id}.{method.name}")
+            self.nodes[node_id] = method
             node = await parent.add_method(
-                node_id_of(namespace, f"{cell_id}.{method.name}"),
+                node_id,
                 ua.QualifiedName(method.name, namespace),
                 self._callback(method),
                 inputs,
@@ -163,6 +187,33 @@ class CellMethods:
                     ua.Variant(ua.LocalizedText(f"PackML {method.packml}: {method.description}"))
                 ),
             )
+
+    def may_call(self, user: object, method: Method) -> bool:
+        """Whether `user` holds a token with the role `method` needs (anonymous: never)."""
+        principal = user.principal(self.tokens) if isinstance(user, CellUser) else None
+        needed = required_role("POST", method.route)
+        return principal is not None and (needed is None or principal.role >= needed)
+
+    def user_executable(self, event: ServerItemCallback, dispatcher: object) -> None:
+        """asyncua's PostRead callback: a method's UserExecutable as this session may call it.
+
+        asyncua keeps one UserExecutable per node (true); a client reads it to grey out a
+        method it may not call, so each session is told its own: false for anonymous and
+        for a role too low, as the call itself would be refused. The stored value is left
+        alone: the answer's entry is replaced, not changed.
+        """
+        results = event.response_params
+        for index, item in enumerate(event.request_params.NodesToRead):
+            method = self.nodes.get(item.NodeId)
+            if (
+                method is None
+                or item.AttributeId != ua.AttributeIds.UserExecutable
+                or index >= len(results)
+                or not results[index].StatusCode.is_good()
+            ):
+                continue
+            allowed = self.may_call(event.user, method)
+            results[index] = ua.DataValue(ua.Variant(allowed, ua.VariantType.Boolean))
 
     @staticmethod
     def _argument(name: str, kind: ua.VariantType) -> ua.Argument:
@@ -195,13 +246,19 @@ class CellMethods:
         if needed is not None and principal.role < needed:
             why = f"this needs the {needed.label} role; {principal.name} has {principal.role.label}"
             return self._refuse(principal.describe(), address, action, why)
+        # The route's own model checks the inputs, as over HTTP and MQTT: the same
+        # refusal (the 422's detail as the message), audited alike, nothing sent.
+        body, problems = body_of(method, args)
+        payload, problems = payload_of(method.command, body) if not problems else (None, problems)
+        if problems:
+            why = invalid_request(problems)
+            return self._refuse(
+                principal.describe(), address, action, why, ua.StatusCodes.BadInvalidArgument
+            )
         note = AuditNote(principal.describe(), address, action, _label)
         try:
             outcome = await self.cell.command(
-                method.command,
-                source=f"opcua:{address}",
-                payload=_payload(method, args),
-                audit=note,
+                method.command, source=f"opcua:{address}", payload=payload, audit=note
             )
         except (EventQueueFull, WorkerStopped, JournalUnavailable) as exc:
             return self._refuse(

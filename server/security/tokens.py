@@ -22,7 +22,7 @@ import re
 import secrets
 import threading
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from enum import IntEnum
 from pathlib import Path
 from typing import Any
@@ -71,10 +71,13 @@ class Principal:
 
 @dataclass
 class TokenEntry:
+    """One stored token. Its `secret_sha256` is out of the repr: it is the key a signed
+    MQTT command is checked with, so it is as secret as the token (docs/security.md)."""
+
     id: str
     name: str
     role: str
-    secret_sha256: str
+    secret_sha256: str = field(repr=False)
     created_at: float
     revoked_at: float | None = None
 
@@ -210,6 +213,23 @@ class TokenStore:
             self._save(entries)
             self._entries = entries
             return revoked
+
+    def mqtt_key(self, token_id: str) -> tuple[bytes, Principal] | None:
+        """The signing key of an unrevoked token and its principal, else None.
+
+        An MQTT command is signed with the token's stored digest (the hex SHA-256 of
+        the whole token, as bytes): the sender proves it holds the token without the
+        secret crossing the broker, and nothing new is stored (server/mqtt/signed.py).
+        """
+        entry = self._entries.get(token_id)
+        if entry is None or entry.revoked_at is not None:
+            return None
+        cached = self._principals.get(entry.id)
+        if cached is not None and cached[0] is entry:
+            return entry.secret_sha256.encode("utf-8"), cached[1]
+        principal = Principal(entry.id, entry.name, Role.parse(entry.role))
+        self._principals[entry.id] = (entry, principal)
+        return entry.secret_sha256.encode("utf-8"), principal
 
     def verify(self, token: str) -> Principal | None:
         """The principal of a valid, unrevoked token, else None."""

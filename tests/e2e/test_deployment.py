@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import configparser
 import contextlib
+import getpass
 import re
 import shutil
 import socket
@@ -29,13 +30,14 @@ import httpx
 import pytest
 import yaml
 
-from server.line_broker import mosquitto_binary
+from server.line_broker import DEMO_PASSWORDS, mosquitto_binary, write_password_file
 from tests.processes import ROOT, environment, stop
 from tests.serving import free_port
 
 SIMULATORS = ("robot-sim", "glue-sim")
 BROKER = "mosquitto"
-BROKER_CONFIG = "/mosquitto/config/mosquitto.conf"
+BROKER_CONFIG_DIR = "/mosquitto/config"
+BROKER_CONFIG = f"{BROKER_CONFIG_DIR}/mosquitto.conf"
 SIMULATOR_PORTS = {"30003", "5020", "5021"}  # robot, Modbus, the glue simulator's fault channel
 INSTALL_HINT = "`make deploy-tools` installs Debian's docker-compose and systemd"
 
@@ -46,12 +48,16 @@ def tool(name: str) -> str:
     return found
 
 
-def compose_config(tmp_path: Path, compose_file: Path, **variables: str) -> dict[str, Any]:
-    """`docker-compose config` of `compose_file`: validated, resolved, as YAML."""
+def compose_config(
+    tmp_path: Path, compose_file: Path, *overlays: Path, **variables: str
+) -> dict[str, Any]:
+    """`docker-compose config` of `compose_file` (and `overlays` on top): validated,
+    resolved, as YAML."""
     env_file = tmp_path / "compose.env"  # never a stray .env beside the file
     env_file.write_text("".join(f"{k}={v}\n" for k, v in variables.items()))
+    files = [word for path in (compose_file, *overlays) for word in ("-f", str(path))]
     answer = subprocess.run(
-        [tool("docker-compose"), "--env-file", str(env_file), "-f", str(compose_file), "config"],
+        [tool("docker-compose"), "--env-file", str(env_file), *files, "config"],
         capture_output=True,
         text=True,
         cwd=tmp_path,
@@ -64,7 +70,13 @@ def compose_config(tmp_path: Path, compose_file: Path, **variables: str) -> dict
 
 @pytest.fixture(scope="module")
 def compose(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    return compose_config(tmp_path_factory.mktemp("compose"), ROOT / "docker-compose.yml")
+    # The cell's broker password as an integrator's .env gives it (make-passwd's).
+    password = DEMO_PASSWORDS["cell"]
+    return compose_config(
+        tmp_path_factory.mktemp("compose"),
+        ROOT / "docker-compose.yml",
+        GLUE_MQTT_CELL_PASSWORD=password,
+    )
 
 
 def test_docker_compose_refuses_a_malformed_file(tmp_path: Path) -> None:
@@ -113,15 +125,78 @@ def test_the_broker_port_is_published_where_the_integrator_says(tmp_path: Path) 
     assert chosen["services"][BROKER]["ports"] == ["10.0.0.5:1884:1883/tcp"]
 
 
+def test_the_tls_overlay_serves_https_with_the_certificate_and_key_as_secrets(
+    tmp_path: Path, compose
+) -> None:
+    """docker-compose.tls.yml: the server's certificate and key from files on the host,
+    mounted as compose secrets (not in the image, not in its environment), and its health
+    asked over https; nothing else changes."""
+    cert, key = tmp_path / "cell.pem", tmp_path / "cell.key"
+    tls = compose_config(
+        tmp_path,
+        ROOT / "docker-compose.yml",
+        ROOT / "docker-compose.tls.yml",
+        GLUE_TLS_CERT=str(cert),
+        GLUE_TLS_KEY=str(key),
+        GLUE_MQTT_CELL_PASSWORD=DEMO_PASSWORDS["cell"],
+    )
+    server = tls["services"]["server"]
+    assert server["environment"]["GLUE_APP_TLS_CERT_FILE"] == "/run/secrets/cell_tls_cert"
+    assert server["environment"]["GLUE_APP_TLS_KEY_FILE"] == "/run/secrets/cell_tls_key"
+    assert {s if isinstance(s, str) else s["source"] for s in server["secrets"]} == {
+        "cell_tls_cert",
+        "cell_tls_key",
+    }
+    assert tls["secrets"] == {
+        "cell_tls_cert": {"file": str(cert)},
+        "cell_tls_key": {"file": str(key)},
+    }
+    assert server["healthcheck"]["test"] == [
+        "CMD", "python", "-m", "server.healthcheck", "https://127.0.0.1:8000/health"
+    ]  # fmt: skip
+    plain = compose["services"]["server"]
+    assert server["ports"] == plain["ports"] and server["command"] == plain["command"]
+    assert {k: v for k, v in server["environment"].items() if "TLS" not in k} == plain[
+        "environment"
+    ]
+
+
 def test_the_server_publishes_to_the_composed_broker(compose) -> None:
     services = compose["services"]
     assert services["server"]["environment"]["GLUE_APP_MQTT_URL"] == f"mqtt://{BROKER}:1883"
     assert set(services[BROKER]["networks"]) == {"plant"} <= set(services["server"]["networks"])
     assert services[BROKER]["image"].startswith("eclipse-mosquitto:")
-    (mount,) = services[BROKER]["volumes"]
-    source, target, mode = mount.rsplit(":", 2)
-    assert (target, mode) == (BROKER_CONFIG, "ro")
-    assert Path(source) == ROOT / "deploy" / "mosquitto" / "mosquitto.conf"
+    mounts = {}
+    for mount in services[BROKER]["volumes"]:
+        source, target, mode = mount.rsplit(":", 2)
+        assert mode == "ro", mount
+        mounts[target] = Path(source)
+    shipped = ROOT / "deploy" / "mosquitto"
+    assert mounts == {
+        BROKER_CONFIG: shipped / "mosquitto.conf",
+        f"{BROKER_CONFIG_DIR}/acl": shipped / "acl",  # the ACL the demo and tests use
+        f"{BROKER_CONFIG_DIR}/health.acl": shipped / "health.acl",
+        f"{BROKER_CONFIG_DIR}/passwd": shipped / "passwd",  # made by make-passwd, not committed
+    }
+    # The cell signs in; its password comes from .env, never from the file.
+    server_env = services["server"]["environment"]
+    assert server_env["GLUE_APP_MQTT_USERNAME"] == "cell"
+    assert server_env["GLUE_APP_MQTT_PASSWORD"] == DEMO_PASSWORDS["cell"]  # from .env
+
+
+def test_the_shipped_broker_refuses_anonymous_clients_and_has_an_acl() -> None:
+    config = (ROOT / "deploy" / "mosquitto" / "mosquitto.conf").read_text()
+    plant = config.split("listener 1883", 1)[1].split("listener", 1)[0]
+    assert "allow_anonymous false" in plant and "acl_file /mosquitto/config/acl" in plant
+    assert "password_file /mosquitto/config/passwd" in plant
+    assert not (ROOT / "deploy" / "mosquitto" / "passwd").exists() or _ignored("passwd")
+
+
+def _ignored(name: str) -> bool:
+    answer = subprocess.run(
+        ["git", "check-ignore", "-q", f"deploy/mosquitto/{name}"], cwd=ROOT, check=False
+    )
+    return answer.returncode == 0
 
 
 def test_every_service_is_health_checked_and_the_server_waits_for_its_devices(compose) -> None:
@@ -173,17 +248,29 @@ class Localized:
 
     def __init__(self, compose: dict[str, Any], data: Path) -> None:
         self.hosts = {name: "127.0.0.1" for name in compose["services"]} | {"0.0.0.0": "127.0.0.1"}
-        self.ports = {port: str(free_port()) for port in ("30003", "5020", "8000", "1883")}
+        ports = ("30003", "5020", "8000", "1883", "1884")
+        self.ports = {port: str(free_port()) for port in ports}
         self.data = data
-        self.broker_config = data.parent / "mosquitto.conf"
-        for mount in compose["services"][BROKER]["volumes"]:  # the mounted file, localized
+        self.broker_dir = data.parent / "broker-config"  # no service name in it: see __call__
+        self.broker_dir.mkdir(parents=True, exist_ok=True)
+        self.broker_config = self.broker_dir / "mosquitto.conf"
+        for mount in compose["services"][BROKER]["volumes"]:  # the mounted files, localized
             source, target, _ = mount.rsplit(":", 2)
-            if target == BROKER_CONFIG:
+            local_file = self.broker_dir / Path(target).name
+            if target.endswith("/passwd"):  # not committed: made as make-passwd makes it
+                write_password_file(local_file, DEMO_PASSWORDS)
+            elif target == BROKER_CONFIG:
                 lines = Path(source).read_text().splitlines()
                 local = [" ".join(self(word) for word in line.split()) for line in lines]
+                # Started as root here, mosquitto would drop to its own user, who cannot
+                # read this test's directory (in the image it runs as its user already).
+                local.insert(0, f"user {getpass.getuser()}")
                 self.broker_config.write_text("\n".join(local) + "\n")
+            else:
+                local_file.write_text(Path(source).read_text())
 
     def __call__(self, word: str) -> str:
+        word = word.replace(f"{BROKER_CONFIG_DIR}/", f"{self.broker_dir}/")  # before the hosts
         for host, local in self.hosts.items():
             word = re.sub(rf"(?<![\w.-]){re.escape(host)}(?![\w.-])", local, word)
         for port, local in self.ports.items():
@@ -270,6 +357,13 @@ def test_each_service_runs_and_passes_its_health_check_as_composed(compose, tmp_
         # The server was told where its broker is: the composed one, on its local port.
         server_env = Path(f"/proc/{process.pid}/environ").read_bytes()
         assert f"GLUE_APP_MQTT_URL=mqtt://127.0.0.1:{local.ports['1883']}".encode() in server_env
+        # It signed in at the broker as `cell` (anonymous clients are refused).
+        deadline = time.monotonic() + 60
+        while not httpx.get(f"http://127.0.0.1:{local.ports['8000']}/health").json()["mqtt"][
+            "connected"
+        ]:
+            assert time.monotonic() < deadline, "the cell did not sign in at the broker"
+            time.sleep(0.2)
         for port in (local.ports["30003"], local.ports["5020"], local.ports["1883"]):
             with socket.create_connection(("127.0.0.1", int(port)), timeout=5):
                 pass
@@ -339,3 +433,6 @@ def test_the_unit_runs_hardened_as_its_own_user_and_restarts_within_limits() -> 
     assert int(limits["StartLimitBurst"]) >= 1 and int(limits["StartLimitIntervalSec"]) > 0
     env_file = (ROOT / "deploy" / "glue-server.env").read_text()
     assert "GLUE_HTTP_HOST=127.0.0.1" in env_file
+    # https shown, off until a certificate is there (a missing file stops the start).
+    assert "\n#GLUE_APP_TLS_CERT_FILE=/etc/glue-cell/" in env_file
+    assert "\n#GLUE_APP_TLS_KEY_FILE=/etc/glue-cell/" in env_file

@@ -26,6 +26,7 @@ from pathlib import Path
 import httpx
 import paho.mqtt.client as paho
 
+from server.line_broker import DEMO_PASSWORDS, BrokerPorts
 from tests.processes import ROOT, environment, run_module, stop
 from tests.serving import free_port
 
@@ -48,8 +49,9 @@ def alive(pid: int) -> bool:
 
 def line_of(mqtt: int) -> dict[str, dict]:
     """Every cell as `gluectl line --once --json` reads it from the broker."""
+    broker = BrokerPorts("127.0.0.1", mqtt, 0).login_url("line-view")  # the demo's user
     answer = run_module(
-        "clients.gluectl", "line", "--broker", f"mqtt://127.0.0.1:{mqtt}", "--once", "--json",
+        "clients.gluectl", "line", "--broker", broker, "--once", "--json",
         timeout=60,
     )  # fmt: skip
     assert answer.returncode == 0, answer.stderr
@@ -72,6 +74,7 @@ def cell_events(mqtt: int, cell_id: str) -> Iterator[list[dict]]:
     client = paho.Client(paho.CallbackAPIVersion.VERSION2)
     client.on_message = lambda _c, _u, message: events.append(json.loads(message.payload))
     client.on_subscribe = lambda *_: subscribed.set()
+    client.username_pw_set("line-view", DEMO_PASSWORDS["line-view"])  # the demo's users
     client.connect("127.0.0.1", mqtt)
     client.subscribe(f"glue/{cell_id}/event", qos=1)
     client.loop_start()

@@ -25,6 +25,7 @@ from bench import (
     device_feed,
     engine_throughput,
     estop_latency,
+    estop_under_attack,
     memory,
     pause_latency,
     planning,
@@ -151,6 +152,23 @@ def test_estop_latency_measures_every_condition(results_in_tmp: Path) -> None:
         # The answer comes after both devices had the stop (it waits for their replies).
         assert row["answer_p50_ms"] >= row["to_sockets_p50_ms"] > 0
         assert 0 <= row["line_busy_stops"] <= row["n"]
+
+
+def test_estop_under_attack_measures_quiet_and_attacked_stops(results_in_tmp: Path) -> None:
+    argv = ["--trials", "3", "--slow-clients", "20", "--slow-addresses", "2"]
+    rows = estop_under_attack.main([*argv, "--flood-connections", "1", "--settle", "0.2"])
+    assert [row["condition"] for row in rows] == [
+        "quiet",
+        "20 slow clients + bad-token flood (1 connections)",
+    ]
+    for row in rows:
+        assert_ordered_latencies(row)
+        assert row["n"] == 3 and row["not_202"] == 0
+    document = json.loads((results_in_tmp / "estop_under_attack.json").read_text("utf-8"))
+    attack = document["attack"]
+    assert attack["slow_connections_made"] >= 20
+    assert attack["flood_answers"]["401"] == 20 and attack["flood_answers"]["429"] > 0
+    assert document["server_open_fds"]["attacked_max"] > 0
 
 
 def test_reset_probe_measures_every_condition(results_in_tmp: Path) -> None:

@@ -41,7 +41,7 @@ def gluectl_line(*args: str) -> subprocess.CompletedProcess[str]:
 
 def test_once_json_lists_every_cell_as_the_broker_holds_it(broker: BrokerPorts) -> None:
     three_cells(broker.mqtt)
-    answer = gluectl_line("--broker", broker.mqtt_url, "--once", "--json")
+    answer = gluectl_line("--broker", broker.login_url("line-view"), "--once", "--json")
     assert answer.returncode == 0, answer.stderr
     cells = {row["cell_id"]: row for row in json.loads(answer.stdout)["cells"]}
     assert list(cells) == ["cell-1", "cell-2", "cell-3"]
@@ -51,7 +51,7 @@ def test_once_json_lists_every_cell_as_the_broker_holds_it(broker: BrokerPorts) 
     assert reason == {"code": "ESTOP", "message": "stop pressed at the cell"}
     assert cells["cell-2"]["oee"] is None
     assert all(row["online"] is True for row in cells.values())
-    table = gluectl_line("--broker", broker.mqtt_url, "--once")
+    table = gluectl_line("--broker", broker.login_url("line-view"), "--once")
     assert table.returncode == 0, table.stderr
     assert "ESTOP: stop pressed at the cell" in table.stdout and "75.0 %" in table.stdout
 
@@ -68,11 +68,15 @@ def test_a_cell_that_dies_reads_offline(broker: BrokerPorts) -> None:
     )
     try:
         assert cell.stdout is not None and cell.stdout.readline().strip() == "published"
-        before = json.loads(gluectl_line("--broker", broker.mqtt_url, "--once", "--json").stdout)
+        before = json.loads(
+            gluectl_line("--broker", broker.login_url("line-view"), "--once", "--json").stdout
+        )
         assert [(c["cell_id"], c["online"]) for c in before["cells"]] == [("cell-9", True)]
         os.kill(cell.pid, signal.SIGKILL)
         cell.wait()
-        after = json.loads(gluectl_line("--broker", broker.mqtt_url, "--once", "--json").stdout)
+        after = json.loads(
+            gluectl_line("--broker", broker.login_url("line-view"), "--once", "--json").stdout
+        )
         assert [(c["cell_id"], c["online"]) for c in after["cells"]] == [("cell-9", False)]
     finally:
         stop(cell)
@@ -83,7 +87,15 @@ def test_live_json_prints_a_document_per_change_with_the_runs_progress(
 ) -> None:
     three_cells(broker.mqtt)
     watcher = subprocess.Popen(
-        [sys.executable, "-m", "clients.gluectl", "line", "--broker", broker.mqtt_url, "--json"],
+        [
+            sys.executable,
+            "-m",
+            "clients.gluectl",
+            "line",
+            "--broker",
+            broker.login_url("line-view"),
+            "--json",
+        ],
         stdout=subprocess.PIPE,
         text=True,
         env=environment(),

@@ -5,8 +5,8 @@ that are plain MQTT clients (aiomqtt, on paho).
 What a plant would notice: a late subscriber finds the state; every transition
 of a run arrives in order; a killed server shows `offline` (its last will) and a
 stopped one says so itself; what happened while the broker was away arrives
-when it is back, the newest first kept and the rest counted; commands over MQTT
-are refused without a valid token or the role and answered on the v5 response
+when it is back, the newest first kept and the rest counted; signed commands over
+MQTT are refused without a valid token or the role and answered on the v5 response
 topic with the correlation data, through the same path as HTTP.
 """
 
@@ -24,8 +24,9 @@ import httpx
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
+from clients.client.mqtt_signing import sign_command
 from server.mqtt.link import BUS_TYPES
-from tests.mosquitto import WAIT_S, mosquitto, subscriber
+from tests.mosquitto import WAIT_S, login_of, mosquitto, subscriber
 from tests.processes import server_process
 from tests.rig import SPRAY_DEMO, open_rig, run
 from tests.serving import admin_headers, free_port
@@ -39,7 +40,7 @@ async def test_a_run_in_order_and_the_state_for_a_late_subscriber(tmp_path: Path
         async with (
             # Every waypoint (plant_progress_interval 0), to check them all in order.
             open_rig(
-                tmp_path / "data", mqtt_url=broker.url, cell_id=CELL, plant_progress_interval=0
+                tmp_path / "data", **broker.cell_login, cell_id=CELL, plant_progress_interval=0
             ) as rig,
             subscriber(broker.port, f"{BASE}/#") as early,
         ):
@@ -104,7 +105,7 @@ async def test_a_runs_progress_is_thinned_and_ends_with_its_final_waypoint(
     with mosquitto(tmp_path / "broker") as broker:
         async with (
             open_rig(
-                tmp_path / "data", mqtt_url=broker.url, cell_id=CELL, plant_progress_interval=10
+                tmp_path / "data", **broker.cell_login, cell_id=CELL, plant_progress_interval=10
             ) as rig,
             subscriber(broker.port, f"{BASE}/#") as plant,
         ):
@@ -139,7 +140,7 @@ async def test_what_happened_while_the_broker_was_away(tmp_path: Path, caplog) -
         async with (
             open_rig(
                 tmp_path / "data",
-                mqtt_url=broker.url,
+                **broker.cell_login,
                 cell_id=CELL,
                 mqtt_buffer=buffer,
                 mqtt_reconnect_max=0.5,
@@ -225,10 +226,13 @@ async def test_commands_need_a_valid_token_and_the_role(tmp_path: Path) -> None:
     with mosquitto(tmp_path / "broker") as broker:
         async with (
             open_rig(
-                tmp_path / "data", mqtt_url=broker.url, cell_id=CELL, mqtt_commands=True
+                tmp_path / "data", **broker.cell_login, cell_id=CELL, mqtt_commands=True
             ) as rig,
             aiomqtt.Client(
-                "127.0.0.1", broker.port, protocol=aiomqtt.ProtocolVersion.V5
+                "127.0.0.1",
+                broker.port,
+                protocol=aiomqtt.ProtocolVersion.V5,
+                **login_of("operator"),
             ) as requester,
         ):
             await _await_link(rig)
@@ -236,7 +240,7 @@ async def test_commands_need_a_valid_token_and_the_role(tmp_path: Path) -> None:
             for role in ("viewer", "operator"):
                 made = await rig.api.post("/tokens", json={"name": f"plant-{role}", "role": role})
                 tokens[role] = made.json()["token"]
-            reply_to = f"plant/replies/{uuid.uuid4().hex}"
+            reply_to = f"{BASE}/response/{uuid.uuid4().hex}"
             await requester.subscribe(reply_to, qos=1)
 
             async def ask(name: str, message: object) -> tuple[dict, bytes]:
@@ -255,30 +259,34 @@ async def test_commands_need_a_valid_token_and_the_role(tmp_path: Path) -> None:
                         return json.loads(bytes(answer.payload)), got
                 raise AssertionError("no answer")
 
+            def signed(role: str, name: str, body: dict | None = None) -> dict:
+                return sign_command(tokens[role], f"{BASE}/command/{name}", body)
+
             answer, _ = await ask("start", {"body": SPRAY_DEMO})
             assert answer["status"] == 401
-            answer, _ = await ask("start", {"token": "not-a-token", "body": SPRAY_DEMO})
+            fake = "gc_00000000_" + "x" * 43
+            answer, _ = await ask("start", sign_command(fake, f"{BASE}/command/start", SPRAY_DEMO))
             assert answer["status"] == 401
-            answer, _ = await ask("start", {"token": tokens["viewer"], "body": SPRAY_DEMO})
+            answer, _ = await ask("start", signed("viewer", "start", SPRAY_DEMO))
             assert answer["status"] == 403 and "operator" in answer["detail"]
-            answer, _ = await ask("start", {"token": tokens["operator"], "body": {"speed": 3}})
+            answer, _ = await ask("start", signed("operator", "start", {"speed": 3}))
             assert answer["status"] == 422
             # Each field with its message, as HTTP's 422 has them (only the detail was sent).
             assert [e["field"] for e in answer["errors"]] == ["speed"], answer
             assert (await rig.state())["state"] == "IDLE"  # nothing of that reached the cell
 
-            answer, _ = await ask("start", {"token": tokens["operator"], "body": SPRAY_DEMO})
+            answer, _ = await ask("start", signed("operator", "start", SPRAY_DEMO))
             assert answer["status"] == 202 and answer["accepted"] is True
             assert answer["state"] == "EXECUTING_TRAJECTORY" and answer["run_id"]
-            answer, _ = await ask("reset", {"token": tokens["operator"]})
+            answer, _ = await ask("reset", signed("operator", "reset"))
             assert answer["status"] == 403  # a reset needs maintenance, as over HTTP
 
             # Any valid token may stop the cell; the stop takes the e-stop path.
-            answer, _ = await ask("estop", {"token": tokens["viewer"], "body": {"reason": "mqtt"}})
+            answer, _ = await ask("estop", signed("viewer", "estop", {"reason": "mqtt"}))
             assert answer["status"] == 202 and answer["state"] == "ERROR"
             snapshot = await rig.wait_state("ERROR")
             assert "mqtt" in snapshot["stop_reason"]["message"]
-            answer, _ = await ask("resume", {"token": tokens["operator"]})
+            answer, _ = await ask("resume", signed("operator", "resume"))
             assert answer["status"] == 409 and answer["accepted"] is False
 
             audit = (await rig.api.get("/audit", params={"limit": 1000})).json()["audit"]
@@ -302,7 +310,7 @@ async def test_offline_when_stopped_and_when_killed(tmp_path: Path) -> None:
         "GLUE_APP_MQTT_KEEPALIVE": "1",
     }
     with mosquitto(tmp_path / "broker") as broker:
-        env["GLUE_APP_MQTT_URL"] = broker.url
+        env.update(broker.cell_environment)
         data = tmp_path / "data"
         data.mkdir()
         async with subscriber(broker.port, f"{BASE}/status") as plant:
@@ -354,7 +362,7 @@ async def test_the_stop_is_answered_before_the_link_publishes_it(
     monkeypatch.setattr(MqttLink, "_put_state", noting_put)
     with mosquitto(tmp_path / "broker") as broker:
         async with (
-            open_rig(tmp_path / "data", mqtt_url=broker.url, cell_id=CELL) as rig,
+            open_rig(tmp_path / "data", **broker.cell_login, cell_id=CELL) as rig,
             subscriber(broker.port, f"{BASE}/#") as plant,
         ):
             await rig.start_spraying()

@@ -82,7 +82,7 @@ async def test_verdicts_on_kpis_metrics_packml_and_mqtt(tmp_path: Path) -> None:
     with mosquitto(tmp_path / "broker") as broker:
         overrides = {
             "cell_id": CELL,
-            "mqtt_url": broker.url,
+            **broker.cell_login,
             "opcua_endpoint": f"opc.tcp://127.0.0.1:{opcua_port}",
             "opcua_admin_interval": 1,
         }

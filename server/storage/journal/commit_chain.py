@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from server.storage.journal.records import Record
-from server.storage.journal.schema import TABLES
+from server.storage.journal.schema import TABLES, sealed_form
 
 log = logging.getLogger(__name__)
 
@@ -192,11 +192,14 @@ class CommitChain:
         for table, rowid in first.items():
             # Read back as verification will: the values SQLite stored, in rowid order
             # (a later row gets a larger rowid, and this thread is the only writer).
-            appended.rows[table] = connection.execute(
-                f"SELECT {', '.join(TABLES[table][1])} FROM {table} WHERE rowid >= ? "
-                "ORDER BY rowid",
-                (rowid,),
-            ).fetchall()
+            appended.rows[table] = [
+                sealed_form(table, row)
+                for row in connection.execute(
+                    f"SELECT {', '.join(TABLES[table][1])} FROM {table} WHERE rowid >= ? "
+                    "ORDER BY rowid",
+                    (rowid,),
+                )
+            ]
         if not written:
             return None
         rows = cumulative(self.head.rows, appended)

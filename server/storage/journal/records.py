@@ -165,13 +165,26 @@ def recovery(at: float, run_id: str, error_code: str, attempt: int, succeeded: b
 
 
 def audit(
-    at: float, principal: str, address: str, action: str, outcome: str, detail: str
+    at: float,
+    principal: str,
+    address: str,
+    action: str,
+    outcome: str,
+    detail: str,
+    count: int = 1,
 ) -> Record:
-    """Who did what, from where, with what outcome."""
+    """Who did what, from where, with what outcome; `count` identical refusals folded in one
+    (server/api/audit_repeats.py)."""
+    if count == 1:  # the row as it always was: digested as before the column (sealed_form)
+        return _appended(
+            "audit",
+            ("time", "principal", "address", "action", "outcome", "detail"),
+            (at, principal, address, action, outcome, detail),
+        )
     return _appended(
         "audit",
-        ("time", "principal", "address", "action", "outcome", "detail"),
-        (at, principal, address, action, outcome, detail),
+        ("time", "principal", "address", "action", "outcome", "detail", "count"),
+        (at, principal, address, action, outcome, detail, count),
     )
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import sqlite3
 from dataclasses import dataclass
+from typing import Any
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS events (
@@ -38,9 +39,11 @@ CREATE TABLE IF NOT EXISTS recoveries (
     seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, run_id TEXT NOT NULL,
     error_code TEXT NOT NULL, attempt INTEGER NOT NULL, succeeded INTEGER NOT NULL
 );
+-- count: how many identical refusals the row stands for (server/api/audit_repeats.py).
 CREATE TABLE IF NOT EXISTS audit (
     seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, principal TEXT NOT NULL,
-    address TEXT NOT NULL, action TEXT NOT NULL, outcome TEXT NOT NULL, detail TEXT NOT NULL
+    address TEXT NOT NULL, action TEXT NOT NULL, outcome TEXT NOT NULL, detail TEXT NOT NULL,
+    count INTEGER NOT NULL DEFAULT 1
 );
 -- One row per webhook notice, written once its outcome is final (docs/plant-integration.md).
 CREATE TABLE IF NOT EXISTS webhook_deliveries (
@@ -113,7 +116,10 @@ TABLES: dict[str, tuple[str, list[str]]] = {
         ["seq", "time", "code", "message", "component", "classification", "event_id", "state"],
     ),
     "recoveries": ("time", ["seq", "time", "run_id", "error_code", "attempt", "succeeded"]),
-    "audit": ("time", ["seq", "time", "principal", "address", "action", "outcome", "detail"]),
+    "audit": (
+        "time",
+        ["seq", "time", "principal", "address", "action", "outcome", "detail", "count"],
+    ),
     "webhook_deliveries": (
         "time",
         [
@@ -185,13 +191,51 @@ SEALED: tuple[str, ...] = (
 )
 COMMIT_SEQ = "commit_seq"
 
+# Columns added to a table after journals were written without them: added at open,
+# with the value every older row takes. A sealed row is digested without such a
+# column while it holds that value (`sealed_form`), so older commits verify as before.
+LATER_COLUMNS: dict[str, tuple[tuple[str, str, object], ...]] = {
+    "audit": (("count", "INTEGER NOT NULL DEFAULT 1", 1),),
+}
+
 
 def add_commit_seq(connection: sqlite3.Connection) -> None:
-    """Give each sealed table its `commit_seq` column where an older journal lacks it."""
+    """Give each sealed table its `commit_seq` column where an older journal lacks it,
+    and each table the LATER_COLUMNS it lacks."""
     for table in SEALED:
         columns = {row[1] for row in connection.execute(f"PRAGMA table_info({table})")}
         if COMMIT_SEQ not in columns:
             connection.execute(f"ALTER TABLE {table} ADD COLUMN {COMMIT_SEQ} INTEGER")
+    for table, later in LATER_COLUMNS.items():
+        columns = {row[1] for row in connection.execute(f"PRAGMA table_info({table})")}
+        for name, declaration, _ in later:
+            if name not in columns:
+                connection.execute(f"ALTER TABLE {table} ADD COLUMN {name} {declaration}")
+
+
+def stored_columns(connection: sqlite3.Connection, table: str) -> str:
+    """TABLES' columns of `table` for a SELECT, a LATER_COLUMNS one the file does not have
+    yet as its default (the journal is verified before it is opened and given it)."""
+    have = {row[1] for row in connection.execute(f"PRAGMA table_info({table})")}
+    defaults = {name: default for name, _, default in LATER_COLUMNS.get(table, ())}
+    return ", ".join(
+        name if name in have or name not in defaults else f"{defaults[name]!r} AS {name}"
+        for name in TABLES[table][1]
+    )
+
+
+def sealed_form(table: str, row: tuple[Any, ...]) -> tuple[Any, ...]:
+    """A row (TABLES' columns) as the commit chain digests it: a LATER_COLUMNS column that
+    ends the row and holds its default is left out, as the row was before the column was."""
+    later = LATER_COLUMNS.get(table)
+    if later is None:
+        return row
+    for _, _, default in reversed(later):
+        if row and row[-1] == default:
+            row = row[:-1]
+        else:
+            break
+    return row
 
 
 @dataclass(frozen=True, slots=True)

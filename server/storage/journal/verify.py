@@ -34,7 +34,7 @@ from server.storage.journal.commit_chain import (
     head_of,
     rows_json,
 )
-from server.storage.journal.schema import COMMIT_SEQ, SEALED, TABLES
+from server.storage.journal.schema import COMMIT_SEQ, SEALED, sealed_form, stored_columns
 
 WINDOW = 10_000  # the newest commits whose rows start-up digests again
 
@@ -256,7 +256,7 @@ def _rows_from(
             (start,),
         ).fetchone()
         rows = connection.execute(
-            f"SELECT {COMMIT_SEQ}, {', '.join(TABLES[table][1])} FROM {table} "
+            f"SELECT {COMMIT_SEQ}, {stored_columns(connection, table)} FROM {table} "
             f"WHERE rowid > ? AND {COMMIT_SEQ} IS NOT NULL ORDER BY rowid",
             (older[0] if older else 0,),
         )
@@ -265,7 +265,7 @@ def _rows_from(
             if seq > last:
                 beyond[table] = beyond.get(table, 0) + 1
             else:  # the row as the writer read it back: a tuple of TABLES' columns
-                found.setdefault(int(seq), Appended()).add(table, row[1:])
+                found.setdefault(int(seq), Appended()).add(table, sealed_form(table, row[1:]))
     return found, beyond
 
 
