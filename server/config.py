@@ -34,6 +34,7 @@ from pydantic_settings import (
 )
 
 from server.errors import ConfigurationError
+from server.notify import destinations
 from server.notify.targets import WebhookTarget, named
 from server.values import BYTE_SIZE_ACCEPTS, byte_size
 
@@ -168,6 +169,11 @@ class Settings(BaseSettings):
 
     # allow_inf_nan=False: no setting is ever Infinity or NaN, from any source (an
     # infinite timeout disables its limit; an infinite cycle time made /kpis a 500).
+    # Every number's lower bound is inclusive and what its meaning allows (a shift of
+    # minutes, a timeout of milliseconds, a tolerance at a resolution a cell can measure),
+    # never `> 0`: that let subnormals such as 3.55e-276 in (a zero-length KPI window, a
+    # start failing at once). A bound of 0 is kept only where 0 means something (no
+    # delay, every waypoint) and a subnormal means the same (tests/unit/test_config.py).
     model_config = SettingsConfigDict(
         env_prefix="GLUE_APP_",
         extra="forbid",
@@ -184,7 +190,7 @@ class Settings(BaseSettings):
         description="requests waiting for the worker; more are refused (503)",
     )
     processing_timeout: float = Field(
-        60.0, gt=0, le=3600, description="seconds one attempt of an operation may run"
+        60.0, ge=0.1, le=3600, description="seconds one attempt of an operation may run"
     )
     max_concurrent_operations: int = Field(
         1, ge=1, le=64, description="accepted for compatibility; the cell runs one at a time"
@@ -207,7 +213,7 @@ class Settings(BaseSettings):
         True, description="accepted, no effect: metrics are always kept (GET /metrics)"
     )
     metrics_collection_interval: float = Field(
-        10.0, gt=0, le=3600, description="seconds; accepted, no effect (metrics read on demand)"
+        10.0, ge=0.1, le=3600, description="seconds; accepted, no effect (metrics read on demand)"
     )
     performance_history_size: int = Field(
         1000, ge=10, le=1_000_000, description="processing-time samples kept for statistics"
@@ -234,7 +240,7 @@ class Settings(BaseSettings):
     )
     persistence_file: str | None = Field(None, description="default <data>/state.json")
     persistence_interval: float = Field(
-        30.0, gt=0, le=3600, description="seconds between saves of the state snapshot"
+        30.0, ge=1, le=3600, description="seconds between saves of the state snapshot"
     )
 
     # Broadcasting (/ws is always served on the HTTP port, whatever broadcast_port says)
@@ -261,7 +267,7 @@ class Settings(BaseSettings):
     )
     ws_client_buffer: int = Field(256, ge=8, le=100_000, description="messages queued per client")
     ws_ping_interval: float = Field(
-        20.0, gt=0, le=600, description="seconds between pings of a /ws client; as long to answer"
+        20.0, ge=1, le=600, description="seconds between pings of a /ws client; as long to answer"
     )
 
     # Analytics and the journal
@@ -275,9 +281,11 @@ class Settings(BaseSettings):
     journal_synchronous: Literal["OFF", "NORMAL", "FULL"] = Field(
         "FULL", description="SQLite synchronous level: FULL survives power loss"
     )
-    shift_hours: float = Field(8.0, gt=0, le=24 * 31, description="hours of the default KPI window")
+    shift_hours: float = Field(
+        8.0, ge=0.25, le=24 * 31, description="hours of the default KPI window"
+    )
     design_cycle_time_s: float = Field(
-        30.0, gt=0, le=3600, description="ideal time of one trajectory run, for OEE performance"
+        30.0, ge=0.1, le=3600, description="ideal time of one trajectory run, for OEE performance"
     )
 
     # Access
@@ -484,6 +492,14 @@ class Settings(BaseSettings):
             "holds_secrets": True,
         },
     )
+    webhook_allowed_networks: list[str] = Field(
+        default_factory=list,
+        max_length=256,
+        description="networks (CIDR or address) a webhook may post to although the "
+        "destination policy refuses them: loopback, link-local, unspecified and this host's "
+        "own addresses are refused, at load and at each connection (docs/security.md); "
+        "none by default",
+    )
     webhook_queue_size: int = Field(
         100,
         ge=1,
@@ -492,7 +508,7 @@ class Settings(BaseSettings):
         "(counted at GET /webhooks and journaled)",
     )
     webhook_timeout: float = Field(
-        5.0, gt=0, le=120, description="seconds one delivery attempt may take (connect to answer)"
+        5.0, ge=0.1, le=120, description="seconds one delivery attempt may take (connect to answer)"
     )
     webhook_max_attempts: int = Field(
         5,
@@ -502,21 +518,21 @@ class Settings(BaseSettings):
         "retried; any other answer is final",
     )
     webhook_retry_delay: float = Field(
-        1.0, gt=0, le=600, description="seconds before the first retry; doubled for each next"
+        1.0, ge=0.01, le=600, description="seconds before the first retry; doubled for each next"
     )
     webhook_retry_max_delay: float = Field(
         60.0,
-        gt=0,
+        ge=0.01,
         le=3600,
         description="the longest wait between two attempts (a Retry-After included)",
     )
 
     # Hardware timeouts (seconds)
     robot_communication_timeout: float = Field(
-        10.0, gt=0, le=300, description="seconds for the robot controller to answer a request"
+        10.0, ge=0.1, le=300, description="seconds for the robot controller to answer a request"
     )
     vision_processing_timeout: float = Field(
-        5.0, gt=0, le=300, description="seconds for the camera to deliver a frame"
+        5.0, ge=0.1, le=300, description="seconds for the camera to deliver a frame"
     )
     camera_preview_fps: float = Field(
         5.0,
@@ -534,35 +550,35 @@ class Settings(BaseSettings):
         "more is refused",
     )
     glue_system_timeout: float = Field(
-        15.0, gt=0, le=300, description="seconds for the glue dispenser to answer"
+        15.0, ge=0.1, le=300, description="seconds for the glue dispenser to answer"
     )
 
     # Safety (seconds)
     emergency_stop_timeout: float = Field(
-        1.0, gt=0, le=10, description="seconds each device command of a software stop may take"
+        1.0, ge=0.05, le=10, description="seconds each device command of a software stop may take"
     )
     pause_hold_timeout: float = Field(
         2.0,
-        gt=0,
+        ge=0.05,
         le=60,
         description="a pause must have the valve closed and the robot confirmed still "
         "within this; otherwise it is refused and the cell goes to ERROR (PAUSE_NOT_HELD)",
     )
     safe_position_timeout: float = Field(
-        30.0, gt=0, le=600, description="seconds the move to the safe position may take"
+        30.0, ge=0.1, le=600, description="seconds the move to the safe position may take"
     )
     planning_timeout: float = Field(
         10.0,
-        gt=0,
+        ge=0.01,
         le=600,
         description="seconds a run may spend planning its path (PLANNING_TIMEOUT past it)",
     )
     error_state_timeout: float = Field(
-        300.0, gt=0, le=86_400, description="seconds in ERROR before an alert is raised"
+        300.0, ge=1, le=86_400, description="seconds in ERROR before an alert is raised"
     )
     reset_probe_timeout: float = Field(
         2.0,
-        gt=0,
+        ge=0.01,
         le=60,
         description="seconds a reset waits for every device's live answer (all at once); "
         "a device not answering in time refuses the reset, and the cell keeps taking "
@@ -580,7 +596,7 @@ class Settings(BaseSettings):
     )
     robot_heartbeat_interval: float = Field(
         1.0,
-        gt=0,
+        ge=0.05,
         le=60,
         description="a robot link quiet this long is asked for the position; no answer "
         "within robot_communication_timeout is a fault, in IDLE too",
@@ -605,7 +621,7 @@ class Settings(BaseSettings):
     )
     glue_flow_deviation_pct: float = Field(
         20.0,
-        gt=0,
+        ge=1,
         le=100,
         description="while spraying, measured flow off its setpoint by more than this many "
         "percent for glue_flow_deviation_s is a fault",
@@ -624,7 +640,7 @@ class Settings(BaseSettings):
     )
     glue_link_timeout: float = Field(
         0.5,
-        gt=0,
+        ge=0.05,
         le=5,
         description="a dispenser silent this long while its valve may be open is a fault at "
         "once (the valve could not be confirmed closed); must exceed glue_poll_interval",
@@ -659,14 +675,14 @@ class Settings(BaseSettings):
     )
     trajectory_precision_limit_mm: float = Field(
         1.0,
-        gt=0,
+        ge=0.01,
         le=50,
         description="a part is defective when the robot strayed further than this (mm) from "
         "a spray segment",
     )
     dispensing_flow_tolerance_percent: float = Field(
         10.0,
-        gt=0,
+        ge=0.1,
         le=100,
         description="flow further than this (%) from its setpoint counts as out of tolerance",
     )
@@ -679,7 +695,7 @@ class Settings(BaseSettings):
     )
     glue_volume_tolerance_percent: float = Field(
         20.0,
-        gt=0,
+        ge=0.1,
         le=100,
         description="a part is defective when the glue dispensed differs from what its path "
         "needs (flow setpoint × length / speed) by more than this (%): wider than the flow's "
@@ -687,17 +703,17 @@ class Settings(BaseSettings):
     )
     bead_width_tolerance_percent: float = Field(
         30.0,
-        gt=0,
+        ge=0.1,
         le=100,
         description="a bead narrower or wider than expected (from flow over speed) by more "
         "than this (%) is a defect",
     )
     bead_max_gap_mm: float = Field(
-        3.0, gt=0, le=100, description="longest stretch of a spray segment without bead (mm)"
+        3.0, ge=0.1, le=100, description="longest stretch of a spray segment without bead (mm)"
     )
     bead_max_offset_mm: float = Field(
         1.5,
-        gt=0,
+        ge=0.1,
         le=50,
         description="furthest the bead's centre may lie from its planned path on the part (mm)",
     )
@@ -716,9 +732,9 @@ class Settings(BaseSettings):
         "ry, rz degrees",
     )
     spray_height_mm: float = Field(20.0, ge=0, le=500, description="nozzle height over the part")
-    travel_speed_mm_s: float = Field(250.0, gt=0, le=2000, description="mm/s between beads")
-    spray_speed_mm_s: float = Field(100.0, gt=0, le=2000, description="mm/s along a bead")
-    acceleration_mm_s2: float = Field(1000.0, gt=0, le=20000, description="mm/s² of every move")
+    travel_speed_mm_s: float = Field(250.0, ge=1, le=2000, description="mm/s between beads")
+    spray_speed_mm_s: float = Field(100.0, ge=1, le=2000, description="mm/s along a bead")
+    acceleration_mm_s2: float = Field(1000.0, ge=10, le=20000, description="mm/s² of every move")
     default_flow_rate_ml_min: float = Field(
         30.0,
         ge=0,
@@ -740,14 +756,14 @@ class Settings(BaseSettings):
     )
     jog_max_step_mm: float = Field(
         50.0,
-        gt=0,
+        ge=0.1,
         le=200,
         description="the longest step one jog may ask for along its axis (maintenance "
         "teaching marker positions); a longer one is refused before anything moves",
     )
     jog_speed_mm_s: float = Field(
         20.0,
-        gt=0,
+        ge=1,
         le=250,
         description="speed of a jog: slow, so a person beside the table can follow the arm",
     )
@@ -758,24 +774,24 @@ class Settings(BaseSettings):
     )
     marker_size_mm: float = Field(
         30.0,
-        gt=0,
+        ge=1,
         le=500,
         description="side of each marker's black square as printed (measure it): the "
         "robot calibration checks its map's scale against it",
     )
     calibration_max_error_mm: float = Field(
-        1.0, gt=0, le=20, description="robot calibration fails above this mean marker error (mm)"
+        1.0, ge=0.01, le=20, description="robot calibration fails above this mean marker error (mm)"
     )
     calibration_max_scale_error_pct: float = Field(
         1.0,
-        gt=0,
+        ge=0.01,
         le=10,
         description="robot calibration fails when the markers' side through its map differs "
         "from marker_size_mm by more than this (%)",
     )
     calibration_max_holdout_error_mm: float = Field(
         1.0,
-        gt=0,
+        ge=0.01,
         le=20,
         description="robot calibration fails when a map fitted without one marker misses "
         "that marker by more than this (leave-one-out, worst marker)",
@@ -783,7 +799,7 @@ class Settings(BaseSettings):
     chessboard_cols: int = Field(9, ge=3, le=40, description="inner corners per row")
     chessboard_rows: int = Field(6, ge=3, le=40, description="inner corners per column")
     chessboard_square_mm: float = Field(
-        30.0, gt=0, le=500, description="side of one chessboard square as printed"
+        30.0, ge=1, le=500, description="side of one chessboard square as printed"
     )
     camera_calibration_views: int = Field(
         10, ge=5, le=100, description="chessboard views a camera calibration takes"
@@ -799,7 +815,7 @@ class Settings(BaseSettings):
         True, description="calibrate a fresh simulated cell and put its demo part in the library"
     )
     simulation_speed_factor: float = Field(
-        1.0, gt=0, le=1000, description="simulated devices run this many times faster"
+        1.0, ge=0.1, le=1000, description="simulated devices run this many times faster"
     )
 
     @field_validator("trusted_proxies")
@@ -851,6 +867,28 @@ class Settings(BaseSettings):
     @classmethod
     def _webhooks_named(cls, value: list[WebhookTarget]) -> list[WebhookTarget]:
         return named(value)
+
+    @field_validator("webhook_allowed_networks")
+    @classmethod
+    def _webhook_networks(cls, value: list[str]) -> list[str]:
+        destinations.parse_networks(value)  # a typo refused at load, naming the entry
+        return value
+
+    @model_validator(mode="after")
+    def _webhook_destinations(self) -> Settings:
+        """A webhook to the cell itself, loopback or link-local is refused at load, naming the
+        webhook (never its path or query): it was accepted and posted to (issue 32)."""
+        allowed = destinations.parse_networks(self.webhook_allowed_networks)
+        for target in self.webhooks:
+            host = urlsplit(target.url).hostname or ""
+            why = destinations.load_refusal(host, allowed)
+            if why is not None:
+                raise ValueError(
+                    f"webhook {target.name!r} posts to {host}, {why}: refused by the webhook "
+                    f"destination policy (add its network to {destinations.SETTING} to "
+                    "allow it)"
+                )
+        return self
 
     @field_validator("glue_pressure_range_psi")
     @classmethod

@@ -40,12 +40,13 @@ Every setting of `glue-server`, read from the Settings model in
 No `.env` file is read. A value the table does not accept stops the start
 (exit 2) with one line naming the variable or key and what it accepts, e.g.
 `glue-server: cannot start: GLUE_APP_SHIFT_HOURS='abc': Input should be a valid
-number, ...; shift_hours accepts a number > 0 .. 744`. A `GLUE_APP_` variable
+number, ...; shift_hours accepts a number 0.25 .. 744`. A `GLUE_APP_` variable
 that names no setting is logged as a warning naming the closest one, and the
 server starts without it. No setting may be Infinity or NaN. `PATCH /settings`
 (admin) changes a few of them at run time, with the same bounds (`docs/api.md`).
 
-In "accepted", `> 0 .. 744` means above 0 and at most 744.
+In "accepted", `0.25 .. 744` means at least 0.25 and at most 744 (a `>` or `<` marks
+an exclusive bound).
 """
 
 

@@ -3,7 +3,8 @@
  * that ended), on each snapshot and whenever an operation ends (a state change out
  * of a busy state on /ws): the run's record is committed before that answer, so the
  * card shows the run that just ended. A run whose result holds no `inspection` was
- * not inspected (inspection off, or it did not complete): the card says so rather
+ * not inspected (inspection off, or it did not complete; "no space" when a full disk
+ * took its image, as the result's `not_inspected` says): the card says so rather
  * than show a verdict nobody made. The image (GET /runs/{run_id}/inspection.jpg) is
  * asked for only when the inspection says it kept one; any answer but an image
  * (404: not kept, or a server without it) leaves the card without a picture. */
@@ -24,9 +25,13 @@ export function describePart(run) {
     ? inspection.verdict
     : null;
   if (!verdict) {
+    // Why, when the run says (`not_inspected`: "no space" when the disk was full)
+    const why = run.result && typeof run.result.not_inspected === "string"
+      ? run.result.not_inspected
+      : "";
     return {
       verdict: "none",
-      label: "not inspected",
+      label: why ? `not inspected (${why})` : "not inspected",
       note: `run ${run.outcome || "ended"}`,
       reasons: [],
       figures: [],

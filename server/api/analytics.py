@@ -28,7 +28,7 @@ from server.api.declared_query import DeclaredQueryRoute
 from server.api.kpi_views import KpisView
 from server.api.time_window import Since, TimeWindow, Until, time_window
 from server.cell import Cell
-from server.core.kpis import Window, compute_kpis
+from server.core.kpis import compute_kpis, kpi_window
 from server.quality.csv_columns import INSPECTION_COLUMNS, with_inspection
 from server.storage.journal import FILTERS, TABLES, Cursor, Filter, Journal
 
@@ -317,14 +317,8 @@ async def kpis_of(cell: Cell, since: float | None = None, until: float | None = 
     """What GET /kpis answers; without a window, the current shift. The MQTT link
     publishes the same, retained, on `kpis`, and OPC UA's Admin tags read it here."""
     now = time.time()
-    shift_s = cell.settings.shift_hours * 3600
-    if until is not None:
-        end = until
-    elif since is not None and since >= now:
-        end = since + shift_s
-    else:
-        end = now
-    start = since if since is not None else end - shift_s
+    window = kpi_window(since, until, now, cell.settings.shift_hours)
+    start, end = window.start, window.end
     journal = cell.journal
     assert journal is not None, "the cell is not started"
     await journal.caught_up()
@@ -352,7 +346,7 @@ async def kpis_of(cell: Cell, since: float | None = None, until: float | None = 
         for row in operations:
             row["result"] = _inspected_result(row)
         return compute_kpis(
-            Window(start, end),
+            window,
             transitions,
             operations,
             errors,

@@ -26,7 +26,13 @@ RECOVERABLE = frozenset(
     }
 )
 WARNING = frozenset(
-    {"ERROR_STATE_TIMEOUT", "SLOW_OPERATION", "CALIBRATION_DEGRADING", "JOURNAL_DAMAGED"}
+    {
+        "ERROR_STATE_TIMEOUT",
+        "SLOW_OPERATION",
+        "CALIBRATION_DEGRADING",
+        "JOURNAL_DAMAGED",
+        "INSPECTION_NO_SPACE",  # the part is sprayed; its inspection could not be kept
+    }
 )
 
 RECOMMENDED_ACTION = {

@@ -122,6 +122,33 @@ class Window:
         return max(0.0, min(b, self.end) - max(a, self.start))
 
 
+# The shortest default window: a shift is a settings value (at least 15 minutes), but the
+# window must never be empty whatever it holds (3.55e-276 hours made every GET /kpis a 500).
+MIN_SHIFT_S: Final = 60.0
+
+
+def kpi_window(since: float | None, until: float | None, now: float, shift_hours: float) -> Window:
+    """The window GET /kpis reports on: `until` defaults to now, `since` to a shift before it.
+
+    A `since` still to come without an `until` is a shift that has not begun: the window is
+    the shift from `since`. The shift is taken as at least MIN_SHIFT_S, and a window that
+    would still be empty (bounds so large that adding the shift changes nothing) is one
+    shift long from its start, so no setting and no query can make the report a 500; the
+    route refuses `since` >= `until` itself with a 422.
+    """
+    shift_s = max(shift_hours * 3600.0, MIN_SHIFT_S) if math.isfinite(shift_hours) else MIN_SHIFT_S
+    if until is not None:
+        end = until
+    elif since is not None and since >= now:
+        end = since + shift_s
+    else:
+        end = now
+    start = since if since is not None else end - shift_s
+    if not end > start:
+        end = start + max(shift_s, abs(start) * 1e-9)
+    return Window(start, end)
+
+
 def state_durations(
     transitions: Iterable[Row],
     window: Window,

@@ -28,6 +28,7 @@ import httpx
 
 from server.config import Settings
 from server.notify import retry, signing
+from server.notify.destinations import DestinationRefused
 from server.notify.notices import Notice
 from server.notify.targets import WebhookTarget
 from server.storage.journal import Journal, records
@@ -137,7 +138,10 @@ class Deliverer:
         body = pending.notice.body(pending.delivery_id, settings.cell_id)
         error = ""
         for attempt in range(1, settings.webhook_max_attempts + 1):
-            status, error, retry_after = await self._attempt(pending, body)
+            try:
+                status, error, retry_after = await self._attempt(pending, body)
+            except DestinationRefused as refused:
+                return "refused", str(refused)  # the policy: no retry changes it
             if status is not None:
                 verdict = retry.verdict(status)
                 if verdict is retry.Verdict.DELIVERED:
@@ -175,6 +179,15 @@ class Deliverer:
             error = f"no answer within {self.settings.webhook_timeout:g} s (webhook_timeout)"
         except httpx.HTTPError as exc:
             error = self._redacted(f"{type(exc).__name__}: {exc}".rstrip(": "))
+        except DestinationRefused as exc:
+            self._note(pending, started, None, f"refused: {exc}")
+            raise
+        self._note(pending, started, status, error)
+        return status, error, retry_after
+
+    @staticmethod
+    def _note(pending: Pending, started: float, status: int | None, error: str) -> None:
+        """One attempt on the notice's record: when, how long, the answer, the error."""
         pending.tries.append(
             {
                 "at": started,
@@ -183,7 +196,6 @@ class Deliverer:
                 "error": error,
             }
         )
-        return status, error, retry_after
 
     def _redacted(self, text: str) -> str:
         """An error text without the URL's path or query (they may hold a token)."""

@@ -29,7 +29,7 @@ from server.config import Settings
 from server.core.bus import Bus, BusMessage, Subscription, SubscriptionClosed
 from server.core.runs import RunEnded
 from server.core.view import CellView
-from server.notify import notices
+from server.notify import destinations, notices
 from server.notify.deliverer import Deliverer
 from server.notify.notices import Notice
 from server.storage.journal import Journal
@@ -50,6 +50,10 @@ class Notifier:
             timeout=httpx.Timeout(settings.webhook_timeout),
             follow_redirects=False,  # the signed notice goes where it was configured to
             trust_env=False,  # straight to the receiver: no proxy from the environment
+            # every connection's address checked against the destination policy
+            transport=destinations.guarded_transport(
+                destinations.parse_networks(settings.webhook_allowed_networks)
+            ),
         )
         self.deliverers = [Deliverer(t, settings, self._client, journal) for t in settings.webhooks]
         self._held: deque[tuple[int, Notice]] = deque()  # run notices waiting for a bus seq

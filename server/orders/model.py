@@ -6,7 +6,8 @@ end (docs/operations-guide.md, "Production orders"):
 - completed and inspected: the inspection's verdict and reasons;
 - completed without an inspection (inspection_enabled off): good, marked
   "not inspected", because nothing found it wrong and the operator chose not
-  to judge parts;
+  to judge parts; likewise a part whose inspection image a full disk could not
+  take, marked "not inspected (no space)": it was sprayed whole;
 - failed or cancelled: defective ("run failed: ...", "run cancelled"): the
   part was started and did not get its whole bead.
 
@@ -96,7 +97,9 @@ def part_of_run(
         return Part(run_id, started_at, ended_at, outcome, DEFECTIVE, False, (reason,))
     inspection = (result or {}).get("inspection")
     if not isinstance(inspection, dict):
-        return Part(run_id, started_at, ended_at, outcome, GOOD, False, (NOT_INSPECTED,))
+        why = (result or {}).get("not_inspected")  # e.g. "no space": the disk was full
+        reason = f"not inspected ({why})" if isinstance(why, str) and why else NOT_INSPECTED
+        return Part(run_id, started_at, ended_at, outcome, GOOD, False, (reason,))
     verdict = DEFECTIVE if inspection.get("verdict") == DEFECTIVE else GOOD
     reasons = tuple(str(r) for r in inspection.get("reasons") or ())
     return Part(

@@ -115,6 +115,8 @@ async def test_no_secret_reaches_any_log_through_any_transport(tmp_path: Path) -
             "GLUE_APP_WEBHOOKS": json.dumps(
                 [{"name": "mes", "url": hook_url, "events": ["fault"], "secret": hook_key}]
             ),
+            # the receiver is on 127.0.0.1, which the destination policy refuses unless allowed
+            "GLUE_APP_WEBHOOK_ALLOWED_NETWORKS": '["127.0.0.0/8"]',
         }
         with server_process(port, data, env, log_path=stdout):
             admin = admin_headers(data)["Authorization"].removeprefix("Bearer ")

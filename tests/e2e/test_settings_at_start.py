@@ -31,7 +31,7 @@ def _run(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
 
 def test_a_bad_value_stops_the_start_with_one_line_and_exit_2(tmp_path) -> None:
     for variable, value, accepts in [
-        ("GLUE_APP_SHIFT_HOURS", "abc", "shift_hours accepts a number > 0 .. 744"),
+        ("GLUE_APP_SHIFT_HOURS", "abc", "shift_hours accepts a number 0.25 .. 744"),
         ("GLUE_APP_SAFE_POSITION", "400,0,200", "safe_position accepts a JSON list of 6"),
         # checked by the settings, not first by the log's set-up (a traceback, exit 1)
         ("GLUE_APP_LOG_ROTATION_SIZE", "abc", "log_rotation_size accepts a size such as 10MB"),

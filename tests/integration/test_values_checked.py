@@ -11,6 +11,7 @@ from __future__ import annotations
 import httpx
 import pytest
 
+from server.api.runtime_settings import RUNTIME_SETTINGS
 from server.cell import Cell
 from server.config import Settings
 from server.core.devices import CellDevices
@@ -53,6 +54,36 @@ async def test_a_non_finite_setting_is_refused_and_kpis_keep_answering(api, numb
     assert _fields(refused) == ["design_cycle_time_s"]
     assert (await api.get("/settings")).json() == before
     assert (await api.get("/kpis")).status_code == 200
+
+
+# Every setting PATCH /settings takes as a number, at a value its old `> 0` let in (issue 32).
+SUBNORMAL = "3.55e-276"
+# (0 means something for the two left out: no delay, no out-of-tolerance time allowed.)
+RUNTIME_NUMBERS = [
+    name
+    for name in RUNTIME_SETTINGS
+    if Settings.model_fields[name].annotation is float
+    and name not in ("error_recovery_delay", "dispensing_max_out_of_tolerance_s")
+]
+
+
+@pytest.mark.parametrize("name", RUNTIME_NUMBERS)
+async def test_a_subnormal_setting_is_refused_naming_it(api, name) -> None:
+    """shift_hours 3.55e-276 made every GET /kpis a 500; processing_timeout 1e-320 made the
+    next start fail at once. Each is a 422 naming the field, and nothing changes."""
+    before = (await api.get("/settings")).json()
+    refused = await _patch_raw(api, f'{{"{name}": {SUBNORMAL}}}')
+    assert _fields(refused) == [name]
+    assert (await api.get("/settings")).json() == before
+    assert (await api.get("/kpis")).status_code == 200
+
+
+@pytest.mark.parametrize("hours", [0.25, 744])
+async def test_kpis_answer_at_either_end_of_the_shift_range(api, hours) -> None:
+    assert (await api.patch("/settings", json={"shift_hours": hours})).status_code == 200
+    for params in ({}, {"until": 0}, {"since": 1e11}, {"until": 1e11}, {"since": 0}):
+        answer = await api.get("/kpis", params=params)
+        assert answer.status_code == 200, (params, answer.text)
 
 
 @pytest.mark.parametrize(

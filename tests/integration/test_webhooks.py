@@ -10,6 +10,7 @@ import contextlib
 import hashlib
 import hmac
 import json
+import socket
 from collections import deque
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
@@ -110,6 +111,11 @@ async def leave_idle(rig: Rig) -> None:
     await rig.wait_state("IDLE")
 
 
+# The receivers run on 127.0.0.1, which the webhook destination policy refuses unless
+# allowed: every rig here allows loopback explicitly, as a lab would.
+RECEIVER_ON_THIS_HOST: dict[str, Any] = {"webhook_allowed_networks": ["127.0.0.0/8"]}
+
+
 def hook(url: str, name: str, events: list[str], **extra: Any) -> dict[str, Any]:
     return {"name": name, "url": url, "events": events, "secret": SECRET, **extra}
 
@@ -118,7 +124,9 @@ async def test_a_run_and_an_estop_are_posted_signed_in_order(cell_data) -> None:
     receiver = Receiver()
     async with receiving(receiver) as url:
         webhooks = [hook(url, "mes", ["fault", "state", "run_completed"])]
-        async with open_rig(cell_data, webhooks=webhooks, cell_id="line1-cell2") as rig:
+        async with open_rig(
+            cell_data, webhooks=webhooks, **RECEIVER_ON_THIS_HOST, cell_id="line1-cell2"
+        ) as rig:
             # The start-up's own change into IDLE is told too; the run's come after it.
             await until(lambda: [n for n in receiver.notices("state") if n["new_state"] == "IDLE"])
             started = len(receiver.posts)
@@ -172,7 +180,9 @@ async def test_5xx_is_retried_until_delivered_and_a_400_is_not_retried(cell_data
     async with receiving(flaky) as flaky_url, receiving(strict) as strict_url:
         webhooks = [hook(flaky_url, "flaky", ["fault"]), hook(strict_url, "strict", ["fault"])]
         settings = {"webhook_retry_delay": 0.05, "webhook_max_attempts": 5}
-        async with open_rig(cell_data, webhooks=webhooks, **settings) as rig:
+        async with open_rig(
+            cell_data, webhooks=webhooks, **RECEIVER_ON_THIS_HOST, **settings
+        ) as rig:
             assert (await rig.api.post("/estop")).status_code in (200, 202)
             await rig.wait_state("ERROR")
             flaky_rows = await until_rows(rig, webhook="flaky")
@@ -214,7 +224,7 @@ async def test_a_dead_receiver_never_holds_up_the_stop_and_its_queue_is_bounded(
         "webhook_retry_delay": 30.0,
         "webhook_retry_max_delay": 60.0,
     }
-    async with open_rig(cell_data, webhooks=webhooks, **settings) as rig:
+    async with open_rig(cell_data, webhooks=webhooks, **RECEIVER_ON_THIS_HOST, **settings) as rig:
         first = await until_in_flight(rig)
         assert first["delivered"] == 0
         await rig.start_spraying()
@@ -262,7 +272,7 @@ async def test_the_webhooks_are_shown_to_admins_only_and_never_their_secrets(
         hook(url, "inline", ["fault"]),
         {"url": url, "events": ["state"], "secret_file": str(secret_file)},
     ]
-    async with open_rig(cell_data, webhooks=webhooks) as rig:
+    async with open_rig(cell_data, webhooks=webhooks, **RECEIVER_ON_THIS_HOST) as rig:
         created = await rig.api.post("/tokens", json={"name": "op", "role": "operator"})
         operator = {"Authorization": f"Bearer {created.json()['token']}"}
         for path in ("/webhooks", "/webhooks/deliveries"):
@@ -278,3 +288,24 @@ async def test_the_webhooks_are_shown_to_admins_only_and_never_their_secrets(
         ("webhook-2", "secret_file"),
     ]
     assert listed[0]["url"] == f"{url.split('/hooks')[0]}/..."
+
+
+async def test_a_host_name_that_resolves_to_this_host_is_refused_at_delivery(cell_data) -> None:
+    """A name passes the load check (it is not resolved while the cell starts); each
+    connection resolves it and refuses an address in a refused range, once, without a
+    retry, before anything is sent (issue 32: DNS rebinding to the cell itself)."""
+    host = socket.gethostname()
+    addresses = {info[4][0] for info in socket.getaddrinfo(host, None)}
+    assert addresses, f"this test needs the host name {host!r} to resolve"
+    receiver = Receiver()
+    async with receiving(receiver) as url:
+        port = url.split(":")[2].split("/")[0]
+        webhooks = [hook(f"http://{host}:{port}/hooks/glue?token=secret-query", "self", ["state"])]
+        # No webhook_allowed_networks: this host's own addresses are refused.
+        async with open_rig(cell_data, webhooks=webhooks, webhook_max_attempts=5) as rig:
+            rows = await until_rows(rig, webhook="self")
+    for row in rows:
+        assert (row["outcome"], row["attempts"], row["status"]) == ("refused", 1, None)
+        assert "destination policy" in row["error"] and "webhook_allowed_networks" in row["error"]
+        assert "secret-query" not in row["error"]
+    assert receiver.posts == []

@@ -22,6 +22,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from server.orders.model import part_of_run
 from tests.conftest import demo_stores
 from tests.processes import Running, server_process, simulator
 from tests.reliability._small_disk import MIB, SmallDisk, small_disk
@@ -238,3 +239,52 @@ def test_a_fresh_server_starts_on_a_2_mb_disk(tmp_path: Path) -> None:
             assert client.post("/home").status_code == 202
             client.close()
     assert "simulated cell not commissioned" in log.read_text()
+
+
+def test_a_disk_that_fills_during_a_run_leaves_its_part_not_inspected_not_failed(
+    cell_factory,
+) -> None:
+    """Before: the inspection image's write failed with ENOSPC and failed the run, a part
+    sprayed whole counted as a failed one. Now the run completes and it, and the part an
+    order makes of it, say the part was not inspected (no space). The journal is elsewhere
+    (it has room), so only the data directory, where the images go, is full."""
+    cell = cell_factory(journal_elsewhere=True)
+    if cell.disk.kind != "tmpfs":
+        pytest.skip("needs a tmpfs (mount rights): a file-size limit fills the journal too")
+    with cell.start_server() as client:
+        # The inspection maps the camera to the robot: calibrate while there is room.
+        assert client.post("/calibrate-robot").status_code == 202
+        wait_until(lambda: state(client)["operation"] is None, what="the calibration's end")
+        assert state(client)["state"] == "IDLE", state(client)
+        started = client.post("/start", json=SPRAY_DEMO)
+        assert started.status_code == 202, started.text
+        run_id = started.json()["run_id"]
+        cell.disk.fill()
+        wait_until(lambda: ended(client, run_id) is not None, what="the run's end")
+        run = ended(client, run_id)
+        assert run["outcome"] == "completed", (run["error"], run["result"])
+        assert run["result"]["not_inspected"] == "no space", run["result"]
+        assert "inspection" not in run["result"]
+        [warning] = [w for w in run["result"]["warnings"] if w["code"] == "INSPECTION_NO_SPACE"]
+        assert "not inspected (no space)" in warning["message"]
+        assert not_inspected_part(run)["reasons"] == ["not inspected (no space)"]
+        assert not list((cell.data / "inspections").glob("*.jpg"))
+        cell.disk.free()
+
+
+def not_inspected_part(run: dict) -> dict:
+    """The part an order makes of this run (server/orders/model.py, what its report shows)."""
+    part = part_of_run(
+        run["run_id"], run["outcome"], run["started_at"], run["ended_at"], run["result"], None
+    )
+    assert (part.outcome, part.verdict, part.inspected) == ("completed", "good", False)
+    return part.as_dict()
+
+
+def ended(client: httpx.Client, run_id: str) -> dict | None:
+    """Run `run_id`'s record once it has ended (GET /operations), else None."""
+    runs = client.get("/operations", params={"kind": "trajectory", "limit": 5}).json()
+    for run in runs["operations"]:
+        if run["run_id"] == run_id and run["ended_at"] is not None:
+            return run
+    return None

@@ -181,6 +181,61 @@ def test_every_numeric_setting_has_both_bounds() -> None:
     assert unbounded_numbers(schema, schema) == []
 
 
+# Float settings whose least value is 0 because 0 means something (no delay, every waypoint,
+# no pause, on the table), so a subnormal such as 5e-324 means the same and breaks nothing.
+ZERO_MEANS_SOMETHING = {
+    "error_recovery_delay",
+    "plant_progress_interval",
+    "dispensing_max_out_of_tolerance_s",
+    "spray_height_mm",
+    "default_flow_rate_ml_min",
+    "default_pressure_psi",
+    "camera_calibration_view_interval_s",
+    "mqtt_command_max_skew",  # 0: a command may not be ahead of the cell's clock at all
+}
+
+
+def _float_settings() -> list[str]:
+    return [
+        name
+        for name, field in Settings.model_fields.items()
+        if field.annotation in (float, float | None)
+    ]
+
+
+def _least(name: str) -> float | None:
+    """A float setting's inclusive lower bound (None: it has an exclusive one)."""
+    metadata = Settings.model_fields[name].metadata
+    if any(hasattr(m, "gt") for m in metadata):
+        return None
+    return next(m.ge for m in metadata if hasattr(m, "ge"))
+
+
+@pytest.mark.parametrize("name", _float_settings())
+def test_every_float_setting_has_a_meaningful_least_value(name: str) -> None:
+    """`> 0` let 3.55e-276 in as a shift (every GET /kpis a 500) and 1e-320 as a timeout
+    (issue 32): each least value is inclusive and what the setting's meaning allows."""
+    least = _least(name)
+    assert least is not None, f"{name}: an exclusive lower bound lets subnormals in"
+    if name in ZERO_MEANS_SOMETHING:
+        assert least == 0, name
+    else:
+        assert least >= 0.001, f"{name}: least value {least} is below a millisecond/resolution"
+
+
+@pytest.mark.parametrize("name", sorted(set(_float_settings()) - ZERO_MEANS_SOMETHING))
+def test_a_subnormal_setting_is_refused_naming_it(name: str) -> None:
+    with pytest.raises(ValidationError) as refused:
+        Settings(**{name: 5e-324})
+    assert [error["loc"] for error in refused.value.errors()] == [(name,)]
+
+
+def test_the_schema_has_no_exclusive_minimum_of_zero() -> None:
+    """openapi.json and docs/settings.md are generated from this schema: they show the bounds."""
+    text = json.dumps(Settings.model_json_schema())
+    assert '"exclusiveMinimum": 0' not in text
+
+
 @pytest.mark.parametrize("value", ["inf", "-inf", "nan", "1e400", "Infinity"])
 def test_a_non_finite_setting_is_refused_from_the_environment(monkeypatch, value) -> None:
     monkeypatch.setenv("GLUE_APP_PROCESSING_TIMEOUT", value)

@@ -31,6 +31,7 @@ EXPECTED = {
     "SLOW_OPERATION": "warning",
     "CALIBRATION_DEGRADING": "warning",
     "JOURNAL_DAMAGED": "warning",  # the cell works on; the record of the past is incomplete
+    "INSPECTION_NO_SPACE": "warning",  # a full disk took the image: part not inspected
     # critical: a person looks before the cell runs again
     "EMERGENCY_STOP": "critical",
     "COMM_LOST": "critical",

@@ -750,3 +750,35 @@ def test_durations_sum_to_the_covered_time(lives, origin, start, length, tail, s
     assert all(v >= 0.0 for v in durations.values())
     assert math.isclose(total, covered, rel_tol=1e-12, abs_tol=1e-6)
     assert total <= window.end - window.start + 1e-6
+
+
+# --- the default window: never empty, whatever the settings and the query ----------------
+
+UNIX = st.floats(min_value=0, max_value=1e11, allow_nan=False, allow_infinity=False)
+
+
+@given(
+    since=st.none() | UNIX,
+    until=st.none() | UNIX,
+    now=UNIX,
+    shift_hours=st.floats(min_value=0, max_value=744, allow_nan=False) | st.just(3.55e-276),
+)
+def test_the_kpi_window_is_a_window_whatever_the_shift_and_the_query(
+    since: float | None, until: float | None, now: float, shift_hours: float
+) -> None:
+    """`shift_hours` 3.55e-276 made every GET /kpis a 500 ("window must end after it
+    starts"): the window is built here, and for any query the route lets through (since
+    before until) and any shift it is a window with a length."""
+    if since is not None and until is not None and since >= until:
+        return  # the route refuses it with a 422 first
+    window = kpis.kpi_window(since, until, now, shift_hours)
+    assert window.end > window.start and window.seconds > 0
+    if until is not None:
+        assert window.end == until
+    if since is not None:
+        assert window.start == since
+
+
+def test_a_subnormal_shift_is_a_minutes_window() -> None:
+    window = kpis.kpi_window(None, None, 1_700_000_000.0, 3.55e-276)
+    assert window.seconds == kpis.MIN_SHIFT_S

@@ -121,7 +121,12 @@ def test_the_cells_logging_redacts_and_quiets_httpx(tmp_path) -> None:
     root = logging.getLogger()
     saved = root.handlers[:], root.level
     try:
-        path = configure(Settings(data_path=tmp_path, webhooks=[{"url": HOOK, "secret": "k" * 16}]))
+        settings = Settings(
+            data_path=tmp_path,
+            webhooks=[{"url": HOOK, "secret": "k" * 16}],
+            webhook_allowed_networks=["127.0.0.0/8"],  # the policy refuses loopback otherwise
+        )
+        path = configure(settings)
         logging.getLogger("httpx").info("HTTP Request: POST %s", HOOK)
         logging.getLogger("tests.redaction").warning("to %s as %s", HOOK, TOKEN)
         for handler in root.handlers:

@@ -44,6 +44,14 @@ def test_a_completed_run_without_inspection_is_good_and_marked_not_inspected() -
     assert (part.verdict, part.inspected, part.reasons) == (GOOD, False, (NOT_INSPECTED,))
 
 
+def test_a_part_whose_image_a_full_disk_refused_is_not_inspected_no_space() -> None:
+    """The run completed (the part is sprayed whole) but its inspection could not be kept:
+    it counts as the order's parts without inspection do, saying why."""
+    part = completed(1, {"path_length_mm": 400.0, "not_inspected": "no space"})
+    assert (part.verdict, part.inspected) == (GOOD, False)
+    assert part.reasons == ("not inspected (no space)",)
+
+
 def test_a_failed_or_cancelled_run_is_a_defective_part_saying_why() -> None:
     failed = part_of_run("r1", "failed", 1.0, 2.0, None, "robot: link lost")
     cancelled = part_of_run("r2", "cancelled", 1.0, 2.0, None, None)

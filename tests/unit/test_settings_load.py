@@ -15,8 +15,8 @@ from server.settings_reference import facts, known_variables, variables_by_setti
 @pytest.mark.parametrize(
     ("variable", "value", "accepts"),
     [
-        ("GLUE_APP_SHIFT_HOURS", "abc", "shift_hours accepts a number > 0 .. 744"),
-        ("GLUE_APP_SHIFT_HOURS", "1e9", "shift_hours accepts a number > 0 .. 744"),
+        ("GLUE_APP_SHIFT_HOURS", "abc", "shift_hours accepts a number 0.25 .. 744"),
+        ("GLUE_APP_SHIFT_HOURS", "1e9", "shift_hours accepts a number 0.25 .. 744"),
         ("GLUE_APP_SAFE_POSITION", "abc", "safe_position accepts a JSON list of 6 numbers"),
         ("GLUE_APP_TRUSTED_PROXIES", "10.0.0.1", "trusted_proxies accepts a JSON list"),
         ("GLUE_APP_LOG_LEVEL", "loud", "logging_level accepts one of DEBUG, INFO"),

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from server.config import Settings
-from server.core.operations.base import OperationContext, OperationResult
+from server.core.operations.base import OperationContext, OperationResult, OperationWarning
 from server.core.operations.motion import at, pausable_move
 from server.core.operations.safe_position import workspace_problem
 from server.core.operations.workpieces import Target, locate_workpieces
@@ -44,9 +44,13 @@ from server.errors import OperationError
 from server.quality.inspection import inspect_run
 from server.quality.model import spray_segments
 from server.quality.sampler import RunSampler
+from server.storage.inspection_images import NoRoomForImage
 from server.vision.paths import Checkpoint, SprayPattern, spray_polylines
 
 log = logging.getLogger(__name__)
+
+# Why a completed run's part was not inspected, in its result's `not_inspected`.
+NOT_INSPECTED_NO_SPACE = "no space"
 TRAVEL_CLEARANCE_MM = 50.0
 # One planning at a time, off the default pool (see the module's docstring).
 _PLANNER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="path-planning")
@@ -291,10 +295,38 @@ async def execute_trajectory(ctx: OperationContext) -> OperationResult:
     inspection = await inspect_run(ctx, targets, segments, samples)
     images = ctx.stores.inspection_images
     if inspection.image_jpeg is not None and images is not None:
-        await asyncio.to_thread(images.save, ctx.run_id, inspection.image_jpeg)
+        try:
+            await asyncio.to_thread(images.save, ctx.run_id, inspection.image_jpeg)
+        except NoRoomForImage as exc:
+            return not_inspected_for_space(ctx.run_id, data, inspection.summary, exc)
     return OperationResult(
         {**data, "inspection": inspection.summary}, inspection.warnings, inspection.document
     )
+
+
+def not_inspected_for_space(
+    run_id: str, data: dict[str, Any], summary: dict[str, Any], exc: OSError
+) -> OperationResult:
+    """A sprayed part whose inspection image the full disk could not take.
+
+    The part was sprayed whole: failing the run would count a good part as a failed one
+    and stop an order over a disk. Nor is a verdict kept without the image and the
+    journal row that back it (on a full disk neither can be relied on): the part is
+    recorded as not inspected, "no space" (`not_inspected` in the run's result, the
+    order's part reason), and a warning says what the inspection had found, and what
+    to do.
+    """
+    why = exc.strerror or "no space left"
+    found = summary.get("verdict", "nothing")
+    log.warning("run %s: the inspection image could not be written (%s)", run_id, why)
+    warning = OperationWarning(
+        "INSPECTION_NO_SPACE",
+        f"run {run_id}'s inspection image could not be written ({why}): the part is "
+        f"recorded as not inspected (no space); the inspection had found it {found}. "
+        "Free space on the data disk (old inspection images, logs, backups), then check "
+        "the part by eye",
+    )
+    return OperationResult({**data, "not_inspected": NOT_INSPECTED_NO_SPACE}, (warning,))
 
 
 async def _close_quietly(ctx: OperationContext) -> None:

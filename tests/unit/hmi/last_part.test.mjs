@@ -15,6 +15,12 @@ test("no run yet, and a run nobody inspected", () => {
   const failed = describePart({ run_id: "r2", outcome: "failed", result: null });
   assert.equal(failed.label, "not inspected");
   assert.equal(failed.note, "run failed");
+  // A full disk took the inspection's image: the run says why it was not inspected.
+  const full = describePart({
+    run_id: "r5", outcome: "completed", result: { waypoints: 9, not_inspected: "no space" },
+  });
+  assert.equal(full.label, "not inspected (no space)");
+  assert.equal(full.note, "run completed");
 });
 
 test("a defective part: its reasons, its figures, whether an image was kept", () => {
