@@ -7,7 +7,9 @@ end (docs/operations-guide.md, "Production orders"):
 - completed without an inspection (inspection_enabled off): good, marked
   "not inspected", because nothing found it wrong and the operator chose not
   to judge parts; likewise a part whose inspection image a full disk could not
-  take, marked "not inspected (no space)": it was sprayed whole;
+  take, marked "not inspected (no space)": it was sprayed whole. If that
+  inspection had found it defective, it is defective with those reasons too:
+  a missing image never lets a defect pass as good;
 - failed or cancelled: defective ("run failed: ...", "run cancelled"): the
   part was started and did not get its whole bead.
 
@@ -99,6 +101,13 @@ def part_of_run(
     if not isinstance(inspection, dict):
         why = (result or {}).get("not_inspected")  # e.g. "no space": the disk was full
         reason = f"not inspected ({why})" if isinstance(why, str) and why else NOT_INSPECTED
+        found = (result or {}).get("inspection_found")
+        if isinstance(found, dict) and found.get("verdict") == DEFECTIVE:
+            # What the inspection found stands, image or not: no defect passes as good.
+            found_reasons = tuple(str(r) for r in found.get("reasons") or ())
+            return Part(
+                run_id, started_at, ended_at, outcome, DEFECTIVE, False, (reason, *found_reasons)
+            )
         return Part(run_id, started_at, ended_at, outcome, GOOD, False, (reason,))
     verdict = DEFECTIVE if inspection.get("verdict") == DEFECTIVE else GOOD
     reasons = tuple(str(r) for r in inspection.get("reasons") or ())

@@ -52,6 +52,16 @@ def test_a_part_whose_image_a_full_disk_refused_is_not_inspected_no_space() -> N
     assert part.reasons == ("not inspected (no space)",)
 
 
+def test_a_defect_the_inspection_found_stands_when_a_full_disk_refused_its_image() -> None:
+    """The image is missing, the verdict is not: a part the inspection found defective is
+    never counted good for want of space."""
+    found = {"verdict": DEFECTIVE, "reasons": ["glue volume 144 % of the bead's need"]}
+    result = {"path_length_mm": 400.0, "not_inspected": "no space", "inspection_found": found}
+    part = completed(1, result)
+    assert (part.verdict, part.inspected) == (DEFECTIVE, False)
+    assert part.reasons == ("not inspected (no space)", "glue volume 144 % of the bead's need")
+
+
 def test_a_failed_or_cancelled_run_is_a_defective_part_saying_why() -> None:
     failed = part_of_run("r1", "failed", 1.0, 2.0, None, "robot: link lost")
     cancelled = part_of_run("r2", "cancelled", 1.0, 2.0, None, None)

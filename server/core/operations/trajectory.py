@@ -314,7 +314,8 @@ def not_inspected_for_space(
     journal row that back it (on a full disk neither can be relied on): the part is
     recorded as not inspected, "no space" (`not_inspected` in the run's result, the
     order's part reason), and a warning says what the inspection had found, and what
-    to do.
+    to do. What it found is kept as `inspection_found` (verdict and reasons), so a
+    defect it saw still counts the part defective in its order.
     """
     why = exc.strerror or "no space left"
     found = summary.get("verdict", "nothing")
@@ -326,7 +327,10 @@ def not_inspected_for_space(
         "Free space on the data disk (old inspection images, logs, backups), then check "
         "the part by eye",
     )
-    return OperationResult({**data, "not_inspected": NOT_INSPECTED_NO_SPACE}, (warning,))
+    found = {"verdict": summary.get("verdict"), "reasons": list(summary.get("reasons") or ())}
+    return OperationResult(
+        {**data, "not_inspected": NOT_INSPECTED_NO_SPACE, "inspection_found": found}, (warning,)
+    )
 
 
 async def _close_quietly(ctx: OperationContext) -> None:
