@@ -151,13 +151,3 @@ class LineWatcher:
             kind, _ = self.next_event(0.5)
             if kind in ("message", "snapshot"):
                 on_change(self.model)
-
-
-def line_snapshot(url: str, prefix: str = DEFAULT_PREFIX, timeout: float = 10.0) -> LineModel:
-    """Connect, read every cell's retained state, disconnect."""
-    watcher = LineWatcher(Broker.parse(url), prefix)
-    watcher.connect(timeout)
-    try:
-        return watcher.snapshot(timeout)
-    finally:
-        watcher.close()

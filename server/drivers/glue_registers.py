@@ -46,11 +46,6 @@ class Table(Enum):
         """FC3 for holding registers, FC4 for input registers."""
         return 3 if self is Table.HOLDING else 4
 
-    @property
-    def write_function_codes(self) -> tuple[int, ...]:
-        """FC6 (single) and FC16 (multiple) for holding registers; input registers are read-only."""
-        return (6, 16) if self is Table.HOLDING else ()
-
 
 @dataclass(frozen=True)
 class Register:

@@ -42,10 +42,6 @@ class Outbox:
     def __len__(self) -> int:
         return len(self._entries)
 
-    @property
-    def waiting_stream(self) -> int:
-        return self._stream
-
     def put(self, entry: Entry) -> None:
         """Queue an entry; a retained one replaces its topic's older one still waiting."""
         if entry.retain:

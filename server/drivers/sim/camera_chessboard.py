@@ -18,7 +18,6 @@ import logging
 import math
 import threading
 from collections import OrderedDict
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import cast
 
@@ -263,13 +262,3 @@ def clear_chessboard_cache() -> None:
     """Drop cached views (~2 MB each)."""
     with _view_lock:
         _view_cache.clear()
-
-
-def all_default_views(
-    model: CameraModel = DEFAULT_CAMERA_MODEL, board: Chessboard = DEFAULT_CHESSBOARD
-) -> Sequence[tuple[BoardPose, NDArray[np.float64]]]:
-    """Every default pose with its ground-truth corner pixels, for calibration checks."""
-    return [
-        (p, chessboard_corner_pixels(model, board, p))
-        for p in default_chessboard_poses(model, board)
-    ]

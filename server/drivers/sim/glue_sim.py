@@ -32,7 +32,7 @@ setpoint), `delay_valve(ms)` (a valve that opens `ms` milliseconds of simulated 
 open command; its feedback follows the valve), `clear_faults()`.
 `history` lists every change of what leaves the nozzle as (time.time(), valve open, the flow
 the nozzle tends to in ml/min), so the simulated camera can render the bead actually dispensed
-(`flow_between` replays the flow model over it).
+(`glue_flow.flow_at` replays the flow model over it).
 Out of process, the same through the control channel: JSON lines over TCP on
 `control_port`, one request object per line and one reply line each, e.g.
   {"cmd": "no_reply", "seconds": 2.0}   seconds omitted or null: until cleared
@@ -74,7 +74,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from server.drivers import glue_registers as regs
 from server.drivers.glue_registers import Register, Table
-from server.drivers.sim.glue_flow import FLOW_TIME_CONSTANT_S, flow_at
+from server.drivers.sim.glue_flow import FLOW_TIME_CONSTANT_S
 
 logger = logging.getLogger(__name__)
 
@@ -350,14 +350,6 @@ class GlueSimulator:
         self.valve_log.append((wall, True))
         self._valve_open = True
         self._note_history(wall)
-
-    def flow_between(self, times: list[float] | tuple[float, ...]) -> list[float]:
-        """The flow (ml/min) leaving the nozzle at each time.time() in `times` (ascending).
-
-        Replays the simulator's own model over `history`: first-order towards the target
-        (time constant in simulated time, so `speed_factor` speeds it up), zero while closed.
-        """
-        return flow_at(list(self.history), times, self._speed)
 
     def _advance(self) -> None:
         """Move the first-order flow and pressure models to now."""
