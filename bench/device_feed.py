@@ -11,8 +11,8 @@
 2. How long a dispenser that falls silent with the valve open goes unnoticed:
    the production driver with the cell's default supervision against the glue
    simulator, valve open, `inject_no_reply()` at t0; the time to the
-   VALVE_UNCONFIRMED report, `--silences` times. (Before, the same silence was
-   reported as NO_REPLY once the status read ran out glue_system_timeout, 15 s.)
+   VALVE_UNCONFIRMED report, `--silences` times (without the supervision, the same
+   silence is a NO_REPLY only once the status read runs out glue_system_timeout, 15 s).
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ through:
   to one subscriber and the future answered per event, with the cell's entry and
   exit actions on no-op devices (entering an operational state starts an
   operation task, which the next event cancels; every stop runs the safe halt;
-  a reset probes the devices; IDLE starts the homing move).
+  a reset probes the devices).
 
 `--profile` adds where the worker's time goes (cProfile, cumulative seconds of
 the worker's own functions over a shorter run).

@@ -46,16 +46,16 @@ Conditions, each with --trials e-stops (default 500):
   detection on a 1920×1080 frame in a worker thread), the stop sent at a
   random moment in its first 60 ms.
 
-`--pin` (the headline figure, as issue 17 asks): the server, with every thread
-it starts, on one core; the witness and the crowd on the other(s). Unpinned,
-the simulators, the HMI and 1000 Python clients take turns with the server on
-two cores, and the figure measures them as much as the server. Pinned, the
-crowd also runs at a lower priority (nice 10) than the witness beside it: the
-simulators stand for devices of their own, which 1000 dashboards do not slow
-down (starved, the glue simulator took up to 5 ms to answer a status poll, and
-a stop arriving then waited for that answer: Modbus RTU has one exchange on
-the line at a time). The result file says which (`pinned`); `--name` keeps a
-pinned and an unpinned run apart.
+`--pin` (the headline figure, as a cell's controller has its own core): the
+server, with every thread it starts, on one core; the witness and the crowd on
+the other(s). Unpinned, the simulators, the HMI and 1000 Python clients take
+turns with the server on two cores, and the figure measures them as much as the
+server. Pinned, the crowd also runs at a lower priority (nice 10) than the
+witness beside it: the simulators stand for devices of their own, which 1000
+dashboards do not slow down (starved, the glue simulator took up to 5 ms to
+answer a status poll, and a stop arriving then waited for that answer: Modbus
+RTU has one exchange on the line at a time). The result file says which
+(`pinned`); `--name` keeps a pinned and an unpinned run apart.
 """
 
 from __future__ import annotations

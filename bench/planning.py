@@ -1,10 +1,10 @@
 """GET /workpieces while the worst part the library accepts is planned and cancelled.
 
-The issue: a part with an 800-point outline and a 1 mm fill kept planning
-threads busy for minutes after each cancel; after seven start/cancel cycles
-GET /workpieces and /history timed out. Now the library refuses such a part
-at edit, a planning stops at cancel or at planning_timeout, and it runs on a
-thread of its own. This measures what that leaves:
+A part with an 800-point outline and a 1 mm fill takes minutes to plan; left
+running after each cancel, such plans would starve GET /workpieces and
+/history. So the library refuses such a part at edit, a planning stops at
+cancel or at planning_timeout, and it runs on a thread of its own. This
+measures what that leaves:
 
 - in this process: how long the worst part the library accepts takes to plan
   (`plan_path`, --repeats times), which is what the limits and the
@@ -14,8 +14,8 @@ thread of its own. This measures what that leaves:
   another, while idle; while that worst part is started and cancelled
   mid-plan, --cycles times; while the demo part (which plans in milliseconds)
   is started and cancelled the same way, the control: what the start and
-  cancel cost by themselves; and while the issue's own part (stored as a file
-  from before the limits, which the server still reads) is started and
+  cancel cost by themselves; and while that 800-point part (stored as a file
+  written before the limits, which the server still reads) is started and
   cancelled the same way. For each, how long a cancel took to bring the cell
   back to IDLE (the planning has stopped by then) and the server's RSS.
 """

@@ -45,7 +45,7 @@ open, show in p99 and max. The file-descriptor limit is raised to the hard
 limit here, before the server is started, so the server inherits it (the
 server does not raise its own).
 
-`--pin` (the headline figure, as issue 17 asks): the server runs on one core
+`--pin` (the headline figure, as a cell's controller has its own core): the server runs on one core
 and this process (the clients and the driver) on another
 (`os.sched_setaffinity`; the server's is set in its process before it starts,
 so every thread it starts inherits it). Unpinned, the two share both cores

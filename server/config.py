@@ -877,7 +877,7 @@ class Settings(BaseSettings):
     @model_validator(mode="after")
     def _webhook_destinations(self) -> Settings:
         """A webhook to the cell itself, loopback or link-local is refused at load, naming the
-        webhook (never its path or query): it was accepted and posted to (issue 32)."""
+        webhook (never its path or query): the cell must not be made to post to itself."""
         allowed = destinations.parse_networks(self.webhook_allowed_networks)
         for target in self.webhooks:
             host = urlsplit(target.url).hostname or ""

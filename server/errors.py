@@ -20,8 +20,8 @@ class ConfigurationError(CellError, ValueError):
     """A file or setting the server reads at start-up is invalid: the server does not start.
 
     The message is one line naming the file, the entry and the field, because it is
-    all a technician sees when the service will not come up. A ValueError too, for
-    callers that caught the plain ValueError these checks used to raise.
+    all a technician sees when the service will not come up. A ValueError too, so
+    a caller that catches ValueError around loading catches it.
     """
 
 

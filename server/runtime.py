@@ -4,18 +4,17 @@
   schemas, the vision and protocol libraries) is frozen out of the collector,
   and collections run less often (generation 0 every 10 000 net allocations
   instead of 700; older generations 50 and 100 times rarer instead of 10).
-  Collections of the heap 1000 WebSocket connections make were the longest
-  pauses measured: the fan-out's p99 went from 91 ms to 39 ms with these
-  settings (bench/ws_fanout.py). Nearly all garbage is freed by reference
+  Collections of the heap 1000 WebSocket connections make are the longest
+  pauses the fan-out meets: with Python's default thresholds its p99 is more
+  than twice as long (bench/ws_fanout.py). Nearly all garbage is freed by reference
   counting the moment it is dropped; only reference cycles wait for the
   collector, and bench/memory.py shows memory still levels off.
 - The same again once the app has started: what its start-up built (the
   cell, the journal, the OPC UA server's address space of some hundred
-  thousand objects) was made after the first freeze, so the first collection
-  of the older generations after start-up walked all of it. With OPC UA on
-  that collection took about 150 ms, and it fell on the first stop pressed
-  (bench/plant_latency.py: the one stop in 100 "after a reset" at 160-180 ms
-  was always the first of the run). `freeze_once_started` collects and
+  thousand objects) is made after the first freeze, so the first collection
+  of the older generations after start-up would walk all of it: with OPC UA
+  on about 150 ms, falling on whatever comes first, such as the first stop
+  pressed (bench/plant_latency.py). `freeze_once_started` collects and
   freezes when start-up completes, before the first request is served.
 - Open files: the soft limit is raised to the hard limit, because every
   WebSocket client is a socket and the usual soft limit (1024) is below what
@@ -25,17 +24,17 @@
   shut down, and exit handlers do not run then.
 - Background threads (the journal's writer, the state snapshot's) hold back
   while an e-stop's device frames are written (`background_held`). Woken to
-  write, such a thread preempted the event loop on a shared core in the
+  write, such a thread preempts the event loop on a shared core in the
   middle of a stop, between its two frames: behind a full queue the robot's
-  frame waited up to a millisecond for the journal's commit. For those few
+  frame would wait up to a millisecond for the journal's commit. For those few
   hundred microseconds they are bulk work for the kernel (Linux SCHED_BATCH:
   a wake-up never preempts a running thread), then ordinary threads again.
-  Not for longer: as bulk work all the time the writer waited a time slice
+  Not for longer: as bulk work all the time the writer waits a time slice
   at each wake-up, and every answer behind a busy loop (1000 WebSocket
-  clients, vision) took twice as long.
+  clients, vision) takes twice as long.
 - Memory arenas (glibc): at most two. By default each thread that allocates
   may get an arena of its own, and the vision threads' 6 MB frames, freed,
-  stay in them: a 3-minute soak grew 80 MB that way with no leak (2 MB with
+  stay in them: a 3-minute soak grows 80 MB that way with no leak (2 MB with
   two arenas). Elsewhere than glibc this does nothing.
 """
 
@@ -134,7 +133,7 @@ def collection_deferred() -> Iterator[None]:
 
     Why: with a young generation of 10 000 objects a collection takes 1.5 to 2 ms,
     and one that starts while an e-stop's frames are being written holds them
-    back that long (bench.estop_latency, issue 17). The block must be short and
+    back that long (bench.estop_latency). The block must be short and
     never wait: it is the few hundred microseconds between the stop's arrival and
     its frames on their sockets.
     """

@@ -1,7 +1,7 @@
 """https and wss on the HTTP port: the server's certificate and key, checked at start.
 
-Why the server serves TLS itself: with the HMI published on the plant network
-every bearer token and WebSocket ticket crossed it in clear (issue 32). A TLS
+Why the server serves TLS itself: with the HMI published on the plant network,
+plain http would carry every bearer token and WebSocket ticket across it in clear. A TLS
 proxy in front is the other way (docs/security.md, "TLS"); this one needs no
 second program on an industrial PC.
 

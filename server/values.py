@@ -1,9 +1,9 @@
 """The constrained value types every boundary shares: a finite number, a whole number, a name.
 
 Why one module: the same kind of value enters through request bodies, query
-parameters, settings and files, and each door used to check it its own way (or
-not at all: Infinity reached the KPIs as a design cycle time, a NUL and a
-right-to-left override reached the audit trail as a token's name). Declared once
+parameters, settings and files; checked at each boundary its own way, one would
+let through what another refuses (Infinity into the KPIs as a design cycle time,
+a NUL or a right-to-left override into the audit trail as a token's name). Declared once
 here, each type also states its constraint in openapi.json, so what a client
 reads is what the server enforces.
 

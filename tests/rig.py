@@ -93,8 +93,8 @@ async def run(rig: Rig, command: str, body: dict | None = None) -> dict:
 
 
 async def append_inspected_run(rig: Rig, run_id: str, inspection: dict[str, Any]) -> None:
-    """An inspected spray run's start and end (its result carrying `inspection`, issue 18's
-    summary), written through the cell's own journal writer: a part on record without
+    """An inspected spray run's start and end (its result carrying `inspection`, the
+    inspection's summary), written through the cell's own journal writer: a part on record without
     spraying it."""
     journal = rig.cell.journal
     assert journal is not None

@@ -155,7 +155,7 @@ class AccessGate:
     It runs before routing and matches the request's own path against the
     policy table (`role_for_request`): a path no entry matches needs ADMIN, so
     a new route stays closed until the table names it. Why not a FastAPI
-    dependency: resolving one per request was a fifth of a GET /state
+    dependency: resolving one per request costs a fifth of a GET /state
     (docs/benchmarks.md), and a refused request should cost no routing at all.
 
     It leaves `principal` (and, when it refuses, `audit_reason`) in the

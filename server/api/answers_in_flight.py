@@ -3,11 +3,11 @@
 Why: the plant's interfaces (the MQTT link, the OPC UA follower) turn each
 transition into messages and tags. That work runs on the event loop, under
 the interpreter lock, at the very moment the command that made the transition
-(an e-stop above all) is being answered: it was measured to add about 2 ms to
-the stop's answer on a cell serving both. Waiting for the transition's commit
-was not enough: the answer still takes a few hops of the loop after it (the
+(an e-stop above all) is being answered, and would add milliseconds to the
+stop's answer on a cell serving both. Waiting for the transition's commit is
+not enough: the answer still takes a few hops of the loop after it (the
 route's return, the response's encoding, the write), and the interfaces' work
-ran between them. So the interfaces wait until no command's answer is in
+would run between them. So the interfaces wait until no command's answer is in
 flight: the plant hears a transition a little later; the stop is not
 answered later.
 

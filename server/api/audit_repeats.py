@@ -1,22 +1,22 @@
 """Identical refusals within a window are one audit row with a count.
 
 Why: every refusal is on record, and a client that repeats one (3000 wrong
-tokens in a few seconds) wrote a row each: the journal grew with whatever an
-anonymous client chose to send. Now the first refusal of its kind (same
-principal, address, action, outcome and reason) is written at once, as
-before; the identical ones that follow within `audit_repeat_window` are
-counted, and written as one more row whose `count` says how many it stands
-for, at the time of the last of them, when the window closes. A repetition
-that goes on keeps folding, one row per window; once a window passes without
-one, the next is written at once again. So the counts of a kind's rows add up
-to every refusal made, and `GET /audit` (which writes what is pending first)
-never shows fewer than were made.
+tokens in a few seconds) would write a row each: the journal would grow with
+whatever an anonymous client chose to send. The first refusal of its kind (same
+principal, address, action, outcome and reason) is written at once; the
+identical ones that follow within `audit_repeat_window` are counted, and
+written as one more row whose `count` says how many it stands for, at the time
+of the last of them, when the window closes. A repetition that goes on keeps
+folding, one row per window; once a window passes without one, the next is
+written at once again. So the counts of a kind's rows add up to every refusal
+made, and `GET /audit` (which writes what is pending first) never shows fewer
+than were made.
 
 Only refusals are folded: an accepted action is always its own row. The
 journal's rows are sealed by the commit chain and never updated, which is why
 the count goes into a row of its own rather than raising the first one's.
 The table of kinds being folded is bounded (`MAX_KINDS`): past it a refusal
-is simply written, as before.
+is simply written, one row each.
 """
 
 from __future__ import annotations

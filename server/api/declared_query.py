@@ -1,8 +1,8 @@
 """Query parameters a route does not declare are refused (422 naming each), not ignored.
 
-Why: `/history?sinse=...` used to answer every row, as if the filter had been
-applied; a script never learnt its typo, and a report held more than it asked
-for. A request body already refuses unknown fields (`extra="forbid"`); this is
+Why: ignored, `/history?sinse=...` would answer every row, as if the filter had
+been applied; a script would never learn its typo, and a report would hold more
+than it asked for. A request body already refuses unknown fields (`extra="forbid"`); this is
 the same rule for the query string, so openapi.json is the whole truth about
 what a route reads.
 

@@ -1,16 +1,15 @@
 """A query route answered without FastAPI's per-request machinery, with the same answer.
 
 Why: GET /state is what every HMI and supervisor polls, and its cost should be
-the framework's floor (bench/rest_throughput.py compares it with a bare
-FastAPI endpoint). For a route whose endpoint reads nothing but the request,
-FastAPI still resolves its (empty) dependencies, wraps the call and the
-serialization in its telemetry operations and builds the answer through its
-generic path: a fifth of the request's CPU time on this machine
-(docs/benchmarks.md). `DirectJsonRoute` calls the endpoint itself and
-validates and serializes its result with the route's own response field, as
-FastAPI's fast path does (`serialize_json` into a `Response` with
-`application/json`): the same bytes, status and headers, the same 500 if the
-result does not match the model. Routing, the query check
+the framework's floor (bench/rest_throughput.py compares it with a bare FastAPI
+endpoint). For a route whose endpoint reads nothing but the request, FastAPI
+still resolves its (empty) dependencies, wraps the call and the serialization
+in its telemetry operations and builds the answer through its generic path:
+about a fifth of the request's CPU time (docs/benchmarks.md). `DirectJsonRoute`
+calls the endpoint itself and validates and serializes its result with the
+route's own response field, as FastAPI's fast path does (`serialize_json` into
+a `Response` with `application/json`): the same bytes, status and headers, the
+same 500 if the result does not match the model. Routing, the query check
 (server/api/declared_query.py), the middlewares and openapi.json are unchanged.
 """
 

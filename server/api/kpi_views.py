@@ -1,7 +1,7 @@
 """The body of GET /kpis as pydantic models: what openapi.json states of the KPIs.
 
 Why declared: the plant's reports and the HMI read these keys, and the
-`quality` block (issue 18) added figures a client must know may be null. The
+`quality` block holds figures a client must know may be null. The
 dict comes from `server/core/kpis.py: compute_kpis`; each description says
 what null means there (docs/kpis.md has the formulas).
 """

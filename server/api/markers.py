@@ -1,8 +1,8 @@
 """The marker layout taught with the robot: GET the layout, teach, type, apply.
 
 Why these routes: `marker_positions_mm` (the robot positions of ArUco markers
-0-8 that the robot calibration maps to) used to be typed blind into the
-configuration. Now a technician jogs the tool over marker N (`POST /jog`) and
+0-8 that the robot calibration maps to) should not be typed blind into the
+configuration. A technician jogs the tool over marker N (`POST /jog`) and
 records where it is (`POST /calibration/markers/draft/{marker}/teach`), or types a
 position (`PUT /calibration/markers/draft/{marker}`); both go into a draft kept under
 the data directory (server/storage/marker_layout.py). `POST

@@ -1,13 +1,13 @@
 """Every route made ready at start-up, so the first stop pressed is not the one that pays.
 
 Why: FastAPI prepares a route lazily, the first time a request is matched
-against it (its fields, its body model's validator, what it depends on), and
-a request is matched against every route before its own in the table. The
-first POST /estop after a start therefore prepared the routes ahead of it
-first: about 10 ms in the server before the devices were commanded, where
-every later stop takes half a millisecond (bench.estop_latency, its first
-trial). `prepare_routes` matches one request that fits no route against the
-app's own router at start-up, which walks, and so prepares, every route.
+against it (its fields, its body model's validator, what it depends on), and a
+request is matched against every route before its own in the table. The first
+POST /estop after a start would therefore prepare the routes ahead of it first:
+milliseconds in the server before the devices are commanded, where every later
+stop takes a fraction of one (tests/integration/test_first_stop.py).
+`prepare_routes` matches one request that fits no route against the app's own
+router at start-up, which walks, and so prepares, every route.
 
 It goes to the router, not through the app: no middleware sees it, so there
 is no audit row, no metric and no answer on any socket.

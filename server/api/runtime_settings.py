@@ -3,9 +3,9 @@
 Why the body is a model built from `Settings` itself: each setting's type,
 bounds and description are declared once, in server/config.py, and the request
 must enforce exactly those, strictly (a number never as "8" or true, never
-Infinity or 1e400), and state them in openapi.json. A hand-written copy drifted:
-the body used to be any JSON object, so openapi.json promised nothing and
-`{"design_cycle_time_s": Infinity}` was taken.
+Infinity or 1e400), and state them in openapi.json. A hand-written copy would
+drift from them: a body of any JSON object promises nothing in openapi.json and
+takes `{"design_cycle_time_s": Infinity}`.
 
 A setting not listed here is refused as an unknown field: it needs a restart.
 """

@@ -2,13 +2,13 @@
 
 Why: between the access gate and the stop's handler a request crosses FastAPI's
 routing, the validation of its (optional) body and the handler's own steps:
-about 0.3 ms of the 0.45 ms from the request's arrival to the halt's commands
-(docs/benchmarks.md, issue 17). The devices are commanded here instead, once
+most of the time from the request's arrival to the halt's commands
+(docs/benchmarks.md, "Software stop"). The devices are commanded here instead, once
 the gate has let the request through (so only a token allowed to stop can stop):
 `Worker.halt_for_stop` counts the stop, cuts the run's leash and writes both halt
 commands' frames (tasks started at once: no turn of the loop comes first). The
 route then makes the stop with that halt, with its reason, its audit row and
-its answer, as before.
+its answer.
 
 A halt is never left without its transition: if the route did not get to the
 stop (an error on the way), the lane queues the EMERGENCY_STOP itself, so the

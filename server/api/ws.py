@@ -28,7 +28,7 @@ holds N + 1, or B is not this server's boot, the snapshot is marked
 boot, every message this server published) and no replay follows: the
 snapshot is the truth from then on. A `types=a,b` query parameter filters
 from the start, replay included; a later subscribe message filters what is
-published from then on, as before.
+published from then on.
 
 `device` messages (live valve, flow, pressure and robot pose; see
 server/core/live.py) are samples, not records: they carry no seq, are never

@@ -1,11 +1,11 @@
 """One WebSocket frame for every client: built once per message, written to each socket.
 
-Why: with a thousand /ws clients, each message went through Starlette's and
+Why: with a thousand /ws clients, sending each message through Starlette's and
 uvicorn's send path once per client (a state check, an awaited flow-control
 event, a timeout handle, the websockets protocol building the very same frame
-again) before the socket write: about 40 µs of server CPU per client and
-message, which made the fan-out to 1000 clients take longer than its 50 ms
-budget (docs/benchmarks.md). A server-to-client text frame carries no mask
+again) costs tens of µs of server CPU per client and message before the socket
+write, more than the fan-out to 1000 clients' 50 ms budget allows
+(docs/benchmarks.md). A server-to-client text frame carries no mask
 (RFC 6455 §5.1) and, with permessage-deflate declined (server/__main__.py),
 no per-connection compression: its bytes are the same for every client, so
 they are built once (`text_frame`) and handed to each connection's transport

@@ -65,10 +65,9 @@ SLOW_CONSUMER = "slow consumer"
 # Delivery work per turn of the loop. A direct hand-over (a socket write, about
 # 10 µs on the 2-core bench machine) costs 1; waking a subscriber's task costs
 # WAKE_COST (its send, about 30 µs, runs on the next turn, beside the next batch):
-# 32 writes, or 16 wakes as before there was a direct road. A turn stays at a few
-# tenths of a millisecond, and each hop of a stop request through the loop waits
-# for one turn at most; 64 writes a turn made the stop measurably slower with a
-# thousand clients (docs/benchmarks.md, "WebSocket fan-out").
+# 32 writes, or 16 wakes. A turn stays at a few tenths of a millisecond, and each
+# hop of a stop request through the loop waits for one turn at most; 64 writes a
+# turn makes the stop measurably slower with a thousand clients.
 DELIVERY_BUDGET = 32
 WAKE_COST = 2
 WAKE_BATCH = DELIVERY_BUDGET // WAKE_COST  # subscribers' tasks woken per turn, at most

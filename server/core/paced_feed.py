@@ -1,14 +1,14 @@
 """A bus subscription read with a run's progress thinned: at most one per interval.
 
 Why: while a cell sprays, every waypoint publishes a `progress` record, and the
-plant's interfaces turned each one into work on the event loop (a CellState
+plant's interfaces would turn each one into work on the event loop (a CellState
 write that asyncua's subscription loop then notifies; an MQTT message and its
 QoS 1 exchange with the broker). An e-stop that arrives during one of those
-callbacks waits for its end: with both interfaces on, the device stop while
-spraying was about 1 ms slower at p50 than on a plain cell
-(docs/benchmarks.md). The plant needs to know where the run is, not each of its
-steps: like the HMI's device feed (`device_push_interval`), the plant hears a
-run's progress at most once per `plant_progress_interval`, the latest kept.
+callbacks waits for its end, so with both interfaces on the device stop while
+spraying would be slower than on a plain cell (docs/benchmarks.md). The plant
+needs to know where the run is, not each of its steps: like the HMI's device
+feed (`device_push_interval`), the plant hears a run's progress at most once
+per `plant_progress_interval`, the latest kept.
 
 The rules, so the plant loses nothing it was promised:
 

@@ -3,7 +3,7 @@
 Why one reader: the KPIs, the Prometheus counters, the OPC UA counts, the MQTT
 run message and the webhooks' run notice all ask the same question of a run's
 result (was its part inspected, and was it good?), and must answer it the same
-way. The summary is the contract of issue 18 (server/quality/):
+way. The summary is the inspection's contract (server/quality/):
 ``result["inspection"] = {"verdict": "good" | "defective", "reasons": [...],
 "precision_mean_mm", "precision_p95_mm", "dispensing_cv_percent", "glue_ml",
 "vision_residual_mm", "image"}``; no "inspection" key means the part was not

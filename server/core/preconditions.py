@@ -1,8 +1,8 @@
 """What a command needs besides the right state, checked before it is accepted.
 
 Why: a run that cannot succeed (no workpiece named, an unknown part, no
-calibration) used to be accepted and then fail inside the operation, driving
-the cell into ERROR and needing a maintenance reset for an operator's typo.
+calibration), once accepted, would fail inside the operation, driving the cell
+into ERROR and needing a maintenance reset for an operator's typo.
 What can be checked before the transition is checked before it: the command
 is refused, the state does not change, and the refusal is journaled and
 audited like any other. The operations check again when they run (the library

@@ -140,9 +140,8 @@ class Recorder:
         written once the change is on record and its sender answered
         (`answer_when_durable`).
 
-        Why after: written beside the commit, the snapshot's fsync competed with
-        the commit's own, and every answer waited for it (an e-stop's by 0.3 to
-        0.4 ms at p50, docs/benchmarks.md)."""
+        Why after: written beside the commit, the snapshot's fsync would compete
+        with the commit's own, and every answer, an e-stop's too, would wait for it."""
         if self.snapshot_file is None:
             return
         operation = running.as_dict() if running is not None else None
@@ -213,8 +212,8 @@ class Recorder:
             return
         # A turn of the loop after the answer's: the sender's task writes its answer
         # first, and only then is the snapshot's thread woken. Woken with the answer,
-        # it took the interpreter from the loop while the answer was being written
-        # (0.2 ms more per answer, on a core shared with the loop).
+        # it would take the interpreter from the loop while the answer is being
+        # written (a few tenths of a ms per answer, on a core shared with the loop).
         save, loop = self.snapshot_file.save, asyncio.get_running_loop()
         durable.add_done_callback(lambda _: loop.call_soon(save, snapshot))
 

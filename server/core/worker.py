@@ -350,9 +350,9 @@ class Worker:
                 await self._let_commit_through(durable)
             # Let the loop run between events, so a long queue of quick refusals
             # never starves the HTTP handlers (the e-stop route above all). After
-            # every event: letting it run only every 0.1 ms made the worker 1.17x
-            # faster, and the stop behind a full queue 2 ms slower at p99
-            # (docs/benchmarks.md, "Issue 17, fourth pass").
+            # every event: letting it run only every 0.1 ms makes the worker about
+            # 1.2x faster and the stop behind a full queue about 2 ms slower at p99
+            # (docs/benchmarks.md, "Engine and worker").
             await asyncio.sleep(0)
 
     async def _let_commit_through(self, durable: asyncio.Future[None]) -> None:
@@ -361,7 +361,7 @@ class Worker:
         Why: the journal's writer thread needs the interpreter lock between its
         SQLite calls, and a worker draining a long queue holds it for a whole
         switch interval each time: with 10 000 requests queued the stop's
-        one-row commit took 16..180 ms that way. Waiting here leaves the loop
+        one-row commit would take tens to hundreds of ms that way. Waiting here leaves the loop
         idle, so the writer runs at once; the queue waits a few ms, and only
         after a stop. Bounded, so a stalled disk cannot hold the worker.
         """

@@ -1,9 +1,9 @@
 """What tokens.json must hold, checked entry by entry when the server starts.
 
 Why at load and not at use: the file is edited by hand now and then (a token
-renamed, a role changed, a copy from another cell). A role that is not a role
-used to load, and every request with that token was a 500 when its role was
-read, the software stop included. Checked here, a bad entry stops the start
+renamed, a role changed, a copy from another cell). Loaded unchecked, a role
+that is not a role would make every request with that token a 500 when its role
+is read, the software stop included. Checked here, a bad entry stops the start
 with one line naming the file, the entry (its id, or its place when it has
 none) and the field, before the server answers anything.
 """

@@ -4,9 +4,9 @@ Why a process and not a thread: marker detection, outline fitting and the
 simulated camera's rendering are long runs of numpy and OpenCV calls with
 Python between them. On a thread they hold the interpreter lock for up to
 several ms at a time, and the event loop (an e-stop's request among what it
-serves) waits for them. Measured with robot calibrations running, every thread
-of the server on one core: the loop's lag p99 5.1–5.7 ms with the work on
-threads, 1.1 ms with it here (docs/benchmarks.md, issue 17's seventh pass). A
+serves) waits for them: with robot calibrations running and every thread of
+the server on one core, the loop's lag at p99 is about five times longer with
+the work on threads than with it here. A
 process competes for the core through the kernel's scheduler, not for the
 lock, and runs at the lowest priority (`NICE`): bulk work beside a control
 loop takes only what the loop leaves.

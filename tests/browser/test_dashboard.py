@@ -401,7 +401,7 @@ async def test_the_devices_card_is_live_and_does_not_poll(
 GAP_REASON = "segment 3: a gap of 14.2 mm without bead (at most 3.0 mm)"
 
 
-# A defective part's record, as issue 18's contract writes it into a run's result.
+# A defective part's record, as the inspection's contract writes it into a run's result.
 DEFECTIVE_PART = {
     "verdict": "defective",
     "reasons": [GAP_REASON],

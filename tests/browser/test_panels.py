@@ -34,7 +34,7 @@ from tests.browser.test_dashboard import (
 from tests.rig import SPRAY_DEMO, open_rig
 from tests.serving import admin_headers, free_port
 
-# Panels in plants (issue 15), landscape.
+# The landscape panels plants use.
 PANELS = ((1024, 768), (1280, 800), (1366, 768), (1440, 900), (1600, 900), (1920, 1080))
 PANEL_SHOTS = SHOTS / "panels"
 IDLE_COMMANDS = {"start", "calibrate-robot", "calibrate-camera", "create-workpiece"}

@@ -1,4 +1,4 @@
-"""The dashboard over https, in Debian's Chromium (issue 32, item 8).
+"""The dashboard over https, in Debian's Chromium.
 
 The page is served from the same origin as the API, so over https its requests are
 https and its live view is wss (clients/hmi/live.js builds the WebSocket address

@@ -1,5 +1,5 @@
-"""One damaged library file never stops the server (it used to fail start-up, and
-GET/PUT of the part answered 500): it is listed as damaged with the reason, the
+"""One damaged library file never stops the server (nor makes GET/PUT of the part
+answer 500): it is listed as damaged with the reason, the
 server starts, PUT repairs it and DELETE removes it."""
 
 from __future__ import annotations

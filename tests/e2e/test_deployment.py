@@ -2,7 +2,7 @@
 
 There is no container engine here, so the compose file is checked three ways:
 Debian's docker-compose validates it (`config`, which needs no engine) and
-prints it resolved; that resolved form is held to what issue 15 asks (the
+prints it resolved; that resolved form is held to what a deployment needs (the
 simulators on an internal network, nothing of theirs published, health checks,
 the server started once its devices are healthy); and each service's command and
 health check are run as processes, as the compose file runs them, on loopback.

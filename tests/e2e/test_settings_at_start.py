@@ -1,9 +1,9 @@
 """`glue-server` as a technician starts it with a wrong environment.
 
-A bad value used to print a 16-line traceback (a list that is not JSON) or a
-line naming the field but not the variable; a misspelt GLUE_APP_ variable was
-silently ignored. Now: one line naming the variable and what it accepts, exit
-2; a warning naming the closest setting, and the server starts.
+A bad value is one line naming the variable and what it accepts, exit 2, never
+a traceback or a line naming the field but not the variable; a misspelt
+GLUE_APP_ variable is a warning naming the closest setting, and the server
+starts.
 """
 
 from __future__ import annotations

@@ -1,13 +1,12 @@
-"""https and wss served by `python -m server` itself (issue 32, item 8).
+"""https and wss served by `python -m server` itself.
 
-Before: the server had no TLS setting, so with the HMI published on the plant
-network every bearer token and WebSocket ticket crossed it in clear. Now
-GLUE_APP_TLS_CERT_FILE and GLUE_APP_TLS_KEY_FILE make the one HTTP port serve
-https and wss only. Each test here uses a CA made for the test
-(tests/tls_pki.py) and the server as a process, driven the way a plant would:
-gluectl and the Python client trusting that CA (--ca-file), a /ws snapshot over
-wss with a ticket, and, refused, plain http, a client that does not trust the
-CA, and TLS older than 1.2.
+With the HMI published on the plant network, plain http would carry every bearer
+token and WebSocket ticket across it in clear. GLUE_APP_TLS_CERT_FILE and
+GLUE_APP_TLS_KEY_FILE make the one HTTP port serve https and wss only. Each test
+here uses a CA made for the test (tests/tls_pki.py) and the server as a process,
+driven the way a plant would: gluectl and the Python client trusting that CA
+(--ca-file), a /ws snapshot over wss with a ticket, and, refused, plain http, a
+client that does not trust the CA, and TLS older than 1.2.
 """
 
 from __future__ import annotations

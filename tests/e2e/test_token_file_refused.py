@@ -1,8 +1,8 @@
 """A server on a data directory whose tokens.json was edited wrongly refuses to start.
 
-It used to start and answer 500 to every request with the damaged token, /estop
-included. Now the process exits before serving, with one line naming the entry
-and the field, and no traceback.
+Started, it would answer 500 to every request with the damaged token, /estop
+included. The process exits before serving, with one line naming the entry and
+the field, and no traceback.
 """
 
 from __future__ import annotations

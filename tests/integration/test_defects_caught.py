@@ -1,5 +1,5 @@
 """Each defect injected in the simulators is caught by the run's inspection; a clean run
-is good (issue 18, docs/quality.md).
+is good (docs/quality.md).
 
 A real server on the rig's simulators, the robot at the speed the plan says (so the glue
 the run needs is the glue it should get), the simulated camera drawing the bead the

@@ -1,6 +1,6 @@
 """Guessing is slowed, refusals don't fill the journal, slow and idle clients are closed.
 
-Issue 32, items 5 and 6, against the real app served by uvicorn as `python -m
+Against the real app served by uvicorn as `python -m
 server` serves it (tests/serving.py), on real sockets: a flood of wrong tokens
 from one address, sockets that dribble a header line at a time, sockets that
 never send a byte, and more connections than the server holds. The bounds

@@ -1,8 +1,8 @@
 """The e-stop's halt has written both device frames when `start_halt` returns.
 
-Before, each halt command was a task whose first step (the one that writes its
-frame) waited for the loop's next turn, behind every callback ready by then: a
-crowd's WebSocket writes, a vision result, the requests queued ahead. Here the
+As ordinary tasks, the halt's commands would write their frames only at the loop's
+next turn, behind every callback ready by then: a crowd's WebSocket writes, a vision
+result, the requests queued ahead. Here the
 production drivers talk to the simulators over loopback, and every write to a
 socket is recorded as it happens.
 """
@@ -101,9 +101,8 @@ async def test_an_opening_waiting_for_the_line_never_follows_the_halts_close(
     """A halt's close goes ahead of what waits for the dispenser's line; a run's
     opening asked for before the stop and still waiting there must not go out after it.
 
-    Before, it did: the valve opened again after the stop had closed it, until a
-    second halt, after the run's cancellation, closed it once more (the glue
-    flowing meanwhile).
+    If it did, the valve would open again after the stop had closed it, the glue
+    flowing until something closed it once more.
     """
     glue = devices.glue
     leash = Leash("run-1", glue)

@@ -1,12 +1,12 @@
 """Signed MQTT commands against Debian's mosquitto with the shipped ACL and a real cell.
 
-Issue 32, item 2: a command captured on the broker carried the token in clear (which
-also worked as an HTTP bearer token), and publishing the capture again started a new
-run. Now a command is signed (clients/client/mqtt_signing.py): the capture holds no
-secret, and the same message again, too old or from the future is refused on the
-response topic and in the audit trail, and moves nothing. The broker refuses
-anonymous clients, and the line view can neither read commands nor send them.
-gluectl --mqtt and the Python client sign for the script.
+A command captured on the broker must carry no secret (a token in clear would also
+work as an HTTP bearer token) and must not start a new run when published again. A
+command is signed (clients/client/mqtt_signing.py): the capture holds no secret, and
+the same message again, too old or from the future is refused on the response topic
+and in the audit trail, and moves nothing. The broker refuses anonymous clients, and
+the line view can neither read commands nor send them. gluectl --mqtt and the Python
+client sign for the script.
 """
 
 from __future__ import annotations

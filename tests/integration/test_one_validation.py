@@ -230,8 +230,8 @@ async def _until_mqtt_linked(rig: Rig) -> None:
 
 
 async def test_a_5_mb_opcua_argument_is_refused_before_it_is_read(tmp_path: Path) -> None:
-    """The issue's case: a 5 MB WorkpieceId took 1.2 s and left a 15 MB journal plus
-    a 15 MB WAL. Now the call is refused by its size before asyncua decodes it."""
+    """A 5 MB WorkpieceId, decoded and journaled, would take a second and leave a 15 MB
+    journal plus a 15 MB WAL: the call is refused by its size before asyncua decodes it."""
     port = free_port()
     data = tmp_path / "data"
     async with open_rig(data, cell_id=CELL, opcua_endpoint=endpoint(port)) as rig:

@@ -3,7 +3,7 @@ Client) and MQTT (Debian's mosquitto), against the real server with the robot an
 simulators.
 
 A real run is inspected (server/quality/) and counted as its own verdict says, on every
-surface alike. The counting of more parts is then shown with records built to issue 18's
+surface alike. The counting of more parts is then shown with records built to the inspection's
 contract (result["inspection"]): an inspected run's rows appended to the real journal
 (what /kpis and PackML's Admin read), and an inspected run's end told to the cell's
 run-ended listeners (where the metrics, the MQTT link and the webhooks hear a run end).

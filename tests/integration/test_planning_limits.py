@@ -104,8 +104,8 @@ async def test_a_plan_past_planning_timeout_fails_the_run_before_any_motion(tmp_
 async def test_cancel_and_estop_stop_the_planning_and_other_requests_still_answer(
     tmp_path,
 ) -> None:
-    # Before: each cancelled run left its planning thread running for minutes; after
-    # seven the default thread pool was full and GET /workpieces and /history timed out.
+    # A planning thread left running for minutes after each cancel would fill the
+    # default thread pool after seven, and GET /workpieces and /history would time out.
     async with open_rig(tmp_path) as rig:
         store_heavy_part(rig)
         rig.robot.clear_path()

@@ -639,8 +639,8 @@ async def test_a_write_that_fails_leaves_no_unretrieved_future(sim: RobotSimulat
     """A call whose write fails raises DeviceDisconnected, and that is all it leaves behind.
 
     The teardown the failure starts also fails the call's own pending future; nobody
-    awaits it any more, and asyncio used to log "Future exception was never
-    retrieved" for it when it was collected.
+    awaits it, and asyncio would log "Future exception was never retrieved" for it
+    when it is collected unless it is retrieved.
     """
     loop = asyncio.get_running_loop()
     unhandled: list[str] = []

@@ -1,8 +1,8 @@
 """The e-stop's devices are commanded as its request passes the gate (server/api/stop_lane.py).
 
-Before, they were commanded by the route's handler, after FastAPI had routed the
-request and read and validated its body: a stop whose body was slow to arrive
-(a loaded client, a lossy link) stopped nothing until the body was complete.
+Commanded by the route's handler, after FastAPI has routed the request and read and
+validated its body, a stop whose body is slow to arrive (a loaded client, a lossy
+link) would stop nothing until the body was complete.
 """
 
 from __future__ import annotations

@@ -56,7 +56,7 @@ async def test_a_non_finite_setting_is_refused_and_kpis_keep_answering(api, numb
     assert (await api.get("/kpis")).status_code == 200
 
 
-# Every setting PATCH /settings takes as a number, at a value its old `> 0` let in (issue 32).
+# Every setting PATCH /settings takes as a number, at a value a bare `> 0` would let in.
 SUBNORMAL = "3.55e-276"
 # (0 means something for the two left out: no delay, no out-of-tolerance time allowed.)
 RUNTIME_NUMBERS = [

@@ -293,7 +293,7 @@ async def test_the_webhooks_are_shown_to_admins_only_and_never_their_secrets(
 async def test_a_host_name_that_resolves_to_this_host_is_refused_at_delivery(cell_data) -> None:
     """A name passes the load check (it is not resolved while the cell starts); each
     connection resolves it and refuses an address in a refused range, once, without a
-    retry, before anything is sent (issue 32: DNS rebinding to the cell itself)."""
+    retry, before anything is sent (DNS rebinding to the cell itself)."""
     host = socket.gethostname()
     addresses = {info[4][0] for info in socket.getaddrinfo(host, None)}
     assert addresses, f"this test needs the host name {host!r} to resolve"

@@ -2,9 +2,9 @@
 on disk all the same, for every kind of action (a command, the e-stop, a token created
 or revoked, a settings change, a library edit).
 
-Before, the audit row was written by an observer after the answer had left, without
-waiting for the disk: a token created just before a crash worked after the restart with
-no row saying who created it, and an e-stop was in /events with nobody pressing it.
+An audit row written after the answer had left, without waiting for the disk, could be
+lost with a crash: a token created just before it would work after the restart with no
+row saying who created it, and an e-stop would be in /events with nobody pressing it.
 """
 
 from __future__ import annotations

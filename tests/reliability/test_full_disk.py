@@ -5,9 +5,9 @@ e-stop keeps stopping.
 The server runs as its own process with its data directory on a small real file
 system (tests/reliability/_small_disk.py: a size-limited tmpfs where the test may
 mount one, else a file-size limit on the server process); the simulators run as
-their own processes. Before: with the journal failing, a reset and a start were both
-answered 202 and the cell moved; PUT /workpieces and POST /tokens were a bare 500; a
-token revoked on a full disk was revoked in memory and back after a restart.
+their own processes. What must not happen with the journal failing: a reset or a
+start answered 202 and the cell moving; PUT /workpieces or POST /tokens a bare 500; a
+token revoked on a full disk revoked in memory only, and back after a restart.
 """
 
 from __future__ import annotations
@@ -244,9 +244,9 @@ def test_a_fresh_server_starts_on_a_2_mb_disk(tmp_path: Path) -> None:
 def test_a_disk_that_fills_during_a_run_leaves_its_part_not_inspected_not_failed(
     cell_factory,
 ) -> None:
-    """Before: the inspection image's write failed with ENOSPC and failed the run, a part
-    sprayed whole counted as a failed one. Now the run completes and it, and the part an
-    order makes of it, say the part was not inspected (no space). The journal is elsewhere
+    """An inspection image refused with ENOSPC does not fail the run (a part sprayed whole
+    would count as a failed one): the run completes and it, and the part an order makes
+    of it, say the part was not inspected (no space). The journal is elsewhere
     (it has room), so only the data directory, where the images go, is full."""
     cell = cell_factory(journal_elsewhere=True)
     if cell.disk.kind != "tmpfs":

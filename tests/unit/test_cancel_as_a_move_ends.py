@@ -1,10 +1,11 @@
 """A run cancelled just as its move to the safe position ends is still cancelled.
 
-Before: the move was bounded with asyncio.wait_for, which on Python 3.11 drops a
-cancellation that arrives in the loop turns between the move finishing and
-wait_for returning (CPython gh-86296). The run then went on after the cell had
-left its state (a cancel, or an e-stop's CANCEL_RUN), and the worker waited
-emergency_stop_timeout for a task that never ended.
+Why: asyncio.wait_for on Python 3.11 drops a cancellation that arrives in the loop
+turns between the awaited call finishing and wait_for returning (CPython gh-86296).
+A move bounded that way would let the run go on after the cell had left its state
+(a cancel, or an e-stop's CANCEL_RUN), and the worker would wait
+emergency_stop_timeout for a task that never ends; the move is bounded with
+asyncio.timeout.
 """
 
 from __future__ import annotations

@@ -176,7 +176,7 @@ def test_glue_supervision_that_would_trip_every_run_is_refused() -> None:
 
 
 def test_every_numeric_setting_has_both_bounds() -> None:
-    """Infinity and 1e400 got in where a setting had no maximum (issue 14)."""
+    """Without a maximum, Infinity and 1e400 would get in."""
     schema = Settings.model_json_schema()
     assert unbounded_numbers(schema, schema) == []
 
@@ -213,8 +213,8 @@ def _least(name: str) -> float | None:
 
 @pytest.mark.parametrize("name", _float_settings())
 def test_every_float_setting_has_a_meaningful_least_value(name: str) -> None:
-    """`> 0` let 3.55e-276 in as a shift (every GET /kpis a 500) and 1e-320 as a timeout
-    (issue 32): each least value is inclusive and what the setting's meaning allows."""
+    """A bare `> 0` lets 3.55e-276 in as a shift (every GET /kpis a 500) and 1e-320 as a
+    timeout: each least value is inclusive and what the setting's meaning allows."""
     least = _least(name)
     assert least is not None, f"{name}: an exclusive lower bound lets subnormals in"
     if name in ZERO_MEANS_SOMETHING:

@@ -1,4 +1,4 @@
-"""The pure parts of issue 32 item 5: the bad-token throttle and the folding of repeated
+"""The pure parts of slowing guessing: the bad-token throttle and the folding of repeated
 refusals (server/security/throttle.py, server/api/audit_repeats.py), on a given clock."""
 
 from __future__ import annotations

@@ -92,7 +92,7 @@ def inspected(
     residual: float | None = None,
     reasons: list[str] | None = None,
 ) -> dict[str, Any]:
-    """An inspection summary as issue 18's contract writes it into a run's result."""
+    """An inspection summary as the inspection's contract writes it into a run's result."""
     return {
         "verdict": verdict,
         "reasons": reasons or [],

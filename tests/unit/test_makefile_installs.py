@@ -1,7 +1,7 @@
 """Each make target installs only what it needs, once (Makefile: one stamp per set).
 
-`make run` used to install the test and bench extras too (a 720 MB environment with
-Playwright and matplotlib, where the server needs about 310 MB). This asks the real
+`make run` installs the server's dependencies only (about 310 MB), not the test and
+bench extras (a 720 MB environment with Playwright and matplotlib). This asks the real
 `make` what it would do (`make -n`) in a copy of the Makefile and the files its
 stamps depend on, with the stamps placed as earlier targets would have left them;
 nothing is installed.

@@ -1,7 +1,7 @@
 """The robot moves only when a person, or a run a person commanded, needs it to.
 
-Before: entering IDLE (after start-up, after a run, after a reset following an
-e-stop) started a homing move at travel speed that nobody had asked for.
+Entering IDLE (after start-up, after a run, after a reset following an e-stop) starts
+no move: a homing move at travel speed there is one nobody asked for.
 """
 
 from __future__ import annotations

@@ -150,9 +150,9 @@ def test_background_threads_are_bulk_work_only_while_held() -> None:
 async def test_the_journal_and_snapshot_writers_are_held_while_a_stop_is_sent(
     tmp_path: Path,
 ) -> None:
-    """Woken to write, they preempted the event loop between an e-stop's two device
-    frames (docs/benchmarks.md, issue 17's ninth pass): `start_halt` holds them back
-    while it sends both commands, and only then."""
+    """Woken to write, they would preempt the event loop between an e-stop's two device
+    frames (docs/benchmarks.md, "Software stop"): `start_halt` holds them back while it
+    sends both commands, and only then."""
     journal = Journal(tmp_path / "journal.db")
     journal.open()
     journal.start(asyncio.get_running_loop())

@@ -1,7 +1,7 @@
 """A hand-edited tokens.json is refused at load, naming the entry and the field.
 
-It used to load anything: a role that is not a role made every request with that
-token a 500, /estop included. The store now reads each entry strictly, once, at
+Loaded unchecked, a role that is not a role would make every request with that
+token a 500, /estop included. The store reads each entry strictly, once, at
 start-up, and a bad one stops the server before it serves anything.
 """
 

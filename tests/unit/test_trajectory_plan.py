@@ -311,7 +311,7 @@ async def test_a_timed_out_plan_has_stopped_when_the_run_hears_of_it(monkeypatch
 
 
 async def test_a_cancelled_plan_has_stopped_when_the_cancellation_returns(monkeypatch) -> None:
-    # Before: the run's task was cancelled and the planning thread ran on, for minutes.
+    # The run's task cancelled must not leave the planning thread running on, for minutes.
     endless = _EndlessPlan()
     monkeypatch.setattr(trajectory, "plan_path", endless)
     planning = asyncio.create_task(plan_within_limit([target()], Settings()))

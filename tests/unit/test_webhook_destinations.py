@@ -1,7 +1,7 @@
 """The webhook destination policy: the cell itself, loopback, link-local and unspecified
 addresses are refused at load, naming the webhook and never its path, query or secret,
-unless `webhook_allowed_networks` allows them (issue 32: `http://127.0.0.1:8000/estop` and
-`http://169.254.169.254/` were accepted and posted to)."""
+unless `webhook_allowed_networks` allows them (so `http://127.0.0.1:8000/estop` and
+`http://169.254.169.254/` are never posted to)."""
 
 from __future__ import annotations
 

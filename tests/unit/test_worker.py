@@ -155,10 +155,10 @@ async def test_estop_mid_run_closes_the_valve_and_stops_the_robot(make_worker) -
 async def test_an_estop_halts_once_on_arrival_with_its_runs_leash_cut(make_worker) -> None:
     """The stop's HALT is the halt it made on arrival, its run's leash cut first; no other.
 
-    Before, the worker sent the same two commands again before the run's
-    cancellation (they queued behind the stop's own on each device's line, and
-    the answer waited a round trip more), and once more after it, for an opening
-    the run had waiting for the dispenser's line: now the leash's cut refuses that.
+    The same two commands again before the run's cancellation would queue behind the
+    stop's own on each device's line (the answer a round trip later); an opening the
+    run had waiting for the dispenser's line is refused by the leash's cut, so no halt
+    after the cancellation is needed for it.
     """
     worker, glue, robot = await spraying(make_worker)
     halts: list[str] = []
@@ -186,8 +186,8 @@ async def test_a_stopped_runs_own_close_needs_no_exchange_once_the_halt_closed_i
 ) -> None:
     """The halt's close, read back closed after the leash was cut, is the run's last.
 
-    Before, the run closed the valve again as it ended: two more exchanges on the
-    dispenser's line before the stop could answer.
+    A close sent again as the run ends would be two more exchanges on the dispenser's
+    line before the stop could answer.
     """
     worker, glue, _robot = await spraying(make_worker)
     opened_at = max(at for at, open_ in glue.valve_log if open_)

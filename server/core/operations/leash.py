@@ -22,10 +22,10 @@ would go out after the halt's close and open the valve again.
 So the halt that follows the cut sends the last valve command of the run's
 time. The run's own close as it ends (its `finally`) waits for that halt instead
 of queueing another close behind it: once the halt has read the valve back
-closed, the run's close is answered without an exchange on the line. It cost
-the stop's answer two exchanges (0.3 ms at p50, 2 ms when the dispenser was slow
-to answer). When the halt could not confirm the close, or no halt follows the
-cut (at shutdown), the run's close is sent as before.
+closed, the run's close is answered without an exchange on the line, where it
+would cost the stop's answer two exchanges (a few tenths of a ms, milliseconds
+when the dispenser is slow to answer). When the halt could not confirm the
+close, or no halt follows the cut (at shutdown), the run's close is sent.
 """
 
 from __future__ import annotations
