@@ -111,9 +111,9 @@ def _cancel_dropped(before: int) -> bool:
     pymodbus bounds its connect and each transaction with asyncio.wait_for, which
     on Python 3.11 returns the result and drops a cancellation that lands in the
     loop turns between the result and wait_for returning (CPython gh-86296). A
-    run's valve or setpoint write cancelled by an e-stop so went on as if never
-    cancelled: the run started its next move after the stop, and the worker
-    waited emergency_stop_timeout for it. The task still counts the request, so
+    run's valve or setpoint write cancelled by an e-stop would go on as if never
+    cancelled: the run would start its next move after the stop, and the worker
+    wait emergency_stop_timeout for it. The task still counts the request, so
     the caller raises it again (an `asyncio.timeout` expiring then still turns it
     into TimeoutError).
     """

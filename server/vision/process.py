@@ -4,12 +4,11 @@ Why a process and not a thread: marker detection, outline fitting and the
 simulated camera's rendering are long runs of numpy and OpenCV calls with
 Python between them. On a thread they hold the interpreter lock for up to
 several ms at a time, and the event loop (an e-stop's request among what it
-serves) waits for them: with robot calibrations running and every thread of
-the server on one core, the loop's lag at p99 is about five times longer with
-the work on threads than with it here. A
-process competes for the core through the kernel's scheduler, not for the
-lock, and runs at the lowest priority (`NICE`): bulk work beside a control
-loop takes only what the loop leaves.
+serves) waits for them: with robot calibrations running and every thread of the
+server on one core, the loop's lag at p99 is about five times longer with the
+work on threads than with it here. A process competes for the core through the
+kernel's scheduler, not for the lock, and runs at the lowest priority (`NICE`):
+bulk work beside a control loop takes only what the loop leaves.
 
 How frames cross: through shared memory, never pickled. Pickling a 1920×1080
 colour frame holds the lock 2.5 ms; `np.copyto` into a shared block lets it

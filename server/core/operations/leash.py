@@ -3,7 +3,7 @@
 Why: a run ends by cancellation (cancel, e-stop, a fault, a timeout), and a
 cancellation can be lost below the run: Python 3.11's asyncio.wait_for drops one
 that lands as the awaited call ends (CPython gh-86296), and a library may do the
-same. Twice already such a run went on after its stop and sent its next move.
+same. Such a run would go on after its stop and send its next move.
 The worker gives up waiting for it after emergency_stop_timeout, so nothing would
 stop it from moving the arm or opening the valve after the cell had stopped.
 
