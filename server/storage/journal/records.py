@@ -42,19 +42,21 @@ class Record:
 
 
 def _row(table: str, *, replace: bool = False, **values: Any) -> Record:
-    """A row of `table` (schema.py): `values` by column name, JSON and flag columns encoded
-    as the declaration says; the columns not given take their SQL default. Sealed when the
-    table is."""
+    """A row of `table` (schema.py): `values` by column name, in the order given, JSON and
+    flag columns encoded as the declaration says; the columns not given take their SQL
+    default. Sealed when the table is."""
     statement = _statement(table, tuple(values), replace)
-    params = tuple(encode(values[name]) for name, encode in statement.encoders)
-    return Record(statement.sql, params, statement.sealed)
+    params = list(values.values())
+    for at, encode in statement.encoders:
+        params[at] = encode(params[at])
+    return Record(statement.sql, tuple(params), statement.sealed)
 
 
 @dataclass(frozen=True, slots=True)
 class _Statement:
     sql: str
     sealed: Sealed | None
-    encoders: tuple[tuple[str, Callable[[Any], Any]], ...]  # per column, in SQL order
+    encoders: tuple[tuple[int, Callable[[Any], Any]], ...]  # (position, encoder) to apply
 
 
 @functools.cache
@@ -74,16 +76,20 @@ def _statement(table: str, given: tuple[str, ...], replace: bool) -> _Statement:
     ]
     if missing:
         raise ValueError(f"a row of {table} needs {', '.join(missing)}")
-    columns = tuple(c for c in declared.columns if c.name in given)
-    names = ", ".join(c.name for c in columns)
-    placeholders = ",".join("?" * len(columns))
+    names = ", ".join(given)
+    placeholders = ",".join("?" * len(given))
     verb = "INSERT OR REPLACE" if replace else "INSERT"
     plain = f"{verb} INTO {table} ({names}) VALUES ({placeholders})"
     sealed = None
     if declared.sealed:
         sql = f"{verb} INTO {table} ({names}, {COMMIT_SEQ}) VALUES ({placeholders},?)"
         sealed = Sealed(table, sql)
-    return _Statement(plain, sealed, tuple((c.name, _encoder(c)) for c in columns))
+    encoders = (
+        (at, encode)
+        for at, name in enumerate(given)
+        if (encode := _encoder(declared.column(name))) is not _same
+    )
+    return _Statement(plain, sealed, tuple(encoders))
 
 
 def _encoder(column: Column) -> Callable[[Any], Any]:
