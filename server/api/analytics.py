@@ -5,9 +5,11 @@ seconds, `limit`, `offset`) plus equality filters on its own columns; the
 journal is read off the event loop. A CSV export takes the same filters and
 streams every matching row, page by page (`csv_export`).
 
-The equality filters are declared once, in the journal's schema (`FILTERS`:
-column, type, meaning); the routes' query parameters are built from it, each
-validated and documented, and the journal refuses any other column.
+The equality filters are declared once, on the columns of the journal's schema
+(`FILTERS`: column, type, meaning); the routes' query parameters are built from
+it, each validated and documented, and the journal refuses any other column.
+The rows' columns, and which of them hold JSON or a flag, come from the same
+declaration (`TABLES`).
 """
 
 from __future__ import annotations
@@ -77,16 +79,8 @@ async def _page(
         ),
         asyncio.to_thread(journal.count, table, since=since, until=until, filters=wanted),
     )
-    return {table: [_decode(row) for row in rows], "total": total, "limit": limit, "offset": offset}
-
-
-def _decode(row: dict[str, Any]) -> dict[str, Any]:
-    for key in ("data", "params", "progress", "result", "tries"):
-        if isinstance(row.get(key), str):
-            row[key] = json.loads(row[key])
-    if "succeeded" in row:
-        row["succeeded"] = bool(row["succeeded"])
-    return row
+    decode = TABLES[table].decode  # JSON columns parsed, flags as booleans
+    return {table: [decode(row) for row in rows], "total": total, "limit": limit, "offset": offset}
 
 
 def _filter_parameter(spec: Filter) -> inspect.Parameter:
@@ -241,7 +235,7 @@ async def csv_export(
     """
     await journal.caught_up()
     bound = await asyncio.to_thread(journal.last_rowid, table)
-    columns = TABLES[table][1]
+    columns = TABLES[table].column_names
     page_rows = EXPORT_PAGE_ROWS
     # The operations export carries each spray run's inspection figures (docs/quality.md).
     inspected = table == "operations"

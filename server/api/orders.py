@@ -12,7 +12,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import JSONResponse, Response
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, create_model
 
 from server.api import audit
 from server.api.declared_query import DeclaredQueryRoute
@@ -23,6 +23,7 @@ from server.orders.book import OrderBook, OrderRefused
 from server.orders.model import Order
 from server.orders.report import report_csv, report_of
 from server.security.tokens import Principal
+from server.storage.journal import PART_FIGURES
 from server.storage.workpieces import IDENTIFIER
 from server.values import whole_number
 
@@ -74,7 +75,7 @@ class OrderList(BaseModel):
     active: str | None = Field(description="the id of the order the cell works through")
 
 
-class PartView(BaseModel):
+class _PartOutcome(BaseModel):
     part: int
     run_id: str
     started_at: float | None
@@ -83,9 +84,15 @@ class PartView(BaseModel):
     verdict: Literal["good", "defective"]
     inspected: bool
     reasons: list[str]
-    precision_mean_mm: float | None
-    precision_p95_mm: float | None
-    glue_ml: float | None
+
+
+# A part of the report: its outcome, then its inspection figures (the journal's
+# PART_FIGURES), each a number or None.
+PartView = create_model(
+    "PartView",
+    __base__=_PartOutcome,
+    **{name: (float | None, ...) for name in PART_FIGURES},  # type: ignore[call-overload]
+)
 
 
 class OrderReport(BaseModel):

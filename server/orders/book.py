@@ -45,7 +45,7 @@ from server.orders.model import (
     Part,
     part_of_run,
 )
-from server.storage.journal import Journal, Record, records
+from server.storage.journal import PART_FIGURES, Journal, Record, records
 
 if TYPE_CHECKING:
     from server.cell import Cell
@@ -402,31 +402,29 @@ class OrderBook:
     @staticmethod
     def _row(order: Order) -> Record:
         return records.order(
-            order.order_id,
-            order.created_at,
-            order.workpiece_id,
-            order.quantity,
-            order.defect_limit,
-            order.state.value,
-            order.reason,
-            order.created_by,
-            order.updated_at,
+            order_id=order.order_id,
+            created_at=order.created_at,
+            workpiece_id=order.workpiece_id,
+            quantity=order.quantity,
+            defect_limit=order.defect_limit,
+            state=order.state.value,
+            reason=order.reason,
+            created_by=order.created_by,
+            updated_at=order.updated_at,
         )
 
     @staticmethod
     def _part_row(order: Order, part: Part) -> Record:
         return records.order_part(
-            part.ended_at,
-            order.order_id,
-            part.run_id,
-            part.started_at,
-            part.outcome,
-            part.verdict,
-            part.inspected,
-            list(part.reasons),
-            part.precision_mean_mm,
-            part.precision_p95_mm,
-            part.glue_ml,
+            time=part.ended_at,
+            order_id=order.order_id,
+            run_id=part.run_id,
+            started_at=part.started_at,
+            outcome=part.outcome,
+            verdict=part.verdict,
+            inspected=part.inspected,
+            reasons=list(part.reasons),
+            **part.measured,
         )
 
 
@@ -439,7 +437,5 @@ def _part_of_row(row: dict[str, Any]) -> Part:
         verdict=row["verdict"],
         inspected=bool(row["inspected"]),
         reasons=tuple(json.loads(row["reasons"] or "[]")),
-        precision_mean_mm=row["precision_mean_mm"],
-        precision_p95_mm=row["precision_p95_mm"],
-        glue_ml=row["glue_ml"],
+        figures={name: row[name] for name in PART_FIGURES},
     )

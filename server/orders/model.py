@@ -20,9 +20,12 @@ further part would be scrap).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
+
+from server.storage.journal import PART_FIGURES
 
 GOOD = "good"
 DEFECTIVE = "defective"
@@ -53,7 +56,11 @@ class Next(StrEnum):
 
 @dataclass(frozen=True, slots=True)
 class Part:
-    """One part of an order: its run and how it came out."""
+    """One part of an order: its run and how it came out.
+
+    `figures` holds its inspection's figures named by PART_FIGURES (the `order_parts`
+    columns so marked in the journal's schema); one not measured is absent or None.
+    """
 
     run_id: str
     started_at: float | None
@@ -62,9 +69,12 @@ class Part:
     verdict: str  # good or defective
     inspected: bool
     reasons: tuple[str, ...] = ()
-    precision_mean_mm: float | None = None
-    precision_p95_mm: float | None = None
-    glue_ml: float | None = None
+    figures: Mapping[str, float | None] = field(default_factory=dict)
+
+    @property
+    def measured(self) -> dict[str, float | None]:
+        """Every one of PART_FIGURES, in order: its value, None when not measured."""
+        return {name: self.figures.get(name) for name in PART_FIGURES}
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -75,9 +85,7 @@ class Part:
             "verdict": self.verdict,
             "inspected": self.inspected,
             "reasons": list(self.reasons),
-            "precision_mean_mm": self.precision_mean_mm,
-            "precision_p95_mm": self.precision_p95_mm,
-            "glue_ml": self.glue_ml,
+            **self.measured,
         }
 
 
@@ -119,9 +127,7 @@ def part_of_run(
         verdict,
         True,
         reasons,
-        _number(inspection.get("precision_mean_mm")),
-        _number(inspection.get("precision_p95_mm")),
-        _number(inspection.get("glue_ml")),
+        {name: _number(inspection.get(name)) for name in PART_FIGURES},
     )
 
 

@@ -12,7 +12,9 @@ from datetime import UTC, datetime
 from typing import Any
 
 from server.orders.model import Order
+from server.storage.journal import PART_FIGURES
 
+# The part's inspection figures (the journal's PART_FIGURES) sit before its reasons.
 COLUMNS = (
     "part",
     "run_id",
@@ -21,9 +23,7 @@ COLUMNS = (
     "outcome",
     "verdict",
     "inspected",
-    "precision_mean_mm",
-    "precision_p95_mm",
-    "glue_ml",
+    *PART_FIGURES,
     "reasons",
 )
 
@@ -31,7 +31,7 @@ COLUMNS = (
 def report_of(order: Order) -> dict[str, Any]:
     """The order and every part made for it, in the order they were made."""
     parts = [{"part": n, **part.as_dict()} for n, part in enumerate(order.parts, start=1)]
-    glue = [p.glue_ml for p in order.parts if p.glue_ml is not None]
+    glue = [g for p in order.parts if (g := p.figures.get("glue_ml")) is not None]
     return {
         "order": order.as_dict(),
         "glue_ml_total": round(sum(glue), 3) if glue else None,
@@ -62,9 +62,7 @@ def report_csv(order: Order) -> str:
                 part.outcome,
                 part.verdict,
                 "yes" if part.inspected else "no",
-                _cell(part.precision_mean_mm),
-                _cell(part.precision_p95_mm),
-                _cell(part.glue_ml),
+                *(_cell(value) for value in part.measured.values()),
                 " | ".join(part.reasons),
             )
         )

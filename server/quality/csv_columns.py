@@ -10,15 +10,10 @@ import json
 from collections.abc import Sequence
 from typing import Any
 
-INSPECTION_COLUMNS: tuple[str, ...] = (
-    "verdict",
-    "reasons",
-    "precision_mean_mm",
-    "precision_p95_mm",
-    "dispensing_cv_percent",
-    "glue_ml",
-    "vision_residual_mm",
-)
+from server.core.part_verdict import FIGURES
+
+# The summary's verdict and reasons, then each of its figures (declared in part_verdict).
+INSPECTION_COLUMNS: tuple[str, ...] = ("verdict", "reasons", *FIGURES)
 
 
 def inspection_values(result: Any) -> list[Any]:

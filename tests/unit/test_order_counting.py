@@ -35,7 +35,7 @@ def test_the_inspections_verdict_and_figures_make_the_part() -> None:
     gap = "segment 3: a gap of 14.2 mm without bead (at most 3.0 mm)"
     part = completed(1, summary("defective", gap, glue=0.8))
     assert (part.verdict, part.inspected, part.reasons) == (DEFECTIVE, True, (gap,))
-    assert (part.precision_mean_mm, part.precision_p95_mm, part.glue_ml) == (0.12, 0.3, 0.8)
+    assert part.figures == {"precision_mean_mm": 0.12, "precision_p95_mm": 0.3, "glue_ml": 0.8}
     assert completed(2, summary("good")).verdict == GOOD
 
 

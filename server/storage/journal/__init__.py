@@ -1,7 +1,10 @@
 """The journal: every event, transition, operation and error, in SQLite, durably.
 
-- `schema`: the tables, their columns, and each table's equality filters;
-- `records`: one function per kind of row, each returning a `Record`;
+- `schema`: each table declared once (its columns with SQL and Python types and
+  meanings, its time column, its filters); the SQL, the filters and the rest
+  are derived from it;
+- `records`: one function per kind of row, each returning a `Record` built
+  from the table's declaration;
 - `writer`: the writer thread (group commit; a future per append, resolved once
   committed: see there why), retention;
 - `commit_chain`: each commit numbered, its rows digested, the last one noted
@@ -33,9 +36,12 @@ from server.storage.journal.reader import Cursor, Reader
 from server.storage.journal.records import Record
 from server.storage.journal.schema import (
     FILTERS,
+    PART_FIGURES,
     SCHEMA,
     TABLES,
+    Column,
     Filter,
+    Table,
     add_commit_seq,
     filter_columns,
 )
@@ -45,13 +51,16 @@ from server.storage.permissions import private_file
 
 __all__ = [
     "FILTERS",
+    "PART_FIGURES",
     "SCHEMA",
     "TABLES",
+    "Column",
     "Cursor",
     "Damage",
     "Filter",
     "Journal",
     "Record",
+    "Table",
     "WriteFailure",
     "filter_columns",
     "records",

@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from server.storage.journal.records import Record
-from server.storage.journal.schema import TABLES, sealed_form
+from server.storage.journal.schema import column_names, sealed_form
 
 log = logging.getLogger(__name__)
 
@@ -195,7 +195,7 @@ class CommitChain:
             appended.rows[table] = [
                 sealed_form(table, row)
                 for row in connection.execute(
-                    f"SELECT {', '.join(TABLES[table][1])} FROM {table} WHERE rowid >= ? "
+                    f"SELECT {', '.join(column_names(table))} FROM {table} WHERE rowid >= ? "
                     "ORDER BY rowid",
                     (rowid,),
                 )

@@ -12,7 +12,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from server.storage.journal.schema import TABLES, filter_columns
+from server.storage.journal.schema import TABLES, column_names, filter_columns, time_column
 
 # Where an export page ends: the time column's value and the rowid of its last row.
 Cursor = tuple[float, int]
@@ -36,7 +36,7 @@ class Reader:
         newest_first: bool = True,
     ) -> list[dict[str, Any]]:
         """Rows of `table` in a time range with equality filters, paged."""
-        time_column, columns = TABLES[table]
+        time_column, columns = _columns(table)
         where, params = _where(table, time_column, since, until, filters)
         order = "DESC" if newest_first else "ASC"
         sql = (
@@ -56,8 +56,7 @@ class Reader:
         filters: dict[str, str] | None = None,
     ) -> int:
         """How many rows `query` would find with no limit."""
-        time_column, _ = TABLES[table]
-        where, params = _where(table, time_column, since, until, filters)
+        where, params = _where(table, time_column(table), since, until, filters)
         with self._reader() as connection:
             return int(
                 connection.execute(f"SELECT COUNT(*) FROM {table}{where}", params).fetchone()[0]
@@ -102,7 +101,7 @@ class Reader:
         Returns the rows (the table's columns, in the order of TABLES) and the cursor
         to pass as `after` for the next page (None when the page is empty).
         """
-        time_column, columns = TABLES[table]
+        time_column, columns = _columns(table)
         where, params = _where(table, time_column, since, until, filters)
         clauses = [where or " WHERE 1", "rowid <= ?"]
         params = (*params, bound)
@@ -122,7 +121,7 @@ class Reader:
 
     def unfinished_operations(self) -> list[dict[str, Any]]:
         """Operations that started and never ended: the server stopped during them."""
-        _, columns = TABLES["operations"]
+        columns = column_names("operations")
         with self._reader() as connection:
             rows = connection.execute(
                 f"SELECT {', '.join(columns)} FROM operations WHERE ended_at IS NULL "
@@ -132,7 +131,7 @@ class Reader:
 
     def faults_of(self, event_id: str) -> list[dict[str, Any]]:
         """The `errors` rows an event recorded (the fault that took the cell to ERROR)."""
-        _, columns = TABLES["errors"]
+        columns = column_names("errors")
         with self._reader() as connection:
             rows = connection.execute(
                 f"SELECT {', '.join(columns)} FROM errors WHERE event_id = ? ORDER BY seq",
@@ -155,6 +154,11 @@ class Reader:
         connection = sqlite3.connect(self.path, timeout=30)
         connection.execute("PRAGMA journal_mode=WAL")
         return _Closing(connection)
+
+
+def _columns(table: str) -> tuple[str, tuple[str, ...]]:
+    """The time column of `table` and its columns, in the order rows are read."""
+    return time_column(table), column_names(table)
 
 
 def _where(

@@ -1,5 +1,9 @@
 """The journal's records: one function per kind of row, each a `Record` for the writer.
 
+Each builds its row by column name through `_row` (or `_update`), which takes the
+columns, their order and how each is stored (JSON text, 0 or 1) from the table's
+declaration in `schema.py`, and refuses a name the table does not declare.
+
 Callers build records where things happen (the worker, the audit observer) and
 hand lists of them to `Journal.append`, which writes each list in one
 transaction.
@@ -9,10 +13,11 @@ from __future__ import annotations
 
 import functools
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from server.storage.journal.schema import COMMIT_SEQ
+from server.storage.journal.schema import COMMIT_SEQ, INTERNAL, TABLES, Column
 
 
 @dataclass(frozen=True, slots=True)
@@ -36,23 +41,77 @@ class Record:
     sealed: Sealed | None = None
 
 
-def _appended(
-    table: str, columns: tuple[str, ...], values: tuple[Any, ...], *, replace: bool = False
-) -> Record:
-    """A row of a sealed `table`: `values` for `columns`."""
-    sql, sealed = _statements(table, columns, replace)
-    return Record(sql, values, sealed)
+def _row(table: str, *, replace: bool = False, **values: Any) -> Record:
+    """A row of `table` (schema.py): `values` by column name, in the order given, JSON and
+    flag columns encoded as the declaration says; the columns not given take their SQL
+    default. Sealed when the table is."""
+    statement = _statement(table, tuple(values), replace)
+    params = list(values.values())
+    for at, encode in statement.encoders:
+        params[at] = encode(params[at])
+    return Record(statement.sql, tuple(params), statement.sealed)
+
+
+@dataclass(frozen=True, slots=True)
+class _Statement:
+    sql: str
+    sealed: Sealed | None
+    encoders: tuple[tuple[int, Callable[[Any], Any]], ...]  # (position, encoder) to apply
 
 
 @functools.cache
-def _statements(table: str, columns: tuple[str, ...], replace: bool) -> tuple[str, Sealed]:
-    """The SQL of a row of `table` (plain and sealed): built once per kind of row, not per
-    row, since every event the worker decides writes one or more."""
+def _statement(table: str, given: tuple[str, ...], replace: bool) -> _Statement:
+    """The SQL of a row of `table` giving the columns `given` (plain, and sealed when the
+    table is): built once per kind of row, not per row, since every event the worker
+    decides writes one or more. A name the table does not declare, or a column it needs
+    that is not given, is a programming error caught at the first row."""
+    declared = TABLES.get(table) or INTERNAL[table]
+    unknown = set(given) - set(declared.column_names)
+    if unknown:
+        raise ValueError(f"{table} has no column {', '.join(sorted(unknown))}")
+    missing = [
+        c.name
+        for c in declared.columns
+        if c.name not in given and not (c.nullable or c.generated or "DEFAULT" in c.sql)
+    ]
+    if missing:
+        raise ValueError(f"a row of {table} needs {', '.join(missing)}")
+    names = ", ".join(given)
+    placeholders = ",".join("?" * len(given))
     verb = "INSERT OR REPLACE" if replace else "INSERT"
-    placeholders = ",".join("?" * len(columns))
-    sealed = f"{verb} INTO {table} ({', '.join(columns)}, {COMMIT_SEQ}) VALUES ({placeholders},?)"
-    plain = f"{verb} INTO {table} ({', '.join(columns)}) VALUES ({placeholders})"
-    return plain, Sealed(table, sealed)
+    plain = f"{verb} INTO {table} ({names}) VALUES ({placeholders})"
+    sealed = None
+    if declared.sealed:
+        sql = f"{verb} INTO {table} ({names}, {COMMIT_SEQ}) VALUES ({placeholders},?)"
+        sealed = Sealed(table, sql)
+    encoders = (
+        (at, encode)
+        for at, name in enumerate(given)
+        if (encode := _encoder(declared.column(name))) is not _same
+    )
+    return _Statement(plain, sealed, tuple(encoders))
+
+
+def _encoder(column: Column) -> Callable[[Any], Any]:
+    """How a value of `column` is stored: JSON text, 0 or 1, or as it is."""
+    if column.json:
+        return _json
+    if column.py is bool:
+        return int
+    return _same
+
+
+def _same(value: Any) -> Any:
+    return value
+
+
+def _update(table: str, where: str, key: Any, **values: Any) -> Record:
+    """An UPDATE of the declared columns `values` of `table`'s rows matching `where`
+    (one placeholder, `key`)."""
+    declared = TABLES[table]
+    assignments = ", ".join(f"{name} = ?" for name in values)
+    params = tuple(_encoder(declared.column(name))(value) for name, value in values.items())
+    return Record(f"UPDATE {table} SET {assignments} WHERE {where}", (*params, key))
 
 
 def _json(value: Any) -> str:
@@ -72,69 +131,77 @@ def event(
     state: str,
 ) -> Record:
     """An event the worker decided (replaces a row of the same id)."""
-    return _appended(
+    return _row(
         "events",
-        ("id", "time", "type", "source", "data", "outcome", "message", "state"),
-        (event_id, at, type_, source, _json(data), outcome, message, state),
         replace=True,
+        id=event_id,
+        time=at,
+        type=type_,
+        source=source,
+        data=data,
+        outcome=outcome,
+        message=message,
+        state=state,
     )
 
 
 def transition(row: dict[str, Any]) -> Record:
     """A transition, from its dict (timestamp, old_state, new_state, event, event_id,
     time_in_old_state)."""
-    return _appended(
+    return _row(
         "transitions",
-        ("time", "old_state", "new_state", "event", "event_id", "time_in_old_state"),
-        (
-            row["timestamp"],
-            row["old_state"],
-            row["new_state"],
-            row["event"],
-            row["event_id"],
-            row["time_in_old_state"],
-        ),
+        time=row["timestamp"],
+        old_state=row["old_state"],
+        new_state=row["new_state"],
+        event=row["event"],
+        event_id=row["event_id"],
+        time_in_old_state=row["time_in_old_state"],
     )
 
 
 def operation_started(run_id: str, kind: str, at: float, params: dict[str, Any]) -> Record:
     """An operation's row, open until `operation_ended`."""
-    return Record(
-        "INSERT OR REPLACE INTO operations (run_id, kind, started_at, params) VALUES (?,?,?,?)",
-        (run_id, kind, at, _json(params)),
-    )
+    return _row("operations", replace=True, run_id=run_id, kind=kind, started_at=at, params=params)
 
 
 def operation_progress(run_id: str, progress: dict[str, Any]) -> Record:
     """A running operation's latest progress."""
-    return Record("UPDATE operations SET progress = ? WHERE run_id = ?", (_json(progress), run_id))
+    return _update("operations", "run_id = ?", run_id, progress=progress)
 
 
 def operation_planned(run_id: str, workpieces: int) -> Record:
     """The parts a run's plan sprays, before it sprays them (its end may never be recorded)."""
-    return Record(
-        "UPDATE operations SET workpieces = ? WHERE run_id = ? AND ended_at IS NULL",
-        (workpieces, run_id),
-    )
+    return _update("operations", _OPEN_RUN, run_id, workpieces=workpieces)
 
 
 def operation_ended(
     run_id: str, at: float, outcome: str, result: Any, error: str | None, workpieces: int
 ) -> Record:
     """How an operation ended (a row already closed is left as it is)."""
-    return Record(
-        "UPDATE operations SET ended_at = ?, outcome = ?, result = ?, error = ?, "
-        "workpieces = ? WHERE run_id = ? AND ended_at IS NULL",
-        (at, outcome, _json(result), error, workpieces, run_id),
+    return _update(
+        "operations",
+        _OPEN_RUN,
+        run_id,
+        ended_at=at,
+        outcome=outcome,
+        result=result,
+        error=error,
+        workpieces=workpieces,
     )
+
+
+_OPEN_RUN = "run_id = ? AND ended_at IS NULL"
 
 
 def inspection(at: float, run_id: str, document: dict[str, Any]) -> Record:
     """A spray run's whole inspection (server/quality/), sealed like the other appended rows."""
-    return _appended(
+    return _row(
         "inspections",
-        ("time", "run_id", "verdict", "took_s", "document"),
-        (at, run_id, document["verdict"], float(document["took_s"]), _json(document)),
+        time=at,
+        run_id=run_id,
+        verdict=document["verdict"],
+        took_s=float(document["took_s"]),
+        document=document,
     )
 
 
@@ -148,19 +215,27 @@ def error(
     state: str,
 ) -> Record:
     """A fault."""
-    return _appended(
+    return _row(
         "errors",
-        ("time", "code", "message", "component", "classification", "event_id", "state"),
-        (at, code, message, component, classification, event_id, state),
+        time=at,
+        code=code,
+        message=message,
+        component=component,
+        classification=classification,
+        event_id=event_id,
+        state=state,
     )
 
 
 def recovery(at: float, run_id: str, error_code: str, attempt: int, succeeded: bool) -> Record:
     """One in-place retry of a recoverable fault, and whether it succeeded."""
-    return _appended(
+    return _row(
         "recoveries",
-        ("time", "run_id", "error_code", "attempt", "succeeded"),
-        (at, run_id, error_code, attempt, int(succeeded)),
+        time=at,
+        run_id=run_id,
+        error_code=error_code,
+        attempt=attempt,
+        succeeded=succeeded,
     )
 
 
@@ -174,23 +249,24 @@ def audit(
     count: int = 1,
 ) -> Record:
     """Who did what, from where, with what outcome; `count` identical refusals folded in one
-    (server/api/audit_repeats.py)."""
-    if count == 1:  # the row as it always was: digested as before the column (sealed_form)
-        return _appended(
-            "audit",
-            ("time", "principal", "address", "action", "outcome", "detail"),
-            (at, principal, address, action, outcome, detail),
-        )
-    return _appended(
+    (server/api/audit_repeats.py). A single one leaves `count` to its default, as the row
+    was before the column (sealed_form digests it so)."""
+    folded: dict[str, Any] = {} if count == 1 else {"count": count}
+    return _row(
         "audit",
-        ("time", "principal", "address", "action", "outcome", "detail", "count"),
-        (at, principal, address, action, outcome, detail, count),
+        time=at,
+        principal=principal,
+        address=address,
+        action=action,
+        outcome=outcome,
+        detail=detail,
+        **folded,
     )
 
 
 def write_check(at: float) -> Record:
     """A real write that leaves nothing behind but its time: does the journal write again?"""
-    return Record("INSERT OR REPLACE INTO write_check (id, time) VALUES (1, ?)", (at,))
+    return _row("write_check", replace=True, id=1, time=at)
 
 
 def webhook_delivery(
@@ -204,106 +280,28 @@ def webhook_delivery(
     error: str,
 ) -> Record:
     """A webhook notice's final outcome, with each attempt (time, seconds, status, error)."""
-    status = tries[-1].get("status") if tries else None
-    return _appended(
+    return _row(
         "webhook_deliveries",
-        (
-            "time",
-            "delivery_id",
-            "webhook",
-            "kind",
-            "event_at",
-            "outcome",
-            "attempts",
-            "status",
-            "error",
-            "tries",
-        ),
-        (
-            at,
-            delivery_id,
-            webhook,
-            kind,
-            event_at,
-            outcome,
-            len(tries),
-            status,
-            error,
-            _json(tries),
-        ),
+        time=at,
+        delivery_id=delivery_id,
+        webhook=webhook,
+        kind=kind,
+        event_at=event_at,
+        outcome=outcome,
+        attempts=len(tries),
+        status=tries[-1].get("status") if tries else None,
+        error=error,
+        tries=tries,
     )
 
 
-def order(
-    order_id: str,
-    created_at: float,
-    workpiece_id: str,
-    quantity: int,
-    defect_limit: int,
-    state: str,
-    reason: str | None,
-    created_by: str,
-    updated_at: float,
-) -> Record:
-    """A production order as it now stands (replaces its earlier row: it is updated as it
-    goes, so `orders` is not sealed)."""
-    return Record(
-        "INSERT OR REPLACE INTO orders (order_id, created_at, workpiece_id, quantity, "
-        "defect_limit, state, reason, created_by, updated_at) VALUES (?,?,?,?,?,?,?,?,?)",
-        (
-            order_id,
-            created_at,
-            workpiece_id,
-            quantity,
-            defect_limit,
-            state,
-            reason,
-            created_by,
-            updated_at,
-        ),
-    )
+def order(**columns: Any) -> Record:
+    """A production order as it now stands, every column of `orders` by name (replaces its
+    earlier row: it is updated as it goes, so `orders` is not sealed)."""
+    return _row("orders", replace=True, **columns)
 
 
-def order_part(
-    at: float,
-    order_id: str,
-    run_id: str,
-    started_at: float | None,
-    outcome: str,
-    verdict: str,
-    inspected: bool,
-    reasons: list[str],
-    precision_mean_mm: float | None,
-    precision_p95_mm: float | None,
-    glue_ml: float | None,
-) -> Record:
-    """One part made for an order: its run, how the run ended and the part's verdict."""
-    return _appended(
-        "order_parts",
-        (
-            "time",
-            "order_id",
-            "run_id",
-            "started_at",
-            "outcome",
-            "verdict",
-            "inspected",
-            "reasons",
-            "precision_mean_mm",
-            "precision_p95_mm",
-            "glue_ml",
-        ),
-        (
-            at,
-            order_id,
-            run_id,
-            started_at,
-            outcome,
-            verdict,
-            int(inspected),
-            _json(reasons),
-            precision_mean_mm,
-            precision_p95_mm,
-            glue_ml,
-        ),
-    )
+def order_part(**columns: Any) -> Record:
+    """One part made for an order, the columns of `order_parts` by name: its run, how the
+    run ended, the part's verdict and its inspection figures."""
+    return _row("order_parts", **columns)

@@ -1,202 +1,522 @@
-"""The journal's tables: their SQL, their columns, and what a query may filter on.
+"""The journal's tables, each declared once: its columns, its time column, its filters.
 
-`FILTERS` is the one declaration of each table's equality filters: the readers
-refuse any other column, and the HTTP routes (server/api/analytics.py) build
-their query parameters, with type and description, from it.
+A `Table` lists its `Column`s in the order rows are read, exported and sealed;
+each column carries its SQL declaration, the Python type of its value as read
+back, one line saying what it holds, and whether a query may filter on it
+(`Filtered`). Everything else is derived from these declarations, so adding a
+column is one edit here (with `older_rows` when journals exist without it):
+
+- `SCHEMA`, the SQL that creates the tables and their time indexes at open;
+- `TABLES`, the record tables by name: readers, exports, retention and the
+  commit chain read a table's `column_names` and `time_column` from it;
+- `FILTERS`, each table's equality filters: the readers refuse any other
+  column, and the HTTP routes (server/api/analytics.py) build their query
+  parameters, with type and description, from it;
+- `SEALED` and `LATER_COLUMNS`, for the commit chain (below);
+- the record builders (`records.py`), which name columns the declaration checks.
 
 `commits` and `journal_meta` hold the commit chain (`commit_chain.py`): one row
 per transaction the writer committed, and where the chain now starts (after
-retention cut it, or after it could not be read).
+retention cut it, or after it could not be read). `write_check` holds one row,
+rewritten by each write that checks a failing journal can write again.
 """
 
 from __future__ import annotations
 
+import json
 import sqlite3
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Final
 
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS events (
-    id TEXT PRIMARY KEY, time REAL NOT NULL, type TEXT NOT NULL, source TEXT NOT NULL,
-    data TEXT NOT NULL, outcome TEXT NOT NULL, message TEXT NOT NULL, state TEXT NOT NULL
-);
-CREATE TABLE IF NOT EXISTS transitions (
-    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, old_state TEXT NOT NULL,
-    new_state TEXT NOT NULL, event TEXT NOT NULL, event_id TEXT NOT NULL,
-    time_in_old_state REAL NOT NULL
-);
-CREATE TABLE IF NOT EXISTS operations (
-    run_id TEXT PRIMARY KEY, kind TEXT NOT NULL, started_at REAL NOT NULL, ended_at REAL,
-    outcome TEXT, params TEXT NOT NULL, progress TEXT, result TEXT, error TEXT,
-    workpieces INTEGER NOT NULL DEFAULT 0
-);
-CREATE TABLE IF NOT EXISTS errors (
-    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, code TEXT NOT NULL,
-    message TEXT NOT NULL, component TEXT NOT NULL, classification TEXT NOT NULL,
-    event_id TEXT NOT NULL, state TEXT NOT NULL
-);
-CREATE TABLE IF NOT EXISTS recoveries (
-    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, run_id TEXT NOT NULL,
-    error_code TEXT NOT NULL, attempt INTEGER NOT NULL, succeeded INTEGER NOT NULL
-);
--- count: how many identical refusals the row stands for (server/api/audit_repeats.py).
-CREATE TABLE IF NOT EXISTS audit (
-    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, principal TEXT NOT NULL,
-    address TEXT NOT NULL, action TEXT NOT NULL, outcome TEXT NOT NULL, detail TEXT NOT NULL,
-    count INTEGER NOT NULL DEFAULT 1
-);
--- One row per webhook notice, written once its outcome is final (docs/plant-integration.md).
-CREATE TABLE IF NOT EXISTS webhook_deliveries (
-    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, delivery_id TEXT NOT NULL,
-    webhook TEXT NOT NULL, kind TEXT NOT NULL, event_at REAL NOT NULL, outcome TEXT NOT NULL,
-    attempts INTEGER NOT NULL, status INTEGER, error TEXT NOT NULL, tries TEXT NOT NULL
-);
--- One row per inspected spray run (docs/quality.md): the whole inspection as JSON.
-CREATE TABLE IF NOT EXISTS inspections (
-    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, run_id TEXT NOT NULL,
-    verdict TEXT NOT NULL, took_s REAL NOT NULL, document TEXT NOT NULL
-);
--- Production orders (server/orders/): one row per order, updated as it goes (like
--- operations), and one row per part made for it.
-CREATE TABLE IF NOT EXISTS orders (
-    order_id TEXT PRIMARY KEY, created_at REAL NOT NULL, workpiece_id TEXT NOT NULL,
-    quantity INTEGER NOT NULL, defect_limit INTEGER NOT NULL, state TEXT NOT NULL,
-    reason TEXT, created_by TEXT NOT NULL, updated_at REAL NOT NULL
-);
-CREATE TABLE IF NOT EXISTS order_parts (
-    seq INTEGER PRIMARY KEY AUTOINCREMENT, time REAL NOT NULL, order_id TEXT NOT NULL,
-    run_id TEXT NOT NULL, started_at REAL, outcome TEXT NOT NULL, verdict TEXT NOT NULL,
-    inspected INTEGER NOT NULL, reasons TEXT NOT NULL, precision_mean_mm REAL,
-    precision_p95_mm REAL, glue_ml REAL
-);
-CREATE TABLE IF NOT EXISTS commits (
-    seq INTEGER PRIMARY KEY, time REAL NOT NULL, rows TEXT NOT NULL, digest TEXT NOT NULL
-);
-CREATE TABLE IF NOT EXISTS journal_meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE INDEX IF NOT EXISTS audit_time ON audit(time);
-CREATE INDEX IF NOT EXISTS events_time ON events(time);
-CREATE INDEX IF NOT EXISTS transitions_time ON transitions(time);
-CREATE INDEX IF NOT EXISTS operations_started ON operations(started_at);
-CREATE INDEX IF NOT EXISTS errors_time ON errors(time);
-CREATE INDEX IF NOT EXISTS recoveries_time ON recoveries(time);
-CREATE INDEX IF NOT EXISTS webhook_deliveries_time ON webhook_deliveries(time);
-CREATE INDEX IF NOT EXISTS inspections_time ON inspections(time);
-CREATE INDEX IF NOT EXISTS inspections_run ON inspections(run_id);
-CREATE INDEX IF NOT EXISTS orders_created ON orders(created_at);
-CREATE INDEX IF NOT EXISTS order_parts_time ON order_parts(time);
--- One row, rewritten by each write that checks a failing journal can write again.
-CREATE TABLE IF NOT EXISTS write_check (id INTEGER PRIMARY KEY CHECK (id = 1), time REAL NOT NULL);
-"""
-
-# Per table: its time column (ranges, order, retention) and its columns, in the
-# order rows are read and exported.
-TABLES: dict[str, tuple[str, list[str]]] = {
-    "events": ("time", ["id", "time", "type", "source", "data", "outcome", "message", "state"]),
-    "transitions": (
-        "time",
-        ["seq", "time", "old_state", "new_state", "event", "event_id", "time_in_old_state"],
-    ),
-    "operations": (
-        "started_at",
-        [
-            "run_id",
-            "kind",
-            "started_at",
-            "ended_at",
-            "outcome",
-            "params",
-            "progress",
-            "result",
-            "error",
-            "workpieces",
-        ],
-    ),
-    "errors": (
-        "time",
-        ["seq", "time", "code", "message", "component", "classification", "event_id", "state"],
-    ),
-    "recoveries": ("time", ["seq", "time", "run_id", "error_code", "attempt", "succeeded"]),
-    "audit": (
-        "time",
-        ["seq", "time", "principal", "address", "action", "outcome", "detail", "count"],
-    ),
-    "webhook_deliveries": (
-        "time",
-        [
-            "seq",
-            "time",
-            "delivery_id",
-            "webhook",
-            "kind",
-            "event_at",
-            "outcome",
-            "attempts",
-            "status",
-            "error",
-            "tries",
-        ],
-    ),
-    "inspections": ("time", ["seq", "time", "run_id", "verdict", "took_s", "document"]),
-    "orders": (
-        "created_at",
-        [
-            "order_id",
-            "created_at",
-            "workpiece_id",
-            "quantity",
-            "defect_limit",
-            "state",
-            "reason",
-            "created_by",
-            "updated_at",
-        ],
-    ),
-    "order_parts": (
-        "time",
-        [
-            "seq",
-            "time",
-            "order_id",
-            "run_id",
-            "started_at",
-            "outcome",
-            "verdict",
-            "inspected",
-            "reasons",
-            "precision_mean_mm",
-            "precision_p95_mm",
-            "glue_ml",
-        ],
-    ),
-}
-
-# The tables whose rows are sealed: each row carries the sequence number of the
-# commit that appended it (`commit_seq`, added to older journals at open) and
-# is part of that commit's digest. Not `operations`: its rows are updated as a
-# run progresses and ends, so a digest taken when a row was appended would not
-# hold; the commits that change it are still numbered and chained.
-# Nor `orders`, updated as an order goes, for the same reason.
-# A table added later (webhook_deliveries, inspections, order_parts) is created at open with
-# its commit_seq added like the others', and counts from 0 in the first commit that appends
-# to it.
-SEALED: tuple[str, ...] = (
-    "events",
-    "transitions",
-    "errors",
-    "recoveries",
-    "audit",
-    "webhook_deliveries",
-    "inspections",
-    "order_parts",
-)
 COMMIT_SEQ = "commit_seq"
 
-# Columns added to a table after journals were written without them: added at open,
-# with the value every older row takes. A sealed row is digested without such a
-# column while it holds that value (`sealed_form`), so older commits verify as before.
+
+class _Always:
+    """The `older_rows` of a column every journal has had since its table was made."""
+
+    def __repr__(self) -> str:
+        return "ALWAYS"
+
+
+ALWAYS: Final = _Always()
+
+
+@dataclass(frozen=True, slots=True)
+class Filtered:
+    """How a query may filter a column by equality."""
+
+    # False: only the CSV export offers it, not the table's JSON route (which never did).
+    on_json_route: bool = True
+    # The values the column can hold, when they are a closed set: any other is a 422
+    # naming the parameter (a typo such as outcome=faild matched no row, silently).
+    values: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class Column:
+    """One column: name, SQL declaration, the Python type read back, what it holds.
+
+    `py` is the value's type as the API serves it: `str`, `int`, `float`, `bool`
+    (stored 0 or 1), or `dict`/`list` (stored as JSON text). A column is NULL-able
+    when its SQL says neither NOT NULL nor PRIMARY KEY.
+    """
+
+    name: str
+    sql: str  # what follows the name in CREATE TABLE, e.g. "TEXT NOT NULL"
+    py: type
+    meaning: str
+    filter: Filtered | None = None
+    # A column added after journals were written without it: the value every older
+    # row takes. Added at open (`add_commit_seq`), and a sealed row holding it is
+    # digested without it (`sealed_form`), so older commits verify as before.
+    older_rows: object = ALWAYS
+    # On `order_parts`: a figure of the run's inspection summary, copied onto the part.
+    part_figure: bool = False
+
+    @property
+    def sql_type(self) -> str:
+        return self.sql.split()[0]
+
+    @property
+    def nullable(self) -> bool:
+        return "NOT NULL" not in self.sql and "PRIMARY KEY" not in self.sql
+
+    @property
+    def generated(self) -> bool:
+        """SQLite numbers it: a record never gives it."""
+        return "AUTOINCREMENT" in self.sql
+
+    @property
+    def json(self) -> bool:
+        return self.py in (dict, list)
+
+
+@dataclass(frozen=True, slots=True)
+class Filter:
+    """A column a query may filter on by equality (derived from its `Column`)."""
+
+    column: str
+    type: type  # of the value compared with the column
+    meaning: str  # one line: what the column holds (documents the query parameter)
+    on_json_route: bool = True
+    values: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class Table:
+    """A journal table. `time_column` orders, ranges and prunes its rows; `sealed` rows
+    carry `commit_seq` and are digested by the commit chain; an `internal` table is the
+    journal's own bookkeeping, never queried, exported or pruned by its time."""
+
+    name: str
+    meaning: str
+    columns: tuple[Column, ...]
+    time_column: str | None = "time"
+    sealed: bool = False
+    internal: bool = False
+    indexes: tuple[tuple[str, str], ...] = ()  # (index name, column)
+
+    @property
+    def column_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.columns)
+
+    @property
+    def filters(self) -> tuple[Filter, ...]:
+        """The columns a query may filter on, in column order."""
+        return tuple(
+            Filter(c.name, c.py, c.meaning, c.filter.on_json_route, c.filter.values)
+            for c in self.columns
+            if c.filter is not None
+        )
+
+    @property
+    def later_columns(self) -> tuple[Column, ...]:
+        return tuple(c for c in self.columns if c.older_rows is not ALWAYS)
+
+    def column(self, name: str) -> Column:
+        for c in self.columns:
+            if c.name == name:
+                return c
+        raise KeyError(f"{self.name} has no column {name!r}")
+
+    def create_sql(self) -> str:
+        body = ",\n    ".join(f"{c.name} {c.sql}" for c in self.columns)
+        indexes = "".join(
+            f"\nCREATE INDEX IF NOT EXISTS {index} ON {self.name}({column});"
+            for index, column in self.indexes
+        )
+        create = f"CREATE TABLE IF NOT EXISTS {self.name} (\n    {body}\n);"
+        return f"-- {self.meaning}\n{create}{indexes}"
+
+    def decode(self, row: dict[str, Any]) -> dict[str, Any]:
+        """A row as the API serves it: JSON columns parsed, flags as booleans."""
+        for c in self.columns:
+            value = row.get(c.name)
+            if c.json and isinstance(value, str):
+                row[c.name] = json.loads(value)
+            elif c.py is bool and c.name in row:
+                row[c.name] = bool(value)
+        return row
+
+
+def _seq() -> Column:
+    return Column("seq", "INTEGER PRIMARY KEY AUTOINCREMENT", int, "the row's number, in order")
+
+
+def _time(meaning: str = "when it happened (Unix seconds)") -> Column:
+    return Column("time", "REAL NOT NULL", float, meaning)
+
+
+OPERATION_KINDS = ("trajectory", "calibrate_robot", "calibrate_camera", "create_workpiece")
+
+EVENTS = Table(
+    "events",
+    "Every event the worker decided, accepted or refused (replaced by a later row of its id).",
+    (
+        Column("id", "TEXT PRIMARY KEY", str, "the event's id"),
+        _time(),
+        Column("type", "TEXT NOT NULL", str, "the event's type, e.g. START_REQUESTED", Filtered()),
+        Column(
+            "source",
+            "TEXT NOT NULL",
+            str,
+            "who sent the event, matched whole: api:<client address>, mqtt:<token name>, "
+            "opcua:<client address>, order, system, operation, robot, glue, camera, ...",
+            Filtered(),
+        ),
+        Column("data", "TEXT NOT NULL", dict, "the event's data"),
+        Column(
+            "outcome",
+            "TEXT NOT NULL",
+            str,
+            "the worker's verdict",
+            Filtered(values=("accepted", "refused")),
+        ),
+        Column("message", "TEXT NOT NULL", str, "why it was refused, or what it did"),
+        Column(
+            "state", "TEXT NOT NULL", str, "the cell's state once the event was decided", Filtered()
+        ),
+    ),
+    sealed=True,
+    indexes=(("events_time", "time"),),
+)
+
+TRANSITIONS = Table(
+    "transitions",
+    "Every change of the cell's state.",
+    (
+        _seq(),
+        _time(),
+        Column("old_state", "TEXT NOT NULL", str, "the state the cell left", Filtered()),
+        Column("new_state", "TEXT NOT NULL", str, "the state the cell entered", Filtered()),
+        Column(
+            "event",
+            "TEXT NOT NULL",
+            str,
+            "the type of the event that caused the transition",
+            Filtered(),
+        ),
+        Column(
+            "event_id",
+            "TEXT NOT NULL",
+            str,
+            "the id of that event",
+            Filtered(on_json_route=False),
+        ),
+        Column("time_in_old_state", "REAL NOT NULL", float, "seconds spent in the old state"),
+    ),
+    sealed=True,
+    indexes=(("transitions_time", "time"),),
+)
+
+# Not sealed: a row is updated as its run progresses and ends, so a digest taken when
+# it was appended would not hold; the commits that change it are still numbered and
+# chained.
+OPERATIONS = Table(
+    "operations",
+    "One row per operation run, updated as it progresses and ends.",
+    (
+        Column("run_id", "TEXT PRIMARY KEY", str, "the run's id"),
+        Column("kind", "TEXT NOT NULL", str, "the operation", Filtered(values=OPERATION_KINDS)),
+        Column("started_at", "REAL NOT NULL", float, "when it started (Unix seconds)"),
+        Column("ended_at", "REAL", float, "when it ended (Unix seconds); NULL while it runs"),
+        Column(
+            "outcome",
+            "TEXT",
+            str,
+            "how it ended",
+            Filtered(values=("completed", "failed", "cancelled", "interrupted")),
+        ),
+        Column("params", "TEXT NOT NULL", dict, "what it was asked to do"),
+        Column("progress", "TEXT", dict, "its latest progress"),
+        Column("result", "TEXT", dict, "its result summary"),
+        Column("error", "TEXT", str, "why it failed"),
+        Column("workpieces", "INTEGER NOT NULL DEFAULT 0", int, "the parts its plan sprays"),
+    ),
+    time_column="started_at",
+    indexes=(("operations_started", "started_at"),),
+)
+
+ERRORS = Table(
+    "errors",
+    "Every fault recorded.",
+    (
+        _seq(),
+        _time(),
+        Column("code", "TEXT NOT NULL", str, "the fault code, e.g. EMERGENCY_STOP", Filtered()),
+        Column("message", "TEXT NOT NULL", str, "what failed and what to do"),
+        Column(
+            "component", "TEXT NOT NULL", str, "the component that reported the fault", Filtered()
+        ),
+        Column(
+            "classification",
+            "TEXT NOT NULL",
+            str,
+            "how grave",
+            Filtered(values=("critical", "recoverable", "warning")),
+        ),
+        Column("event_id", "TEXT NOT NULL", str, "the event that recorded it"),
+        Column(
+            "state",
+            "TEXT NOT NULL",
+            str,
+            "the cell's state when the fault was recorded",
+            Filtered(),
+        ),
+    ),
+    sealed=True,
+    indexes=(("errors_time", "time"),),
+)
+
+RECOVERIES = Table(
+    "recoveries",
+    "One in-place retry of a recoverable fault, and whether it succeeded.",
+    (
+        _seq(),
+        _time(),
+        Column(
+            "run_id", "TEXT NOT NULL", str, "the run of the operation that was retried", Filtered()
+        ),
+        Column(
+            "error_code", "TEXT NOT NULL", str, "the fault code that caused the retry", Filtered()
+        ),
+        Column("attempt", "INTEGER NOT NULL", int, "the retry's number"),
+        Column("succeeded", "INTEGER NOT NULL", bool, "whether the retry succeeded"),
+    ),
+    sealed=True,
+    indexes=(("recoveries_time", "time"),),
+)
+
+AUDIT = Table(
+    "audit",
+    "Who did what, from where, with what outcome.",
+    (
+        _seq(),
+        _time(),
+        Column(
+            "principal",
+            "TEXT NOT NULL",
+            str,
+            "who: the token's name and role, or anonymous",
+            Filtered(),
+        ),
+        Column("address", "TEXT NOT NULL", str, "the client's address", Filtered()),
+        Column("action", "TEXT NOT NULL", str, "what: the method and path", Filtered()),
+        Column("outcome", "TEXT NOT NULL", str, "accepted, or refused with the status", Filtered()),
+        Column("detail", "TEXT NOT NULL", str, "the change, or why it was refused"),
+        Column(
+            "count",
+            "INTEGER NOT NULL DEFAULT 1",
+            int,
+            "how many identical refusals the row stands for (server/api/audit_repeats.py)",
+            older_rows=1,
+        ),
+    ),
+    sealed=True,
+    indexes=(("audit_time", "time"),),
+)
+
+WEBHOOK_DELIVERIES = Table(
+    "webhook_deliveries",
+    "One row per webhook notice, written once its outcome is final (docs/plant-integration.md).",
+    (
+        _seq(),
+        _time("when its outcome became final (Unix seconds)"),
+        Column(
+            "delivery_id",
+            "TEXT NOT NULL",
+            str,
+            "the notice's id, as the receiver got it",
+            Filtered(),
+        ),
+        Column("webhook", "TEXT NOT NULL", str, "the webhook's name", Filtered()),
+        Column(
+            "kind",
+            "TEXT NOT NULL",
+            str,
+            "the notice",
+            Filtered(values=("fault", "alert", "state", "run_completed")),
+        ),
+        Column("event_at", "REAL NOT NULL", float, "when what it tells happened (Unix seconds)"),
+        Column(
+            "outcome",
+            "TEXT NOT NULL",
+            str,
+            "how its delivery ended",
+            Filtered(values=("delivered", "refused", "failed", "dropped", "abandoned")),
+        ),
+        Column("attempts", "INTEGER NOT NULL", int, "how many times it was sent"),
+        Column("status", "INTEGER", int, "the last HTTP status the receiver answered"),
+        Column("error", "TEXT NOT NULL", str, "the last attempt's error, or empty"),
+        Column("tries", "TEXT NOT NULL", list, "each attempt: time, seconds, status, error"),
+    ),
+    sealed=True,
+    indexes=(("webhook_deliveries_time", "time"),),
+)
+
+INSPECTIONS = Table(
+    "inspections",
+    "One row per inspected spray run (docs/quality.md): the whole inspection as JSON.",
+    (
+        _seq(),
+        _time(),
+        Column("run_id", "TEXT NOT NULL", str, "the spray run inspected", Filtered()),
+        Column(
+            "verdict",
+            "TEXT NOT NULL",
+            str,
+            "the part's verdict",
+            Filtered(values=("good", "defective")),
+        ),
+        Column("took_s", "REAL NOT NULL", float, "how long the inspection took"),
+        Column("document", "TEXT NOT NULL", dict, "the whole inspection"),
+    ),
+    sealed=True,
+    indexes=(("inspections_time", "time"), ("inspections_run", "run_id")),
+)
+
+# Not sealed: a row is updated as its order goes (like `operations`).
+ORDERS = Table(
+    "orders",
+    "Production orders (server/orders/): one row per order, updated as it goes.",
+    (
+        Column("order_id", "TEXT PRIMARY KEY", str, "the order's id"),
+        Column("created_at", "REAL NOT NULL", float, "when it was made (Unix seconds)"),
+        Column("workpiece_id", "TEXT NOT NULL", str, "the workpiece the order makes", Filtered()),
+        Column("quantity", "INTEGER NOT NULL", int, "how many good parts it makes"),
+        Column("defect_limit", "INTEGER NOT NULL", int, "defective parts in a row that stop it"),
+        Column(
+            "state",
+            "TEXT NOT NULL",
+            str,
+            "the order's state",
+            Filtered(values=("queued", "running", "held", "completed", "closed")),
+        ),
+        Column("reason", "TEXT", str, "why it is held, closed or completed"),
+        Column("created_by", "TEXT NOT NULL", str, "who made it"),
+        Column("updated_at", "REAL NOT NULL", float, "when it last changed (Unix seconds)"),
+    ),
+    time_column="created_at",
+    indexes=(("orders_created", "created_at"),),
+)
+
+ORDER_PARTS = Table(
+    "order_parts",
+    "One row per part made for an order.",
+    (
+        _seq(),
+        _time("when its run ended (Unix seconds)"),
+        Column("order_id", "TEXT NOT NULL", str, "the order the part was made for", Filtered()),
+        Column("run_id", "TEXT NOT NULL", str, "the run that made it"),
+        Column("started_at", "REAL", float, "when its run started (Unix seconds)"),
+        Column("outcome", "TEXT NOT NULL", str, "how the run ended: completed, failed, cancelled"),
+        Column("verdict", "TEXT NOT NULL", str, "good or defective", Filtered()),
+        Column("inspected", "INTEGER NOT NULL", bool, "whether its inspection judged it"),
+        Column("reasons", "TEXT NOT NULL", list, "why it is defective, or not inspected"),
+        Column("precision_mean_mm", "REAL", float, "mean path deviation", part_figure=True),
+        Column("precision_p95_mm", "REAL", float, "95th percentile deviation", part_figure=True),
+        Column("glue_ml", "REAL", float, "glue dispensed", part_figure=True),
+    ),
+    sealed=True,
+    indexes=(("order_parts_time", "time"),),
+)
+
+COMMITS = Table(
+    "commits",
+    "The commit chain (commit_chain.py): one row per transaction the writer committed.",
+    (
+        Column("seq", "INTEGER PRIMARY KEY", int, "the commit's number"),
+        _time("when it was committed (Unix seconds)"),
+        Column("rows", "TEXT NOT NULL", dict, "rows appended to each sealed table so far"),
+        Column("digest", "TEXT NOT NULL", str, "the chained digest"),
+    ),
+    internal=True,
+)
+
+JOURNAL_META = Table(
+    "journal_meta",
+    "The journal's own facts, such as where the commit chain now starts.",
+    (
+        Column("key", "TEXT PRIMARY KEY", str, "the fact"),
+        Column("value", "TEXT NOT NULL", str, "its value"),
+    ),
+    time_column=None,
+    internal=True,
+)
+
+WRITE_CHECK = Table(
+    "write_check",
+    "One row, rewritten by each write that checks a failing journal can write again.",
+    (
+        Column("id", "INTEGER PRIMARY KEY CHECK (id = 1)", int, "always 1"),
+        _time("when the check wrote (Unix seconds)"),
+    ),
+    internal=True,
+)
+
+# Every table, in the order SCHEMA creates them.
+ALL_TABLES: tuple[Table, ...] = (
+    EVENTS,
+    TRANSITIONS,
+    OPERATIONS,
+    ERRORS,
+    RECOVERIES,
+    AUDIT,
+    WEBHOOK_DELIVERIES,
+    INSPECTIONS,
+    ORDERS,
+    ORDER_PARTS,
+    COMMITS,
+    JOURNAL_META,
+    WRITE_CHECK,
+)
+
+SCHEMA = "\n".join(table.create_sql() for table in ALL_TABLES) + "\n"
+
+# The record tables (queried, exported, pruned by their time column), by name.
+TABLES: dict[str, Table] = {t.name: t for t in ALL_TABLES if not t.internal}
+
+# The journal's own tables (the commit chain, its start, the write check), by name.
+INTERNAL: dict[str, Table] = {t.name: t for t in ALL_TABLES if t.internal}
+
+# The tables whose rows are sealed: each row carries the sequence number of the
+# commit that appended it (`commit_seq`, added to older journals at open) and is part
+# of that commit's digest. A table added later is created at open with its commit_seq
+# added like the others', and counts from 0 in the first commit that appends to it.
+SEALED: tuple[str, ...] = tuple(name for name, t in TABLES.items() if t.sealed)
+
+# Per table, its columns added after journals were written without them: (name, SQL
+# declaration, the value every older row takes).
 LATER_COLUMNS: dict[str, tuple[tuple[str, str, object], ...]] = {
-    "audit": (("count", "INTEGER NOT NULL DEFAULT 1", 1),),
+    name: tuple((c.name, c.sql, c.older_rows) for c in t.later_columns)
+    for name, t in TABLES.items()
+    if t.later_columns
 }
+
+FILTERS: dict[str, tuple[Filter, ...]] = {name: t.filters for name, t in TABLES.items()}
+
+# The inspection figures a part of an order carries (server/orders/model.py).
+PART_FIGURES: tuple[str, ...] = tuple(c.name for c in ORDER_PARTS.columns if c.part_figure)
 
 
 def add_commit_seq(connection: sqlite3.Connection) -> None:
@@ -220,7 +540,7 @@ def stored_columns(connection: sqlite3.Connection, table: str) -> str:
     defaults = {name: default for name, _, default in LATER_COLUMNS.get(table, ())}
     return ", ".join(
         name if name in have or name not in defaults else f"{defaults[name]!r} AS {name}"
-        for name in TABLES[table][1]
+        for name in TABLES[table].column_names
     )
 
 
@@ -238,96 +558,18 @@ def sealed_form(table: str, row: tuple[Any, ...]) -> tuple[Any, ...]:
     return row
 
 
-@dataclass(frozen=True, slots=True)
-class Filter:
-    """A column a query may filter on by equality."""
-
-    column: str
-    type: type  # of the value compared with the column
-    meaning: str  # one line: what the column holds (documents the query parameter)
-    # False: only the CSV export offers it, not the table's JSON route (which never did).
-    on_json_route: bool = True
-    # The values the column can hold, when they are a closed set: any other is a 422
-    # naming the parameter (a typo such as outcome=faild matched no row, silently).
-    values: tuple[str, ...] = ()
-
-
-OPERATION_KINDS = ("trajectory", "calibrate_robot", "calibrate_camera", "create_workpiece")
-
-FILTERS: dict[str, tuple[Filter, ...]] = {
-    "events": (
-        Filter("type", str, "the event's type, e.g. START_REQUESTED"),
-        Filter(
-            "source",
-            str,
-            "who sent the event, matched whole: api:<client address>, mqtt:<token name>, "
-            "opcua:<client address>, order, system, operation, robot, glue, camera, ...",
-        ),
-        Filter("outcome", str, "the worker's verdict", values=("accepted", "refused")),
-        Filter("state", str, "the cell's state once the event was decided"),
-    ),
-    "transitions": (
-        Filter("old_state", str, "the state the cell left"),
-        Filter("new_state", str, "the state the cell entered"),
-        Filter("event", str, "the type of the event that caused the transition"),
-        Filter("event_id", str, "the id of that event", on_json_route=False),
-    ),
-    "operations": (
-        Filter("kind", str, "the operation", values=OPERATION_KINDS),
-        Filter(
-            "outcome",
-            str,
-            "how it ended",
-            values=("completed", "failed", "cancelled", "interrupted"),
-        ),
-    ),
-    "errors": (
-        Filter("code", str, "the fault code, e.g. EMERGENCY_STOP"),
-        Filter("component", str, "the component that reported the fault"),
-        Filter("classification", str, "how grave", values=("critical", "recoverable", "warning")),
-        Filter("state", str, "the cell's state when the fault was recorded"),
-    ),
-    "recoveries": (
-        Filter("run_id", str, "the run of the operation that was retried"),
-        Filter("error_code", str, "the fault code that caused the retry"),
-    ),
-    "audit": (
-        Filter("principal", str, "who: the token's name and role, or anonymous"),
-        Filter("address", str, "the client's address"),
-        Filter("action", str, "what: the method and path"),
-        Filter("outcome", str, "accepted, or refused with the status"),
-    ),
-    "webhook_deliveries": (
-        Filter("webhook", str, "the webhook's name"),
-        Filter("kind", str, "the notice", values=("fault", "alert", "state", "run_completed")),
-        Filter(
-            "outcome",
-            str,
-            "how its delivery ended",
-            values=("delivered", "refused", "failed", "dropped", "abandoned"),
-        ),
-        Filter("delivery_id", str, "the notice's id, as the receiver got it"),
-    ),
-    "inspections": (
-        Filter("run_id", str, "the spray run inspected"),
-        Filter("verdict", str, "the part's verdict", values=("good", "defective")),
-    ),
-    "orders": (
-        Filter("workpiece_id", str, "the workpiece the order makes"),
-        Filter(
-            "state",
-            str,
-            "the order's state",
-            values=("queued", "running", "held", "completed", "closed"),
-        ),
-    ),
-    "order_parts": (
-        Filter("order_id", str, "the order the part was made for"),
-        Filter("verdict", str, "good or defective"),
-    ),
-}
-
-
 def filter_columns(table: str) -> tuple[str, ...]:
     """The names of the columns `table` may be filtered on."""
     return tuple(f.column for f in FILTERS[table])
+
+
+def time_column(table: str) -> str:
+    """The column that orders, ranges and prunes the rows of the record table `table`."""
+    column = TABLES[table].time_column
+    assert column is not None, f"{table} has no time column"
+    return column
+
+
+def column_names(table: str) -> tuple[str, ...]:
+    """The columns of the record table `table`, in the order rows are read and sealed."""
+    return TABLES[table].column_names

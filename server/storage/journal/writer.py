@@ -26,7 +26,7 @@ from typing import Any
 from server.runtime import background_thread
 from server.storage.journal.commit_chain import COMMIT_COLUMNS, CommitChain, Head, head_of
 from server.storage.journal.records import Record
-from server.storage.journal.schema import COMMIT_SEQ, SEALED, TABLES
+from server.storage.journal.schema import COMMIT_SEQ, SEALED, TABLES, time_column
 
 log = logging.getLogger(__name__)
 
@@ -59,8 +59,9 @@ def prune(connection: sqlite3.Connection, retention_days: float) -> None:
     try:
         with connection:
             cut = _chain_cut(connection, cutoff)
-            for table, (time_column, _) in TABLES.items():
-                connection.execute(f"DELETE FROM {table} WHERE {time_column} < ?", (cutoff,))
+            for table in TABLES:
+                column = time_column(table)
+                connection.execute(f"DELETE FROM {table} WHERE {column} < ?", (cutoff,))
             if cut is not None:
                 connection.execute("DELETE FROM commits WHERE seq <= ?", (cut.seq,))
                 note_chain_start(connection, cut)
@@ -86,10 +87,10 @@ def _chain_cut(connection: sqlite3.Connection, cutoff: float) -> Head | None:
     last = connection.execute("SELECT MAX(seq) FROM commits").fetchone()[0]
     candidates = [last if first_kept is None else first_kept[0] - 1]
     for table in SEALED:
-        time_column = TABLES[table][0]
         candidates.append(
             connection.execute(
-                f"SELECT MAX({COMMIT_SEQ}) FROM {table} WHERE {time_column} < ?", (cutoff,)
+                f"SELECT MAX({COMMIT_SEQ}) FROM {table} WHERE {time_column(table)} < ?",
+                (cutoff,),
             ).fetchone()[0]
         )
     through = max((int(c) for c in candidates if c is not None), default=0)
