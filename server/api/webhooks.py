@@ -13,7 +13,7 @@ from fastapi import APIRouter, Request
 
 from server.api.analytics import table_route
 from server.api.declared_query import DeclaredQueryRoute
-from server.cell import Cell
+from server.bootstrap.cell import Cell
 
 router = APIRouter(tags=["webhooks"], route_class=DeclaredQueryRoute)
 

@@ -7,7 +7,7 @@ systemd unit's Environment= or /proc/<pid>/environ show to more people than
 need it. A file readable by the cell's user alone (a Docker or systemd
 credential) keeps it out of all of them. Inline stays accepted for a lab.
 Either way it is held as a SecretStr: GET /settings, GET /webhooks and the logs
-never show it, nor a refused setting's value (server/settings_load.py).
+never show it, nor a refused setting's value (server/settings/load.py).
 
 Why the URL is shown only as scheme://host:port: many receivers (chat services,
 automation tools) put their own token in the path or the query, so the URL is a

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from typing import get_args
 
-from server.core.faults import Classification
-from server.core.transitions import OPERATION_OF_STATE
+from server.core.machine.faults import Classification
+from server.core.machine.transitions import OPERATION_OF_STATE
 from server.notify.targets import NOTICE_KINDS
 from server.orders.model import DEFECTIVE, GOOD, OrderState
 from server.storage.journal.schema import FILTERS

@@ -18,7 +18,13 @@ SERVER = Path(__file__).resolve().parents[2] / "server"
 
 # What a package must not import (a module or anything under it).
 FORBIDDEN = {
-    "drivers": ("server.core", "server.api", "server.bootstrap", "server.cell", "server.app"),
+    "drivers": (
+        "server.core",
+        "server.api",
+        "server.bootstrap",
+        "server.bootstrap.cell",
+        "server.bootstrap.app",
+    ),
 }
 # What a package may import of the server besides itself; everything else is refused.
 ONLY = {

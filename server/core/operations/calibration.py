@@ -11,9 +11,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from server.common.errors import OperationError
 from server.core.operations.base import OperationContext, OperationResult, OperationWarning
 from server.core.operations.camera_frames import capture, capture_undistorted
-from server.errors import OperationError
 from server.vision.homography import (
     PlaneCalibration,
     annotate_markers,

@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 from pydantic import ValidationError
 
+from server.common.errors import OperationError
 from server.core.operations.base import OperationContext, OperationResult
 from server.core.operations.camera_frames import capture_undistorted, require_robot_calibration
-from server.errors import OperationError
 from server.storage.workpieces import SpraySettings, Workpiece, WorkpieceIn
 from server.vision.markers import MarkerDetector
 from server.vision.outlines import find_outlines, match_outline, outline_to_mm, transform_outline
