@@ -20,7 +20,6 @@ name a webhook's whole URL, whose path and query are its receiver's secret.
 
 from __future__ import annotations
 
-import contextvars
 import io
 import logging
 import logging.handlers
@@ -28,14 +27,12 @@ import os
 import time
 from pathlib import Path
 
+from server.common.event_id import current_event_id
 from server.common.values import byte_size
 from server.security.redaction import Redactor, path_only
 from server.settings.model import Settings
 from server.storage.permissions import LOG_FILE_MODE, private_directory
 
-current_event_id: contextvars.ContextVar[str | None] = contextvars.ContextVar(
-    "current_event_id", default=None
-)
 FORMAT = "%(asctime)s.%(msecs)03d [%(levelname)s] %(name)s: %(message)s%(event_suffix)s"
 DATE_FORMAT = "%Y-%m-%d %H:%M:%S"
 

@@ -49,7 +49,7 @@ import logging
 import os
 import resource
 import threading
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -155,15 +155,13 @@ def tune_garbage_collection() -> None:
     gc.set_threshold(*GC_THRESHOLDS)
 
 
-def end_image_process_on_shutdown(app: Starlette) -> None:
-    """The image process (`server/vision/process.py`) ended with the app's shutdown.
+def close_on_shutdown(app: Starlette, close: Callable[[], None]) -> None:
+    """`close` run with the app's shutdown (`python -m server` ends the image process so).
 
     Why here and not at exit: uvicorn, once it has shut down on SIGTERM or Ctrl-C,
     raises the signal again, and the process ends without running its exit
-    handlers; the child and its shared memory were then left to the resource
-    tracker, which warned of them as leaked."""
-    from server.vision.process import IMAGE_PROCESS
-
+    handlers; the image process (`server/vision/process.py`) and its shared memory
+    were then left to the resource tracker, which warned of them as leaked."""
     running = app.router.lifespan_context
 
     @contextlib.asynccontextmanager
@@ -172,7 +170,7 @@ def end_image_process_on_shutdown(app: Starlette) -> None:
             async with running(app) as state:
                 yield state
         finally:
-            IMAGE_PROCESS.close()
+            close()
 
     app.router.lifespan_context = lifespan
 

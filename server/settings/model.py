@@ -942,7 +942,8 @@ class Settings(BaseSettings):
     def _tls_pair(self) -> Settings:
         """A certificate without its key (or the reverse) cannot serve https, and serving
         plain http instead would send the tokens in clear that the setting was meant to
-        protect: refused at load. The files themselves are read at start (server/bootstrap/tls.py)."""
+        protect: refused at load. The files themselves are read at start
+        (server/bootstrap/tls.py)."""
         if (self.tls_cert_file is None) != (self.tls_key_file is None):
             missing = "tls_key_file" if self.tls_key_file is None else "tls_cert_file"
             raise ValueError(f"tls_cert_file and tls_key_file go together: {missing} is not set")

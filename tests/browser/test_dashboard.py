@@ -66,7 +66,7 @@ class Dashboard:
 
 @pytest.fixture
 async def dashboard(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> AsyncIterator[Dashboard]:
-    """The rig's server with the dashboard mounted (a no-op if server/bootstrap/app.py mounts it)."""
+    """The rig's server with the dashboard mounted (a no-op if the app already mounts it)."""
     apps: list[FastAPI] = []
 
     def create_app_with_dashboard(*args: Any, **kwargs: Any) -> FastAPI:

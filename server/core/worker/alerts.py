@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable
 
-from server.bootstrap.logging_setup import current_event_id
+from server.common.event_id import current_event_id
 from server.core.infra.bus import Bus
 from server.core.infra.clock import Clock, Timer
 from server.core.machine.transitions import State

@@ -26,8 +26,8 @@ import time
 from collections.abc import Awaitable, Callable
 from dataclasses import replace
 
-from server.bootstrap.logging_setup import current_event_id
 from server.common.errors import EventQueueFull, TransitionNotAllowed, WorkerStopped
+from server.common.event_id import current_event_id
 from server.core.infra.bus import Bus
 from server.core.infra.clock import SYSTEM_CLOCK, Clock
 from server.core.machine.actions import EXIT_ACTIONS, Action
