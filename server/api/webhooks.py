@@ -2,7 +2,7 @@
 
 Admin only (server/security/policy.py): the configuration names the plant's
 receivers, and the deliveries show what the cell told them. Neither ever shows a
-secret, nor a URL's path or query (server/notify/targets.py says why).
+secret, nor a URL's path or query (server/settings/webhooks.py says why).
 """
 
 from __future__ import annotations

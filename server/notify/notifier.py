@@ -28,9 +28,10 @@ import httpx
 from server.core.infra.bus import Bus, BusMessage, Subscription, SubscriptionClosed
 from server.core.worker.runs import RunEnded
 from server.core.worker.view import CellView
-from server.notify import destinations, notices
+from server.notify import notices
 from server.notify.deliverer import Deliverer
 from server.notify.notices import Notice
+from server.security import destinations
 from server.settings.model import Settings
 from server.storage.journal import Journal
 

@@ -16,7 +16,7 @@ What it removes, wherever it appears in the text:
 - the credentials of an `Authorization: Bearer ...` or `Basic ...` header;
 - a user and password in a URL (`scheme://user:password@host`);
 - the path and query of every configured webhook URL, which receivers use to carry
-  their own token (server/notify/targets.py): the URL is written as
+  their own token (server/settings/webhooks.py): the URL is written as
   `scheme://host:port/...`, as everywhere else.
 """
 
@@ -29,7 +29,7 @@ from urllib.parse import urlsplit
 
 import httpx
 
-from server.notify.targets import shown_url
+from server.settings.webhooks import shown_url
 
 REDACTED = "[redacted]"
 

@@ -35,8 +35,8 @@ from pydantic_settings import (
 
 from server.common.errors import ConfigurationError
 from server.common.values import BYTE_SIZE_ACCEPTS, byte_size
-from server.notify import destinations
-from server.notify.targets import WebhookTarget, named
+from server.security import destinations
+from server.settings.webhooks import WebhookTarget, named
 
 SIMULATED = "sim"
 

@@ -14,8 +14,8 @@ import psutil
 import pytest
 from pydantic import ValidationError
 
-from server.notify import destinations
-from server.notify.destinations import DestinationRefused, GuardedBackend
+from server.security import destinations
+from server.security.destinations import DestinationRefused, GuardedBackend
 from server.settings.load import SettingsRefused, load_settings
 from server.settings.model import Settings
 
