@@ -32,18 +32,13 @@ from pydantic import (
     model_validator,
 )
 
+from server.security.redaction import shown_url
+
 NoticeKind = Literal["fault", "alert", "state", "run_completed"]
 NOTICE_KINDS: tuple[NoticeKind, ...] = ("fault", "alert", "state", "run_completed")
 WEBHOOK_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 MIN_SECRET_LENGTH = 16  # characters: a guessable HMAC key signs nothing
 MAX_SECRET_BYTES = 4096
-
-
-def shown_url(url: str) -> str:
-    """`url` as it may be shown: scheme, host and port; a path or query as `/...`."""
-    parts = urlsplit(url)
-    rest = "/..." if parts.path.strip("/") or parts.query else ""
-    return f"{parts.scheme}://{parts.netloc}{rest}"
 
 
 class WebhookTarget(BaseModel):
