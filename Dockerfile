@@ -22,5 +22,5 @@ VOLUME ["/data"]
 
 EXPOSE 8000
 HEALTHCHECK --interval=10s --timeout=5s --retries=3 --start-period=120s \
-    CMD ["python", "-m", "server.healthcheck", "http://127.0.0.1:8000/health"]
+    CMD ["python", "-m", "server.cli.healthcheck", "http://127.0.0.1:8000/health"]
 CMD ["glue-server", "--host", "0.0.0.0", "--port", "8000", "--data-dir", "/data"]

@@ -44,13 +44,13 @@ $(BENCH_STAMP): $(RUN_STAMP)
 run: $(RUN_STAMP)
 	$(PY) -m server --host $(HOST) --port $(PORT) --data-dir $(DATA)
 
-# A line of three cells on this machine (server/line_demo.py): Debian's mosquitto (MQTT
+# A line of three cells on this machine (server/line/demo.py): Debian's mosquitto (MQTT
 # on 1883, WebSocket on 9001), cells on 8001-8003 with data in $(DATA)/line/cell-N, and
 # the line view on http://127.0.0.1:8080/. Ctrl-C stops them all. LINE_ARGS passes more
-# options (python -m server.line_demo --help), e.g. LINE_ARGS="--mqtt-port 1884".
+# options (python -m server.line.demo --help), e.g. LINE_ARGS="--mqtt-port 1884".
 LINE_ARGS ?=
 line: $(RUN_STAMP) mosquitto
-	$(PY) -m server.line_demo --host $(HOST) --data-dir $(DATA)/line $(LINE_ARGS)
+	$(PY) -m server.line.demo --host $(HOST) --data-dir $(DATA)/line $(LINE_ARGS)
 
 # The whole suite includes the benchmarks' smoke test (tests/integration/test_bench_smoke.py).
 test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools mosquitto
@@ -123,10 +123,10 @@ bench: $(BENCH_STAMP)
 	$(PY) -m bench
 
 diagram: $(RUN_STAMP)
-	$(PY) -m server.core.diagram --write
+	$(PY) -m server.core.machine.diagram --write
 
 openapi: $(RUN_STAMP)
-	$(PY) -m server.openapi --write
+	$(PY) -m server.cli.openapi --write
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache .hypothesis

@@ -24,11 +24,11 @@ from typing import Any
 import numpy as np
 
 from bench.report import emit
-from server.config import Settings
 from server.drivers.sim.bead_offline import Defects, lay_bead
 from server.drivers.sim.camera_degradations import Degradations
 from server.drivers.sim.camera_model import DEFAULT_CAMERA_MODEL
 from server.drivers.sim.camera_scene import WORKPIECE_SHAPES, Scene, render_table
+from server.settings.model import Settings
 from server.vision.bead import BeadSegment, BeadTolerances, expected_bead_width_mm, inspect_bead
 from server.vision.homography import PlaneCalibration, fit_plane_calibration
 from server.vision.intrinsics import Intrinsics, Undistorter

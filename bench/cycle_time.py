@@ -26,11 +26,11 @@ from pathlib import Path
 from typing import Any
 
 from bench.report import emit, percentiles_ms
-from server.cell import Cell
-from server.config import Settings
-from server.core.events import StartPayload
-from server.core.transitions import Event, State
-from server.core.worker import Worker
+from server.bootstrap.cell import Cell
+from server.core.machine.events import StartPayload
+from server.core.machine.transitions import Event, State
+from server.core.worker.worker import Worker
+from server.settings.model import Settings
 
 SPRAY_FOUND_PART = StartPayload(contour_matching=True, workpiece_id="demo")
 

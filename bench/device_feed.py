@@ -26,14 +26,14 @@ from pathlib import Path
 from typing import Any
 
 from bench.report import emit, percentiles_ms
+from server.bootstrap.cell import Cell
 from server.bootstrap.devices import glue_supervision
-from server.cell import Cell
-from server.config import Settings
-from server.core.events import StartPayload
-from server.core.transitions import Command, State
+from server.core.machine.events import StartPayload
+from server.core.machine.transitions import Command, State
 from server.drivers.base import DeviceFault
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.sim.glue_sim import GlueSimulator
+from server.settings.model import Settings
 
 
 async def feed_ages(runs: int, data: Path) -> list[dict[str, Any]]:

@@ -14,10 +14,10 @@ import time
 from typing import Any
 
 from bench.report import emit, percentiles_ms
-from server.config import Settings
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.robot_jsonrpc import JsonRpcRobot
 from server.drivers.sim.host import SimulatorHost
+from server.settings.model import Settings
 
 
 async def round_trips(host: SimulatorHost, count: int) -> list[dict[str, Any]]:

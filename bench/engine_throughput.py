@@ -7,7 +7,7 @@ through:
 
 - the engine: `step(state, event, facts)`, guards included;
 - `transitions` and `python-statemachine`, each given the cell's table
-  (built from `server.core.transitions`, guards as conditions that hold), with
+  (built from `server.core.machine.transitions`, guards as conditions that hold), with
   no callbacks beyond the guards: their fastest honest configuration;
 - the worker: the queue, the engine, the history, the snapshot, the bus publish
   to one subscriber and the future answered per event, with the cell's entry and
@@ -32,15 +32,15 @@ from pathlib import Path
 from typing import Any
 
 from bench.report import emit
-from server.config import Settings
-from server.core.bus import Bus
-from server.core.devices import CellDevices
-from server.core.engine import Facts, step
-from server.core.event_queue import Envelope
-from server.core.events import StartPayload
-from server.core.transitions import Event, Guard, State, transitions
-from server.core.worker import Worker
+from server.core.infra.bus import Bus
+from server.core.machine.engine import Facts, step
+from server.core.machine.events import StartPayload
+from server.core.machine.transitions import Event, Guard, State, transitions
+from server.core.worker.devices import CellDevices
+from server.core.worker.event_queue import Envelope
+from server.core.worker.worker import Worker
 from server.drivers.base import DeviceHealth, GlueStatus, Pose
+from server.settings.model import Settings
 from server.storage import CellStores
 from server.storage.workpieces import WorkpieceIn
 
@@ -258,7 +258,7 @@ async def _drive(worker: Worker, events: list[Event]) -> float:
 
 
 PROFILE_GROUPS = (
-    ("engine (server/core/engine.py)", "/server/core/engine.py"),
+    ("engine (server/core/machine/engine.py)", "/server/core/machine/engine.py"),
     ("worker, bus, context (rest of server/core)", "/server/core/"),
     ("asyncio loop, tasks, futures", "/asyncio/"),
     ("benchmark's no-op devices and operations", "/bench/"),

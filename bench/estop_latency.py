@@ -81,16 +81,16 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from bench.report import emit, percentiles_ms
 from bench.ws_fanout import pinning
 from server.__main__ import uvicorn_options
-from server.app import create_app
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import HaltReport
-from server.core.events import StartPayload
-from server.core.transitions import Event, State
-from server.core.worker import Worker
+from server.bootstrap.app import create_app
+from server.bootstrap.cell import Cell
+from server.common.errors import EventQueueFull
+from server.common.runtime import freeze_once_started, tune_garbage_collection
+from server.core.machine.events import StartPayload
+from server.core.machine.transitions import Event, State
+from server.core.worker.devices import HaltReport
+from server.core.worker.worker import Worker
 from server.drivers.glue_registers import VALVE_COMMAND
-from server.errors import EventQueueFull
-from server.runtime import freeze_once_started, tune_garbage_collection
+from server.settings.model import Settings
 from tests.serving import free_port
 
 ROOT = Path(__file__).resolve().parents[1]

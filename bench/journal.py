@@ -21,12 +21,12 @@ from typing import Any
 
 from bench.engine_throughput import NullDevice, NullJournal
 from bench.report import emit, percentiles_ms
-from server.config import Settings
-from server.core.bus import Bus
-from server.core.devices import CellDevices
+from server.core.infra.bus import Bus
+from server.core.machine.transitions import Event, State
 from server.core.operations import default_operations
-from server.core.transitions import Event, State
-from server.core.worker import Worker
+from server.core.worker.devices import CellDevices
+from server.core.worker.worker import Worker
+from server.settings.model import Settings
 from server.storage import CellStores
 from server.storage.journal import Journal, records
 

@@ -35,13 +35,13 @@ import psutil
 
 from bench.engine_throughput import DEMO_PART, START_DEMO, NullDevice, event_sequence, submit_all
 from bench.report import emit
-from server.cell import Cell
-from server.config import Settings
-from server.core.bus import SubscriptionClosed
-from server.core.devices import CellDevices
-from server.core.transitions import Event, State
-from server.core.worker import Worker
-from server.runtime import tune_garbage_collection
+from server.bootstrap.cell import Cell
+from server.common.runtime import tune_garbage_collection
+from server.core.infra.bus import SubscriptionClosed
+from server.core.machine.transitions import Event, State
+from server.core.worker.devices import CellDevices
+from server.core.worker.worker import Worker
+from server.settings.model import Settings
 from tests.serving import serve
 
 BATCH = 500  # events in flight at once: below event_queue_size and the journal backlog limit

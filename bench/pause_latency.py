@@ -41,14 +41,14 @@ from pathlib import Path
 from typing import Any
 
 from bench.report import emit, percentiles_ms
-from server.cell import Cell
-from server.config import Settings
-from server.core.events import StartPayload
-from server.core.transitions import Event, State
-from server.core.worker import Worker
+from server.bootstrap.cell import Cell
+from server.core.machine.events import StartPayload
+from server.core.machine.transitions import Event, State
+from server.core.worker.worker import Worker
 from server.drivers.sim.glue_sim import GlueSimulator
 from server.drivers.sim.host import SimulatorHost
 from server.drivers.sim.robot_sim import RobotSimulator
+from server.settings.model import Settings
 
 SPRAY_DEMO = StartPayload(contour_matching=False, workpiece_id="demo")
 TARGET_P99_MS = 100.0

@@ -41,9 +41,9 @@ import psutil
 from pydantic import ValidationError
 
 from bench.report import emit, percentiles_ms
-from server.config import Settings
 from server.core.operations.trajectory import plan_path
 from server.core.operations.workpieces import Target
+from server.settings.model import Settings
 from server.storage.files import write_json_atomic
 from server.storage.workpieces import (
     MAX_OUTLINE_POINTS,

@@ -70,7 +70,7 @@ import httpx
 
 from bench.estop_latency import StopWitness
 from bench.report import emit, percentiles_ms
-from server.line_broker import DEMO_PASSWORDS, BrokerPorts, start_broker
+from server.line.broker import DEMO_PASSWORDS, BrokerPorts, start_broker
 
 ROOT = Path(__file__).resolve().parents[1]
 READY_S = 600.0  # four cells commissioning at once on a shared machine: a hang guard

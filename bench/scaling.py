@@ -32,11 +32,11 @@ from bench import ws_fanout
 from bench.engine_throughput import NullDevice
 from bench.memory import done_at_once, rss_mb
 from bench.report import emit, percentiles_ms, results_path
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import CellDevices
-from server.core.transitions import Event, State
-from server.core.worker import Worker
+from server.bootstrap.cell import Cell
+from server.core.machine.transitions import Event, State
+from server.core.worker.devices import CellDevices
+from server.core.worker.worker import Worker
+from server.settings.model import Settings
 from server.storage.journal import Journal, records
 
 REPEATS = 20  # per point of the queue-depth sweep

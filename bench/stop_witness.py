@@ -34,9 +34,9 @@ import time
 
 import httpx
 
-from server.config import Settings
 from server.drivers.sim.glue_sim import GlueSimulator
 from server.drivers.sim.robot_sim import RobotSimulator
+from server.settings.model import Settings
 
 
 async def fire(client: httpx.AsyncClient, robot: RobotSimulator, glue: GlueSimulator) -> str:

@@ -11,22 +11,24 @@ from typing import Any
 
 import uvicorn
 
-from server import backup_cli, tls
 from server.api.connection_guard import ConnectionLimits, guarded_http_protocol
-from server.app import create_app
-from server.config import Settings
-from server.errors import ConfigurationError
-from server.logging_setup import configure as configure_logging
-from server.runtime import (
-    end_image_process_on_shutdown,
+from server.bootstrap import tls
+from server.bootstrap.app import create_app
+from server.bootstrap.logging_setup import configure as configure_logging
+from server.cli import backup as backup_cli
+from server.common.errors import ConfigurationError
+from server.common.runtime import (
+    close_on_shutdown,
     freeze_once_started,
     limit_malloc_arenas,
     raise_open_file_limit,
     tune_garbage_collection,
 )
-from server.settings_load import SettingsRefused, load_settings, unknown_variables
+from server.settings.load import SettingsRefused, load_settings, unknown_variables
+from server.settings.model import Settings
 from server.storage.data_lock import DataDirectoryBusy, DataDirectoryLock
 from server.storage.permissions import private_directory
+from server.vision.process import IMAGE_PROCESS
 
 SETTINGS_HELP = """\
 settings, highest priority first:
@@ -102,7 +104,7 @@ def main(argv: list[str] | None = None) -> None:
     logging.getLogger(__name__).info("open-file limit %d", files)
     tune_garbage_collection()
     freeze_once_started(app)  # and again once the cell, OPC UA and MQTT have started
-    end_image_process_on_shutdown(app)
+    close_on_shutdown(app, IMAGE_PROCESS.close)  # the image process ends with the app
     uvicorn.run(
         app,
         host=args.host,

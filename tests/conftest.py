@@ -13,14 +13,14 @@ from pathlib import Path
 
 import pytest
 
-from server.config import Settings
-from server.core.bus import Bus
-from server.core.devices import CellDevices
-from server.core.events import StartPayload
+from server.common.runtime import limit_malloc_arenas
+from server.core.infra.bus import Bus
+from server.core.machine.events import StartPayload
+from server.core.machine.transitions import State
 from server.core.operations import Operation, default_operations
-from server.core.transitions import State
-from server.core.worker import Worker
-from server.runtime import limit_malloc_arenas
+from server.core.worker.devices import CellDevices
+from server.core.worker.worker import Worker
+from server.settings.model import Settings
 from server.storage import CellStores
 from server.storage.journal import Journal
 from server.storage.workpieces import WorkpieceIn
@@ -38,7 +38,7 @@ def _logging_enabled() -> Iterator[None]:
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """Give this process the server's own allocator policy (server/runtime.py).
+    """Give this process the server's own allocator policy (server/common/runtime.py).
 
     The rig runs the server in this process, and the memory checks (test_ws_churn,
     the soak) read its RSS. Without the cap, the camera's freed frames stayed in the

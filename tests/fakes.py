@@ -15,8 +15,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from server.common.errors import DeviceDisconnected, DeviceTimeout
 from server.drivers.base import DeviceFault, DeviceHealth, FaultListener, GlueStatus, Pose
-from server.errors import DeviceDisconnected, DeviceTimeout
 
 
 class FakeRobot:

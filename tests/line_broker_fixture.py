@@ -1,5 +1,5 @@
 """Debian's mosquitto on free loopback ports for a test, started as the line demo starts it
-(server/line_broker.py). Missing mosquitto fails, never skips: `make test` installs it."""
+(server/line/broker.py). Missing mosquitto fails, never skips: `make test` installs it."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 
-from server.line_broker import BrokerPorts, start_broker
+from server.line.broker import BrokerPorts, start_broker
 from tests.processes import stop
 from tests.serving import free_port
 

@@ -23,7 +23,7 @@ from typing import Any
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
-from server.line_broker import DEMO_PASSWORDS
+from server.line.broker import DEMO_PASSWORDS
 
 PREFIX = "glue"
 

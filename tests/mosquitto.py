@@ -26,7 +26,7 @@ from typing import Any
 
 import aiomqtt
 
-from server.line_broker import DEMO_PASSWORDS, write_access_files
+from server.line.broker import DEMO_PASSWORDS, write_access_files
 from tests.serving import free_port
 
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"

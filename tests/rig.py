@@ -18,14 +18,14 @@ from typing import Any
 
 import httpx
 
+from server.bootstrap.cell import Cell
 from server.bootstrap.devices import build_devices
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import CellDevices
+from server.core.worker.devices import CellDevices
 from server.drivers.camera import SimulatedCamera
 from server.drivers.sim.camera_bead import dispensed_by
 from server.drivers.sim.glue_sim import GlueSimulator
 from server.drivers.sim.robot_sim import RobotSimulator
+from server.settings.model import Settings
 from server.storage.journal import records
 from tests.serving import admin_headers, serve
 

@@ -13,8 +13,8 @@ import httpx
 import uvicorn
 
 from server.__main__ import uvicorn_options
-from server.app import create_app
-from server.cell import Cell
+from server.bootstrap.app import create_app
+from server.bootstrap.cell import Cell
 
 
 def admin_headers(data_path: Path) -> dict[str, str]:

@@ -18,7 +18,7 @@ DATA_DIR_ENV = "GLUE_APP_DATA_PATH"  # the server's own data directory setting
 DEFAULT_DATA_DIR = "data"
 ADMIN_TOKEN_FILE = "admin.token"
 
-# The machine's states, as the server names them (server/core/transitions.py).
+# The machine's states, as the server names them (server/core/machine/transitions.py).
 STATES = (
     "INITIALIZING",
     "IDLE",

@@ -22,7 +22,6 @@ from fastapi.responses import JSONResponse
 from starlette.requests import HTTPConnection
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from server.config import Settings
 from server.security.forwarded import (
     UNKNOWN,
     client_address,
@@ -33,6 +32,7 @@ from server.security.policy import WEBSOCKET_ROLE, role_for_request
 from server.security.throttle import AuthThrottle
 from server.security.tickets import TicketBook
 from server.security.tokens import Principal, TokenEntry, TokenStore
+from server.settings.model import Settings
 
 log = logging.getLogger(__name__)
 CHALLENGE = {"WWW-Authenticate": "Bearer"}  # on every 401

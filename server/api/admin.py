@@ -26,10 +26,10 @@ from server.api.declared_query import DeclaredQueryRoute
 from server.api.runtime_settings import SettingsChange, plan_change
 from server.api.schemas import ErrorView
 from server.api.time_window import Since, Until, time_window
-from server.config import Settings
+from server.common.values import Name
 from server.security.tokens import Role, last_admin_refusal
+from server.settings.model import Settings
 from server.storage.journal import Journal
-from server.values import Name
 
 router = APIRouter(tags=["access"], route_class=DeclaredQueryRoute)
 

@@ -29,10 +29,10 @@ from fastapi.responses import Response, StreamingResponse
 from server.api.declared_query import DeclaredQueryRoute
 from server.api.kpi_views import KpisView
 from server.api.time_window import Since, TimeWindow, Until, time_window
-from server.cell import Cell
-from server.core.kpis import compute_kpis, kpi_window
+from server.bootstrap.cell import Cell
 from server.quality.csv_columns import INSPECTION_COLUMNS, with_inspection
 from server.storage.journal import FILTERS, TABLES, Cursor, Filter, Journal
+from server.views.kpis import compute_kpis, kpi_window
 
 router = APIRouter(tags=["analytics"], route_class=DeclaredQueryRoute)
 

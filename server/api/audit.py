@@ -39,8 +39,8 @@ from starlette.types import Scope
 from server.api.audit_repeats import AuditRepeats
 from server.api.observe import Observer
 from server.api.schemas import ErrorView, QueueFullResult
-from server.core.events import AuditNote, Outcome
-from server.errors import ChangeNotSaved, JournalUnavailable
+from server.common.errors import ChangeNotSaved, JournalUnavailable
+from server.core.machine.events import AuditNote, Outcome
 from server.security.tokens import Principal
 from server.storage.journal import Journal, Record, records
 

@@ -30,7 +30,8 @@ from pydantic import BaseModel, Field
 
 from server.api.access import websocket_lockout, websocket_principal
 from server.api.declared_query import DeclaredQueryRoute
-from server.core.camera_preview import (
+from server.security.tokens import Role
+from server.views.camera_preview import (
     ALLOWED,
     CLOSE_CAMERA_BUSY,
     CLOSE_UNAUTHORIZED,
@@ -38,7 +39,6 @@ from server.core.camera_preview import (
     PreviewRefused,
     Watcher,
 )
-from server.security.tokens import Role
 
 router = APIRouter(tags=["camera set-up"], route_class=DeclaredQueryRoute)
 ws_router = APIRouter()

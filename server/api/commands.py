@@ -34,8 +34,8 @@ from server.api.schemas import (
     StartRequest,
 )
 from server.api.stop_lane import source_of, take_halt
-from server.cell import Cell
-from server.core.events import (
+from server.bootstrap.cell import Cell
+from server.core.machine.events import (
     CreateWorkpiecePayload,
     JogPayload,
     Outcome,
@@ -43,7 +43,7 @@ from server.core.events import (
     StartPayload,
     StopPayload,
 )
-from server.core.transitions import Command, Event
+from server.core.machine.transitions import Command, Event
 
 router = APIRouter(tags=["commands"], route_class=DeclaredQueryRoute)
 

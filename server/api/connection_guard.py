@@ -39,8 +39,8 @@ from typing import Any
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-from server.config import Settings
 from server.security.forwarded import parse_networks
+from server.settings.model import Settings
 
 log = logging.getLogger(__name__)
 

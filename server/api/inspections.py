@@ -15,7 +15,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, HTTPException, Path, Request, Response
 
 from server.api.schemas import ErrorView
-from server.cell import Cell
+from server.bootstrap.cell import Cell
 
 router = APIRouter(tags=["quality"])
 

@@ -2,7 +2,7 @@
 
 Why declared: the plant's reports and the HMI read these keys, and the
 `quality` block holds figures a client must know may be null. The
-dict comes from `server/core/kpis.py: compute_kpis`; each description says
+dict comes from `server/views/kpis.py: compute_kpis`; each description says
 what null means there (docs/kpis.md has the formulas).
 """
 

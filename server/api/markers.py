@@ -25,12 +25,12 @@ from server.api import audit
 from server.api.declared_query import DeclaredQueryRoute
 from server.api.runtime_settings import plan_change
 from server.api.schemas import ErrorView, Strict
-from server.cell import Cell
-from server.config import Millimetres, Settings, marker_layout_problems
-from server.core.jog import read_pose_within
-from server.core.transitions import State
+from server.bootstrap.cell import Cell
+from server.common.values import FiniteNumber
+from server.core.machine.transitions import State
+from server.core.operations.jog import read_pose_within
+from server.settings.model import Millimetres, Settings, marker_layout_problems
 from server.storage.marker_layout import MARKERS, MarkerLayoutStore
-from server.values import FiniteNumber
 
 router = APIRouter(tags=["calibration"], route_class=DeclaredQueryRoute)
 

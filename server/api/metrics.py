@@ -6,7 +6,7 @@ at scrape time; durations are observed as they happen: event processing by the
 worker's statistics hook, API requests by a middleware, operations when they
 end, transitions by a bus subscriber. Inspected parts are counted as their run
 ends, by verdict, with each part's precision and flow consistency observed
-(server/core/part_verdict.py reads the run's inspection); a run that was not
+(server/quality/part_verdict.py reads the run's inspection); a run that was not
 inspected is no part. Each app has its own registry.
 """
 
@@ -30,11 +30,11 @@ from prometheus_client.registry import Collector
 from starlette.types import Scope
 
 from server.api.declared_query import DeclaredQueryRoute
-from server.cell import Cell
-from server.core.bus import SubscriptionClosed
-from server.core.part_verdict import VERDICTS, figure_of, inspection_of
-from server.core.runs import RunEnded
-from server.core.transitions import State
+from server.bootstrap.cell import Cell
+from server.core.infra.bus import SubscriptionClosed
+from server.core.machine.transitions import State
+from server.core.worker.runs import RunEnded
+from server.quality.part_verdict import VERDICTS, figure_of, inspection_of
 
 router = APIRouter(tags=["queries"], route_class=DeclaredQueryRoute)
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5)

@@ -1,13 +1,13 @@
 """The OpenAPI document: what FastAPI generates, made to say what the app really does.
 
 FastAPI describes the routes, but two things it cannot see: the 422 body the
-app's own validation handler sends (server/app.py, `_install_error_handlers`),
+app's own validation handler sends (server/bootstrap/app.py, `_install_error_handlers`),
 and the gate (server/api/access.py, `AccessGate`), a middleware, so the
 generated document knows nothing of tokens, roles, 401 or 403. Both are
 patched in here, in one place; the gate's part is derived from the same policy
 table the gate reads (server/security/policy.py), so the document cannot drift
 from what is enforced. openapi.json in the repository is this document
-(`python -m server.openapi --write`).
+(`python -m server.cli.openapi --write`).
 """
 
 from __future__ import annotations

@@ -17,15 +17,15 @@ from pydantic import BaseModel, Field, create_model
 from server.api import audit
 from server.api.declared_query import DeclaredQueryRoute
 from server.api.schemas import ErrorView, Strict
-from server.cell import Cell
-from server.errors import JournalUnavailable
+from server.bootstrap.cell import Cell
+from server.common.errors import JournalUnavailable
+from server.common.values import whole_number
 from server.orders.book import OrderBook, OrderRefused
 from server.orders.model import Order
 from server.orders.report import report_csv, report_of
 from server.security.tokens import Principal
 from server.storage.journal import PART_FIGURES
 from server.storage.workpieces import IDENTIFIER
-from server.values import whole_number
 
 router = APIRouter(tags=["orders"], route_class=DeclaredQueryRoute)
 ORDER_ID = r"^ord-[0-9a-f]{8}$"

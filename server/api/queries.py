@@ -19,10 +19,10 @@ from server.api.schemas import (
     HealthView,
     StateView,
 )
-from server.cell import Cell
-from server.core.frames import Frame
-from server.core.transitions import Command, normalize_command
-from server.core.view import CellView
+from server.bootstrap.cell import Cell
+from server.core.machine.transitions import Command, normalize_command
+from server.core.operations.frames import Frame
+from server.core.worker.view import CellView
 
 router = APIRouter(tags=["queries"], route_class=DeclaredQueryRoute)
 

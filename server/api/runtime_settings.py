@@ -1,7 +1,7 @@
 """The settings PATCH /settings may change, and the body that changes them.
 
 Why the body is a model built from `Settings` itself: each setting's type,
-bounds and description are declared once, in server/config.py, and the request
+bounds and description are declared once, in server/settings/model.py, and the request
 must enforce exactly those, strictly (a number never as "8" or true, never
 Infinity or 1e400), and state them in openapi.json. A hand-written copy would
 drift from them: a body of any JSON object promises nothing in openapi.json and
@@ -16,8 +16,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, create_model
 
-from server.config import Settings
-from server.values import FiniteNumber, whole_number
+from server.common.values import FiniteNumber, whole_number
+from server.settings.model import Settings
 
 RUNTIME_SETTINGS = (
     "error_state_timeout",
@@ -43,7 +43,7 @@ RUNTIME_SETTINGS = (
 
 
 def _strict(kind: Any, constraints: list[Any]) -> Any:
-    """The strict form of a setting's type (server/values.py), with its bounds."""
+    """The strict form of a setting's type (server/common/values.py), with its bounds."""
     if kind is float:
         return Annotated[FiniteNumber, *constraints]
     if kind is int:

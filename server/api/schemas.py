@@ -11,8 +11,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
+from server.common.values import FiniteNumber, Name
 from server.storage.workpieces import IDENTIFIER, SpraySettingsIn
-from server.values import FiniteNumber, Name
 
 
 class Strict(BaseModel):

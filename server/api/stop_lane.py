@@ -25,9 +25,9 @@ from typing import TYPE_CHECKING
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 if TYPE_CHECKING:
-    from server.cell import Cell
-    from server.core.devices import HaltReport
-    from server.core.worker import Worker
+    from server.bootstrap.cell import Cell
+    from server.core.worker.devices import HaltReport
+    from server.core.worker.worker import Worker
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 Admin only (server/security/policy.py): the configuration names the plant's
 receivers, and the deliveries show what the cell told them. Neither ever shows a
-secret, nor a URL's path or query (server/notify/targets.py says why).
+secret, nor a URL's path or query (server/settings/webhooks.py says why).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from fastapi import APIRouter, Request
 
 from server.api.analytics import table_route
 from server.api.declared_query import DeclaredQueryRoute
-from server.cell import Cell
+from server.bootstrap.cell import Cell
 
 router = APIRouter(tags=["webhooks"], route_class=DeclaredQueryRoute)
 

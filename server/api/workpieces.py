@@ -19,7 +19,7 @@ from pydantic import BaseModel, Field
 from server.api import audit
 from server.api.declared_query import DeclaredQueryRoute
 from server.api.schemas import ErrorView
-from server.cell import Cell
+from server.bootstrap.cell import Cell
 from server.storage.workpieces import (
     IDENTIFIER,
     DamagedEntry,

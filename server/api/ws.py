@@ -4,7 +4,7 @@ Each client is one bus subscription with a bounded buffer. A client that falls
 behind (its buffer fills, or one send takes longer than SEND_TIMEOUT) is
 closed with code 4001 and never delays the worker or the other clients.
 
-Two roads to the socket, one at a time per client (server/core/bus.py keeps
+Two roads to the socket, one at a time per client (server/core/infra/bus.py keeps
 them apart): while the client's send task waits with nothing in hand, the bus
 hands each new message to `_direct_sender`, which writes the shared frame to
 the socket in the bus's delivery turn, with no task woken (at a thousand
@@ -31,7 +31,7 @@ from the start, replay included; a later subscribe message filters what is
 published from then on.
 
 `device` messages (live valve, flow, pressure and robot pose; see
-server/core/live.py) are samples, not records: they carry no seq, are never
+server/views/live.py) are samples, not records: they carry no seq, are never
 replayed, and are sent only to a client that names `device` in `types` (the
 query or a subscribe message). Without `types` a client gets every record and
 no samples, so its stream is what it was before samples existed.
@@ -76,8 +76,8 @@ from starlette.datastructures import QueryParams
 from server.api.access import authenticate_websocket, websocket_lockout
 from server.api.live_views import CLOSE_UNAUTHORIZED, REVOKED_REASON, LiveViews
 from server.api.ws_frames import FrameWriter, text_frame
-from server.core.bus import Bus, BusMessage, DirectConsumer, Subscription, SubscriptionClosed
-from server.core.view import CellView
+from server.core.infra.bus import Bus, BusMessage, DirectConsumer, Subscription, SubscriptionClosed
+from server.core.worker.view import CellView
 
 log = logging.getLogger(__name__)
 router = APIRouter()

@@ -3,5 +3,5 @@
 It is the one layer that may know both the drivers and the core (`CellDevices`,
 the operations), so that neither has to know the other: drivers stay plain
 device clients and simulators, and the core receives finished devices.
-`server/cell.py` calls it when the cell starts.
+`server/bootstrap/cell.py` calls it when the cell starts.
 """

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import logging
 
-from server.config import Settings
-from server.core.devices import CellDevices
 from server.core.operations.base import Operation, OperationContext
 from server.core.operations.calibration import calibrate_camera, calibrate_robot
 from server.core.operations.workpieces import create_workpiece
+from server.core.worker.devices import CellDevices
 from server.drivers.camera import SimulatedCamera
+from server.settings.model import Settings
 from server.storage import CellStores
 
 log = logging.getLogger(__name__)

@@ -23,13 +23,13 @@ import logging
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-from server.config import Settings, parse_tcp_address
-from server.core.devices import CellDevices
+from server.core.worker.devices import CellDevices
 from server.drivers.camera import OpenCVCamera, SimulatedCamera
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.robot_jsonrpc import JsonRpcRobot
 from server.drivers.sim.camera_bead import dispensed_by
 from server.drivers.sim.camera_scene import Scene
+from server.settings.model import Settings, parse_tcp_address
 
 log = logging.getLogger(__name__)
 

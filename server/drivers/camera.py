@@ -37,6 +37,7 @@ from typing import Any, Literal, TypeVar
 import cv2
 import numpy as np
 
+from server.common.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 from server.drivers.base import DeviceFault, DeviceHealth, FaultListener
 from server.drivers.sim.camera_bead import BeadSource, Shift
 from server.drivers.sim.camera_model import shifted_camera
@@ -52,7 +53,6 @@ from server.drivers.sim.camera_scene import (
     render_chessboard_view,
     render_table,
 )
-from server.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 from server.vision.process import IMAGE_PROCESS
 
 logger = logging.getLogger(__name__)

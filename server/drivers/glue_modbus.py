@@ -83,9 +83,9 @@ from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.pdu import ModbusPDU
 
+from server.common.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 from server.drivers import glue_registers as regs
 from server.drivers.base import DeviceFault, DeviceHealth, FaultListener, GlueStatus
-from server.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 
 logger = logging.getLogger(__name__)
 

@@ -52,6 +52,7 @@ import math
 import time
 from typing import Any
 
+from server.common.errors import DeviceDisconnected, DeviceError, DeviceTimeout, RobotCommandError
 from server.drivers.base import DeviceFault, DeviceHealth, FaultListener, Pose
 from server.drivers.jsonlines import (
     MAX_LINE_BYTES,
@@ -61,7 +62,6 @@ from server.drivers.jsonlines import (
     encode_message,
     make_request,
 )
-from server.errors import DeviceDisconnected, DeviceError, DeviceTimeout, RobotCommandError
 
 logger = logging.getLogger(__name__)
 

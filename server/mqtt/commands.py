@@ -40,10 +40,10 @@ from server.api.commands import (
     payload_of,
 )
 from server.api.schemas import RETRY_AFTER_S
-from server.cell import Cell
-from server.core.events import AuditNote, Payload, StopPayload
-from server.core.transitions import Command, normalize_command
-from server.errors import EventQueueFull, JournalUnavailable, WorkerStopped
+from server.bootstrap.cell import Cell
+from server.common.errors import EventQueueFull, JournalUnavailable, WorkerStopped
+from server.core.machine.events import AuditNote, Payload, StopPayload
+from server.core.machine.transitions import Command, normalize_command
 from server.mqtt.signed import NonceCache, Refusal, verify
 from server.security.policy import required_role
 from server.security.tokens import Principal, TokenStore

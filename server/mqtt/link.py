@@ -6,7 +6,7 @@ Three tasks, none of which the worker or the e-stop ever awaits:
   client) and turns each record into topic messages in the outbox at once, so
   a transition is on its way to the broker within a turn of the event loop; a
   run's progress goes at most every `plant_progress_interval`, the latest kept
-  (server/core/paced_feed.py);
+  (server/core/infra/paced_feed.py);
 - the connection publishes the outbox in order at QoS 1 while the broker is
   there, and reconnects with a doubling backoff (capped at
   `mqtt_reconnect_max`) while it is not; the outbox bounds what waits
@@ -41,11 +41,10 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from server.api.answers_in_flight import AnswersInFlight, after_answers
-from server.cell import Cell
-from server.config import Settings
-from server.core.bus import SubscriptionClosed
-from server.core.paced_feed import PacedFeed
-from server.core.runs import RunEnded
+from server.bootstrap.cell import Cell
+from server.core.infra.bus import SubscriptionClosed
+from server.core.infra.paced_feed import PacedFeed
+from server.core.worker.runs import RunEnded
 from server.mqtt.commands import CommandDoor
 from server.mqtt.outbox import Entry, Outbox
 from server.mqtt.topics import (
@@ -59,6 +58,7 @@ from server.mqtt.topics import (
     run_message,
     state_message,
 )
+from server.settings.model import Settings
 
 log = logging.getLogger(__name__)
 

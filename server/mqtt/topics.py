@@ -23,8 +23,8 @@ import json
 from dataclasses import dataclass
 from typing import Any
 
-from server.core.part_verdict import verdict_details
-from server.core.runs import RunEnded
+from server.core.worker.runs import RunEnded
+from server.quality.part_verdict import verdict_details
 
 ONLINE = b"online"
 OFFLINE = b"offline"

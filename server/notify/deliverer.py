@@ -26,11 +26,11 @@ from typing import Any
 
 import httpx
 
-from server.config import Settings
 from server.notify import retry, signing
-from server.notify.destinations import DestinationRefused
 from server.notify.notices import Notice
-from server.notify.targets import WebhookTarget
+from server.security.destinations import DestinationRefused
+from server.settings.model import Settings
+from server.settings.webhooks import WebhookTarget
 from server.storage.journal import Journal, records
 
 log = logging.getLogger(__name__)

@@ -17,10 +17,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from server.core.bus import BusMessage
-from server.core.part_verdict import verdict_details
-from server.core.runs import RunEnded
-from server.notify.targets import NoticeKind
+from server.core.infra.bus import BusMessage
+from server.core.worker.runs import RunEnded
+from server.quality.part_verdict import verdict_details
+from server.settings.webhooks import NoticeKind
 
 # Bus record type -> the notice kind it makes.
 KIND_OF_BUS_TYPE: dict[str, NoticeKind] = {

@@ -25,13 +25,14 @@ from typing import Any
 
 import httpx
 
-from server.config import Settings
-from server.core.bus import Bus, BusMessage, Subscription, SubscriptionClosed
-from server.core.runs import RunEnded
-from server.core.view import CellView
-from server.notify import destinations, notices
+from server.core.infra.bus import Bus, BusMessage, Subscription, SubscriptionClosed
+from server.core.worker.runs import RunEnded
+from server.core.worker.view import CellView
+from server.notify import notices
 from server.notify.deliverer import Deliverer
 from server.notify.notices import Notice
+from server.security import destinations
+from server.settings.model import Settings
 from server.storage.journal import Journal
 
 log = logging.getLogger(__name__)

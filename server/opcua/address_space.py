@@ -16,7 +16,7 @@ from datetime import UTC, datetime
 
 from asyncua import Node, Server, ua
 
-from server.core.transitions import State
+from server.core.machine.transitions import State
 from server.opcua.tags import ADMIN_COUNTS, ADMIN_FIGURES
 
 NAMESPACE_URI = "urn:glue-cell:packml"

@@ -6,7 +6,7 @@ message's values into the address space as it arrives, so a client's
 subscription sees every transition, in order, stamped with when it happened,
 and the worker never waits for OPC UA. A run's progress is the exception: it is
 written at most every `plant_progress_interval`, the latest kept
-(server/core/paced_feed.py). The state comes from each
+(server/core/infra/paced_feed.py). The state comes from each
 state_changed message's own snapshot, never from the live view, which may
 already be a transition further on. Admin's KPIs are read from the journal
 every `opcua_admin_interval` seconds, off the loop, the way GET /kpis reads
@@ -27,12 +27,11 @@ from asyncua.common.callback import CallbackType
 
 from server.api.analytics import kpis_of
 from server.api.answers_in_flight import AnswersInFlight, after_answers
-from server.cell import Cell
-from server.config import Settings
-from server.core.bus import BusMessage, SubscriptionClosed
-from server.core.paced_feed import PacedFeed
-from server.core.transitions import State
-from server.errors import ConfigurationError
+from server.bootstrap.cell import Cell
+from server.common.errors import ConfigurationError
+from server.core.infra.bus import BusMessage, SubscriptionClosed
+from server.core.infra.paced_feed import PacedFeed
+from server.core.machine.transitions import State
 from server.opcua import address_space, tags
 from server.opcua.address_space import CellNodes, data_value
 from server.opcua.certificate import application_uri, ensure_certificate
@@ -41,6 +40,7 @@ from server.opcua.methods import CellMethods
 from server.opcua.packml import packml_state, unit_mode
 from server.opcua.protection import CallGuard, PasswordGuard
 from server.security.tokens import TokenStore
+from server.settings.model import Settings
 
 log = logging.getLogger(__name__)
 
@@ -163,7 +163,7 @@ class OpcUaInterface:
 
     async def _follow(self) -> None:
         # A run's progress at most every plant_progress_interval, the latest kept
-        # (server/core/paced_feed.py says why); transitions and faults as they come.
+        # (server/core/infra/paced_feed.py says why); transitions and faults as they come.
         feed = self._feed
         assert feed is not None
         while True:

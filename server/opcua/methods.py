@@ -1,6 +1,6 @@
 """The cell's OPC UA methods: the operator's commands on the HTTP command path and roles.
 
-Each method is a command of server/core/transitions.py, sent through
+Each method is a command of server/core/machine/transitions.py, sent through
 `Cell.command` with an audit note naming the token's principal, the client's
 address and the method, exactly as server/api/commands.py sends the HTTP
 command; the role it needs is read from server/security/policy.py for that
@@ -35,10 +35,10 @@ from asyncua import Node, Server, ua
 from asyncua.common.callback import ServerItemCallback
 
 from server.api.commands import Problem, invalid_request, payload_of
-from server.cell import Cell
-from server.core.events import AuditNote, Outcome
-from server.core.transitions import Command, Event
-from server.errors import EventQueueFull, JournalUnavailable, WorkerStopped
+from server.bootstrap.cell import Cell
+from server.common.errors import EventQueueFull, JournalUnavailable, WorkerStopped
+from server.core.machine.events import AuditNote, Outcome
+from server.core.machine.transitions import Command, Event
 from server.opcua.address_space import node_id_of
 from server.opcua.identity import ANONYMOUS, CellUser, caller
 from server.security.policy import required_role

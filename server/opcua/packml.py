@@ -1,6 +1,6 @@
 """The cell's 8 states on PackML's 17 (OPC 30050, ISA-TR88.00.02), declared once.
 
-Why a table and not a state machine: the cell's own machine (server/core/transitions.py)
+Why a table and not a state machine: the cell's own machine (server/core/machine/transitions.py)
 is the one that decides; PackML is a way of showing it to a plant that reads
 PackTags. Each state's reason is in docs/plant-integration.md. Pure: no I/O.
 """
@@ -11,7 +11,7 @@ from enum import IntEnum
 from types import MappingProxyType
 from typing import Final
 
-from server.core.transitions import State
+from server.core.machine.transitions import State
 
 
 class PackMLState(IntEnum):

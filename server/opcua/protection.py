@@ -34,7 +34,7 @@ from typing import Any, Final
 from asyncua import Server, ua
 from asyncua.common.utils import ServiceError
 
-from server.cell import Cell
+from server.bootstrap.cell import Cell
 from server.opcua.identity import ANONYMOUS, CallerRuleset, CellUser
 from server.opcua.methods import peer_of
 from server.security.tokens import TokenStore

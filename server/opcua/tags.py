@@ -12,7 +12,7 @@ import math
 from collections.abc import Mapping
 from typing import Any, Final
 
-from server.core.transitions import State
+from server.core.machine.transitions import State
 
 # Admin's figures: the tag's name and where it is in the /kpis dict.
 ADMIN_FIGURES: Final = (

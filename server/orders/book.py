@@ -31,10 +31,10 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from server.core.bus import SubscriptionClosed
-from server.core.events import StartPayload
-from server.core.runs import RunEnded
-from server.core.transitions import Command, State
+from server.core.infra.bus import SubscriptionClosed
+from server.core.machine.events import StartPayload
+from server.core.machine.transitions import Command, State
+from server.core.worker.runs import RunEnded
 from server.drivers.base import DeviceFault
 from server.orders.model import (
     ACTIVE_STATES,
@@ -48,7 +48,7 @@ from server.orders.model import (
 from server.storage.journal import PART_FIGURES, Journal, Record, records
 
 if TYPE_CHECKING:
-    from server.cell import Cell
+    from server.bootstrap.cell import Cell
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,7 @@ class OrderBook:
         their whole bead. A closed order's too, as a part that ends after the close is.
 
         The server stopped during the run, so no run end reached the order; the start-up
-        closed the run's row as interrupted (server/cell.py: find_interruption).
+        closed the run's row as interrupted (server/bootstrap/cell.py: find_interruption).
         """
         counted = {part.run_id for part in order.parts}
         parts = []

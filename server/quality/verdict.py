@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from server.config import Settings
+from server.settings.model import Settings
 
 
 def precision_reasons(precision: dict[str, Any], settings: Settings) -> list[str]:

@@ -14,23 +14,40 @@ planned path so the bead is judged where it should lie on the part now.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
 
-from server.core.operations.calibration import DEGRADING_SHARE
-from server.core.operations.workpieces import Target, _detector, _outlines_px
 from server.vision.homography import PlaneCalibration
-from server.vision.outlines import match_outline, outline_to_mm, transform_outline
+from server.vision.outlines import (
+    match_outline,
+    outline_to_mm,
+    part_outlines_px,
+    table_marker_detector,
+    transform_outline,
+)
+
+DEGRADING_SHARE = 0.5  # of calibration_max_error_mm: accepted, but warned of
+
+
+class Placed(Protocol):
+    """A workpiece where it was matched before the run (a run's target)."""
+
+    @property
+    def workpiece_id(self) -> str: ...
+
+    @property
+    def outline_mm(self) -> np.ndarray: ...
 
 
 def marker_residuals(
     frame: np.ndarray, calibration: PlaneCalibration, positions: list[tuple[float, float]]
 ) -> dict[str, Any]:
     """Residual (mm) per marker re-detected on `frame`: mean, max, markers found."""
-    found = _detector().detect(frame)
+    found = table_marker_detector().detect(frame)
     residuals: dict[int, float] = {}
     for marker_id, detection in found.items():
         if 0 <= marker_id < len(positions):
@@ -75,11 +92,11 @@ IDENTITY = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 def relocate(
     frame: np.ndarray,
     calibration: PlaneCalibration,
-    targets: list[Target],
+    targets: Sequence[Placed],
     library: dict[str, np.ndarray],
 ) -> list[PartNow]:
     """Each target found again on `frame` (the nearest matching outline to where it was)."""
-    detected = [outline_to_mm(c, calibration.homography) for c in _outlines_px(frame)]
+    detected = [outline_to_mm(c, calibration.homography) for c in part_outlines_px(frame)]
     parts = []
     for target in targets:
         best: PartNow | None = None

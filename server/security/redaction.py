@@ -16,7 +16,7 @@ What it removes, wherever it appears in the text:
 - the credentials of an `Authorization: Bearer ...` or `Basic ...` header;
 - a user and password in a URL (`scheme://user:password@host`);
 - the path and query of every configured webhook URL, which receivers use to carry
-  their own token (server/notify/targets.py): the URL is written as
+  their own token (server/settings/webhooks.py says why): the URL is written as
   `scheme://host:port/...`, as everywhere else.
 """
 
@@ -29,9 +29,15 @@ from urllib.parse import urlsplit
 
 import httpx
 
-from server.notify.targets import shown_url
-
 REDACTED = "[redacted]"
+
+
+def shown_url(url: str) -> str:
+    """`url` as it may be shown: scheme, host and port; a path or query as `/...`."""
+    parts = urlsplit(url)
+    rest = "/..." if parts.path.strip("/") or parts.query else ""
+    return f"{parts.scheme}://{parts.netloc}{rest}"
+
 
 _SECRET_NAMES = (
     r"(?:access_token|refresh_token|id_token|token|ticket|password|passwd|secret"

@@ -16,8 +16,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from server.errors import ConfigurationError
-from server.values import FiniteNumber
+from server.common.errors import ConfigurationError
+from server.common.values import FiniteNumber
 
 TOKEN_ID_PATTERN = r"^[0-9a-f]{8}$"  # the <id> of gc_<id>_<secret>
 

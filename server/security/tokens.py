@@ -27,7 +27,7 @@ from enum import IntEnum
 from pathlib import Path
 from typing import Any
 
-from server.errors import ConfigurationError
+from server.common.errors import ConfigurationError
 from server.security.token_file import read_entries
 from server.storage.files import write_bytes_atomic
 

@@ -13,7 +13,7 @@ not left to the process umask, so they hold however the server is started
 - files written atomically (snapshot, calibrations, library, tokens,
   `admin.token`): 0600, as `tempfile.mkstemp` makes them
   (server/storage/files.py);
-- the log files: 0640 (server/logging_setup.py), so a log shipper in the
+- the log files: 0640 (server/bootstrap/logging_setup.py), so a log shipper in the
   service's group can read a log directory opened to it (`log_file_path`
   outside the data directory); they never hold a secret.
 

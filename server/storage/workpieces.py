@@ -29,9 +29,9 @@ from pydantic import (
     model_validator,
 )
 
+from server.common.values import FiniteNumber, Name
 from server.storage.files import read_json, write_bytes_atomic, write_json_atomic
 from server.storage.permissions import private_directory
-from server.values import FiniteNumber, Name
 from server.vision.paths import clean_outline, fill_size, offset_polygon, simple_outline
 
 log = logging.getLogger(__name__)

@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cache
 
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from server.vision.homography import pixels_to_robot
-from server.vision.markers import to_gray
+from server.vision.markers import MarkerDetector, to_gray
 
 __all__ = [
     "OutlineMatch",
@@ -102,6 +103,27 @@ def find_outlines(
         origin = np.array([x0, y0], dtype=np.float64)
         refined.append(_refine_edge(patch, contour - origin, float(level)) + origin)
     return refined
+
+
+MARKER_EXCLUSION_SCALE = 1.8  # the printed paper around a marker, with margin
+
+
+@cache
+def table_marker_detector() -> MarkerDetector:
+    """The fast marker detector that finding parts and re-checking markers share.
+
+    One instance, because in fast mode it remembers the markers the last frame showed
+    (`MarkerDetector`), and the frames of the table are those frames."""
+    return MarkerDetector(fast=True)
+
+
+def part_outlines_px(frame: np.ndarray) -> list[Array]:
+    """Part outlines in the frame, largest first, marker regions excluded."""
+    exclude = []
+    for detection in table_marker_detector().detect(frame).values():
+        centre = detection.centre
+        exclude.append(centre + (detection.corners - centre) * MARKER_EXCLUSION_SCALE)
+    return find_outlines(frame, exclude=exclude)
 
 
 def _class_contrast(gray: np.ndarray, level: float) -> float:

@@ -21,7 +21,7 @@ from playwright.async_api import Browser, ConsoleMessage, Page, expect
 
 from server.api import openapi_doc
 from server.api.dashboard import mount_dashboard
-from server.app import create_app
+from server.bootstrap.app import create_app
 from server.security.policy import POLICY
 from tests import serving
 from tests.rig import Rig, append_inspected_run, open_rig
@@ -66,7 +66,7 @@ class Dashboard:
 
 @pytest.fixture
 async def dashboard(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> AsyncIterator[Dashboard]:
-    """The rig's server with the dashboard mounted (a no-op if server/app.py mounts it)."""
+    """The rig's server with the dashboard mounted (a no-op if the app already mounts it)."""
     apps: list[FastAPI] = []
 
     def create_app_with_dashboard(*args: Any, **kwargs: Any) -> FastAPI:

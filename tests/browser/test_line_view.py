@@ -1,5 +1,5 @@
 """The line view in Debian's Chromium against Debian's mosquitto: the page is served by
-`python -m server.line_view` (a process), and reads the broker's WebSocket listener with
+`python -m server.line.view` (a process), and reads the broker's WebSocket listener with
 the vendored MQTT.js. Three stand-in cells publish the topic contract with paho
 (tests/line_publisher.py); one of them holds its connection with a last will and a
 one-second keep-alive and is then frozen (SIGSTOP: the socket stays open, as with a
@@ -23,7 +23,7 @@ import httpx
 import pytest
 from playwright.async_api import Browser, ConsoleMessage, Page, expect
 
-from server.line_broker import BrokerPorts
+from server.line.broker import BrokerPorts
 from tests.line_broker_fixture import running_broker
 from tests.line_publisher import publish_cell, state_message
 from tests.processes import ROOT, environment, stop
@@ -51,7 +51,7 @@ def line(tmp_path: Path) -> Iterator[Line]:
         ws = ["--broker-ws", broker.websocket_url]
         frozen = ["--cell", "cell-3", "--keepalive", "1"]
         view = subprocess.Popen(
-            [sys.executable, "-m", "server.line_view", "--port", str(port), *ws],
+            [sys.executable, "-m", "server.line.view", "--port", str(port), *ws],
             stdout=log,
             stderr=subprocess.STDOUT,
             text=True,

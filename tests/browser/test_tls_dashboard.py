@@ -24,9 +24,9 @@ from cryptography.hazmat.primitives import serialization
 from playwright.async_api import Error as PlaywrightError
 from playwright.async_api import async_playwright, expect
 
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import CellDevices
+from server.bootstrap.cell import Cell
+from server.core.worker.devices import CellDevices
+from server.settings.model import Settings
 from tests.browser.conftest import CHROMIUM, LAUNCH_ARGS, require_chromium
 from tests.conftest import demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot

@@ -18,9 +18,9 @@ import httpx
 import pytest
 import websockets
 
-from server.config import Settings
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.robot_jsonrpc import JsonRpcRobot
+from server.settings.model import Settings
 from tests.processes import server_process, simulator
 from tests.serving import admin_headers, free_port
 
@@ -219,7 +219,9 @@ def test_the_server_log_is_readable(cell) -> None:
     lines = text.splitlines()
     assert all(line.match(entry) for entry in lines if entry and not entry.startswith(" "))
     faults = [
-        entry for entry in lines if "[ERROR] server.core.worker: fault EMERGENCY_STOP" in entry
+        entry
+        for entry in lines
+        if "[ERROR] server.core.worker.worker: fault EMERGENCY_STOP" in entry
     ]
     assert faults and all(re.search(r"\(\w{6}-\d{6}\)", entry) for entry in faults)
     # The specification's Error: and Context: lines, indented under the fault's line.

@@ -30,7 +30,7 @@ import httpx
 import pytest
 import yaml
 
-from server.line_broker import DEMO_PASSWORDS, mosquitto_binary, write_password_file
+from server.line.broker import DEMO_PASSWORDS, mosquitto_binary, write_password_file
 from tests.processes import ROOT, environment, stop
 from tests.serving import free_port
 
@@ -152,7 +152,7 @@ def test_the_tls_overlay_serves_https_with_the_certificate_and_key_as_secrets(
         "cell_tls_key": {"file": str(key)},
     }
     assert server["healthcheck"]["test"] == [
-        "CMD", "python", "-m", "server.healthcheck", "https://127.0.0.1:8000/health"
+        "CMD", "python", "-m", "server.cli.healthcheck", "https://127.0.0.1:8000/health"
     ]  # fmt: skip
     plain = compose["services"]["server"]
     assert server["ports"] == plain["ports"] and server["command"] == plain["command"]
@@ -206,7 +206,7 @@ def test_every_service_is_health_checked_and_the_server_waits_for_its_devices(co
         if name == BROKER:  # the broker's image has its own client, no Python
             assert test[:2] == ["CMD", "mosquitto_sub"], test
             continue
-        assert test[:4] == ["CMD", "python", "-m", "server.healthcheck"], name
+        assert test[:4] == ["CMD", "python", "-m", "server.cli.healthcheck"], name
     assert services["server"]["depends_on"] == {
         name: {"condition": "service_healthy"} for name in SIMULATORS
     }
@@ -234,7 +234,7 @@ def test_the_image_runs_as_an_unprivileged_user_with_a_health_check() -> None:
     created = " ".join(rest for kind, rest in instructions if kind == "RUN")
     assert "useradd --system --uid 10001 --gid glue" in created and user == "glue"
     (health,) = [rest for kind, rest in instructions if kind == "HEALTHCHECK"]
-    assert '"server.healthcheck"' in health and "/health" in health
+    assert '"server.cli.healthcheck"' in health and "/health" in health
     (command,) = [rest for kind, rest in instructions if kind == "CMD"]
     assert command.startswith('["glue-server"')
 

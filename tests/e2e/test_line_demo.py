@@ -1,4 +1,4 @@
-"""`make line`'s module (server/line_demo.py) as a process: Debian's mosquitto, three
+"""`make line`'s module (server/line/demo.py) as a process: Debian's mosquitto, three
 cells and the line view really start, each cell with its own port, data directory, cell
 id and the broker's URL, and a SIGTERM (as Ctrl-C) stops every one of them together.
 
@@ -26,7 +26,7 @@ from pathlib import Path
 import httpx
 import paho.mqtt.client as paho
 
-from server.line_broker import DEMO_PASSWORDS, BrokerPorts
+from server.line.broker import DEMO_PASSWORDS, BrokerPorts
 from tests.processes import ROOT, environment, run_module, stop
 from tests.serving import free_port
 
@@ -93,7 +93,7 @@ def test_the_line_starts_and_stops_together(tmp_path: Path) -> None:
         with socket.socket() as probe:
             probe.bind(("127.0.0.1", port))
     data = tmp_path / "line"
-    argv = [sys.executable, "-m", "server.line_demo", "--data-dir", str(data)]
+    argv = [sys.executable, "-m", "server.line.demo", "--data-dir", str(data)]
     argv += ["--first-port", str(first), "--mqtt-port", str(mqtt), "--ws-port", str(ws)]
     argv += ["--view-port", str(view)]
     keepalive = {"GLUE_APP_MQTT_KEEPALIVE": "1"}  # offline 1.5 s after a cell goes silent
@@ -188,7 +188,7 @@ def test_one_process_exiting_stops_the_line(tmp_path: Path) -> None:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        argv = [sys.executable, "-m", "server.line_demo", "--data-dir", str(tmp_path / "line")]
+        argv = [sys.executable, "-m", "server.line.demo", "--data-dir", str(tmp_path / "line")]
         argv += ["--mqtt-port", str(port), "--ws-port", str(free_port())]
         answer = subprocess.run(
             argv, capture_output=True, text=True, env=environment(), cwd=ROOT, timeout=120

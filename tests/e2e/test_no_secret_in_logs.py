@@ -34,7 +34,7 @@ import websockets
 from asyncua import Client, ua
 
 from clients.client.mqtt_signing import sign_command
-from server.line_broker import DEMO_PASSWORDS
+from server.line.broker import DEMO_PASSWORDS
 from server.opcua.address_space import NAMESPACE_URI
 from tests.mosquitto import WAIT_S, login_of, mosquitto
 from tests.processes import server_process

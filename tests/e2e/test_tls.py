@@ -134,7 +134,7 @@ def test_the_containers_health_check_asks_over_https(cell: TlsCell) -> None:
     has; plain http to the same port is unhealthy."""
     for url, code in ((f"{cell.url}/health", 0), (f"http://127.0.0.1:{cell.port}/health", 1)):
         ran = subprocess.run(
-            [sys.executable, "-m", "server.healthcheck", url],
+            [sys.executable, "-m", "server.cli.healthcheck", url],
             capture_output=True,
             text=True,
             env=environment(),

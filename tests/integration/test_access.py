@@ -15,13 +15,13 @@ import websockets
 from fastapi.routing import APIRoute
 from starlette.routing import Route
 
-from server.app import create_app
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import CellDevices
+from server.bootstrap.app import create_app
+from server.bootstrap.cell import Cell
+from server.core.worker.devices import CellDevices
 from server.security.policy import POLICY, required_role
 from server.security.tickets import TicketBook
 from server.security.tokens import Principal, Role, TokenStore
+from server.settings.model import Settings
 from tests.conftest import demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, serve

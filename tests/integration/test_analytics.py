@@ -14,10 +14,10 @@ import httpx
 import pytest
 
 from server.api import analytics
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import CellDevices
-from server.openapi import generate
+from server.bootstrap.cell import Cell
+from server.cli.openapi import generate
+from server.core.worker.devices import CellDevices
+from server.settings.model import Settings
 from server.storage.journal import FILTERS, Record, records
 from tests.conftest import START, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot

@@ -10,10 +10,10 @@ import httpx
 import pytest
 import websockets
 
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import CellDevices
-from server.core.transitions import Event, State
+from server.bootstrap.cell import Cell
+from server.core.machine.transitions import Event, State
+from server.core.worker.devices import CellDevices
+from server.settings.model import Settings
 from tests.conftest import START, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, serve

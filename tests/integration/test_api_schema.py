@@ -47,13 +47,13 @@ from schemathesis.checks import CHECKS, load_all_checks
 from schemathesis.generation import GenerationMode
 
 from server.api.runtime_settings import RUNTIME_SETTINGS
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import CellDevices
+from server.bootstrap.cell import Cell
+from server.common.values import NAME_PATTERN
+from server.core.worker.devices import CellDevices
 from server.security.policy import required_role
 from server.security.tokens import Role
+from server.settings.model import Settings
 from server.storage.workpieces import WorkpieceIn
-from server.values import NAME_PATTERN
 from tests.conftest import demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.schema_bounds import unbounded_numbers

@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
+from server.common.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 from server.drivers.base import Camera, DeviceFault
 from server.drivers.camera import OpenCVCamera, SimulatedCamera
 from server.drivers.sim.camera_scene import chessboard_corner_pixels
-from server.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 
 
 def test_both_cameras_implement_the_protocol() -> None:

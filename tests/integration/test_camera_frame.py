@@ -12,8 +12,7 @@ import cv2
 import httpx
 import numpy as np
 
-from server.core.operations.workpieces import _outlines_px
-from server.vision.outlines import outline_to_mm
+from server.vision.outlines import outline_to_mm, part_outlines_px
 from tests.rig import SPRAY_DEMO, Rig, open_rig, run
 
 
@@ -68,7 +67,7 @@ async def test_the_latest_frame_follows_the_operations_that_capture(tmp_path) ->
         # It is the undistorted frame the run measured on: the part found in the served
         # JPEG, through the robot calibration, lies where the simulator put it.
         homography = rig.cell.stores.calibration.robot.homography
-        outline = outline_to_mm((await asyncio.to_thread(_outlines_px, image))[0], homography)
+        outline = outline_to_mm((await asyncio.to_thread(part_outlines_px, image))[0], homography)
         placed = camera.scene.workpieces[0].centroid_table_mm()
         assert np.linalg.norm(outline.mean(axis=0) - placed) < 2.0
 

@@ -39,11 +39,11 @@ from clients.client import (
     WaitTimeout,
     resolve_token,
 )
-from server.cell import Cell
-from server.config import Settings
-from server.core.bus import REPLAY_HISTORY
-from server.core.devices import CellDevices
-from server.core.transitions import Event
+from server.bootstrap.cell import Cell
+from server.core.infra.bus import REPLAY_HISTORY
+from server.core.machine.transitions import Event
+from server.core.worker.devices import CellDevices
+from server.settings.model import Settings
 from tests.conftest import demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, free_port, serve

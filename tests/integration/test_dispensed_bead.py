@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from server.bootstrap.devices import build_devices
-from server.config import Settings
 from server.drivers.camera import SimulatedCamera
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.sim.camera_bead import dispensed_by
 from server.drivers.sim.glue_sim import GlueSimulator
+from server.settings.model import Settings
 from server.vision.bead import expected_bead_width_mm
 from tests.rig import SPRAY_DEMO, Rig, open_rig, run
 

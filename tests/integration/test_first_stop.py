@@ -15,9 +15,9 @@ import fastapi.routing
 import httpx
 import pytest
 
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import CellDevices
+from server.bootstrap.cell import Cell
+from server.core.worker.devices import CellDevices
+from server.settings.model import Settings
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, serve
 

@@ -15,11 +15,11 @@ from pathlib import Path
 
 import pytest
 
+from server.common.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 from server.drivers import glue_registers as regs
 from server.drivers.base import DeviceFault, GlueDispenser
 from server.drivers.glue_modbus import COMMAND, POLL, URGENT, ModbusGlueDispenser, _LineArbiter
 from server.drivers.sim.glue_sim import GlueSimulator
-from server.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 
 TIMEOUT = 0.5  # the driver's glue_system_timeout in these tests
 POLL_S = 0.05

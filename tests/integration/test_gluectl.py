@@ -34,10 +34,10 @@ from clients.client import (
     Unreachable,
     WaitTimeout,
 )
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import CellDevices
-from server.core.transitions import Event
+from server.bootstrap.cell import Cell
+from server.core.machine.transitions import Event
+from server.core.worker.devices import CellDevices
+from server.settings.model import Settings
 from tests.conftest import demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import free_port, serve

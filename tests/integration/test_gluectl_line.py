@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from server.line_broker import BrokerPorts
+from server.line.broker import BrokerPorts
 from tests.line_broker_fixture import running_broker
 from tests.line_publisher import publish_cell, state_message
 from tests.processes import ROOT, environment, run_module, stop

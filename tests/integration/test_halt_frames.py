@@ -17,9 +17,9 @@ from typing import Any
 
 import pytest
 
-from server.core.devices import CellDevices
-from server.core.eager import start_task
+from server.core.infra.eager import start_task
 from server.core.operations.leash import Leash, leashed
+from server.core.worker.devices import CellDevices
 from server.drivers import glue_registers as regs
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.robot_jsonrpc import JsonRpcRobot

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server.errors import OperationError
+from server.common.errors import OperationError
 from server.vision.process import ImageProcess, ImageProcessFailed
 from tests.processes import has_ended
 

@@ -13,7 +13,7 @@ import stat
 import numpy as np
 import pytest
 
-from server.config import DEFAULT_MARKER_POSITIONS_MM
+from server.settings.model import DEFAULT_MARKER_POSITIONS_MM
 from tests.rig import WAIT_S, Rig, open_rig
 
 FAST_JOG = {"jog_speed_mm_s": 250.0, "jog_max_step_mm": 150.0}

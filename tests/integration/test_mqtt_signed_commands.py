@@ -26,7 +26,7 @@ from paho.mqtt.properties import Properties
 from clients.client import Refused
 from clients.client.mqtt_commands import AsyncMqttCommands, MqttTarget
 from clients.client.mqtt_signing import sign_command
-from server.line_broker import DEMO_PASSWORDS
+from server.line.broker import DEMO_PASSWORDS
 from tests.mosquitto import WAIT_S, Mosquitto, login_of, mosquitto
 from tests.processes import ROOT, environment
 from tests.rig import SPRAY_DEMO, open_rig

@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from server.config import DEFAULT_MARKER_POSITIONS_MM as GRID
 from server.drivers.sim.camera_scene import Scene
+from server.settings.model import DEFAULT_MARKER_POSITIONS_MM as GRID
 from server.vision.homography import pixels_to_robot
 from tests.rig import Rig, open_rig, run
 

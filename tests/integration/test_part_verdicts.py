@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 from asyncua import Client
 
-from server.core.runs import RunEnded
+from server.core.worker.runs import RunEnded
 from server.opcua.address_space import NAMESPACE_URI
 from tests.mosquitto import mosquitto, subscriber
 from tests.rig import SPRAY_DEMO, WAIT_S, Rig, append_inspected_run, open_rig

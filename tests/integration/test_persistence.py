@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import CellDevices
-from server.core.events import StopPayload
-from server.core.transitions import Command, State
+from server.bootstrap.cell import Cell
+from server.core.machine.events import StopPayload
+from server.core.machine.transitions import Command, State
+from server.core.worker.devices import CellDevices
+from server.settings.model import Settings
 from server.storage.journal import Journal, records
 from tests.conftest import START_PAYLOAD, demo_stores, wait_for_state
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot

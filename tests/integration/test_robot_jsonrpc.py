@@ -24,11 +24,11 @@ from typing import Any
 
 import pytest
 
+from server.common.errors import DeviceDisconnected, DeviceTimeout, RobotCommandError
 from server.drivers.base import DeviceFault, Pose, Robot
 from server.drivers.jsonlines import encode_message, make_request, make_result
 from server.drivers.robot_jsonrpc import JsonRpcRobot, MotionInterrupted
 from server.drivers.sim.robot_sim import RobotSimulator
-from server.errors import DeviceDisconnected, DeviceTimeout, RobotCommandError
 
 SPEED_FACTOR = 20.0
 TIMEOUT = 3.0  # robot_communication_timeout for most tests

@@ -15,10 +15,10 @@ import httpx
 import pytest
 
 from server.api import commands
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import CellDevices
-from server.core.transitions import State
+from server.bootstrap.cell import Cell
+from server.core.machine.transitions import State
+from server.core.worker.devices import CellDevices
+from server.settings.model import Settings
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, serve
 

@@ -12,9 +12,9 @@ import httpx
 import pytest
 
 from server.api.runtime_settings import RUNTIME_SETTINGS
-from server.cell import Cell
-from server.config import Settings
-from server.core.devices import CellDevices
+from server.bootstrap.cell import Cell
+from server.core.worker.devices import CellDevices
+from server.settings.model import Settings
 from tests.conftest import demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, serve

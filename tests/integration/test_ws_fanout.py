@@ -27,10 +27,10 @@ import websockets
 from websockets.asyncio.client import ClientConnection, connect
 
 from server.api import ws as ws_module
-from server.cell import Cell
-from server.config import Settings
-from server.core.bus import Bus, BusMessage, DirectConsumer
-from server.core.devices import CellDevices
+from server.bootstrap.cell import Cell
+from server.core.infra.bus import Bus, BusMessage, DirectConsumer
+from server.core.worker.devices import CellDevices
+from server.settings.model import Settings
 from tests.conftest import demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, serve

@@ -18,10 +18,10 @@ import pytest
 import websockets
 from websockets.asyncio.client import ClientConnection, connect
 
-from server.cell import Cell
-from server.config import Settings
-from server.core.bus import REPLAY_HISTORY
-from server.core.devices import CellDevices
+from server.bootstrap.cell import Cell
+from server.core.infra.bus import REPLAY_HISTORY
+from server.core.worker.devices import CellDevices
+from server.settings.model import Settings
 from tests.conftest import START, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, serve

@@ -2,7 +2,7 @@
 
 Why read the file directly rather than ask the API: these checks judge what the
 server *wrote*, the record an operator or an auditor relies on after the fact.
-They use the transition table of server/core/transitions.py as data, so a
+They use the transition table of server/core/machine/transitions.py as data, so a
 journaled transition is valid exactly when the table has that row; a new row
 in the table is accepted here without editing this module.
 
@@ -16,7 +16,7 @@ import sqlite3
 from collections.abc import Iterable
 from pathlib import Path
 
-from server.core.transitions import TRANSITIONS
+from server.core.machine.transitions import TRANSITIONS
 
 Triple = tuple[str, str, str]  # (old_state, event, new_state)
 

@@ -8,7 +8,7 @@ a fault while the arm goes home: each rare, all bound to happen over enough
 cycles. What must never happen is judged at the end from what the server wrote
 and answered, not from what the soak believes it did:
 
-* every journaled transition is a row of the transition table (server/core/transitions.py);
+* every journaled transition is a row of the transition table (server/core/machine/transitions.py);
 * no HTTP answer is a 5xx other than 503 (the documented "queue full, retry");
 * every event the server acknowledged (a 202 or 409 with its event_id) is in the journal;
 * every fault ends in ERROR naming the device, with the valve closed and the robot still,
@@ -54,8 +54,8 @@ from typing import Any
 
 import httpx
 
-from server.core.transitions import OPERATIONAL_STATES
-from server.runtime import limit_malloc_arenas
+from server.common.runtime import limit_malloc_arenas
+from server.core.machine.transitions import OPERATIONAL_STATES
 from tests.reliability._journal_checks import (
     invalid_transitions,
     journaled_transitions,

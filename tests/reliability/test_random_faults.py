@@ -35,7 +35,7 @@ from pathlib import Path
 
 import pytest
 
-from server.core.transitions import OPERATIONAL_STATES
+from server.core.machine.transitions import OPERATIONAL_STATES
 from tests.rig import (
     DEVICE_FAULTS,
     SPRAY_DEMO,

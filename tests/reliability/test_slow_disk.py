@@ -34,7 +34,7 @@ from typing import Any
 import httpx
 import pytest
 
-import server.cell
+import server.bootstrap.cell
 from server.storage.journal import Journal
 from tests.reliability._journal_checks import missing_events
 from tests.rig import SPRAY_DEMO, Rig, open_rig
@@ -104,7 +104,7 @@ class SlowJournal(Journal):
 
 @asynccontextmanager
 async def slow_rig(data: Path, monkeypatch: pytest.MonkeyPatch) -> AsyncIterator[Rig]:
-    monkeypatch.setattr(server.cell, "Journal", SlowJournal)
+    monkeypatch.setattr(server.bootstrap.cell, "Journal", SlowJournal)
     async with open_rig(data) as rig:
         assert isinstance(rig.cell.journal, SlowJournal)
         yield rig

@@ -1,6 +1,6 @@
 """The safety order as a property of the table: every (state, event) pair, no event loop.
 
-What a transition does is derived from its row (server/core/actions.py), so
+What a transition does is derived from its row (server/core/machine/actions.py), so
 these checks cover every path the machine can take, not the few a scenario
 test happens to drive.
 """
@@ -11,10 +11,10 @@ import itertools
 
 import pytest
 
-from server.core.actions import EXIT_ACTIONS, Action, actions_of, ends_operation
-from server.core.engine import REQUIRED_DEVICES, Facts, step
-from server.core.transitions import OPERATIONAL_STATES, Event, State, transitions
-from server.errors import TransitionNotAllowed
+from server.common.errors import TransitionNotAllowed
+from server.core.machine.actions import EXIT_ACTIONS, Action, actions_of, ends_operation
+from server.core.machine.engine import REQUIRED_DEVICES, Facts, step
+from server.core.machine.transitions import OPERATIONAL_STATES, Event, State, transitions
 
 ALL_READY = Facts(ready_devices=REQUIRED_DEVICES)
 PAIRS = list(itertools.product(State, Event))

@@ -6,10 +6,10 @@ import asyncio
 
 import pytest
 
-from server.core.bus import SLOW_CONSUMER, WAKE_BATCH, Bus, SubscriptionClosed
-from server.core.event_queue import Envelope, EventQueue, Priority
-from server.core.transitions import Event
-from server.errors import EventQueueFull
+from server.common.errors import EventQueueFull
+from server.core.infra.bus import SLOW_CONSUMER, WAKE_BATCH, Bus, SubscriptionClosed
+from server.core.machine.transitions import Event
+from server.core.worker.event_queue import Envelope, EventQueue, Priority
 
 
 async def test_sequence_numbers_rise_by_one_for_every_subscriber() -> None:

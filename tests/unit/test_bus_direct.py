@@ -13,7 +13,13 @@ import random
 
 import pytest
 
-from server.core.bus import DELIVERY_BUDGET, SLOW_CONSUMER, Bus, BusMessage, SubscriptionClosed
+from server.core.infra.bus import (
+    DELIVERY_BUDGET,
+    SLOW_CONSUMER,
+    Bus,
+    BusMessage,
+    SubscriptionClosed,
+)
 
 
 class Consumer:

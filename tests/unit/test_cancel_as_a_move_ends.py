@@ -14,10 +14,10 @@ import asyncio
 
 import pytest
 
-from server.config import Settings
 from server.core.operations.base import OperationContext
 from server.core.operations.safe_position import move_to_safe_position
 from server.drivers.base import Pose
+from server.settings.model import Settings
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
 

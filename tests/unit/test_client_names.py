@@ -9,8 +9,8 @@ import inspect
 import pytest
 
 from clients.client import COMMANDS, STATES, AsyncCellClient, CellClient, builders, normalize_state
-from server.core.transitions import COMMANDS as SERVER_COMMANDS
-from server.core.transitions import State
+from server.core.machine.transitions import COMMANDS as SERVER_COMMANDS
+from server.core.machine.transitions import State
 from server.security.policy import POLICY
 
 

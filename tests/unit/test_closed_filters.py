@@ -9,10 +9,10 @@ from __future__ import annotations
 
 from typing import get_args
 
-from server.core.faults import Classification
-from server.core.transitions import OPERATION_OF_STATE
-from server.notify.targets import NOTICE_KINDS
+from server.core.machine.faults import Classification
+from server.core.machine.transitions import OPERATION_OF_STATE
 from server.orders.model import DEFECTIVE, GOOD, OrderState
+from server.settings.webhooks import NOTICE_KINDS
 from server.storage.journal.schema import FILTERS
 
 

@@ -14,8 +14,8 @@ import pytest
 from asyncua import ua
 
 from server.api.commands import invalid_request, payload_of
-from server.core.events import StartPayload, StopPayload
-from server.core.transitions import Command
+from server.core.machine.events import StartPayload, StopPayload
+from server.core.machine.transitions import Command
 from server.opcua.methods import METHODS, body_of
 
 START = next(m for m in METHODS if m.name == "Start")

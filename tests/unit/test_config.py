@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from server.config import Settings, marker_layout_problems
-from server.settings_reference import facts
+from server.settings.model import Settings, marker_layout_problems
+from server.settings.reference import facts
 from tests.schema_bounds import unbounded_numbers
 
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import time
 
-from server.config import Settings
-from server.core.devices import CellDevices
-from server.core.transitions import State
-from server.facade import EmbeddedCell, blocking_operation
+from server.core.machine.transitions import State
+from server.core.worker.devices import CellDevices
+from server.embedded.facade import EmbeddedCell, blocking_operation
+from server.settings.model import Settings
 from tests.conftest import demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 

@@ -1,4 +1,4 @@
-"""Fault classification (server/core/faults.py) for every code the server raises.
+"""Fault classification (server/core/machine/faults.py) for every code the server raises.
 
 The table below is the decision, code by code. A scan of the source finds every fault
 code the server can produce; a new code fails `test_every_code_raised_is_in_the_table`
@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from server.core import faults
-from server.core.faults import classify, recommended_action
+from server.core.machine import faults
+from server.core.machine.faults import classify, recommended_action
 
 SERVER = Path(__file__).resolve().parents[2] / "server"
 

@@ -1,4 +1,4 @@
-"""Commands that answer at once cost no task (server/core/eager.py), and nothing else changes.
+"""Commands that answer at once cost no task (server/core/infra/eager.py), and nothing else changes.
 
 The halt still puts the valve's close first and lets neither command wait for
 the other's answer; a pause still cancels a move on the spot while the run goes
@@ -12,10 +12,10 @@ import contextvars
 import gc
 from typing import Any
 
-from server.config import Settings
-from server.core.devices import CellDevices
-from server.core.eager import Started, start_task
+from server.core.infra.eager import Started, start_task
 from server.core.operations.base import PauseGate
+from server.core.worker.devices import CellDevices
+from server.settings.model import Settings
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 import pytest
 from pydantic import ValidationError
 
-from server.config import Settings
 from server.security.forwarded import (
     UNKNOWN,
     client_address,
     parse_networks,
     rewritten_by_server,
 )
+from server.settings.model import Settings
 
 PROXIES = parse_networks(["127.0.0.1", "192.0.2.0/24", "2001:db8::/32"])
 

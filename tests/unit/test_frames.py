@@ -5,10 +5,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from server.config import Settings
-from server.core.frames import LatestFrame
 from server.core.operations.base import OperationContext
 from server.core.operations.camera_frames import capture, capture_undistorted
+from server.core.operations.frames import LatestFrame
+from server.settings.model import Settings
 from server.storage import CellStores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 

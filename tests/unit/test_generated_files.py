@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from server.core.diagram import TARGET_FILES, diagram_block
-from server.openapi import generate
-from server.settings_doc import DEFAULT_PATH as SETTINGS_DOC
-from server.settings_doc import render as render_settings_doc
+from server.cli.openapi import generate
+from server.cli.settings_doc import DEFAULT_PATH as SETTINGS_DOC
+from server.cli.settings_doc import render as render_settings_doc
+from server.core.machine.diagram import TARGET_FILES, diagram_block
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -31,7 +31,7 @@ def test_openapi_json_matches_the_app() -> None:
 def test_settings_doc_matches_the_settings_model() -> None:
     committed = (ROOT / SETTINGS_DOC).read_text(encoding="utf-8")
     assert committed == render_settings_doc(), (
-        f"{SETTINGS_DOC} is stale: run `python -m server.settings_doc --write`"
+        f"{SETTINGS_DOC} is stale: run `python -m server.cli.settings_doc --write`"
     )
 
 

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 
 from server.api.commands import _status
-from server.core.events import AuditNote, Outcome
-from server.core.transitions import Event, State
+from server.core.machine.events import AuditNote, Outcome
+from server.core.machine.transitions import Event, State
 from server.security.tokens import Role, TokenStore
 from server.storage.journal import Record
 from tests.conftest import START_PAYLOAD

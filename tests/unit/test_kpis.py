@@ -20,9 +20,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from server.core import kpis
-from server.core.kpis import Window, compute_kpis, state_durations
-from server.core.transitions import State
+from server.core.machine.transitions import State
+from server.views import kpis
+from server.views.kpis import Window, compute_kpis, state_durations
 
 ROOT = Path(__file__).resolve().parents[2]
 DOC = ROOT / "docs" / "kpis.md"

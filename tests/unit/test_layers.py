@@ -1,10 +1,24 @@
-"""The layers import downwards only: a driver or a vision module never reaches up.
+"""Every package of the server imports only what the table below allows it.
 
-Drivers are device clients and simulators; the composition root
-(server/bootstrap/) is what joins them to the core. Vision is pure geometry and
-image processing on arrays. Checked on the source's own imports (`ast`), lazy
-imports inside functions included, so a shortcut shows up here and not as an
-import cycle later.
+One table, `ALLOWED`, names for each package under server/ the other packages it may
+import; a module's imports of its own package are always allowed. A package missing
+from the table fails the test, so a new package states where it sits before it lands.
+Checked on the sources' own imports (`ast`), lazy imports inside functions and
+`TYPE_CHECKING` blocks included, so a shortcut shows up here and not as an import
+cycle later.
+
+A package is a directory with an `__init__.py` (`core/machine`, `drivers/sim`,
+`storage/journal`); `server` is the entry point and the top package's own files. An
+entry naming a module rather than a package (`bootstrap.cell`) allows that module
+alone.
+
+Read from the bottom up: `common` and `vision` import nothing of the server (vision is
+pure geometry and image processing on arrays); drivers are device clients and
+simulators and never reach the core, the transports or the composition root; the
+core's machine, worker and operations sit above the drivers, storage and quality;
+the read models (`views`) and the plant's services (`notify`, `orders`) above the
+core; the transports (`api`, `mqtt`, `opcua`) above those; `bootstrap` composes them
+all, and the command-line tools and the entry point start it.
 """
 
 from __future__ import annotations
@@ -16,58 +30,162 @@ import pytest
 
 SERVER = Path(__file__).resolve().parents[2] / "server"
 
-# What a package must not import (a module or anything under it).
-FORBIDDEN = {
-    "drivers": ("server.core", "server.api", "server.bootstrap", "server.cell", "server.app"),
-}
-# What a package may import of the server besides itself; everything else is refused.
-ONLY = {
-    "vision": ("server.vision",),
-}
+# The running cell the transports, the order book and the embedded API drive.
+CELL = "bootstrap.cell"
+
+ALLOWED: dict[str, tuple[str, ...]] = {
+    # the shared vocabulary and pure functions: nothing of the server
+    "common": (),
+    "vision": (),
+    "core.infra": (),
+    "core": (),
+    # data at rest, policies, the settings
+    "security": ("common", "storage"),
+    "settings": ("common", "security"),
+    "storage": ("common", "storage.journal", "vision"),
+    "storage.journal": ("common", "storage"),
+    # devices
+    "drivers": ("common", "drivers.sim", "vision"),
+    "drivers.sim": ("drivers", "settings", "vision"),
+    # measuring a run
+    "quality": ("drivers", "settings", "vision"),
+    # the core
+    "core.operations": (
+        "common", "core.infra", "drivers", "quality", "settings", "storage", "vision",
+    ),
+    "core.machine": ("common", "core.operations", "drivers", "settings", "storage"),
+    "core.worker": (
+        "common", "core.infra", "core.machine", "core.operations", "drivers", "settings",
+        "storage", "storage.journal",
+    ),
+    # read models and the plant's services, above the core
+    "views": (
+        "common", "core.infra", "core.machine", "core.operations", "core.worker", "drivers",
+        "quality", "security", "settings", "storage", "vision",
+    ),
+    "notify": (
+        "core.infra", "core.worker", "quality", "security", "settings", "storage.journal",
+    ),
+    "orders": (
+        CELL, "core.infra", "core.machine", "core.worker", "drivers", "storage.journal",
+    ),
+    # transports
+    "api": (
+        CELL, "common", "core.infra", "core.machine", "core.operations", "core.worker",
+        "orders", "quality", "security", "settings", "storage", "storage.journal", "views",
+    ),
+    "mqtt": (
+        CELL, "api", "common", "core.infra", "core.machine", "core.worker", "quality",
+        "security", "settings", "storage.journal",
+    ),
+    "opcua": (
+        CELL, "api", "common", "core.infra", "core.machine", "security", "settings",
+        "storage", "storage.journal",
+    ),
+    "embedded": (CELL, "core.machine", "core.operations", "core.worker", "settings"),
+    # the composition root, and what starts it
+    "bootstrap": (
+        "api", "common", "core.infra", "core.machine", "core.operations", "core.worker",
+        "drivers", "drivers.sim", "mqtt", "notify", "opcua", "orders", "security",
+        "settings", "storage", "storage.journal", "views", "vision",
+    ),
+    "cli": ("bootstrap", "settings", "storage"),
+    "line": ("api",),
+    "server": (
+        "api", "bootstrap", "cli", "common", "opcua", "settings", "storage", "vision",
+    ),
+}  # fmt: skip
+
+
+def packages() -> set[str]:
+    """Every package under server/, dotted from server/ (`server` for the top one)."""
+    return {
+        ".".join(init.parent.relative_to(SERVER).parts) or "server"
+        for init in SERVER.rglob("__init__.py")
+    }
+
+
+PACKAGES = packages()
+PACKAGES_DOTTED = {"server"} | {f"server.{p}" for p in PACKAGES if p != "server"}
+
+
+def package_of(module: str) -> str:
+    """The package a dotted `server...` module belongs to: the deepest one holding it."""
+    parts = module.split(".")[1:]
+    for end in range(len(parts), 0, -1):
+        name = ".".join(parts[:end])
+        if name in PACKAGES:
+            return name
+    return "server"
 
 
 def imported_modules(path: Path) -> list[tuple[int, str]]:
-    """Every absolute module a source file imports, with its line."""
+    """Every absolute module of the server a source file imports, with its line."""
     found = []
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
         if isinstance(node, ast.Import):
             found.extend((node.lineno, alias.name) for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
             assert node.level == 0, f"{path}:{node.lineno}: relative import"
-            if node.module == "server":  # `from server import core` names the module
-                found.extend((node.lineno, f"server.{alias.name}") for alias in node.names)
+            base = node.module or ""
+            if base in PACKAGES_DOTTED:  # `from server.core import kpis` names a module
+                found.extend((node.lineno, f"{base}.{alias.name}") for alias in node.names)
             else:
-                found.append((node.lineno, node.module or ""))
-    return found
+                found.append((node.lineno, base))
+    return [(line, module) for line, module in found if module.split(".")[0] == "server"]
 
 
-def under(module: str, prefixes: tuple[str, ...]) -> bool:
-    return any(module == p or module.startswith(p + ".") for p in prefixes)
+def allowed(own: str, module: str) -> bool:
+    target = package_of(module)
+    if target == own:
+        return True
+    for entry in ALLOWED[own]:
+        if entry in PACKAGES:
+            if target == entry:
+                return True
+        elif module == f"server.{entry}" or module.startswith(f"server.{entry}."):
+            return True
+    return False
 
 
 def sources(package: str) -> list[Path]:
-    files = sorted((SERVER / package).rglob("*.py"))
+    folder = SERVER if package == "server" else SERVER.joinpath(*package.split("."))
+    files = sorted(folder.glob("*.py"))
     assert files, package
     return files
 
 
-@pytest.mark.parametrize("package", sorted(FORBIDDEN))
-def test_package_does_not_import_the_layers_above(package: str) -> None:
+def test_every_package_has_its_row() -> None:
+    assert sorted(PACKAGES - ALLOWED.keys()) == [], "packages missing from ALLOWED"
+    assert sorted(ALLOWED.keys() - PACKAGES) == [], "ALLOWED names packages that are gone"
+
+
+def test_every_entry_names_a_package_or_a_module() -> None:
+    for row in ALLOWED.values():
+        for entry in row:
+            path = SERVER.joinpath(*entry.split("."))
+            assert entry in PACKAGES or path.with_suffix(".py").is_file(), entry
+
+
+@pytest.mark.parametrize("package", sorted(ALLOWED))
+def test_package_imports_only_what_its_row_allows(package: str) -> None:
     wrong = [
         f"{path.relative_to(SERVER.parent)}:{line}: {module}"
         for path in sources(package)
         for line, module in imported_modules(path)
-        if under(module, FORBIDDEN[package])
+        if not allowed(package, module)
     ]
-    assert not wrong, "\n".join(wrong)
+    assert not wrong, f"{package} may import only {ALLOWED[package]}:\n" + "\n".join(wrong)
 
 
-@pytest.mark.parametrize("package", sorted(ONLY))
-def test_package_imports_only_itself_of_the_server(package: str) -> None:
-    wrong = [
-        f"{path.relative_to(SERVER.parent)}:{line}: {module}"
-        for path in sources(package)
-        for line, module in imported_modules(path)
-        if under(module, ("server",)) and not under(module, ONLY[package])
-    ]
-    assert not wrong, "\n".join(wrong)
+def test_the_lowest_layers_import_nothing_of_the_server() -> None:
+    """vision stays pure and common stays shared: neither may ever gain a row."""
+    assert ALLOWED["vision"] == ALLOWED["common"] == ()
+
+
+def test_drivers_never_reach_the_core_or_above() -> None:
+    """Drivers are device clients and simulators: the composition root joins them to the core."""
+    above = ("core", "api", "mqtt", "opcua", "bootstrap", "views", "orders", "notify")
+    for package in ("drivers", "drivers.sim"):
+        reached = [e for e in ALLOWED[package] if e.split(".")[0] in above]
+        assert not reached, (package, reached)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import asyncio
 
 from server.api.ws import WebSocketHub
-from server.core.bus import Bus
-from server.core.live import device_message
+from server.core.infra.bus import Bus
+from server.views.live import device_message
 
 
 def test_a_device_message_carries_the_readings_and_their_age() -> None:

@@ -1,5 +1,5 @@
 """The net under every log line: server/security/redaction.py and the filter that
-server/logging_setup.py puts on the root handlers, on real logging records."""
+server/bootstrap/logging_setup.py puts on the root handlers, on real logging records."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from collections.abc import Iterator
 
 import pytest
 
-from server.config import Settings
-from server.logging_setup import FORMAT, RedactingFilter, SpecFormatter, configure
+from server.bootstrap.logging_setup import FORMAT, RedactingFilter, SpecFormatter, configure
 from server.security.redaction import Redactor
+from server.settings.model import Settings
 
 TOKEN = "gc_0123abcd_Zm9vYmFyYmF6cXV4cXV1eGZvb2Jhcg-_x"
 SECRET = TOKEN.split("_", 2)[2]

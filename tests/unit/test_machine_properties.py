@@ -16,20 +16,20 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
-from server.config import Settings
-from server.core.bus import Bus
-from server.core.devices import CellDevices
-from server.core.event_queue import Priority
-from server.core.events import (
+from server.core.infra.bus import Bus
+from server.core.machine.events import (
     CreateWorkpiecePayload,
     FaultPayload,
     Payload,
     RunCompletedPayload,
     RunFailedPayload,
 )
+from server.core.machine.transitions import TRANSITIONS, Event, State
 from server.core.operations import default_operations
-from server.core.transitions import TRANSITIONS, Event, State
-from server.core.worker import Worker
+from server.core.worker.devices import CellDevices
+from server.core.worker.event_queue import Priority
+from server.core.worker.worker import Worker
+from server.settings.model import Settings
 from server.storage.journal import Journal
 from tests.conftest import START_PAYLOAD, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot

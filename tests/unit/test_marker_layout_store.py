@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import stat
 
-from server.cell import restore_taught_layout
-from server.config import DEFAULT_MARKER_POSITIONS_MM, Settings
+from server.bootstrap.cell import restore_taught_layout
+from server.settings.model import DEFAULT_MARKER_POSITIONS_MM, Settings
 from server.storage.marker_layout import MarkerLayoutStore
 
 SHIFTED = [(x + 5.0, y) for x, y in DEFAULT_MARKER_POSITIONS_MM]

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import asyncio
 
-from server.core.transitions import Event, State
+from server.core.machine.transitions import Event, State
 from server.drivers.base import Pose
 from tests.conftest import START_PAYLOAD, wait_for_state
 from tests.fakes import FakeRobot

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import math
 
-from server.core.transitions import State
+from server.core.machine.transitions import State
 from server.opcua import tags
 from server.opcua.packml import PACKML_STATE, PackMLState, UnitMode, packml_state, unit_mode
 

@@ -8,8 +8,8 @@ still arrives once its interval has passed.
 
 from __future__ import annotations
 
-from server.core.bus import Bus
-from server.core.paced_feed import PacedFeed
+from server.core.infra.bus import Bus
+from server.core.infra.paced_feed import PacedFeed
 
 
 class StillClock:

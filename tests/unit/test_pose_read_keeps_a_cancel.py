@@ -13,7 +13,7 @@ import asyncio
 
 import pytest
 
-from server.core.jog import read_pose_within
+from server.core.operations.jog import read_pose_within
 from server.drivers.base import Pose
 from tests.fakes import FakeRobot
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+from server.common.errors import OperationError
+from server.core.machine.transitions import Event, State
 from server.core.operations import OperationContext, OperationResult, OperationWarning
-from server.core.transitions import Event, State
-from server.errors import OperationError
 from tests.conftest import START_PAYLOAD, wait_for_state
 from tests.fakes import FakeClock
 

@@ -1,4 +1,4 @@
-"""The process settings `python -m server` applies (server/runtime.py)."""
+"""The process settings `python -m server` applies (server/common/runtime.py)."""
 
 from __future__ import annotations
 
@@ -15,9 +15,7 @@ from pathlib import Path
 import pytest
 from starlette.applications import Starlette
 
-from server.core.devices import CellDevices
-from server.core.snapshot import SnapshotFile
-from server.runtime import (
+from server.common.runtime import (
     GC_THRESHOLDS,
     background_held,
     background_thread,
@@ -27,6 +25,8 @@ from server.runtime import (
     raise_open_file_limit,
     tune_garbage_collection,
 )
+from server.core.worker.devices import CellDevices
+from server.core.worker.snapshot import SnapshotFile
 from server.storage.journal import Journal
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 

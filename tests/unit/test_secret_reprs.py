@@ -6,10 +6,10 @@ traceback's locals and a debug line show reprs, so a repr must never carry a sec
 
 from __future__ import annotations
 
-from server.config import Settings
-from server.notify.targets import WebhookTarget
 from server.opcua.identity import CellUser
 from server.security.tokens import Role, TokenStore
+from server.settings.model import Settings
+from server.settings.webhooks import WebhookTarget
 
 TOKEN = "gc_0123abcd_" + "S" * 43
 HOOK = "http://127.0.0.1:9000/hooks/path-secret?auth=query-secret"

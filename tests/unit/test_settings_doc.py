@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from server.config import Settings
-from server.settings_doc import render
-from server.settings_reference import facts, groups
+from server.cli.settings_doc import render
+from server.settings.model import Settings
+from server.settings.reference import facts, groups
 
 
 def test_every_setting_has_one_row_with_its_variable_default_and_bounds() -> None:

@@ -8,8 +8,8 @@ import re
 
 import pytest
 
-from server.settings_load import SettingsRefused, load_settings, unknown_variables
-from server.settings_reference import facts, known_variables, variables_by_setting
+from server.settings.load import SettingsRefused, load_settings, unknown_variables
+from server.settings.reference import facts, known_variables, variables_by_setting
 
 
 @pytest.mark.parametrize(

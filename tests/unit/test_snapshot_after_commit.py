@@ -8,12 +8,12 @@ import json
 import time
 from pathlib import Path
 
-from server.core.context import MachineContext
-from server.core.event_queue import Envelope, Priority
-from server.core.events import Outcome, payload_of
-from server.core.recorder import Recorder
-from server.core.snapshot import SnapshotFile
-from server.core.transitions import Event, State
+from server.core.machine.events import Outcome, payload_of
+from server.core.machine.transitions import Event, State
+from server.core.worker.context import MachineContext
+from server.core.worker.event_queue import Envelope, Priority
+from server.core.worker.recorder import Recorder
+from server.core.worker.snapshot import SnapshotFile
 
 
 class HeldJournal:

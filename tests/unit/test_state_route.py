@@ -8,8 +8,8 @@ from fastapi.routing import APIRoute
 
 from server.api.direct_json import DirectJsonRoute
 from server.api.methods import _http_routes
-from server.app import create_app
-from server.config import Settings
+from server.bootstrap.app import create_app
+from server.settings.model import Settings
 
 
 def test_state_is_tried_first_on_the_apps_own_router(tmp_path: Path) -> None:

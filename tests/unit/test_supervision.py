@@ -1,4 +1,4 @@
-"""Supervision of one operation run (server/core/supervision.py), without the worker.
+"""Supervision of one operation run (server/core/worker/supervision.py), without the worker.
 
 The budget (processing_timeout) counts running time only, not time held in PAUSED;
 recoverable failures are retried in place when auto_recovery_enabled, up to
@@ -19,10 +19,10 @@ from typing import Any
 
 import pytest
 
-from server.config import Settings
+from server.common.errors import DeviceError, DeviceTimeout, OperationError
 from server.core.operations.base import Operation, OperationContext, OperationResult
-from server.core.supervision import RunOutcome, supervise
-from server.errors import DeviceError, DeviceTimeout, OperationError
+from server.core.worker.supervision import RunOutcome, supervise
+from server.settings.model import Settings
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
 Retry = tuple[int, str, bool]

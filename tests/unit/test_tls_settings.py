@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from server import tls
-from server.config import Settings
-from server.settings_load import SettingsRefused, load_settings
+from server.bootstrap import tls
+from server.settings.load import SettingsRefused, load_settings
+from server.settings.model import Settings
 
 CERT = Path("/etc/glue-cell/tls/cell.pem")
 KEY = Path("/etc/glue-cell/tls/cell.key")

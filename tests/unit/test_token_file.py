@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from server.errors import ConfigurationError
+from server.common.errors import ConfigurationError
 from server.security.tokens import Role, TokenStore
 
 GOOD: dict[str, Any] = {

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from server.config import Settings
+from server.common.errors import OperationError
 from server.core.operations import trajectory
 from server.core.operations.trajectory import (
     TRAVEL_CLEARANCE_MM,
@@ -29,7 +29,7 @@ from server.core.operations.trajectory import (
 )
 from server.core.operations.workpieces import Target
 from server.drivers.base import Pose
-from server.errors import OperationError
+from server.settings.model import Settings
 from server.storage.workpieces import SpraySettings
 from server.vision.paths import SprayPattern, spray_polylines
 

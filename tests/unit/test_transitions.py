@@ -6,10 +6,10 @@ import itertools
 
 import pytest
 
-from server.core.actions import Action as A
-from server.core.engine import Facts, available_commands, check, step
-from server.core.transitions import COMMANDS, TRANSITIONS, Event, State, normalize_command
-from server.errors import GuardRefused, TransitionNotAllowed
+from server.common.errors import GuardRefused, TransitionNotAllowed
+from server.core.machine.actions import Action as A
+from server.core.machine.engine import Facts, available_commands, check, step
+from server.core.machine.transitions import COMMANDS, TRANSITIONS, Event, State, normalize_command
 
 S, E = State, Event
 OPERATIONAL = {

@@ -14,11 +14,11 @@ import functools
 import numpy as np
 import pytest
 
-from server.config import Settings
 from server.drivers.sim.bead_offline import Defects, lay_bead
 from server.drivers.sim.camera_degradations import Degradations
 from server.drivers.sim.camera_model import DEFAULT_CAMERA_MODEL, shifted_camera
 from server.drivers.sim.camera_scene import Scene, render_table
+from server.settings.model import Settings
 from server.vision.bead import (
     BeadSegment,
     BeadTolerances,

@@ -14,10 +14,10 @@ import psutil
 import pytest
 from pydantic import ValidationError
 
-from server.config import Settings
-from server.notify import destinations
-from server.notify.destinations import DestinationRefused, GuardedBackend
-from server.settings_load import SettingsRefused, load_settings
+from server.security import destinations
+from server.security.destinations import DestinationRefused, GuardedBackend
+from server.settings.load import SettingsRefused, load_settings
+from server.settings.model import Settings
 
 SECRET = "0123456789abcdef-secret"
 SECRET_PATH = "/estop/path-token-SHOULD-NOT-SHOW?key=query-SHOULD-NOT-SHOW"

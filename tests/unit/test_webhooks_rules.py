@@ -11,11 +11,11 @@ from dataclasses import replace
 import pytest
 from pydantic import ValidationError
 
-from server.config import Settings
-from server.core.runs import RunEnded
+from server.core.worker.runs import RunEnded
 from server.notify import notices, retry, signing
 from server.notify.notices import Notice
-from server.settings_load import SettingsRefused, load_settings
+from server.settings.load import SettingsRefused, load_settings
+from server.settings.model import Settings
 
 SECRET = "0123456789abcdef-secret"
 

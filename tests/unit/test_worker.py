@@ -8,12 +8,12 @@ from typing import Any
 
 import pytest
 
-from server.core.event_queue import Priority
-from server.core.events import FaultPayload, RunCompletedPayload, StopPayload
+from server.common.errors import EventQueueFull, OperationError
+from server.core.machine.events import FaultPayload, RunCompletedPayload, StopPayload
+from server.core.machine.transitions import Command, Event, State
 from server.core.operations import OperationContext
-from server.core.transitions import Command, Event, State
+from server.core.worker.event_queue import Priority
 from server.drivers.base import Pose
-from server.errors import EventQueueFull, OperationError
 from tests.conftest import START_PAYLOAD, wait_for_state
 from tests.fakes import FakeClock, FakeGlue, FakeRobot
 

@@ -10,7 +10,7 @@ from websockets.streams import StreamReader
 from server.api.direct_json import DirectJsonRoute
 from server.api.schemas import AllowedView
 from server.api.ws import WebSocketHub
-from server.core.bus import BusMessage
+from server.core.infra.bus import BusMessage
 
 
 def _parsed(frame: bytes) -> Frame:

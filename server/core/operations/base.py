@@ -20,10 +20,10 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from server.config import Settings
-from server.core.clock import SYSTEM_CLOCK, Clock
-from server.core.frames import LatestFrame
+from server.core.infra.clock import SYSTEM_CLOCK, Clock
+from server.core.operations.frames import LatestFrame
 from server.drivers.base import Camera, GlueDispenser, Robot
+from server.settings.model import Settings
 from server.storage import CellStores
 
 

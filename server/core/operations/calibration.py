@@ -11,9 +11,10 @@ from typing import Any
 import cv2
 import numpy as np
 
+from server.common.errors import OperationError
 from server.core.operations.base import OperationContext, OperationResult, OperationWarning
 from server.core.operations.camera_frames import capture, capture_undistorted
-from server.errors import OperationError
+from server.quality.vision_check import DEGRADING_SHARE
 from server.vision.homography import (
     PlaneCalibration,
     annotate_markers,
@@ -110,9 +111,6 @@ def _calibrate_from_frame(
     annotated = annotate_markers(frame, detections, calibration.residuals_mm)
     ok, png = cv2.imencode(".png", annotated)
     return calibration, png.tobytes() if ok else None, checks
-
-
-DEGRADING_SHARE = 0.5  # of calibration_max_error_mm: accepted, but warned of
 
 
 async def calibrate_robot(ctx: OperationContext) -> OperationResult:

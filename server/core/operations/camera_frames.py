@@ -13,8 +13,8 @@ import time
 
 import numpy as np
 
+from server.common.errors import OperationError
 from server.core.operations.base import OperationContext
-from server.errors import OperationError
 from server.storage.calibration import CalibrationStore
 from server.vision.homography import PlaneCalibration
 from server.vision.intrinsics import undistort_frame
@@ -63,7 +63,7 @@ async def capture_undistorted(ctx: OperationContext, purpose: str) -> np.ndarray
 def robot_calibration_problem(store: CalibrationStore, purpose: str) -> OperationError | None:
     """Why the image → robot map cannot be used now, or None when it can.
 
-    Checked before a run is accepted (server/core/preconditions.py) and again,
+    Checked before a run is accepted (server/core/machine/preconditions.py) and again,
     raised, when the operation uses it.
     """
     if store.robot is None:

@@ -20,9 +20,9 @@ from __future__ import annotations
 import asyncio
 import math
 
+from server.common.errors import OperationError
 from server.core.operations.base import OperationContext
 from server.drivers.base import Pose
-from server.errors import OperationError
 
 ARRIVED_MM = 0.5  # a move stopped this close to its target counts as finished
 STILL_POLL_S = 0.005

@@ -9,12 +9,12 @@ command), and its target is checked against the workspace before it moves.
 
 from __future__ import annotations
 
-from server.config import Settings, outside_workspace
-from server.core.eager import within
+from server.common.errors import OperationError
+from server.core.infra.eager import within
 from server.core.operations.base import OperationContext
 from server.core.operations.motion import pausable_move
 from server.drivers.base import Pose
-from server.errors import OperationError
+from server.settings.model import Settings, outside_workspace
 
 
 def workspace_problem(pose: Pose, settings: Settings) -> str | None:

@@ -34,16 +34,16 @@ from typing import Any
 
 import numpy as np
 
-from server.config import Settings
+from server.common.errors import OperationError
 from server.core.operations.base import OperationContext, OperationResult, OperationWarning
+from server.core.operations.inspection import inspect_run
 from server.core.operations.motion import at, pausable_move
 from server.core.operations.safe_position import workspace_problem
 from server.core.operations.workpieces import Target, locate_workpieces
 from server.drivers.base import Pose
-from server.errors import OperationError
-from server.quality.inspection import inspect_run
 from server.quality.model import spray_segments
 from server.quality.sampler import RunSampler
+from server.settings.model import Settings
 from server.storage.inspection_images import NoRoomForImage
 from server.vision.paths import Checkpoint, SprayPattern, spray_polylines
 

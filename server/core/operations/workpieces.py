@@ -9,37 +9,25 @@ from __future__ import annotations
 
 import asyncio
 from dataclasses import dataclass
-from functools import cache
 from typing import Any
 
 import cv2
 import numpy as np
 from pydantic import ValidationError
 
+from server.common.errors import OperationError
 from server.core.operations.base import OperationContext, OperationResult
 from server.core.operations.camera_frames import capture_undistorted, require_robot_calibration
-from server.errors import OperationError
 from server.storage.workpieces import SpraySettings, Workpiece, WorkpieceIn
-from server.vision.markers import MarkerDetector
-from server.vision.outlines import find_outlines, match_outline, outline_to_mm, transform_outline
+from server.vision.outlines import (
+    match_outline,
+    outline_to_mm,
+    part_outlines_px,
+    transform_outline,
+)
 from server.vision.process import IMAGE_PROCESS
 
 THUMBNAIL_PX = 256
-MARKER_EXCLUSION_SCALE = 1.8  # the printed paper around a marker, with margin
-
-
-@cache
-def _detector() -> MarkerDetector:
-    return MarkerDetector(fast=True)
-
-
-def _outlines_px(frame: np.ndarray) -> list[np.ndarray]:
-    """Part outlines in the frame, largest first, marker regions excluded."""
-    exclude = []
-    for detection in _detector().detect(frame).values():
-        centre = detection.centre
-        exclude.append(centre + (detection.corners - centre) * MARKER_EXCLUSION_SCALE)
-    return find_outlines(frame, exclude=exclude)
 
 
 def _thumbnail(frame: np.ndarray, contour_px: np.ndarray) -> bytes:
@@ -64,7 +52,7 @@ def _not_found(what: str) -> OperationError:
 
 def _measure(frame: np.ndarray, homography: np.ndarray) -> tuple[np.ndarray, bytes]:
     """The largest part's outline (mm) and its thumbnail (PNG); run in the image process."""
-    outlines = _outlines_px(frame)
+    outlines = part_outlines_px(frame)
     if not outlines:
         raise _not_found("workpiece creation")
     return outline_to_mm(outlines[0], homography), _thumbnail(frame, outlines[0])
@@ -140,7 +128,7 @@ def _match_all(
 ) -> list[Target]:
     """Each part outline in the frame matched to the library; run in the image process."""
     targets = []
-    for contour in _outlines_px(frame):
+    for contour in part_outlines_px(frame):
         detected = outline_to_mm(contour, homography)
         match = match_outline(detected, library)
         if match is None:

@@ -38,7 +38,6 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from server.config import DEFAULT_MARKER_POSITIONS_MM
 from server.drivers.sim.camera_bead import BEAD_BGR, BeadLayer, bead_coverage
 from server.drivers.sim.camera_chessboard import (
     DEFAULT_CHESSBOARD,
@@ -64,6 +63,7 @@ from server.drivers.sim.camera_workpieces import (
     WorkpieceShape,
     polygon_area_centroid,
 )
+from server.settings.model import DEFAULT_MARKER_POSITIONS_MM
 
 logger = logging.getLogger(__name__)
 

@@ -12,9 +12,9 @@ import threading
 from collections.abc import Coroutine
 from typing import Any, TypeVar
 
-from server.config import Settings
 from server.drivers.sim.glue_sim import GlueSimulator
 from server.drivers.sim.robot_sim import RobotSimulator
+from server.settings.model import Settings
 
 T = TypeVar("T")
 

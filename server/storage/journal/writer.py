@@ -23,7 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from server.runtime import background_thread
+from server.common.runtime import background_thread
 from server.storage.journal.commit_chain import COMMIT_COLUMNS, CommitChain, Head, head_of
 from server.storage.journal.records import Record
 from server.storage.journal.schema import COMMIT_SEQ, SEALED, TABLES, time_column

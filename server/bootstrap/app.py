@@ -1,0 +1,277 @@
+"""The HTTP application: FastAPI routes around one running Cell.
+
+Everything the cell does is decided by the worker; this module only wires the
+routes, maps the core's typed errors to HTTP answers, and starts and stops the
+cell with the server.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import TYPE_CHECKING, Any
+
+from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
+from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import JSONResponse, Response
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from server.api import (
+    access,
+    admin,
+    analytics,
+    audit,
+    camera_preview,
+    commands,
+    inspections,
+    markers,
+    methods,
+    metrics,
+    openapi_doc,
+    orders,
+    queries,
+    webhooks,
+    workpieces,
+    ws,
+)
+from server.api.answers_in_flight import AnswersInFlight
+from server.api.audit_repeats import AuditRepeats
+from server.api.dashboard import mount_dashboard
+from server.api.limits import BodySizeLimit
+from server.api.observe import ResponseObservers
+from server.api.route_warmup import prepare_routes
+from server.api.schemas import RETRY_AFTER_S
+from server.api.stop_lane import StopLane
+from server.bootstrap.cell import Cell
+from server.common.errors import (
+    ChangeNotSaved,
+    ConfigurationError,
+    EventQueueFull,
+    JournalUnavailable,
+    WorkerStopped,
+)
+from server.mqtt.commands import CommandDoor
+from server.mqtt.link import MqttLink
+from server.settings.model import Settings
+from server.views.camera_preview import CameraPreview
+
+if TYPE_CHECKING:
+    from server.opcua.interface import OpcUaInterface
+
+log = logging.getLogger(__name__)
+
+
+def create_app(settings: Settings | None = None, *, cell: Cell | None = None) -> FastAPI:
+    """Build the app; the cell starts when the server starts serving."""
+    settings = settings or (cell.settings if cell else Settings())
+    cell = cell or Cell(settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        await cell.start()
+        app.state.access.tokens.ensure_admin()
+        app.state.metrics.attach(cell)
+        opcua = await _start_opcua(cell, app.state.access, app.state.answers)
+        app.state.mqtt = mqtt_link(app, settings, cell)
+        await prepare_routes(app)  # not on the first stop pressed
+        try:
+            yield
+        finally:
+            if app.state.mqtt is not None:
+                await app.state.mqtt.stop()  # `offline` before the cell stops
+            if opcua is not None:
+                await opcua.stop()
+            await app.state.metrics.detach()
+            await app.state.camera_preview.close()
+            app.state.audit_repeats.close()  # the counts folded so far, before the journal closes
+            await cell.stop()
+
+    app = FastAPI(
+        title="Glue cell control server",
+        version="0.1.0",
+        summary="One state machine drives a glue-spraying robot cell.",
+        lifespan=lifespan,
+        # No interactive /docs or /redoc: they load their scripts from a CDN, which a
+        # plant network may not reach, and they would be open routes. The description
+        # is /openapi.json (viewer) and, for integrators, openapi.json in the repository.
+        docs_url=None,
+        redoc_url=None,
+    )
+    app.state.cell = cell
+    app.state.settings = settings
+    app.state.mqtt = None  # the MQTT link, once started (mqtt_url set)
+    app.state.ws_hub = ws.WebSocketHub(
+        settings.max_broadcast_clients,
+        settings.ws_client_buffer,
+        per_token=settings.max_broadcast_clients_per_token,
+        reserved=settings.broadcast_clients_reserved,
+    )
+    app.state.access = access.Access(settings)
+    app.state.access.revocation_listeners.append(app.state.ws_hub.views.revoke)
+    app.state.camera_preview = CameraPreview(cell, settings)
+    app.state.access.revocation_listeners.append(app.state.camera_preview.revoke)
+    # The most polled route first, then its router: the router tries routes in order.
+    queries.add_state_route(app)
+    for router in (
+        queries.router,
+        commands.router,
+        workpieces.router,
+        orders.router,
+        markers.router,
+        analytics.router,
+        inspections.router,
+        metrics.router,
+        admin.router,
+        webhooks.router,
+        camera_preview.router,
+    ):
+        app.include_router(router)
+    app.state.metrics = metrics.Metrics(app)
+    # HEAD and OPTIONS, once the gate has let them through (each as its route needs).
+    app.state.route_methods = methods.RouteMethods(app)
+    app.add_middleware(methods.HttpManners, methods=app.state.route_methods)
+    # The e-stop's devices commanded as soon as the gate lets it through (before routing).
+    app.add_middleware(StopLane, stop_paths=commands.STOP_PATHS)
+    # Every HTTP request, before routing: the policy in server/security/policy.py.
+    app.add_middleware(access.AccessGate, access=app.state.access, stop_paths=commands.STOP_PATHS)
+    # The commands being answered: the plant's interfaces hold their work until none is.
+    app.state.answers = AnswersInFlight()
+    # Identical refusals within audit_repeat_window: one audit row with a count.
+    app.state.audit_repeats = AuditRepeats(settings.audit_repeat_window, lambda: cell.journal)
+    app.add_middleware(
+        ResponseObservers,
+        answers=app.state.answers,
+        observers=[
+            audit.audit_observer(
+                lambda scope: scope["app"].state.cell.journal, app.state.audit_repeats
+            ),
+            app.state.metrics.observe_response,
+        ],
+    )
+    if settings.cors_allowed_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_allowed_origins,
+            allow_methods=["GET", "POST", "PUT", "PATCH", "DELETE"],
+            allow_headers=["Authorization", "Content-Type"],
+            # What a dashboard on another origin needs to read: the camera frame's
+            # provenance and how long to wait after a 503.
+            expose_headers=["X-Frame-Time", "X-Frame-Source", "X-Frame-Run-Id", "Retry-After"],
+        )
+    app.add_middleware(
+        BodySizeLimit, max_bytes=settings.max_request_bytes, stop_paths=commands.STOP_PATHS
+    )
+    app.include_router(ws.router)
+    app.include_router(camera_preview.ws_router)
+    mount_dashboard(app)  # the operator dashboard at /, assets under /hmi/
+    _install_error_handlers(app)
+    # The document says what the app really does: its 422 body and the gate's roles.
+    openapi_doc.install(app)
+    return app
+
+
+async def _start_opcua(
+    cell: Cell, gate: access.Access, answers: AnswersInFlight
+) -> OpcUaInterface | None:
+    """The OPC UA server (server/opcua), if `opcua_endpoint` is set; started after the cell.
+
+    A failure to serve it stops the cell again and is logged as one line: the
+    server does not start without an interface it was configured to offer.
+    """
+    if cell.settings.opcua_endpoint is None:
+        return None
+    from server.opcua.interface import OpcUaInterface  # asyncua is loaded only when asked for
+
+    interface = OpcUaInterface(cell, gate.tokens, cell.settings, answers=answers)
+    try:
+        await interface.start()
+    except BaseException as exc:
+        if isinstance(exc, ConfigurationError):
+            log.critical("cannot start: %s", exc)
+        with contextlib.suppress(Exception):
+            await interface.stop()
+        await cell.stop()
+        raise
+    return interface
+
+
+def mqtt_link(app: FastAPI, settings: Settings, cell: Cell) -> MqttLink | None:
+    """The MQTT link, started, when mqtt_url is set (docs/plant-integration.md)."""
+    if settings.mqtt_url is None:
+        return None
+    door = None
+    if settings.mqtt_commands:
+        door = CommandDoor(
+            cell,
+            app.state.access.tokens,
+            f"mqtt:{settings.mqtt_url}",
+            max_age_s=settings.mqtt_command_max_age,
+            max_skew_s=settings.mqtt_command_max_skew,
+        )
+    link = MqttLink(
+        settings,
+        cell,
+        health=lambda: queries.health_of(app),
+        kpis=lambda: analytics.kpis_of(cell),
+        commands=door,
+        answers=app.state.answers,
+    )
+    app.state.mqtt = link  # before it starts: its first health names it
+    link.start()
+    return link
+
+
+def _install_error_handlers(app: FastAPI) -> None:
+    def current_state(request: Request) -> str:
+        cell = request.app.state.cell
+        return cell.view.state.value if cell.started else "INITIALIZING"
+
+    async def try_again_later(request: Request, exc: Exception) -> JSONResponse:
+        """503 for a full event queue, a worker shutting down or a journal that cannot
+        write: nothing was changed."""
+        request.state.audit_reason = str(exc)  # for the refusal's audit row
+        body = {
+            "accepted": False,
+            "state": current_state(request),
+            "message": str(exc),
+            "retry_after": RETRY_AFTER_S,
+        }
+        return JSONResponse(body, status_code=503, headers={"Retry-After": str(RETRY_AFTER_S)})
+
+    app.add_exception_handler(EventQueueFull, try_again_later)
+    app.add_exception_handler(405, methods.method_not_allowed)
+    app.add_exception_handler(WorkerStopped, try_again_later)
+    app.add_exception_handler(JournalUnavailable, try_again_later)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def refused(request: Request, exc: StarletteHTTPException) -> Response:
+        """The framework's answer, and the reason in the refusal's audit row (it was empty)."""
+        if isinstance(exc.detail, str) and not getattr(request.state, "audit_reason", None):
+            request.state.audit_reason = exc.detail
+        return await http_exception_handler(request, exc)
+
+    @app.exception_handler(ChangeNotSaved)
+    async def not_saved(request: Request, exc: ChangeNotSaved) -> JSONResponse:
+        """507 (no room) or 503: the change was on record but could not be written; not applied."""
+        return JSONResponse({"detail": str(exc)}, status_code=exc.status)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        problems = []
+        for error in exc.errors():
+            if error["type"] == "json_invalid":  # its loc is ("body", character position)
+                at, why = error["loc"][-1], error.get("ctx", {}).get("error", "")
+                message = f"not valid JSON at character {at}" + (f": {why}" if why else "")
+                problems.append({"field": "body", "message": message, "type": error["type"]})
+                continue
+            problems.append(commands.problem_of(error))  # as MQTT and OPC UA word it
+        body: dict[str, Any] = {"detail": commands.invalid_request(problems), "errors": problems}
+        request.state.audit_reason = body["detail"]  # the refusal's audit row says why
+        if commands.is_estop(request):
+            # A stop is never refused over its body: it is made, and the 422 says so.
+            body.update(await commands.stop_anyway(request))
+        return JSONResponse(body, status_code=422)

@@ -1,0 +1,318 @@
+"""The cell as one object: devices, bus, worker, and the simulators when asked for.
+
+This is the composition root of the core. The HTTP app and the in-process
+façade both wrap a `Cell`, so they share one code path to the machine.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from pydantic import ValidationError
+
+from server.bootstrap.logging_setup import log_path
+from server.core.infra.bus import Bus
+from server.core.machine.events import AuditNote, Outcome, Payload, StartPayload, StopPayload
+from server.core.machine.faults import classify
+from server.core.machine.transitions import (
+    COMMANDS,
+    OPERATION_OF_STATE,
+    OPERATIONAL_STATES,
+    Command,
+    Event,
+    State,
+)
+from server.core.operations import Operation, default_operations
+from server.core.worker.devices import CellDevices, HaltReport
+from server.core.worker.snapshot import SnapshotFile
+from server.core.worker.view import CellView
+from server.core.worker.worker import Worker
+from server.drivers.base import DeviceFault
+from server.notify.notifier import Notifier
+from server.orders.book import OrderBook
+from server.settings.model import Settings
+from server.storage import CellStores
+from server.storage.journal import Journal, records
+from server.storage.permissions import tighten_data_directory
+from server.views.live import DeviceFeed
+from server.vision.process import IMAGE_PROCESS
+
+log = logging.getLogger(__name__)
+
+DeviceFactory = Callable[[Settings], Awaitable[tuple[CellDevices, Callable[[], Awaitable[None]]]]]
+
+
+class Cell:
+    """Owns the running machine; start() brings it up, stop() takes it down."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        *,
+        devices: CellDevices | None = None,
+        device_factory: DeviceFactory | None = None,
+        operations: dict[str, Operation] | None = None,
+    ) -> None:
+        self.settings = settings
+        self.bus = Bus()
+        self.operations = default_operations()
+        if operations:
+            self.operations.update(operations)
+        self._devices = devices
+        self._device_factory = device_factory
+        self._release: Callable[[], Awaitable[None]] | None = None
+        self.worker: Worker | None = None
+        self.stores: CellStores | None = None
+        self.journal: Journal | None = None
+        self._snapshot_file: SnapshotFile | None = None
+        self._feed: DeviceFeed | None = None
+        # The webhooks (server/notify/): one more bus subscriber, never waited on.
+        self.notifier: Notifier | None = None
+        # Production orders (server/orders/): drive the cell through `command`, like a person.
+        self.orders: OrderBook | None = None
+
+    @property
+    def devices(self) -> CellDevices:
+        assert self.worker is not None, "the cell is not started"
+        return self.worker.devices
+
+    @property
+    def view(self) -> CellView:
+        """The one read interface to the running cell (see server/core/worker/view.py)."""
+        assert self.worker is not None, "the cell is not started"
+        return self.worker.view
+
+    @property
+    def started(self) -> bool:
+        return self.worker is not None
+
+    async def start(self) -> None:
+        devices = self._devices
+        if devices is None:
+            factory = self._device_factory
+            if factory is None:
+                from server.bootstrap.devices import build_devices
+
+                factory = build_devices
+            devices, self._release = await factory(self.settings)
+        settings = self.settings
+        IMAGE_PROCESS.warm_up()  # its imports now, not in the first calibration's time
+        for note in settings.compatibility_notes():
+            log.warning("setting ignored: %s", note)
+        # The data directory for the cell's user only, however the server was started.
+        await asyncio.to_thread(tighten_data_directory, settings.data_path, [log_path(settings)])
+        self.stores = CellStores.open(settings.data_path)
+        restore_taught_layout(settings, self.stores.markers.applied)
+        self.journal = Journal(
+            settings.data_file(settings.analytics_database, "journal.db"),
+            synchronous=settings.journal_synchronous,
+            retention_days=settings.analytics_retention_days,
+        )
+        await asyncio.to_thread(self.journal.open)
+        self.journal.start(asyncio.get_running_loop())
+        record_journal_damage(self.journal)
+        snapshot_file = None
+        previous = None
+        if settings.state_persistence:
+            snapshot_file = SnapshotFile(
+                settings.data_file(settings.persistence_file, "state.json"),
+                settings.persistence_interval,
+            )
+            journal, load = self.journal, snapshot_file.load  # reads: off the loop
+            previous = await asyncio.to_thread(lambda: last_state(journal, load()))
+            snapshot_file.start()
+        self._snapshot_file = snapshot_file
+        interruption = await asyncio.to_thread(find_interruption, self.journal, previous)
+        if interruption:
+            log.error(
+                "restart after an interruption: %s; the cell stays in ERROR until reset",
+                interruption,
+            )
+        if settings.camera_simulated and settings.commission_simulated_cell:
+            from server.bootstrap.commissioning import commission_simulated_cell
+
+            await commission_simulated_cell(devices, self.stores, settings)
+        self.worker = Worker(
+            settings,
+            devices,
+            self.operations,
+            self.bus,
+            self.stores,
+            journal=self.journal,
+            snapshot_file=snapshot_file,
+            interruption=interruption,
+        )
+        await self.worker.start()
+        self.notifier = Notifier(settings, self.bus, self.worker.view, self.journal)
+        self.notifier.start()
+        self._feed = DeviceFeed(devices, self.bus, self.worker.view, settings.device_push_interval)
+        self._feed.start()
+        # The simulated cell presents a fresh part after each one (a real cell: a person or
+        # a conveyor does; the next start finds the part by contour matching, or fails).
+        next_part = getattr(devices.camera, "present_next_part", None)
+        self.orders = book = OrderBook(self, self.journal, next_part=next_part)
+        self.worker.preconditions.active_order = lambda: book.active
+        await self.orders.start()
+
+    async def stop(self) -> None:
+        if self.orders is not None:
+            await self.orders.stop()
+            self.orders = None
+        if self._feed is not None:
+            await self._feed.stop()
+            self._feed = None
+        if self.worker is not None:
+            await self.worker.stop()
+            await self.worker.devices.safe_halt(self.settings.emergency_stop_timeout)
+            await self.worker.devices.close()
+        if self.notifier is not None:  # before the journal: what it abandons is on record
+            await self.notifier.stop()
+            self.notifier = None
+        if self.journal is not None:
+            await asyncio.to_thread(self.journal.stop)
+        if self._snapshot_file is not None:
+            await asyncio.to_thread(self._snapshot_file.stop)
+        if self._release is not None:
+            await self._release()
+            self._release = None
+
+    async def command(
+        self,
+        command: Command,
+        *,
+        source: str,
+        payload: Payload | None = None,
+        audit: AuditNote | None = None,
+        halt: asyncio.Future[HaltReport] | None = None,
+    ) -> Outcome:
+        """Run an operator command (start, pause, estop, ...) with its typed payload.
+
+        `audit` says who sent it: its row is committed with the event, before the answer.
+        `halt` is an e-stop's halt already made (`Worker.halt_for_stop`, by the HTTP
+        stop lane); an e-stop without one makes its own.
+        """
+        assert self.worker is not None, "the cell is not started"
+        event = COMMANDS[command]
+        if event is Event.EMERGENCY_STOP:
+            stop = payload if isinstance(payload, StopPayload) else StopPayload()
+            return await self.worker.emergency_stop(
+                source=source, payload=stop, audit=audit, halt=halt
+            )
+        if command is Command.START and self.orders is not None:
+            # A start while an order is active makes a part of that order.
+            payload = self.orders.claim_start(
+                payload if isinstance(payload, StartPayload) else StartPayload()
+            )
+        return await self.worker.request(event, source=source, payload=payload, audit=audit)
+
+    def report_fault(self, fault: DeviceFault) -> None:
+        """Stop the cell on a fault found outside the drivers (an order's defect limit): the
+        fault path closes the valve first and enters ERROR with this as its stop reason."""
+        assert self.worker is not None, "the cell is not started"
+        self.worker.report_fault(fault)
+
+
+def restore_taught_layout(settings: Settings, taught: list[tuple[float, float]] | None) -> None:
+    """Put the marker layout last taught and applied (POST /calibration/markers/apply) in force.
+
+    Why it outranks the configured marker_positions_mm: it was measured on this table
+    by the robot itself, after the configuration was written. A taught layout the
+    settings now refuse (the workspace was changed since) is left out, loudly.
+    """
+    if taught is None or [tuple(p) for p in settings.marker_positions_mm] == taught:
+        return
+    merged = {**settings.model_dump(), "marker_positions_mm": taught}
+    try:
+        Settings.model_validate(merged)
+    except ValidationError as exc:
+        problem = "; ".join(error["msg"] for error in exc.errors())
+        log.error("the taught marker layout is not put in force: %s", problem)
+        return
+    settings.marker_positions_mm = list(taught)
+    log.info("marker layout in force: the one taught and applied (GET /calibration/markers)")
+
+
+def record_journal_damage(journal: Journal) -> None:
+    """What start-up found wrong with the journal, in its own `errors`: /health shows it
+    until the server stops, this row for as long as retention keeps it."""
+    code = "JOURNAL_DAMAGED"
+    for damage in journal.damage:
+        record = records.error(
+            damage.found_at,
+            code,
+            damage.message,
+            "journal",
+            classify(code),
+            "",
+            State.INITIALIZING.value,
+        )
+        journal.append([record], durable=False)
+
+
+def last_state(journal: Journal, previous: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The state the last run of the server left: its snapshot's, unless the journal
+    recorded a later change.
+
+    Why: a change's snapshot is written once the change's commit is durable and
+    its sender answered (`Recorder.answer_when_durable`), so a server killed in
+    between leaves a snapshot one change behind what was answered. A reset
+    acknowledged that way must not come back as ERROR, nor an e-stop as IDLE.
+    The journal's newer transition then stands, with the fault that took the
+    cell to ERROR if it did.
+    """
+    newest = journal.query("transitions", limit=1)
+    if not newest:
+        return previous
+    last = newest[0]
+    if previous is not None:
+        since = previous.get("since")
+        since = since if isinstance(since, int | float) else 0.0  # a file written by hand
+        if last["new_state"] == previous.get("state") or last["time"] <= since:
+            return previous
+    state: dict[str, Any] = {"state": last["new_state"], "since": last["time"]}
+    faults = journal.faults_of(last["event_id"]) if last["new_state"] == State.ERROR.value else []
+    if faults:
+        state["stop_reason"] = {"code": faults[0]["code"], "message": faults[0]["message"]}
+    log.warning(
+        "the state snapshot was behind the journal (%s, journal %s); the journal's stands",
+        (previous or {}).get("state", "none"),
+        last["new_state"],
+    )
+    return state
+
+
+def find_interruption(journal: Journal, previous: dict[str, Any] | None) -> str | None:
+    """Why the last run of the server ended mid-operation, or None if it did not.
+
+    The journal's unfinished operations are the evidence (their rows are closed
+    as interrupted here); the snapshot adds the state (EXECUTING or PAUSED).
+    """
+    unfinished = journal.unfinished_operations()
+    state = (previous or {}).get("state")
+    if not unfinished:
+        if state in {s.value for s in OPERATIONAL_STATES}:
+            return f"interrupted during {state}; the server stopped before the operation ended"
+        if state == State.ERROR.value:  # ERROR is latched: only a person's reset ends it
+            first = (previous or {}).get("stop_reason") or {}
+            if first.get("code") == "INTERRUPTED" and first.get("message"):
+                # Already an earlier restart's account of the first fault: say it once,
+                # not wrapped one level deeper on every restart.
+                return str(first["message"])
+            reason = first.get("message", "unknown")
+            return f"the cell was in ERROR when the server stopped (first fault: {reason})"
+        return None
+    journal.mark_interrupted([op["run_id"] for op in unfinished], time.time())
+    last = unfinished[-1]
+    kind_states = [s.value for s, kind in OPERATION_OF_STATE.items() if kind == last["kind"]]
+    if state not in kind_states:
+        state = kind_states[0]
+    message = f"interrupted during {state}"
+    progress = json.loads(last["progress"] or "{}")
+    if progress.get("waypoint") and progress.get("of"):
+        message += f" at waypoint {progress['waypoint']} of {progress['of']}"
+    return f"{message} (run {last['run_id']}); the server stopped before the operation ended"

@@ -1,0 +1,1 @@
+"""Small command-line tools: backup and restore, health check, generated files."""

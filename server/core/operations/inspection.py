@@ -1,0 +1,215 @@
+"""The inspection after a spray run's path: measure, look at the part, judge, keep.
+
+Called by the trajectory operation once the path is done (inspection_enabled),
+so it is part of the run: a run cancelled or failed before it ends has no
+inspection, and the run's result carries the summary (the contract of
+docs/quality.md). The frame's vision work runs in the image process
+(`server.vision.process`), off the server's interpreter lock.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from server.common.errors import OperationError
+from server.core.operations.base import OperationContext, OperationWarning
+from server.core.operations.camera_frames import capture_undistorted, require_robot_calibration
+from server.core.operations.workpieces import Target
+from server.quality.dispensing import dispensing_consistency
+from server.quality.model import PlannedSegment, RunSamples
+from server.quality.precision import trajectory_precision
+from server.quality.verdict import dispensing_reasons, part_reasons, precision_reasons, verdict_of
+from server.quality.vision_check import degrading, marker_residuals, relocate
+from server.vision.bead import (
+    BeadSegment,
+    BeadTolerances,
+    annotate_bead,
+    expected_bead_width_mm,
+    inspect_bead,
+)
+from server.vision.homography import PlaneCalibration
+from server.vision.outlines import transform_outline
+from server.vision.process import IMAGE_PROCESS
+
+JPEG_QUALITY = 85
+
+
+@dataclass(frozen=True)
+class Inspection:
+    """The whole inspection (the journal's row, GET /runs/{id}/inspection), its summary
+    (the run's result), its annotated JPEG, and the warnings it raises."""
+
+    document: dict[str, Any]
+    summary: dict[str, Any]
+    image_jpeg: bytes | None
+    warnings: tuple[OperationWarning, ...]
+
+
+def summary_of(document: dict[str, Any]) -> dict[str, Any]:
+    """The run result's "inspection" (the contract's keys, nothing else)."""
+    return {
+        "verdict": document["verdict"],
+        "reasons": list(document["reasons"]),
+        "precision_mean_mm": document["precision"]["mean_mm"],
+        "precision_p95_mm": document["precision"]["p95_mm"],
+        "dispensing_cv_percent": document["dispensing"]["cv_percent"],
+        "glue_ml": document["dispensing"]["glue_ml"],
+        "vision_residual_mm": document["vision"]["residual_mean_mm"],
+        "image": bool(document["image"]),
+    }
+
+
+async def inspect_run(
+    ctx: OperationContext,
+    targets: list[Target],
+    segments: list[PlannedSegment],
+    samples: RunSamples,
+) -> Inspection:
+    """Measure the run from its samples, capture and judge the part (module docstring)."""
+    started = time.monotonic()
+    settings = ctx.settings
+    precision = trajectory_precision(samples.poses, segments)
+    dispensing = dispensing_consistency(
+        samples.flows, samples.windows, segments, settings.dispensing_flow_tolerance_percent
+    )
+    try:
+        calibration = require_robot_calibration(ctx, "inspection")
+        frame = await capture_undistorted(ctx, "inspection")
+    except OperationError as exc:
+        # The part is sprayed: the run completes, judged on what was measured, and the
+        # part counts as defective because nobody has looked at its bead.
+        return _unseen(ctx, precision, dispensing, samples, started, str(exc))
+    entries = await asyncio.to_thread(ctx.stores.workpieces.list)
+    library = {w.id: np.asarray(w.outline_mm, dtype=np.float64) for w in entries}
+    tolerances = BeadTolerances.from_settings(settings)
+
+    positions = list(settings.marker_positions_mm)
+    vision, per_segment, parts, jpeg = await IMAGE_PROCESS.call(
+        _look, calibration, positions, targets, library, segments, tolerances, frame=frame
+    )
+    scores = [t.match["score"] for t in targets if t.match is not None]
+    vision["match_score"] = max(scores) if scores else None
+    vision["parts"] = parts
+    by_index = {s["index"]: s for s in precision["segments"]}
+    for entry in per_segment:
+        seg = by_index.get(entry["index"], {})
+        entry["precision_mean_mm"] = seg.get("mean_mm")
+        entry["precision_max_mm"] = seg.get("max_mm")
+        entry["precision_samples"] = seg.get("samples", 0)
+    reasons = (
+        precision_reasons(precision, settings)
+        + dispensing_reasons(dispensing, settings)
+        + part_reasons(parts, settings)
+        + [problem for entry in per_segment for problem in entry["problems"]]
+    )
+    warnings: tuple[OperationWarning, ...] = ()
+    limit = settings.calibration_max_error_mm
+    if degrading(vision["residual_mean_mm"], limit):
+        warnings = (
+            OperationWarning(
+                "CALIBRATION_DEGRADING",
+                f"the calibration markers on run {ctx.run_id}'s inspection frame lie "
+                f"{vision['residual_mean_mm']:.2f} mm (mean) from their positions, over "
+                f"half of calibration_max_error_mm ({limit:g} mm): the camera or the table "
+                "has moved; check the camera mount and run calibrate-robot",
+            ),
+        )
+    document = _document(
+        ctx, reasons, precision, dispensing, vision, per_segment, samples, started, jpeg
+    )
+    return Inspection(document, summary_of(document), jpeg, warnings)
+
+
+def _look(
+    frame: np.ndarray,
+    calibration: PlaneCalibration,
+    marker_positions: list[tuple[float, float]],
+    targets: list[Target],
+    library: dict[str, np.ndarray],
+    segments: list[PlannedSegment],
+    tolerances: BeadTolerances,
+) -> tuple[dict[str, Any], list[dict[str, Any]], list[Any], bytes | None]:
+    """The frame's vision work: markers, parts, the bead, the annotated JPEG. Run in the
+    image process (`server.vision.process`), so only the JPEG and the findings cross."""
+    vision = marker_residuals(frame, calibration, marker_positions)
+    parts = relocate(frame, calibration, targets, library)
+    moved = {p.workpiece_id: p.transform for p in parts}
+    beads = [
+        BeadSegment(
+            s.index,
+            s.workpiece_id,
+            transform_outline(s.path_mm, moved[s.workpiece_id])
+            if s.workpiece_id in moved
+            else s.path_mm,
+            expected_bead_width_mm(s.flow_ml_min, s.speed_mm_s),
+        )
+        for s in segments
+    ]
+    findings = inspect_bead(frame, beads, calibration, tolerances)
+    annotated = annotate_bead(frame, beads, findings, calibration)
+    ok, jpeg = cv2.imencode(".jpg", annotated, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    per_segment = []
+    for bead, finding in zip(beads, findings, strict=True):
+        per_segment.append(
+            {**finding.as_dict(), "expected_width_mm": round(bead.expected_width_mm, 3)}
+        )
+    return vision, per_segment, [p.as_dict() for p in parts], jpeg.tobytes() if ok else None
+
+
+def _document(
+    ctx: OperationContext,
+    reasons: list[str],
+    precision: dict[str, Any],
+    dispensing: dict[str, Any],
+    vision: dict[str, Any],
+    segments: list[dict[str, Any]],
+    samples: RunSamples,
+    started: float,
+    jpeg: bytes | None,
+) -> dict[str, Any]:
+    """The inspection as journaled and served (GET /runs/{id}/inspection)."""
+    return {
+        "run_id": ctx.run_id,
+        "verdict": verdict_of(reasons),
+        "reasons": reasons,
+        "at": time.time(),
+        "took_s": round(time.monotonic() - started, 3),
+        "precision": {k: v for k, v in precision.items() if k != "segments"},
+        "dispensing": dispensing,
+        "vision": vision,
+        "segments": segments,
+        "samples": samples.as_counts(),
+        "image": jpeg is not None,
+    }
+
+
+def _unseen(
+    ctx: OperationContext,
+    precision: dict[str, Any],
+    dispensing: dict[str, Any],
+    samples: RunSamples,
+    started: float,
+    why: str,
+) -> Inspection:
+    """The inspection of a part the camera could not look at."""
+    settings = ctx.settings
+    reasons = [
+        *precision_reasons(precision, settings),
+        *dispensing_reasons(dispensing, settings),
+        f"the bead was not inspected: {why}",
+    ]
+    vision = {"markers": 0, "residual_mean_mm": None, "residual_max_mm": None}
+    segments = [
+        {**s, "precision_mean_mm": s["mean_mm"], "precision_max_mm": s["max_mm"]}
+        for s in precision["segments"]
+    ]
+    document = _document(
+        ctx, reasons, precision, dispensing, vision, segments, samples, started, None
+    )
+    return Inspection(document, summary_of(document), None, ())
