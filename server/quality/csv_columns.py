@@ -10,7 +10,7 @@ import json
 from collections.abc import Sequence
 from typing import Any
 
-from server.core.part_verdict import FIGURES
+from server.quality.part_verdict import FIGURES
 
 # The summary's verdict and reasons, then each of its figures (declared in part_verdict).
 INSPECTION_COLUMNS: tuple[str, ...] = ("verdict", "reasons", *FIGURES)
