@@ -267,7 +267,12 @@ def test_a_disk_that_fills_during_a_run_leaves_its_part_not_inspected_not_failed
         assert "inspection" not in run["result"]
         [warning] = [w for w in run["result"]["warnings"] if w["code"] == "INSPECTION_NO_SPACE"]
         assert "not inspected (no space)" in warning["message"]
-        assert not_inspected_part(run)["reasons"] == ["not inspected (no space)"]
+        # What the inspection found stands: good, or defective with its reasons (on a busy
+        # machine the simulated bead can come out defective).
+        found = run["result"]["inspection_found"]
+        part = not_inspected_part(run)
+        assert part["verdict"] == found["verdict"], (part, found)
+        assert part["reasons"] == ["not inspected (no space)", *found["reasons"]]
         assert not list((cell.data / "inspections").glob("*.jpg"))
         cell.disk.free()
 
@@ -277,7 +282,7 @@ def not_inspected_part(run: dict) -> dict:
     part = part_of_run(
         run["run_id"], run["outcome"], run["started_at"], run["ended_at"], run["result"], None
     )
-    assert (part.outcome, part.verdict, part.inspected) == ("completed", "good", False)
+    assert (part.outcome, part.inspected) == ("completed", False)
     return part.as_dict()
 
 
