@@ -40,6 +40,11 @@ SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
 # load into a spurious device fault: at 1 s, a robot never stalled went NO_ANSWER.
 TIMEOUT = 3.0
 GLUE_LINK_TIMEOUT = 1.5  # glue_link_timeout (0.5 s by default): a silent dispenser
+# The rig's vision_processing_timeout: no test waits for it to fire (a stalled camera is
+# cleared by the test), so it only bounds a frame or a solve. Under pytest-xdist the other
+# worker renders and solves frames at the same time on the same cores, where a robot
+# calibration that takes a second alone can take ten.
+VISION_TIMEOUT = 30.0
 # Bounds on what the test waits for (the server up, a state reached): never performance
 # assertions, so generous enough for a machine that is busy with something else.
 WAIT_S = 60.0
@@ -246,7 +251,7 @@ async def open_rig(
             "glue_link_timeout": GLUE_LINK_TIMEOUT,
             "reset_probe_timeout": TIMEOUT * 2,  # a probe renders a camera frame too
             "emergency_stop_timeout": 0.5,
-            "vision_processing_timeout": 10,
+            "vision_processing_timeout": VISION_TIMEOUT,
         }
         settings = Settings(
             robot_ip="127.0.0.1",
