@@ -76,6 +76,10 @@ class _ReadingSettings:
 
 _templates: list[Template] = []
 _root: Path | None = None
+# Where the templates go: the temporary directory when this was imported (at collection),
+# not one a test points TMPDIR at while it runs (the benchmarks' smoke tests check that
+# they leave nothing in theirs).
+_TEMPORARY = tempfile.gettempdir()
 
 
 def commissionable(settings: Settings, data_path: Path) -> bool:
@@ -108,7 +112,7 @@ async def _commission(settings: Settings) -> Template:
     """Commission a directory of its own, as Cell.start does on a fresh one."""
     global _root
     if _root is None:
-        _root = Path(tempfile.mkdtemp(prefix="glue-commissioned-"))
+        _root = Path(tempfile.mkdtemp(prefix="glue-commissioned-", dir=_TEMPORARY))
         atexit.register(shutil.rmtree, _root, True)
     directory = _root / f"cell-{len(_templates)}"
     read = {name: copy.deepcopy(getattr(settings, name)) for name in CAMERA_SETTINGS}
