@@ -53,8 +53,12 @@ line: $(RUN_STAMP) mosquitto
 	$(PY) -m server.line.demo --host $(HOST) --data-dir $(DATA)/line $(LINE_ARGS)
 
 # The whole suite includes the benchmarks' smoke test (tests/integration/test_bench_smoke.py).
+# It runs on WORKERS pytest-xdist workers (one per core by default); tests sharing a
+# module fixture stay on one worker (--dist loadgroup, tests/conftest.py). The 20
+# slowest tests are listed at the end.
+WORKERS ?= auto
 test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools mosquitto
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=20
 
 # The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
 test-fast: $(TEST_STAMP) node

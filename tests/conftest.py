@@ -48,8 +48,17 @@ def pytest_configure(config: pytest.Config) -> None:
     limit_malloc_arenas()
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Mark each test with its tier: the first directory under tests/."""
+    """Mark each test with its tier (the first directory under tests/), and keep the tests
+    that share a module-scoped fixture on one worker under pytest-xdist.
+
+    `make test` runs the suite on several workers with `--dist loadgroup`: ungrouped
+    tests go to whichever worker is free, and a group goes to one worker whole. A
+    module fixture (a served cell, a commissioned data directory, a browser session)
+    is set up once per worker that runs its tests, so the tests that use one are a
+    group, named after their module.
+    """
     for item in items:
         try:
             tier = item.path.relative_to(TESTS).parts[0]
@@ -57,6 +66,19 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             continue
         if tier in TIERS:
             item.add_marker(getattr(pytest.mark, tier))
+        if _uses_a_module_fixture(item) and item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(item.path.relative_to(TESTS).as_posix()))
+
+
+def _uses_a_module_fixture(item: pytest.Item) -> bool:
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return False
+    return any(
+        definition.scope in ("module", "package", "class")
+        for definitions in info.name2fixturedefs.values()
+        for definition in definitions
+    )
 
 
 # A 120 × 80 mm rectangle in the library as "demo"; start it without the camera.

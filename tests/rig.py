@@ -14,6 +14,7 @@ import contextlib
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -27,6 +28,7 @@ from server.drivers.sim.glue_sim import GlueSimulator
 from server.drivers.sim.robot_sim import RobotSimulator
 from server.settings.model import Settings
 from server.storage.journal import records
+from tests.commissioned import Template, commissionable, continue_noise, seed_commissioned
 from tests.serving import admin_headers, serve
 
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
@@ -38,6 +40,11 @@ SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
 # load into a spurious device fault: at 1 s, a robot never stalled went NO_ANSWER.
 TIMEOUT = 3.0
 GLUE_LINK_TIMEOUT = 1.5  # glue_link_timeout (0.5 s by default): a silent dispenser
+# The rig's vision_processing_timeout: no test waits for it to fire (a stalled camera is
+# cleared by the test), so it only bounds a frame or a solve. Under pytest-xdist the other
+# worker renders and solves frames at the same time on the same cores, where a robot
+# calibration that takes a second alone can take ten.
+VISION_TIMEOUT = 30.0
 # Bounds on what the test waits for (the server up, a state reached): never performance
 # assertions, so generous enough for a machine that is busy with something else.
 WAIT_S = 60.0
@@ -225,6 +232,9 @@ async def open_rig(
 ) -> AsyncIterator[Rig]:
     """Simulators, cell and HTTP client; the cell commissioned in `data_path`.
 
+    A fresh `data_path` gets a copy of a cell commissioned once per test process with
+    the same settings (tests/commissioned.py), which is what the cell would have
+    written commissioning itself; one that holds anything is used as it is.
     `overrides` replace any setting, the rig's timeouts included. `port`: the server's
     (a free one by default). `camera_stalled`: the simulated camera stalls from the
     start, so the cell stays INITIALIZING (for up to vision_processing_timeout) until the
@@ -241,7 +251,7 @@ async def open_rig(
             "glue_link_timeout": GLUE_LINK_TIMEOUT,
             "reset_probe_timeout": TIMEOUT * 2,  # a probe renders a camera frame too
             "emergency_stop_timeout": 0.5,
-            "vision_processing_timeout": 10,
+            "vision_processing_timeout": VISION_TIMEOUT,
         }
         settings = Settings(
             robot_ip="127.0.0.1",
@@ -250,7 +260,10 @@ async def open_rig(
             data_path=data_path,
             **{**defaults, **overrides},
         )
-        cell = Cell(settings, device_factory=_devices_seeing(robot, glue, camera_stalled))
+        template = None
+        if not camera_stalled and commissionable(settings, Path(data_path)):
+            template = await seed_commissioned(settings)
+        cell = Cell(settings, device_factory=_devices_seeing(robot, glue, camera_stalled, template))
         async with (
             serve(cell, port) as url,
             httpx.AsyncClient(
@@ -264,19 +277,22 @@ async def open_rig(
 
 
 def _devices_seeing(
-    robot: RobotSimulator, glue: GlueSimulator, stalled: bool
+    robot: RobotSimulator, glue: GlueSimulator, stalled: bool, template: Template | None
 ) -> Callable[[Settings], Awaitable[tuple[CellDevices, Callable[[], Awaitable[None]]]]]:
     """The default devices; the simulated camera sees the bead the rig's simulators lay.
 
     The rig's simulators run in the test's process, as the default run's do in the
     server's, so the camera is wired to them the same way (server/bootstrap/devices.py).
-    `stalled`: the camera stalls before the cell opens it.
+    `stalled`: the camera stalls before the cell opens it. `template`: the commissioned
+    cell the data directory was copied from, whose camera's noise this one continues.
     """
 
     async def build(settings: Settings) -> tuple[CellDevices, Callable[[], Awaitable[None]]]:
         devices, release = await build_devices(settings)
         assert isinstance(devices.camera, SimulatedCamera)
         devices.camera.bead_source = dispensed_by(robot, glue)
+        if template is not None:
+            continue_noise(devices.camera, template)
         if stalled:
             devices.camera.inject_fault("stall")
         return devices, release

@@ -1,4 +1,5 @@
-"""Run the real app under uvicorn on a free loopback port, inside the test's loop."""
+"""Run the real app under uvicorn on a free loopback port, inside the test's loop; or,
+for tests of the API's contract rather than of the socket, call it in process."""
 
 from __future__ import annotations
 
@@ -69,3 +70,30 @@ async def serve(
     finally:
         server.should_exit = True
         await asyncio.wait_for(task, 20)
+
+
+# The peer address an in-process request comes from: loopback, as a local client's.
+IN_PROCESS_PEER = ("127.0.0.1", 50000)
+
+
+@contextlib.asynccontextmanager
+async def in_process(cell: Cell, *, timeout: float = 10) -> AsyncIterator[httpx.AsyncClient]:
+    """The real app on `cell`, called in this loop through httpx's ASGI transport, with
+    the admin token: no socket, no uvicorn.
+
+    For what a test asks of the API itself (routes, validation, answers, refusals): the
+    same app, middleware, lifespan and cell as `serve` runs. What lives in uvicorn and
+    its protocol (server/api/connection_guard.py: connection and header limits, idle
+    keep-alives; TLS; the WebSocket) is not here: tests of those use `serve`. An error
+    in the app is answered 500, as the server would, instead of raised into the test.
+    """
+    app = create_app(cell=cell)
+    async with app.router.lifespan_context(app):
+        transport = httpx.ASGITransport(app=app, raise_app_exceptions=False, client=IN_PROCESS_PEER)
+        async with httpx.AsyncClient(
+            transport=transport,
+            base_url="http://127.0.0.1",
+            timeout=timeout,
+            headers=admin_headers(cell.settings.data_path),
+        ) as client:
+            yield client

@@ -1,4 +1,5 @@
-"""The HTTP API and /ws over real sockets, with the core on in-process fakes."""
+"""The HTTP API and /ws, with the core on in-process fakes: what the routes answer with the
+app called in process, the WebSocket and a streamed body over a real socket."""
 
 from __future__ import annotations
 
@@ -16,26 +17,46 @@ from server.core.worker.devices import CellDevices
 from server.settings.model import Settings
 from tests.conftest import START, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
-from tests.serving import admin_headers, serve
+from tests.serving import admin_headers, in_process, serve
+
+
+def _cell(settings: Settings) -> Cell:
+    """A cell on fakes with the demo part, at most 3 WebSocket clients of 8 messages each."""
+    devices = CellDevices(FakeRobot(speed_factor=5), FakeGlue(), FakeCamera())
+    demo_stores(settings.data_path)
+    return Cell(
+        settings.model_copy(update={"max_broadcast_clients": 3, "ws_client_buffer": 8}),
+        devices=devices,
+    )
+
+
+async def _until_idle(client: httpx.AsyncClient) -> None:
+    async with asyncio.timeout(10):
+        while (await client.get("/state")).json()["state"] != "IDLE":
+            await asyncio.sleep(0.01)
 
 
 @pytest.fixture
 async def api(fast_settings: Settings):
-    devices = CellDevices(FakeRobot(speed_factor=5), FakeGlue(), FakeCamera())
-    demo_stores(fast_settings.data_path)
-    cell = Cell(
-        fast_settings.model_copy(update={"max_broadcast_clients": 3, "ws_client_buffer": 8}),
-        devices=devices,
-    )
+    """The app called in process: for what the routes answer."""
+    cell = _cell(fast_settings)
+    async with in_process(cell) as client:
+        await _until_idle(client)
+        client.cell = cell  # type: ignore[attr-defined]
+        yield client
+
+
+@pytest.fixture
+async def served(fast_settings: Settings):
+    """The app under uvicorn on a loopback socket: for the WebSocket and streamed bodies."""
+    cell = _cell(fast_settings)
     async with (
         serve(cell) as url,
         httpx.AsyncClient(
             base_url=url, timeout=10, headers=admin_headers(fast_settings.data_path)
         ) as client,
     ):
-        async with asyncio.timeout(10):
-            while (await client.get("/state")).json()["state"] != "IDLE":
-                await asyncio.sleep(0.01)
+        await _until_idle(client)
         client.cell = cell  # type: ignore[attr-defined]
         client.ws_url = url.replace("http", "ws") + "/ws"  # type: ignore[attr-defined]
         yield client
@@ -88,16 +109,16 @@ async def test_an_estop_with_an_invalid_body_still_stops_the_cell(api, body, fie
 
 
 @pytest.mark.parametrize("streamed", [False, True])
-async def test_an_estop_with_an_oversized_body_still_stops_the_cell(api, streamed) -> None:
+async def test_an_estop_with_an_oversized_body_still_stops_the_cell(served, streamed) -> None:
     """Over max_request_bytes the body is not read, but the stop is made: 413 says both."""
-    assert (await api.post("/start", json=START)).status_code == 202
+    assert (await served.post("/start", json=START)).status_code == 202
     huge = json.dumps({"reason": "x" * 2_000_000}).encode()
 
     async def chunks():
         for start in range(0, len(huge), 65536):
             yield huge[start : start + 65536]
 
-    sent = await api.post(
+    sent = await served.post(
         "/estop",
         content=chunks() if streamed else huge,
         headers={"content-type": "application/json"},
@@ -106,8 +127,8 @@ async def test_an_estop_with_an_oversized_body_still_stops_the_cell(api, streame
     answer = sent.json()
     assert "bytes" in answer["detail"]
     assert answer["accepted"] is True and answer["state"] == "ERROR" and answer["event_id"]
-    assert (await api.get("/state")).json()["state"] == "ERROR"
-    assert api.cell.devices.glue.valve_open is False
+    assert (await served.get("/state")).json()["state"] == "ERROR"
+    assert served.cell.devices.glue.valve_open is False
 
 
 async def test_a_small_estop_body_is_read_whole(api) -> None:
@@ -162,14 +183,14 @@ async def test_a_full_queue_answers_503_with_retry_after(api) -> None:
     worker._task = asyncio.create_task(worker._run())
 
 
-async def test_ws_sends_a_snapshot_then_every_change_in_sequence(api) -> None:
+async def test_ws_sends_a_snapshot_then_every_change_in_sequence(served) -> None:
     async with websockets.connect(
-        api.ws_url, additional_headers={"Authorization": api.headers["authorization"]}
+        served.ws_url, additional_headers={"Authorization": served.headers["authorization"]}
     ) as ws:
         snapshot = json.loads(await ws.recv())
         assert snapshot["type"] == "snapshot" and snapshot["state"] == "IDLE"
         assert snapshot["history"] and "context" in snapshot
-        await api.post("/start", json=START)
+        await served.post("/start", json=START)
         messages = []
         async with asyncio.timeout(20):
             while True:
@@ -184,16 +205,16 @@ async def test_ws_sends_a_snapshot_then_every_change_in_sequence(api) -> None:
     assert messages[0]["new_state"] == "EXECUTING_TRAJECTORY"
 
 
-async def test_ws_subscribe_filters_types_and_ping_is_answered(api) -> None:
+async def test_ws_subscribe_filters_types_and_ping_is_answered(served) -> None:
     async with websockets.connect(
-        api.ws_url, additional_headers={"Authorization": api.headers["authorization"]}
+        served.ws_url, additional_headers={"Authorization": served.headers["authorization"]}
     ) as ws:
         await ws.recv()
         await ws.send(json.dumps({"type": "subscribe", "types": ["state_changed"]}))
         assert json.loads(await ws.recv())["type"] == "subscribed"
         await ws.send(json.dumps({"type": "ping"}))
         assert json.loads(await ws.recv()) == {"type": "pong"}
-        await api.post("/start", json=START)
+        await served.post("/start", json=START)
         async with asyncio.timeout(20):
             while True:
                 message = json.loads(await ws.recv())
@@ -202,22 +223,22 @@ async def test_ws_subscribe_filters_types_and_ping_is_answered(api) -> None:
                     break
 
 
-async def test_ws_client_sending_garbage_is_closed_with_a_code(api) -> None:
+async def test_ws_client_sending_garbage_is_closed_with_a_code(served) -> None:
     async with websockets.connect(
-        api.ws_url, additional_headers={"Authorization": api.headers["authorization"]}
+        served.ws_url, additional_headers={"Authorization": served.headers["authorization"]}
     ) as ws:
         await ws.recv()
         await ws.send("this is not json")
         with pytest.raises(websockets.ConnectionClosed) as closed:
             await asyncio.wait_for(ws.recv(), 5)
     assert closed.value.rcvd.code == 1003
-    assert (await api.get("/health")).status_code == 200
+    assert (await served.get("/health")).status_code == 200
 
 
-async def test_ws_over_the_client_limit_is_refused_with_a_code(api) -> None:
+async def test_ws_over_the_client_limit_is_refused_with_a_code(served) -> None:
     clients = [
         await websockets.connect(
-            api.ws_url, additional_headers={"Authorization": api.headers["authorization"]}
+            served.ws_url, additional_headers={"Authorization": served.headers["authorization"]}
         )
         for _ in range(3)
     ]
@@ -225,7 +246,7 @@ async def test_ws_over_the_client_limit_is_refused_with_a_code(api) -> None:
         for ws in clients:
             await ws.recv()
         extra = await websockets.connect(
-            api.ws_url, additional_headers={"Authorization": api.headers["authorization"]}
+            served.ws_url, additional_headers={"Authorization": served.headers["authorization"]}
         )
         with pytest.raises(websockets.ConnectionClosed) as closed:
             await asyncio.wait_for(extra.recv(), 5)
@@ -235,24 +256,24 @@ async def test_ws_over_the_client_limit_is_refused_with_a_code(api) -> None:
             await ws.close()
 
 
-async def test_a_client_that_never_reads_is_dropped_and_others_keep_receiving(api) -> None:
-    worker = api.cell.worker
+async def test_a_client_that_never_reads_is_dropped_and_others_keep_receiving(served) -> None:
+    worker = served.cell.worker
     async with (
         websockets.connect(
-            api.ws_url,
-            additional_headers={"Authorization": api.headers["authorization"]},
+            served.ws_url,
+            additional_headers={"Authorization": served.headers["authorization"]},
             max_queue=1,
         ) as stuck,
         websockets.connect(
-            api.ws_url, additional_headers={"Authorization": api.headers["authorization"]}
+            served.ws_url, additional_headers={"Authorization": served.headers["authorization"]}
         ) as healthy,
     ):
         await stuck.recv()
         await healthy.recv()
         stuck.transport.pause_reading()  # never read again
-        subscribers = api.cell.bus.subscriber_count  # both clients, and the metrics
+        subscribers = served.cell.bus.subscriber_count  # both clients, and the metrics
         sent = 0
-        while api.cell.bus.subscriber_count == subscribers and sent < 4000:
+        while served.cell.bus.subscriber_count == subscribers and sent < 4000:
             for _ in range(4):  # bursts within the healthy client's buffer of 8
                 worker.bus.publish(
                     "progress", {"waypoint": sent, "padding": secrets.token_hex(10_000)}
@@ -260,7 +281,8 @@ async def test_a_client_that_never_reads_is_dropped_and_others_keep_receiving(ap
                 sent += 1
             for index in range(sent - 4, sent):
                 assert json.loads(await healthy.recv())["waypoint"] == index
-        assert api.cell.bus.subscriber_count == subscribers - 1, "the stuck client was not dropped"
+        dropped = served.cell.bus.subscriber_count == subscribers - 1
+        assert dropped, "the stuck client was not dropped"
         worker.bus.publish("progress", {"waypoint": "after"})
         assert json.loads(await healthy.recv())["waypoint"] == "after"
         assert worker.ctx.state is State.IDLE

@@ -17,21 +17,16 @@ from server.core.worker.devices import CellDevices
 from server.settings.model import Settings
 from tests.conftest import demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
-from tests.serving import admin_headers, serve
+from tests.serving import in_process
 
 
 @pytest.fixture
 async def api(fast_settings: Settings):
-    """The served app on fakes, with the demo part in the library and no calibration."""
+    """The app in process on fakes, with the demo part in the library and no calibration."""
     devices = CellDevices(FakeRobot(speed_factor=5), FakeGlue(), FakeCamera())
     demo_stores(fast_settings.data_path)
     cell = Cell(fast_settings, devices=devices)
-    async with (
-        serve(cell) as url,
-        httpx.AsyncClient(
-            base_url=url, timeout=10, headers=admin_headers(fast_settings.data_path)
-        ) as client,
-    ):
+    async with in_process(cell) as client:
         async with asyncio.timeout(10):
             while (await client.get("/state")).json()["state"] != "IDLE":
                 await asyncio.sleep(0.01)

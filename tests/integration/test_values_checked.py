@@ -1,6 +1,7 @@
 """Every value is checked where it enters: a bad one is a 422 naming the field, never a 500.
 
-Over real sockets, on in-process fake devices. Each test sends what a script or a
+The app called in process (httpx's ASGI transport), on in-process fake devices: what
+is checked is the API's answer, not the socket. Each test sends what a script or a
 careless hand could send (Infinity, 1e400, "8" for 8, true for 1, a NUL in a name,
 an inverted time window, a parameter the route does not take) and checks the
 answer names what is wrong and that nothing was changed.
@@ -17,7 +18,7 @@ from server.core.worker.devices import CellDevices
 from server.settings.model import Settings
 from tests.conftest import demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
-from tests.serving import admin_headers, serve
+from tests.serving import in_process
 
 OUTLINE = [[340.0, -40.0], [460.0, -40.0], [460.0, 40.0], [340.0, 40.0]]
 
@@ -26,12 +27,7 @@ OUTLINE = [[340.0, -40.0], [460.0, -40.0], [460.0, 40.0], [340.0, 40.0]]
 async def api(fast_settings: Settings):
     demo_stores(fast_settings.data_path)
     cell = Cell(fast_settings, devices=CellDevices(FakeRobot(50), FakeGlue(), FakeCamera()))
-    async with (
-        serve(cell) as url,
-        httpx.AsyncClient(
-            base_url=url, timeout=10, headers=admin_headers(fast_settings.data_path)
-        ) as client,
-    ):
+    async with in_process(cell) as client:
         yield client
 
 
