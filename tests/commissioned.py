@@ -32,10 +32,10 @@ from typing import Any
 import numpy as np
 
 from server.bootstrap.commissioning import commission_simulated_cell
-from server.config import Settings
-from server.core.devices import CellDevices
+from server.core.worker.devices import CellDevices
 from server.drivers.camera import SimulatedCamera
 from server.drivers.sim.camera_scene import Scene
+from server.settings.model import Settings
 from server.storage import CellStores
 from tests.fakes import FakeGlue, FakeRobot
 
