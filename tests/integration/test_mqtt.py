@@ -338,7 +338,7 @@ async def test_the_stop_is_answered_before_the_link_publishes_it(
     tmp_path: Path, monkeypatch
 ) -> None:
     """The e-stop's answer is on the wire before the link does its work for ERROR."""
-    from server.api.answers_in_flight import AnswersInFlight
+    from server.core.infra.answers_in_flight import AnswersInFlight
     from server.mqtt.link import MqttLink
 
     log: list[str] = []
