@@ -50,7 +50,12 @@ class StateView(BaseModel):
     operation: OperationView | None
     error: FaultView | None = Field(description="the latest fault while in ERROR")
     stop_reason: FaultView | None = Field(description="first-out: the fault that stopped the cell")
-    available_commands: list[str]
+    available_commands: list[str] = Field(description="the commands the current state allows")
+    may: list[str] | None = Field(
+        None,
+        description="of those, the ones the caller's token may send (its role allows them): "
+        "what a page offers this user now",
+    )
     operation_result: dict[str, Any] | None = None
 
 

@@ -102,6 +102,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         # is /openapi.json (viewer) and, for integrators, openapi.json in the repository.
         docs_url=None,
         redoc_url=None,
+        generate_unique_id_function=openapi_doc.operation_id_of,
     )
     app.state.cell = cell
     app.state.settings = settings
