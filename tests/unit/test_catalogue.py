@@ -100,3 +100,10 @@ def test_may_is_what_the_state_allows_and_the_role_allows() -> None:
     assert may(Role.ADMIN, available) == ["start", "calibrate-robot", "estop"]
     assert may_send(Role.MAINTENANCE, Command.JOG)
     assert not may_send(Role.OPERATOR, Command.JOG)
+
+
+def test_the_api_docs_table_has_one_row_per_command() -> None:
+    text = (ROOT / "docs" / "api.md").read_text(encoding="utf-8")
+    table = text.split("## Commands", 1)[1].split("Answers:", 1)[0]
+    rows = re.findall(r"^\| `POST /([a-z-]+)` \|", table, flags=re.MULTILINE)
+    assert rows == NAMES, "docs/api.md's command table: one row per catalogue entry, in order"
