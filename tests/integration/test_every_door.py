@@ -5,7 +5,8 @@ command; OPC UA those the catalogue gives a method) three ways: by a token whose
 is too low (where the command needs more than a viewer), refused by the state (the
 commands IDLE refuses), and accepted (the e-stop, then the reset that leaves ERROR).
 Each door gives the same status (OPC UA's code for HTTP's), the same refusal text and
-an audit row with the same outcome and detail. A real cell with the simulators,
+an audit row with the same outcome and detail. GET /state's `may` lists, for each
+token, the commands the state and its role allow. A real cell with the simulators,
 Debian's mosquitto and asyncua's Client.
 """
 
@@ -143,6 +144,19 @@ async def test_every_command_answers_alike_on_every_door(tmp_path: Path) -> None
                 opcs[role].set_password(token)
             async with opcs["viewer"], opcs["maintenance"]:
                 doors = Doors(rig, mqtt, opcs)
+
+                # GET /state's `may`: what the state allows that the caller's role allows.
+                for role, token in tokens.items():
+                    state = (
+                        await rig.api.get("/state", headers={"Authorization": f"Bearer {token}"})
+                    ).json()
+                    needs = {spec.name: spec.role for spec in CATALOGUE}
+                    assert state["may"] == [
+                        name
+                        for name in state["available_commands"]
+                        if Role[role.upper()] >= needs[name]
+                    ], (role, state["may"])
+                    assert "estop" in state["may"]
 
                 # Too low a role: every command that needs more than a viewer.
                 for spec in CATALOGUE:
