@@ -211,7 +211,7 @@ async def start_spraying(worker: Worker, rng: random.Random) -> None:
         await asyncio.sleep(0.001)
     await asyncio.sleep(rng.uniform(0.0, 0.3))
     progress = running.progress
-    on_path = progress.get("waypoint", 0) < progress.get("of", 0) - 1  # the lift not reached
+    on_path = progress.get("waypoint", 0) < progress.get("total", 0) - 1  # the lift not reached
     assert worker.ctx.state is State.EXECUTING_TRAJECTORY and on_path, "the spray ended first"
 
 

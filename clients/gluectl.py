@@ -436,10 +436,10 @@ def _fault(fault: dict[str, Any] | None) -> str:
 
 
 def _progress(progress: dict[str, Any] | None) -> str:
-    if not progress or not progress.get("of"):
+    if not progress or not progress.get("total"):
         return ""
     fraction = progress.get("fraction") or 0.0
-    return f"waypoint {progress.get('waypoint')}/{progress['of']} ({fraction:.0%})"
+    return f"waypoint {progress.get('waypoint')}/{progress['total']} ({fraction:.0%})"
 
 
 def _key_values(title: str, rows: list[tuple[str, str]]) -> Table:
@@ -1008,7 +1008,7 @@ class WatchView:
         parts: list[RenderableType] = [header]
         if self.operation:
             progress = self.progress or {}
-            total = float(progress.get("of") or 1)
+            total = float(progress.get("total") or 1)
             done = float(progress.get("waypoint") or 0)
             bar = Table.grid(padding=(0, 1))
             bar.add_row(

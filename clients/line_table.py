@@ -28,8 +28,8 @@ def _stop_reason(reason: dict[str, Any] | None) -> str:
 def _progress(progress: dict[str, Any] | None) -> str:
     if not progress:
         return DASH
-    percent = progress.get("percent")
-    shown = f"{percent:.0f} %" if isinstance(percent, int | float) else DASH
+    fraction = progress.get("fraction")
+    shown = f"{100 * fraction:.0f} %" if isinstance(fraction, int | float) else DASH
     return f"{shown} ({progress.get('waypoint', '?')}/{progress.get('total', '?')})"
 
 

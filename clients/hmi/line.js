@@ -44,7 +44,7 @@ function render(row) {
   node.querySelector(".stop").textContent = stopReasonText(row.stopReason) || "—";
   node.querySelector(".run").textContent = row.runId ?? "—";
   const progress = shownProgress(row);
-  const pct = progress && typeof progress.percent === "number" ? progress.percent : null;
+  const pct = progress && typeof progress.fraction === "number" ? 100 * progress.fraction : null;
   node.querySelector(".progress").textContent = progress
     ? `${pct === null ? "—" : pct.toFixed(0)} % (${progress.waypoint}/${progress.total})` : "—";
   node.querySelector(".bar > span").style.width = `${pct === null ? 0 : Math.min(100, Math.max(0, pct))}%`;

@@ -3,7 +3,7 @@
  *
  *   <prefix>/<cell_id>/status    retained "online", or "offline" (the cell's last will)
  *   <prefix>/<cell_id>/state     retained JSON: state, since, stop_reason, run_id, ...
- *   <prefix>/<cell_id>/progress  JSON, where a run is (thinned by the cell): run_id, waypoint, total, percent
+ *   <prefix>/<cell_id>/progress  JSON, where a run is (thinned by the cell): run_id, waypoint, total, fraction
  *   <prefix>/<cell_id>/kpis      retained JSON: the cell's GET /kpis body (oee.oee)
  *
  * A progress message belongs to its run: it is shown only while the cell's state

@@ -135,14 +135,14 @@ export function clearMessage(condition) {
 // --- progress ---------------------------------------------------------------
 
 export function startProgress(operation, runId) {
-  hmi.progress = { operation, run_id: runId, waypoint: 0, of: 0, fraction: 0, ended: null };
+  hmi.progress = { operation, run_id: runId, waypoint: 0, total: 0, fraction: 0, ended: null };
 }
 
 export function updateProgress(update) {
   const progress = hmi.progress;
   if (!progress) return;
   if (update.run_id) progress.run_id = update.run_id;
-  for (const key of ["waypoint", "of", "fraction", "workpiece", "step", "views"]) {
+  for (const key of ["waypoint", "total", "fraction", "workpiece_id", "step", "views"]) {
     if (update[key] !== undefined) progress[key] = update[key];
   }
 }
@@ -153,11 +153,11 @@ export function renderProgress() {
   const fraction = progress ? Math.max(0, Math.min(1, progress.fraction || 0)) : 0;
   bar.setAttribute("aria-valuenow", String(Math.round(fraction * 100)));
   bar.dataset.waypoint = String(progress?.waypoint || 0);
-  bar.dataset.of = String(progress?.of || 0);
+  bar.dataset.total = String(progress?.total || 0);
   bar.dataset.ended = progress?.ended ? "true" : "false";
   $("progress-fill").style.width = `${(fraction * 100).toFixed(1)}%`;
   $("progress-label").textContent = progressLabel(progress, fraction);
-  $("progress-workpiece").textContent = progress?.workpiece || "—";
+  $("progress-workpiece").textContent = progress?.workpiece_id || "—";
   $("progress-run").textContent = progress?.run_id ? `run ${progress.run_id}` : "";
   $("progress-note").textContent = progress?.ended ? `last run ${progress.ended}` : "";
 }
@@ -165,8 +165,8 @@ export function renderProgress() {
 function progressLabel(progress, fraction) {
   if (!progress) return "no operation";
   const percent = `${Math.round(fraction * 100)} %`;
-  if (progress.waypoint) return `waypoint ${progress.waypoint} of ${progress.of} · ${percent}`;
-  if (progress.views !== undefined) return `view ${progress.views} of ${progress.of} · ${percent}`;
+  if (progress.waypoint) return `waypoint ${progress.waypoint} of ${progress.total} · ${percent}`;
+  if (progress.views !== undefined) return `view ${progress.views} of ${progress.total} · ${percent}`;
   if (progress.step) return `${progress.step} · ${percent}`;
   return "starting…";
 }

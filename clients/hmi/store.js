@@ -43,7 +43,7 @@ export const hmi = {
   lastMessageMs: 0,
   attempts: 0,
   reconnectTimer: null,
-  progress: null,        // {run_id, operation, waypoint, of, fraction, workpiece, ended}
+  progress: null,        // {run_id, operation, waypoint, total, fraction, workpiece_id, ended}
   trajectory: null,
   calibration: null,
   frame: null,           // the latest camera frame an operation captured (an Image)

@@ -18,7 +18,6 @@ import asyncio
 import csv
 import inspect
 import io
-import json
 import time
 from collections.abc import Awaitable, Callable, Iterator
 from typing import Annotated, Any, Literal, get_args
@@ -32,7 +31,7 @@ from server.api.time_window import Since, TimeWindow, Until, time_window
 from server.bootstrap.cell import Cell
 from server.quality.csv_columns import INSPECTION_COLUMNS, with_inspection
 from server.storage.journal import FILTERS, TABLES, Cursor, Filter, Journal
-from server.views.kpis import compute_kpis, kpi_window
+from server.views.kpi_query import kpis_of
 
 router = APIRouter(tags=["analytics"], route_class=DeclaredQueryRoute)
 
@@ -45,7 +44,6 @@ EXPORT_TABLES: tuple[str, ...] = get_args(ExportTable)
 # Rows read, formatted and sent at a time: what bounds an export's memory, never its length.
 EXPORT_PAGE_ROWS = 5_000
 # The KPI window reads at most this many rows of each table.
-KPI_ROW_LIMIT = 100_000
 KEYWORD_ONLY = inspect.Parameter.KEYWORD_ONLY
 
 
@@ -273,20 +271,6 @@ async def csv_export(
     )
 
 
-def _inspected_result(row: dict[str, Any]) -> dict[str, Any] | None:
-    """An operation's result as the KPIs read it (for its inspection): decoded only for a
-    trajectory run that ended, the only kind that may hold one, so a window of many
-    rows decodes no more JSON than it must."""
-    text = row.get("result")
-    if row.get("kind") != "trajectory" or row.get("ended_at") is None or not text:
-        return None
-    try:
-        result = json.loads(text) if isinstance(text, str) else text
-    except ValueError:  # a damaged record: not an inspected part, and not a 500
-        return None
-    return result if isinstance(result, dict) else None
-
-
 def _drain(buffer: io.StringIO) -> str:
     """What was written to `buffer` since the last drain; the buffer is emptied."""
     text = buffer.getvalue()
@@ -305,50 +289,3 @@ async def get_kpis(request: Request, since: Since = None, until: Until = None) -
     """
     time_window(since, until)  # since before until
     return await kpis_of(request.app.state.cell, since, until)
-
-
-async def kpis_of(cell: Cell, since: float | None = None, until: float | None = None) -> dict:
-    """What GET /kpis answers; without a window, the current shift. The MQTT link
-    publishes the same, retained, on `kpis`, and OPC UA's Admin tags read it here."""
-    now = time.time()
-    window = kpi_window(since, until, now, cell.settings.shift_hours)
-    start, end = window.start, window.end
-    journal = cell.journal
-    assert journal is not None, "the cell is not started"
-    await journal.caught_up()
-
-    state, since_state = cell.view.state.value, cell.view.since
-    settings = cell.settings
-
-    def compute() -> dict[str, Any]:
-        # Every transition that closes an interval overlapping the window (the first one
-        # after `end` closes the last); operations by when they ended (they start earlier).
-        transitions = journal.query(
-            "transitions", since=start, limit=KPI_ROW_LIMIT, newest_first=False
-        )
-        operations = journal.query(
-            "operations", since=start - 86_400, until=end, limit=KPI_ROW_LIMIT, newest_first=False
-        )
-        errors = journal.query(
-            "errors", since=start, until=end, limit=KPI_ROW_LIMIT, newest_first=False
-        )
-        recoveries = journal.query(
-            "recoveries", since=start, until=end, limit=KPI_ROW_LIMIT, newest_first=False
-        )
-        for row in recoveries:
-            row["succeeded"] = bool(row["succeeded"])
-        for row in operations:
-            row["result"] = _inspected_result(row)
-        return compute_kpis(
-            window,
-            transitions,
-            operations,
-            errors,
-            recoveries,
-            current_state=state,
-            current_since=since_state,
-            now=min(now, end),
-            design_cycle_time_s=settings.design_cycle_time_s,
-        )
-
-    return await asyncio.to_thread(compute)

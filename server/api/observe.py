@@ -6,7 +6,7 @@ request, paid by every command including the e-stop. This plain ASGI
 middleware passes the request straight through and only notes the status
 code on its way out; the observers (audit trail, metrics) run once the
 response has been sent. It also counts the commands being answered
-(`answers_in_flight.py`), from arrival to the last byte handed to the socket,
+(server/core/infra/answers_in_flight.py), from arrival to the last byte handed to the socket,
 so the plant's interfaces can hold their work until the answer has gone.
 """
 
@@ -17,7 +17,7 @@ from collections.abc import Callable
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from server.api.answers_in_flight import READS, AnswersInFlight
+from server.core.infra.answers_in_flight import READS, AnswersInFlight
 
 # (scope, status code, seconds from request to the end of the response)
 Observer = Callable[[Scope, int, float], None]

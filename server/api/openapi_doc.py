@@ -7,7 +7,8 @@ generated document knows nothing of tokens, roles, 401 or 403. Both are
 patched in here, in one place; the gate's part is derived from the same policy
 table the gate reads (server/security/policy.py), so the document cannot drift
 from what is enforced. openapi.json in the repository is this document
-(`python -m server.cli.openapi --write`).
+(`python -m server.cli.openapi --write`). Each operation's id is short
+(`operation_id_of`, or the command catalogue's for a command).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import FastAPI
+from fastapi.routing import APIRoute
 
 from server.api.commands import STOP_PATHS
 from server.api.schemas import ErrorView
@@ -24,6 +26,15 @@ from server.security.tokens import Role
 BEARER_SCHEME = "bearer"  # the name of the security scheme in openapi.json
 _UNTRUSTED = "the client address is not in `trusted_networks`"
 _HTTP_METHODS = {"get", "put", "post", "delete", "options", "head", "patch", "trace"}
+
+
+def operation_id_of(route: APIRoute) -> str:
+    """A route's OpenAPI operationId: its function's name in camelCase (`get_state` →
+    `getState`), short and stable while the function keeps its name. The command
+    routes set theirs from the command catalogue instead (server/commands/catalogue.py);
+    tests/integration/test_api_schema.py checks that every id is unique."""
+    head, *rest = route.name.split("_")
+    return head + "".join(part[:1].upper() + part[1:] for part in rest)
 
 
 def install(app: FastAPI) -> None:

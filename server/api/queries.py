@@ -20,9 +20,11 @@ from server.api.schemas import (
     StateView,
 )
 from server.bootstrap.cell import Cell
+from server.commands.catalogue import may
 from server.core.machine.transitions import Command, normalize_command
 from server.core.operations.frames import Frame
 from server.core.worker.view import CellView
+from server.security.tokens import Principal
 
 router = APIRouter(tags=["queries"], route_class=DeclaredQueryRoute)
 
@@ -36,8 +38,16 @@ def _view(request: Request) -> CellView:
 
 
 async def get_state(request: Request) -> dict:
-    """The current state, the running operation and its progress, the fault if any."""
-    return _view(request).snapshot()
+    """The current state, the running operation and its progress, the fault if any.
+
+    `may` is what the caller's token may do now: the commands the state allows
+    (`available_commands`) that its role allows too (server/commands/catalogue.py).
+    """
+    snapshot = _view(request).snapshot()
+    principal: Principal | None = getattr(request.state, "principal", None)
+    if principal is not None:
+        snapshot["may"] = may(principal.role, snapshot["available_commands"])
+    return snapshot
 
 
 def add_state_route(app: FastAPI) -> None:

@@ -38,7 +38,6 @@ from server.api import (
     workpieces,
     ws,
 )
-from server.api.answers_in_flight import AnswersInFlight
 from server.api.audit_repeats import AuditRepeats
 from server.api.dashboard import mount_dashboard
 from server.api.limits import BodySizeLimit
@@ -47,6 +46,7 @@ from server.api.route_warmup import prepare_routes
 from server.api.schemas import RETRY_AFTER_S
 from server.api.stop_lane import StopLane
 from server.bootstrap.cell import Cell
+from server.commands import answers
 from server.common.errors import (
     ChangeNotSaved,
     ConfigurationError,
@@ -54,10 +54,12 @@ from server.common.errors import (
     JournalUnavailable,
     WorkerStopped,
 )
+from server.core.infra.answers_in_flight import AnswersInFlight
 from server.mqtt.commands import CommandDoor
 from server.mqtt.link import MqttLink
 from server.settings.model import Settings
 from server.views.camera_preview import CameraPreview
+from server.views.kpi_query import kpis_of
 
 if TYPE_CHECKING:
     from server.opcua.interface import OpcUaInterface
@@ -100,6 +102,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         # is /openapi.json (viewer) and, for integrators, openapi.json in the repository.
         docs_url=None,
         redoc_url=None,
+        generate_unique_id_function=openapi_doc.operation_id_of,
     )
     app.state.cell = cell
     app.state.settings = settings
@@ -216,7 +219,7 @@ def mqtt_link(app: FastAPI, settings: Settings, cell: Cell) -> MqttLink | None:
         settings,
         cell,
         health=lambda: queries.health_of(app),
-        kpis=lambda: analytics.kpis_of(cell),
+        kpis=lambda: kpis_of(cell),
         commands=door,
         answers=app.state.answers,
     )
@@ -268,8 +271,8 @@ def _install_error_handlers(app: FastAPI) -> None:
                 message = f"not valid JSON at character {at}" + (f": {why}" if why else "")
                 problems.append({"field": "body", "message": message, "type": error["type"]})
                 continue
-            problems.append(commands.problem_of(error))  # as MQTT and OPC UA word it
-        body: dict[str, Any] = {"detail": commands.invalid_request(problems), "errors": problems}
+            problems.append(answers.problem_of(error))  # as MQTT and OPC UA word it
+        body: dict[str, Any] = {"detail": answers.invalid_request(problems), "errors": problems}
         request.state.audit_reason = body["detail"]  # the refusal's audit row says why
         if commands.is_estop(request):
             # A stop is never refused over its body: it is made, and the 422 says so.

@@ -313,6 +313,6 @@ def find_interruption(journal: Journal, previous: dict[str, Any] | None) -> str 
         state = kind_states[0]
     message = f"interrupted during {state}"
     progress = json.loads(last["progress"] or "{}")
-    if progress.get("waypoint") and progress.get("of"):
-        message += f" at waypoint {progress['waypoint']} of {progress['of']}"
+    if progress.get("waypoint") and progress.get("total"):
+        message += f" at waypoint {progress['waypoint']} of {progress['total']}"
     return f"{message} (run {last['run_id']}); the server stopped before the operation ended"

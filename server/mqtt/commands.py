@@ -2,13 +2,14 @@
 
 A message on `<prefix>/<cell_id>/command/<name>` is a signed command
 (server/mqtt/signed.py: `token_id`, `ts_ms`, `nonce`, `body`, `sig`); `name` is
-the HTTP route's (start, pause, resume, cancel, reset, estop, home, jog,
-calibrate-robot, calibrate-camera, create-workpiece). The token is found by its
+a command of the catalogue (server/commands/catalogue.py: start, pause, resume,
+cancel, reset, estop, home, jog, calibrate-robot, calibrate-camera,
+create-workpiece), the HTTP route's word. The token is found by its
 id in the HTTP gate's store, the signature proves the sender holds it, the time
 and nonce that the message is fresh and new; the role is the one
-server/security/policy.py gives the route (`POST /<name>`), so the two doors
-cannot drift apart. The body is validated by the route's own model and turned
-into the worker's payload by the same function (server/api/commands.py), and
+the catalogue gives the command, which the HTTP gate reads too, so the two doors
+cannot drift apart. The body is validated by the command's own model and turned
+into the worker's payload by the same function (server/commands/answers.py), and
 the command goes to `Cell.command` with an audit note, whose row is committed
 with the event. The answer is the HTTP answer's JSON with its status beside it
 (`"status": 202` and so on).
@@ -32,20 +33,14 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from server.api.commands import (
-    answer_of,
-    audit_label,
-    command_path,
-    invalid_request,
-    payload_of,
-)
-from server.api.schemas import RETRY_AFTER_S
 from server.bootstrap.cell import Cell
+from server.commands.answers import answer_of, audit_label, invalid_request, payload_of
+from server.commands.catalogue import spec_of
+from server.commands.requests import RETRY_AFTER_S
 from server.common.errors import EventQueueFull, JournalUnavailable, WorkerStopped
 from server.core.machine.events import AuditNote, Payload, StopPayload
 from server.core.machine.transitions import Command, normalize_command
 from server.mqtt.signed import NonceCache, Refusal, verify
-from server.security.policy import required_role
 from server.security.tokens import Principal, TokenStore
 from server.storage.journal import records
 
@@ -97,8 +92,8 @@ class CommandDoor:
         if isinstance(checked, Refusal):
             return self._refuse(None, action, checked.status, checked.detail)
         principal, body = checked.principal, checked.body
-        needed = required_role("POST", command_path(command))
-        if needed is not None and principal.role < needed:
+        needed = spec_of(command).role
+        if principal.role < needed:
             detail = (
                 f"this needs the {needed.label} role; {principal.name} has {principal.role.label}"
             )

@@ -40,8 +40,8 @@ import aiomqtt
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
-from server.api.answers_in_flight import AnswersInFlight, after_answers
 from server.bootstrap.cell import Cell
+from server.core.infra.answers_in_flight import AnswersInFlight, after_answers
 from server.core.infra.bus import SubscriptionClosed
 from server.core.infra.paced_feed import PacedFeed
 from server.core.worker.runs import RunEnded
@@ -236,7 +236,7 @@ class MqttLink:
         after the commit, the plant hears of a transition about a millisecond
         later. The commit alone was not enough (the answer is written a few turns
         of the loop after it): every message then also waits until no command's
-        answer is in flight (server/api/answers_in_flight.py).
+        answer is in flight (server/core/infra/answers_in_flight.py).
         """
         journal = self.cell.journal
         if journal is not None:

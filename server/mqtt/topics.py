@@ -130,15 +130,14 @@ def progress_message(cell_id: str, data: dict[str, Any]) -> dict[str, Any] | Non
     (a recovery attempt: its fault, if it fails, comes as an alert)."""
     if "waypoint" not in data and "fraction" not in data:
         return None
-    fraction = data.get("fraction")
     return {
         "cell_id": cell_id,
         "run_id": data.get("run_id"),
         "operation": data.get("operation"),
         "waypoint": data.get("waypoint"),
-        "total": data.get("of"),
-        "percent": round(100 * fraction, 1) if isinstance(fraction, int | float) else None,
-        "workpiece_id": data.get("workpiece"),
+        "total": data.get("total"),
+        "fraction": data.get("fraction"),
+        "workpiece_id": data.get("workpiece_id"),
         "step": data.get("step"),
     }
 

@@ -25,10 +25,9 @@ from urllib.parse import urlparse
 from asyncua import Server, ua
 from asyncua.common.callback import CallbackType
 
-from server.api.analytics import kpis_of
-from server.api.answers_in_flight import AnswersInFlight, after_answers
 from server.bootstrap.cell import Cell
 from server.common.errors import ConfigurationError
+from server.core.infra.answers_in_flight import AnswersInFlight, after_answers
 from server.core.infra.bus import BusMessage, SubscriptionClosed
 from server.core.infra.paced_feed import PacedFeed
 from server.core.machine.transitions import State
@@ -41,6 +40,7 @@ from server.opcua.packml import packml_state, unit_mode
 from server.opcua.protection import CallGuard, PasswordGuard
 from server.security.tokens import TokenStore
 from server.settings.model import Settings
+from server.views.kpi_query import kpis_of
 
 log = logging.getLogger(__name__)
 

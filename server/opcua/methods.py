@@ -1,10 +1,10 @@
 """The cell's OPC UA methods: the operator's commands on the HTTP command path and roles.
 
-Each method is a command of server/core/machine/transitions.py, sent through
-`Cell.command` with an audit note naming the token's principal, the client's
-address and the method, exactly as server/api/commands.py sends the HTTP
-command; the role it needs is read from server/security/policy.py for that
-command's HTTP route, so the two doors cannot drift apart. EmergencyStop is
+Each method is a command of the catalogue (server/commands/catalogue.py) that
+names an OPC UA method, sent through `Cell.command` with an audit note naming
+the token's principal, the client's address and the method, exactly as
+server/api/commands.py sends the HTTP command; the role it needs is the
+catalogue's, which the HTTP gate reads too, so the doors cannot drift apart. EmergencyStop is
 the e-stop of POST /estop (`Cell.command(Command.ESTOP)`: the devices halted
 first, then the event ahead of everything queued) and, like it, open to every
 signed-in role.
@@ -15,9 +15,9 @@ BadInvalidState where HTTP says 409, BadInvalidArgument for 422,
 BadResourceUnavailable for 503) with the same output arguments, so the cell's
 message comes back with it.
 
-The inputs are checked by the HTTP route's own request model and turned into the
-worker's payload by the same function (server/api/commands.py: `payload_of`, which
-MQTT calls too): a part id HTTP refuses with 422 is refused here with
+The inputs are checked by the command's own request model and turned into the
+worker's payload by the same function (server/commands/answers.py: `payload_of`,
+which HTTP and MQTT use too): a part id HTTP refuses with 422 is refused here with
 BadInvalidArgument, the 422's detail as the message and the audit row's detail.
 A Call request too large to be a method's (server/opcua/protection.py) never
 reaches a method: BadRequestTooLarge, as HTTP answers 413.
@@ -34,15 +34,16 @@ from typing import Any, Final
 from asyncua import Node, Server, ua
 from asyncua.common.callback import ServerItemCallback
 
-from server.api.commands import Problem, invalid_request, payload_of
 from server.bootstrap.cell import Cell
+from server.commands.answers import Problem, invalid_request, payload_of
+from server.commands.answers import status_of as http_status_of
+from server.commands.catalogue import CATALOGUE
 from server.common.errors import EventQueueFull, JournalUnavailable, WorkerStopped
 from server.core.machine.events import AuditNote, Outcome
-from server.core.machine.transitions import Command, Event
+from server.core.machine.transitions import Command
 from server.opcua.address_space import node_id_of
 from server.opcua.identity import ANONYMOUS, CellUser, caller
-from server.security.policy import required_role
-from server.security.tokens import TokenStore
+from server.security.tokens import Role, TokenStore
 from server.storage.journal import records
 
 log = logging.getLogger(__name__)
@@ -50,34 +51,20 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Method:
-    """One OPC UA method: its PackML name, the command it sends, that command's HTTP route."""
+    """One OPC UA method: its PackML name, the command it sends and the role it needs."""
 
     name: str
-    packml: str  # the PackML command it stands for
+    packml: str
     command: Command
-    route: str
+    role: Role
     description: str
 
 
-METHODS: Final = (
-    Method(
-        "Start",
-        "Start",
-        Command.START,
-        "/start",
-        "spray: WorkpieceId names a library part (empty: find the part on the table)",
-    ),
-    Method("Pause", "Hold", Command.PAUSE, "/pause", "hold the run: valve closed, robot still"),
-    Method("Resume", "Unhold", Command.RESUME, "/resume", "continue the held run"),
-    Method("Cancel", "Stop", Command.CANCEL, "/cancel", "end the operation, glue off, to IDLE"),
-    Method("Reset", "Reset", Command.RESET, "/reset", "leave ERROR once every device answers"),
-    Method(
-        "EmergencyStop",
-        "Abort",
-        Command.ESTOP,
-        "/estop",
-        "software stop: valve closed and robot stopped at once, then ERROR",
-    ),
+# One method per catalogue entry that names one, in the catalogue's order.
+METHODS: Final = tuple(
+    Method(spec.opcua.name, spec.opcua.packml, spec.command, spec.role, spec.opcua.description)
+    for spec in CATALOGUE
+    if spec.opcua is not None
 )
 OUTPUTS: Final = (
     ("Accepted", ua.VariantType.Boolean),
@@ -88,15 +75,18 @@ OUTPUTS: Final = (
 INPUTS: Final = {"Start": (("WorkpieceId", ua.VariantType.String),)}
 
 
+# The OPC UA status for each HTTP status a command's answer can have.
+_CODES: Final = {
+    202: ua.StatusCodes.Good,
+    409: ua.StatusCodes.BadInvalidState,
+    422: ua.StatusCodes.BadInvalidArgument,
+    503: ua.StatusCodes.BadResourceUnavailable,
+}
+
+
 def status_of(outcome: Outcome) -> int:
-    """The status code of the worker's answer, as commands._status gives HTTP's."""
-    if outcome.journal_problem is not None and outcome.event is not Event.EMERGENCY_STOP:
-        return ua.StatusCodes.BadResourceUnavailable
-    if outcome.accepted:
-        return ua.StatusCodes.Good
-    if outcome.field is not None:
-        return ua.StatusCodes.BadInvalidArgument
-    return ua.StatusCodes.BadInvalidState
+    """The status code of the worker's answer: HTTP's (`answers.status_of`) in OPC UA's terms."""
+    return int(_CODES[http_status_of(outcome)])
 
 
 def status_name(code: int) -> str:
@@ -191,8 +181,7 @@ class CellMethods:
     def may_call(self, user: object, method: Method) -> bool:
         """Whether `user` holds a token with the role `method` needs (anonymous: never)."""
         principal = user.principal(self.tokens) if isinstance(user, CellUser) else None
-        needed = required_role("POST", method.route)
-        return principal is not None and (needed is None or principal.role >= needed)
+        return principal is not None and principal.role >= method.role
 
     def user_executable(self, event: ServerItemCallback, dispatcher: object) -> None:
         """asyncua's PostRead callback: a method's UserExecutable as this session may call it.
@@ -235,7 +224,7 @@ class CellMethods:
         address = peer_of(self.server, user)
         action = f"OPC UA {method.name}"
         principal = user.principal(self.tokens) if user is not None else None
-        needed = required_role("POST", method.route)
+        needed = method.role
         if principal is None:
             why = (
                 "authentication required: sign in with an API token as the password"
@@ -243,7 +232,7 @@ class CellMethods:
                 else "the token is unknown or revoked"
             )
             return self._refuse(ANONYMOUS, address, action, why)
-        if needed is not None and principal.role < needed:
+        if principal.role < needed:
             why = f"this needs the {needed.label} role; {principal.name} has {principal.role.label}"
             return self._refuse(principal.describe(), address, action, why)
         # The route's own model checks the inputs, as over HTTP and MQTT: the same

@@ -102,9 +102,9 @@ def cell_state(
         "seq": seq,
         "operation": operation.get("name") or progress.get("operation"),
         "run_id": operation.get("run_id") or progress.get("run_id"),
-        "workpiece": progress.get("workpiece"),
+        "workpiece_id": progress.get("workpiece_id"),
         "waypoint": progress.get("waypoint"),
-        "of": progress.get("of"),
+        "total": progress.get("total"),
         "stop_reason": snapshot.get("stop_reason"),
         "devices": devices_summary(devices),
     }

@@ -1,5 +1,9 @@
 """The access policy: which role each route needs, declared once.
 
+The command routes' roles come from the command catalogue
+(server/commands/catalogue.py), the one place a command is declared; the
+table below holds every other route.
+
 `None` means open to anyone: the health check and the dashboard's page (its
 assets under OPEN_PREFIXES); nothing else.
 A route missing from the table needs ADMIN: new routes are closed until
@@ -14,11 +18,14 @@ from typing import Final
 
 from starlette.routing import compile_path
 
+from server.commands.catalogue import CATALOGUE
 from server.security.tokens import Role
 
 VIEW, OPER, MAINT, ADMIN = Role.VIEWER, Role.OPERATOR, Role.MAINTENANCE, Role.ADMIN
 
-POLICY: Final = MappingProxyType(
+# The commands' routes take their roles from the command catalogue, where each
+# command is declared once; the rest are here.
+_ROUTES: Final = MappingProxyType(
     {
         # open
         ("GET", "/health"): None,
@@ -53,25 +60,14 @@ POLICY: Final = MappingProxyType(
         ("GET", "/workpieces/{workpiece_id}"): VIEW,
         ("GET", "/workpieces/{workpiece_id}/thumbnail"): VIEW,
         ("POST", "/ws-ticket"): VIEW,
-        ("POST", "/estop"): VIEW,
-        # operator: run production
-        ("POST", "/start"): OPER,
+        # operator: run production (the commands' routes: the catalogue)
         ("POST", "/orders"): OPER,
         ("POST", "/orders/{order_id}/close"): OPER,
         ("POST", "/orders/{order_id}/resume"): OPER,
-        ("POST", "/pause"): OPER,
-        ("POST", "/resume"): OPER,
-        ("POST", "/cancel"): OPER,
-        ("POST", "/create-workpiece"): OPER,
         # maintenance: calibrate, recover, edit the library
-        ("POST", "/calibrate-robot"): MAINT,
-        ("POST", "/calibrate-camera"): MAINT,
-        ("POST", "/reset"): MAINT,
-        ("POST", "/home"): MAINT,
         # the camera set-up view's status; its stream, WebSocket /camera/preview/ws, checks
         # the same role at its handshake (server/api/camera_preview.py)
         ("GET", "/camera/preview"): MAINT,
-        ("POST", "/jog"): MAINT,
         ("POST", "/calibration/markers/draft/{marker}/teach"): MAINT,
         ("PUT", "/calibration/markers/draft/{marker}"): MAINT,
         ("DELETE", "/calibration/markers/draft"): MAINT,
@@ -90,6 +86,9 @@ POLICY: Final = MappingProxyType(
         ("GET", "/webhooks"): ADMIN,  # names the plant's receivers (redacted)
         ("GET", "/webhooks/deliveries"): ADMIN,
     }
+)
+POLICY: Final = MappingProxyType(
+    {**_ROUTES, **{("POST", spec.path): spec.role for spec in CATALOGUE}}
 )
 WEBSOCKET_ROLE: Final = VIEW
 

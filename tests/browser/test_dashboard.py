@@ -154,7 +154,7 @@ async def shot(page: Page, name: str, *, full_page: bool = False) -> None:
 async def progress(page: Page) -> tuple[int, int]:
     bar = page.locator("#progress")
     return int(await bar.get_attribute("data-waypoint") or 0), int(
-        await bar.get_attribute("data-of") or 0
+        await bar.get_attribute("data-total") or 0
     )
 
 

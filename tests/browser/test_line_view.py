@@ -31,7 +31,7 @@ from tests.serving import free_port
 
 SHOTS = ROOT / "test-artifacts" / "screenshots"
 SCREENS = {"panel": {"width": 1920, "height": 1080}, "laptop": {"width": 1280, "height": 800}}
-PROGRESS = {"run_id": "r-1", "waypoint": 4, "total": 10, "percent": 40.0}
+PROGRESS = {"run_id": "r-1", "waypoint": 4, "total": 10, "fraction": 0.4}
 # The will fires after 1.5 keep-alives of silence; this only bounds a broken run.
 OFFLINE_WAIT_MS = 30_000
 

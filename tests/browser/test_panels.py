@@ -147,7 +147,7 @@ async def test_commands_and_stop_are_in_view_on_every_panel_in_every_state(
     assert (await rig.api.put("/workpieces/demo", json=body)).status_code == 200
     assert (await rig.api.post("/start", json=SPRAY_DEMO)).status_code == 202
     await expect_state(page, "EXECUTING_TRAJECTORY")
-    await expect(page.locator("#progress")).not_to_have_attribute("data-of", "0")
+    await expect(page.locator("#progress")).not_to_have_attribute("data-total", "0")
     await check_every_panel(page, "EXECUTING_TRAJECTORY", {"pause", "cancel"})
     assert (await rig.api.post("/pause")).status_code == 202
     await check_every_panel(page, "PAUSED", {"resume", "cancel"})

@@ -194,7 +194,7 @@ async def test_pause_then_resume_finishes_the_same_run(cell, api, glue_reader) -
     waypoints = [m["waypoint"] for m in rest if m["type"] == "progress" and "waypoint" in m]
     # Continued from the hold, not restarted: no waypoint before the pause comes again.
     assert min(waypoints) > 3 and waypoints == sorted(set(waypoints))
-    total = next(m["of"] for m in rest if m["type"] == "progress" and "of" in m)
+    total = next(m["total"] for m in rest if m["type"] == "progress" and "total" in m)
     assert [w for w in waypoints if w > held_at] == list(range(held_at + 1, total + 1))
     assert {m["run_id"] for m in rest if m["type"] == "progress"} == {run_id}
     assert rest[-1]["event"] == "OPERATION_COMPLETED"

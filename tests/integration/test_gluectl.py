@@ -340,7 +340,7 @@ def test_the_live_view_shows_progress_timeline_and_resyncs() -> None:
             "operation": "trajectory",
             "run_id": "r1",
             "waypoint": waypoint,
-            "of": 7,
+            "total": 7,
             "fraction": waypoint / 7,
         }
 

@@ -105,7 +105,7 @@ def test_live_json_prints_a_document_per_change_with_the_runs_progress(
         assert watcher.stdout is not None
         first: dict[str, Any] = json.loads(watcher.stdout.readline())
         assert len(first["cells"]) == 3
-        progress = {"run_id": "r-1", "waypoint": 4, "total": 10, "percent": 40.0}
+        progress = {"run_id": "r-1", "waypoint": 4, "total": 10, "fraction": 0.4}
         run = {"run_id": "r-1"}
         state = state_message("cell-1", "EXECUTING_TRAJECTORY", **run)
         publish_cell(broker.mqtt, "cell-1", state, 0.75, progress)

@@ -70,7 +70,7 @@ async def test_a_run_in_order_and_the_state_for_a_late_subscriber(tmp_path: Path
             # Each waypoint once, in order (plant_progress_interval 0: none thinned).
             reached = [p["waypoint"] for p in progress]
             assert reached == list(range(1, progress[-1]["total"] + 1))
-            assert progress[-1]["percent"] == 100.0
+            assert progress[-1]["fraction"] == 1.0
 
             # A subscriber that comes later is told the present by the broker alone.
             async with subscriber(broker.port, f"{BASE}/#") as late:
@@ -117,13 +117,13 @@ async def test_a_runs_progress_is_thinned_and_ends_with_its_final_waypoint(
             while truth.pending:
                 produced.append((await truth.get()).data)
             waypoints = [p for p in produced if "waypoint" in p]
-            total = waypoints[-1]["of"]
+            total = waypoints[-1]["total"]
             assert [p["waypoint"] for p in waypoints][-1] == total > 2
 
     progress = plant.on(f"{BASE}/progress")
     assert 2 <= len(progress) < len(waypoints)  # thinned: fewer than the run published
     assert progress[0]["waypoint"] == 1  # the first goes at once
-    assert progress[-1]["waypoint"] == total and progress[-1]["percent"] == 100.0
+    assert progress[-1]["waypoint"] == total and progress[-1]["fraction"] == 1.0
     assert [p["waypoint"] for p in progress] == sorted(p["waypoint"] for p in progress)
     # On the broker, in order: the final progress, then the run, then the end of the state.
     order = [
@@ -338,7 +338,7 @@ async def test_the_stop_is_answered_before_the_link_publishes_it(
     tmp_path: Path, monkeypatch
 ) -> None:
     """The e-stop's answer is on the wire before the link does its work for ERROR."""
-    from server.api.answers_in_flight import AnswersInFlight
+    from server.core.infra.answers_in_flight import AnswersInFlight
     from server.mqtt.link import MqttLink
 
     log: list[str] = []

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 
-from server.api.answers_in_flight import AnswersInFlight, after_answers
+from server.core.infra.answers_in_flight import AnswersInFlight, after_answers
 
 
 async def test_no_answer_in_flight_means_no_wait() -> None:

@@ -13,7 +13,7 @@ import math
 import pytest
 from asyncua import ua
 
-from server.api.commands import invalid_request, payload_of
+from server.commands.answers import invalid_request, payload_of
 from server.core.machine.events import StartPayload, StopPayload
 from server.core.machine.transitions import Command
 from server.opcua.methods import METHODS, body_of

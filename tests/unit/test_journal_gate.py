@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from server.api.commands import _status
+from server.commands.answers import status_of as _status
 from server.core.machine.events import AuditNote, Outcome
 from server.core.machine.transitions import Event, State
 from server.security.tokens import Role, TokenStore

@@ -129,7 +129,7 @@ def _one_of_each() -> dict[str, list[records.Record]]:
         "operations": [
             records.operation_started("r-1", "trajectory", 1.0, {"workpiece_id": "w"}),
             records.operation_planned("r-1", 2),
-            records.operation_progress("r-1", {"of": 2}),
+            records.operation_progress("r-1", {"total": 2}),
             records.operation_ended("r-1", 2.0, "completed", {"parts": 2}, None, 2),
         ],
         "errors": [records.error(1.0, "E", "m", "robot", "critical", "e-1", "ERROR")],

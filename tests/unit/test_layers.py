@@ -40,13 +40,16 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     "core.infra": (),
     "core": (),
     # data at rest, policies, the settings
-    "security": ("common", "storage"),
+    # the policy reads the commands' roles from the catalogue
+    "security": ("commands.catalogue", "common", "storage"),
     "settings": ("common", "security"),
     "storage": ("common", "storage.journal", "vision"),
     "storage.journal": ("common", "storage"),
     # devices
     "drivers": ("common", "drivers.sim", "vision"),
     "drivers.sim": ("drivers", "settings", "vision"),
+    # the command catalogue: each command declared once, above the machine's vocabulary
+    "commands": ("common", "core.machine", "security", "storage"),
     # measuring a run
     "quality": ("drivers", "settings", "vision"),
     # the core
@@ -61,7 +64,7 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     # read models and the plant's services, above the core
     "views": (
         "common", "core.infra", "core.machine", "core.operations", "core.worker", "drivers",
-        "quality", "security", "settings", "storage", "vision",
+        "quality", "security", "settings", "storage", "storage.journal", "vision",
     ),
     "notify": (
         "core.infra", "core.worker", "quality", "security", "settings", "storage.journal",
@@ -71,21 +74,21 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     ),
     # transports
     "api": (
-        CELL, "common", "core.infra", "core.machine", "core.operations", "core.worker",
+        CELL, "commands", "common", "core.infra", "core.machine", "core.operations", "core.worker",
         "orders", "quality", "security", "settings", "storage", "storage.journal", "views",
     ),
     "mqtt": (
-        CELL, "api", "common", "core.infra", "core.machine", "core.worker", "quality",
+        CELL, "commands", "common", "core.infra", "core.machine", "core.worker", "quality",
         "security", "settings", "storage.journal",
     ),
     "opcua": (
-        CELL, "api", "common", "core.infra", "core.machine", "security", "settings",
-        "storage", "storage.journal",
+        CELL, "commands", "common", "core.infra", "core.machine", "security", "settings",
+        "storage", "storage.journal", "views",
     ),
     "embedded": (CELL, "core.machine", "core.operations", "core.worker", "settings"),
     # the composition root, and what starts it
     "bootstrap": (
-        "api", "common", "core.infra", "core.machine", "core.operations", "core.worker",
+        "api", "commands", "common", "core.infra", "core.machine", "core.operations", "core.worker",
         "drivers", "drivers.sim", "mqtt", "notify", "opcua", "orders", "security",
         "settings", "storage", "storage.journal", "views", "vision",
     ),

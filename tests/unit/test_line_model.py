@@ -39,8 +39,8 @@ def test_status_state_stop_reason_and_oee() -> None:
 def test_progress_is_shown_only_while_the_state_names_its_run() -> None:
     model = LineModel()
     model.apply("glue/a/state", state(state="EXECUTING_TRAJECTORY", run_id="r1"))
-    model.apply("glue/a/progress", json.dumps({"run_id": "r1", "percent": 30}).encode())
-    assert model.cells["a"].shown_progress() == {"run_id": "r1", "percent": 30}
+    model.apply("glue/a/progress", json.dumps({"run_id": "r1", "fraction": 0.3}).encode())
+    assert model.cells["a"].shown_progress() == {"run_id": "r1", "fraction": 0.3}
     model.apply("glue/a/state", state(state="IDLE"))
     assert model.as_json()["cells"][0]["progress"] is None
 

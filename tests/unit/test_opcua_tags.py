@@ -53,15 +53,16 @@ def test_cell_state_names_the_run_waypoint_and_devices() -> None:
         "operation": "trajectory",
         "run_id": "r1",
         "waypoint": 4,
-        "of": 9,
-        "workpiece": "demo",
+        "total": 9,
+        "workpiece_id": "demo",
     }
     devices = {
         "robot": {"connected": True, "last_error": None, "active_faults": [], "last_rtt_ms": 1.2}
     }
     document = json.loads(tags.encode(tags.cell_state(snapshot, progress, devices, seq=7)))
     assert document["run_id"] == "r1" and document["waypoint"] == 4
-    assert document["workpiece"] == "demo" and document["seq"] == 7
+    assert document["workpiece_id"] == "demo" and document["total"] == 9
+    assert document["seq"] == 7
     assert document["devices"] == {
         "robot": {"connected": True, "last_error": None, "active_faults": []}
     }

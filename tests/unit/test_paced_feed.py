@@ -23,7 +23,7 @@ class StillClock:
 
 
 def waypoint(bus: Bus, index: int) -> None:
-    bus.publish("progress", {"run_id": "r", "waypoint": index, "of": 9})
+    bus.publish("progress", {"run_id": "r", "waypoint": index, "total": 9})
 
 
 async def drain(feed: PacedFeed, count: int) -> list[tuple[str, object]]:

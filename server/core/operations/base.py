@@ -18,13 +18,24 @@ import asyncio
 import contextlib
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Final, Protocol
 
 from server.core.infra.clock import SYSTEM_CLOCK, Clock
 from server.core.operations.frames import LatestFrame
 from server.drivers.base import Camera, GlueDispenser, Robot
 from server.settings.model import Settings
 from server.storage import CellStores
+
+# The names a run's progress is told in, on every transport (the WebSocket, MQTT's
+# `progress`, OPC UA's CellState, GET /state's operation.progress, the journal):
+PROGRESS_FIELDS: Final = (
+    "step",  # what the operation is doing, in words
+    "waypoint",  # the waypoint reached, counted from 1 (a spray run)
+    "views",  # the chessboard views collected (a camera calibration)
+    "total",  # how many waypoints, or views, there are
+    "fraction",  # how far the run is, 0..1
+    "workpiece_id",  # the library part being sprayed or stored
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -233,7 +244,7 @@ class OperationContext:
     clock: Clock = SYSTEM_CLOCK
 
     def report(self, progress: dict[str, Any]) -> None:
-        """Progress for the HMI and the journal (step, fraction, waypoint ...)."""
+        """Progress for the HMI, the plant and the journal, in PROGRESS_FIELDS' names."""
         self.listener.on_progress(progress)
 
     def publish_plan(

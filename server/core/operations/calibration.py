@@ -226,7 +226,7 @@ async def calibrate_camera(ctx: OperationContext) -> OperationResult:
                 {
                     "step": "collecting views",
                     "views": len(corner_sets),
-                    "of": wanted,
+                    "total": wanted,
                     "fraction": round(len(corner_sets) / (wanted + 1), 4),
                 }
             )

@@ -273,9 +273,9 @@ async def execute_trajectory(ctx: OperationContext) -> OperationResult:
             ctx.report(
                 {
                     "waypoint": index,
-                    "of": len(path),
+                    "total": len(path),
                     "fraction": round(index / len(path), 4),
-                    "workpiece": waypoint.workpiece,
+                    "workpiece_id": waypoint.workpiece,
                 }
             )
         await close_valve()

@@ -97,7 +97,7 @@ async def create_workpiece(ctx: OperationContext) -> OperationResult:
             f"change it with PUT /workpieces/{wanted}",
         ) from exc
     centroid = outline_mm.mean(axis=0)
-    ctx.report({"step": "stored", "fraction": 1.0, "workpiece": stored.id})
+    ctx.report({"step": "stored", "fraction": 1.0, "workpiece_id": stored.id})
     return OperationResult(
         {
             "workpiece_id": stored.id,

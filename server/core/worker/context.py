@@ -64,7 +64,8 @@ class RunningOperation:
         context: dict[str, Any] = {"operation": self.name, "run_id": self.run_id}
         context.update(self.params)
         if "waypoint" in self.progress:
-            context["waypoint"] = f"{self.progress['waypoint']} of {self.progress.get('of', '?')}"
+            total = self.progress.get("total", "?")
+            context["waypoint"] = f"{self.progress['waypoint']} of {total}"
         return context
 
 

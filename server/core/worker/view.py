@@ -85,7 +85,7 @@ class CellView:
         running = self._ctx.operation
         if running is None:
             return None
-        workpiece = running.progress.get("workpiece") or running.params.get("workpiece_id")
+        workpiece = running.progress.get("workpiece_id") or running.params.get("workpiece_id")
         return {"name": running.name, "run_id": running.run_id, "workpiece_id": workpiece}
 
     def _available_commands(self) -> list[str]:

@@ -37,8 +37,8 @@ test("state, stop reason and OEE", () => {
 test("progress is shown only while the state names its run", () => {
   const line = new Map();
   applyMessage(line, "glue", "glue/a/state", state({ state: "EXECUTING_TRAJECTORY", run_id: "r1" }));
-  applyMessage(line, "glue", "glue/a/progress", JSON.stringify({ run_id: "r1", waypoint: 3, total: 10, percent: 30 }));
-  assert.equal(shownProgress(line.get("a")).percent, 30);
+  applyMessage(line, "glue", "glue/a/progress", JSON.stringify({ run_id: "r1", waypoint: 3, total: 10, fraction: 0.3 }));
+  assert.equal(shownProgress(line.get("a")).fraction, 0.3);
   applyMessage(line, "glue", "glue/a/state", state({ state: "IDLE", run_id: null }));
   assert.equal(shownProgress(line.get("a")), null);
 });
