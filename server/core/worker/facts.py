@@ -8,12 +8,72 @@ calibrations say. Only these two events read the library, so only they pay for i
 
 from __future__ import annotations
 
+from typing import Protocol
+
+from server.core.machine import decide
 from server.core.machine.decide import ActiveOrder, Library
+from server.core.machine.engine import Facts as GuardFacts
 from server.core.machine.events import CreateWorkpiecePayload, Payload, StartPayload
-from server.core.machine.transitions import Event
+from server.core.machine.transitions import TRANSITIONS, Event, State
 from server.core.operations.camera_frames import robot_calibration_problem
 from server.core.worker.devices import CellDevices
 from server.storage import CellStores
+
+LIBRARY_EVENTS = frozenset({Event.START_REQUESTED, Event.CREATE_WORKPIECE_REQUESTED})
+
+
+class Order(Protocol):
+    """What a decision reads of a production order."""
+
+    @property
+    def order_id(self) -> str: ...
+    @property
+    def workpiece_id(self) -> str: ...
+
+
+class OrderSource(Protocol):
+    """Where the worker learns the production order the cell works through (the order book)."""
+
+    @property
+    def active(self) -> Order | None: ...
+
+
+def decision_facts(
+    event: Event,
+    payload: Payload,
+    state: State,
+    *,
+    guards: GuardFacts,
+    journal_problem: str | None,
+    current_run: str | None,
+    stops: decide.Stops,
+    probing: bool,
+    probed: decide.Probed | None,
+    orders: OrderSource | None,
+    stores: CellStores,
+) -> decide.Facts:
+    """The facts of one decision, with the active order and the library read now.
+
+    The library is read only for an event it concerns that the table accepts in
+    `state`: the decision asks it only then.
+    """
+    active = orders.active if orders is not None else None
+    order = None  # a frozen copy: the book's order is its own
+    if active is not None:
+        order = ActiveOrder(active.order_id, active.workpiece_id)
+    library = Library()
+    if event in LIBRARY_EVENTS and event in TRANSITIONS[state]:
+        library = library_facts(event, payload, order, stores)
+    return decide.Facts(
+        guards=guards,
+        journal_problem=journal_problem,
+        current_run=current_run,
+        stops=stops,
+        probing=probing,
+        probed=probed,
+        active_order=order,
+        library=library,
+    )
 
 
 def known_device_faults(devices: CellDevices) -> tuple[str, ...]:

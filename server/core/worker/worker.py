@@ -22,44 +22,28 @@ warnings and the ERROR-timeout alert `alerts.py`.
 from __future__ import annotations
 
 import asyncio
-import itertools
 import logging
-import secrets
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import replace
-from typing import Protocol
 
-from server.common.errors import EventQueueFull, WorkerStopped
+from server.common.errors import WorkerStopped
 from server.common.event_id import current_event_id
 from server.core.infra.bus import Bus
 from server.core.infra.clock import SYSTEM_CLOCK, Clock
 from server.core.machine import decide
 from server.core.machine.actions import Action
 from server.core.machine.engine import Decision, Facts
-from server.core.machine.events import (
-    AuditNote,
-    FaultPayload,
-    JogPayload,
-    Outcome,
-    Payload,
-    StopPayload,
-    payload_of,
-)
-from server.core.machine.transitions import (
-    OPERATION_OF_STATE,
-    TRANSITIONS,
-    Event,
-    event_label,
-)
+from server.core.machine.events import AuditNote, JogPayload, Outcome, Payload, StopPayload
+from server.core.machine.transitions import OPERATION_OF_STATE, Event, event_label
 from server.core.operations.base import Operation
 from server.core.operations.jog import JogRefused
 from server.core.worker.alerts import Alerts
 from server.core.worker.context import MachineContext, ProcessingStats
 from server.core.worker.devices import CellDevices, HaltReport
 from server.core.worker.event_queue import Envelope, EventQueue, Priority
-from server.core.worker.facts import known_device_faults, library_facts
+from server.core.worker.facts import OrderSource, decision_facts, known_device_faults
 from server.core.worker.jogging import start_jog
+from server.core.worker.posting import EventPoster
 from server.core.worker.recorder import Recorder
 from server.core.worker.reset_probe import ResetProbes
 from server.core.worker.runs import PauseNotHeld, Runs
@@ -75,23 +59,6 @@ from server.storage.journal import Journal
 log = logging.getLogger(__name__)
 
 Handler = Callable[[Decision, Envelope], Awaitable[None] | None]
-LIBRARY_EVENTS = frozenset({Event.START_REQUESTED, Event.CREATE_WORKPIECE_REQUESTED})
-
-
-class Order(Protocol):
-    """What a decision reads of a production order."""
-
-    @property
-    def order_id(self) -> str: ...
-    @property
-    def workpiece_id(self) -> str: ...
-
-
-class OrderSource(Protocol):
-    """Where the worker learns the production order the cell works through (the order book)."""
-
-    @property
-    def active(self) -> Order | None: ...
 
 
 class Worker:
@@ -118,7 +85,13 @@ class Worker:
         self.ctx = MachineContext(history_size=settings.history_size)
         self.queue = EventQueue(settings.event_queue_size)
         self.stats = ProcessingStats(settings.performance_history_size)
-        self.recorder = Recorder(journal, self._post_fault, self.ctx, snapshot_file, clock)
+        self.recorder = Recorder(
+            journal, lambda f: self.poster.post_fault(f), self.ctx, snapshot_file, clock
+        )
+        self.poster = poster = EventPoster(self.queue, self.recorder)
+        self.submit = poster.submit  # every sender's way into the queue
+        self.request = poster.request  # a command, answered once decided and on record
+        self.report_fault = poster.report_fault  # the drivers' fault listener, any thread
         self.alerts = Alerts(settings, self.ctx, bus, self.recorder, clock)
         self.runs = Runs(
             settings=settings,
@@ -130,10 +103,10 @@ class Worker:
             recorder=self.recorder,
             alerts=self.alerts,
             clock=clock,
-            post_outcome=self._post_outcome,
+            post_outcome=poster.post_outcome,
         )
         self.activities = Activities(
-            settings, devices, self._halt, self._post_ready, self._post_fault
+            settings, devices, self._halt, poster.post_ready, poster.post_fault
         )
         self.stores = stores
         self.orders: OrderSource | None = None  # the order book, once the cell has one
@@ -145,14 +118,10 @@ class Worker:
             self.alerts,
             clock,
             self.view.snapshot,
-            lambda: self._post_ready(Event.SYSTEM_READY, "system"),
+            lambda: poster.post_ready(Event.SYSTEM_READY, "system"),
         )
-        self._boot = secrets.token_hex(3)
-        self._ids = itertools.count(1)
-        self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task[None] | None = None
         self._estops = 0  # e-stops requested so far; see _handle
-        self._faults_posted = 0  # faults reported so far, decided or still queued (see jog)
         self.reset_probes = ResetProbes(
             devices, settings.reset_probe_timeout, lambda e: self.queue.put(e, bounded=False)
         )
@@ -177,7 +146,7 @@ class Worker:
 
     async def start(self) -> None:
         """Enter INITIALIZING, connect the devices, and begin draining the queue."""
-        self._loop = asyncio.get_running_loop()
+        self.poster.loop = asyncio.get_running_loop()
         self.devices.set_fault_listener(self.report_fault)
         self.ctx.since = self.clock.time()
         self._task = asyncio.create_task(self._run(), name="cell-worker")
@@ -201,51 +170,6 @@ class Worker:
         self.devices.set_fault_listener(None)
 
     # --- posting events ----------------------------------------------------
-
-    def submit(
-        self,
-        event: Event,
-        *,
-        source: str,
-        payload: Payload | None = None,
-        priority: Priority = Priority.REQUEST,
-        bounded: bool = True,
-        audit: AuditNote | None = None,
-    ) -> Envelope:
-        """Queue an event (loop thread only). Raises EventQueueFull when `bounded` and full."""
-        payload = payload_of(event, payload)
-        loop = self._loop or asyncio.get_running_loop()
-        if bounded and self.recorder.behind:
-            raise EventQueueFull(self.queue.capacity)  # the disk is behind: refuse, never drop
-        envelope = Envelope(
-            event_id=f"{self._boot}-{next(self._ids):06d}",
-            event=event,
-            source=source,
-            payload=payload,
-            priority=priority,
-            future=loop.create_future(),
-            audit=audit,
-        )
-        self.queue.put(envelope, bounded=bounded)
-        return envelope
-
-    async def request(
-        self,
-        event: Event,
-        *,
-        source: str,
-        payload: Payload | None = None,
-        audit: AuditNote | None = None,
-    ) -> Outcome:
-        """Queue a request and wait for the worker's decision.
-
-        Raises JournalUnavailable when the journal's last write failed and it still
-        cannot write: nothing is decided that could not be put on record.
-        """
-        await self.recorder.ensure_writable()
-        envelope = self.submit(event, source=source, payload=payload, audit=audit)
-        assert envelope.future is not None
-        return await envelope.future
 
     async def emergency_stop(
         self,
@@ -300,32 +224,6 @@ class Worker:
         envelope.halt_made = halt
         return envelope
 
-    def report_fault(self, fault: DeviceFault) -> None:
-        """Fault listener for the drivers; safe to call from any thread."""
-        loop = self._loop
-        if loop is None or loop.is_closed():
-            return
-        loop.call_soon_threadsafe(self._post_fault, fault)
-
-    def _post_fault(self, fault: DeviceFault) -> None:
-        self._faults_posted += 1
-        envelope = self.submit(
-            Event.ERROR_OCCURRED,
-            source=fault.device,
-            payload=FaultPayload(fault.code, fault.message, fault.device),
-            priority=Priority.FAULT,
-            bounded=False,
-        )
-        what = (fault.device, fault.code, fault.message, envelope.event_id)
-        log.error("device fault: %s %s: %s (event %s)", *what)
-
-    def _post_ready(self, event: Event, device: str) -> None:
-        self.submit(event, source=device, bounded=False)
-
-    def _post_outcome(self, event: Event, payload: Payload) -> None:
-        priority = Priority.REQUEST if event is Event.OPERATION_COMPLETED else Priority.FAULT
-        self.submit(event, source="operation", payload=payload, priority=priority, bounded=False)
-
     def facts(self) -> Facts:
         """Guard facts from what is known without asking the devices (a reset probes them)."""
         return Facts(self.changes.ready_now, known_device_faults(self.devices))
@@ -333,28 +231,20 @@ class Worker:
     def decision_facts(
         self, event: Event, payload: Payload, probed: decide.Probed | None = None
     ) -> decide.Facts:
-        """Everything the decision on `event` reads (`server.core.machine.decide`).
-
-        The library is read only for an event it concerns that the table accepts in
-        the present state: the decision asks it only then.
-        """
-        active = self.orders.active if self.orders is not None else None
-        order = None  # a frozen copy: the book's order is its own
-        if active is not None:
-            order = decide.ActiveOrder(active.order_id, active.workpiece_id)
-        library = decide.Library()
+        """Everything the decision on `event` reads (`server.core.machine.decide`)."""
         running = self.ctx.operation
-        if event in LIBRARY_EVENTS and event in TRANSITIONS[self.ctx.state]:
-            library = library_facts(event, payload, order, self.stores)
-        return decide.Facts(
+        return decision_facts(
+            event,
+            payload,
+            self.ctx.state,
             guards=self.facts(),
             journal_problem=self.recorder.write_problem,
             current_run=running.run_id if running is not None else None,
             stops=decide.Stops(self._estops, self.changes.faults),
             probing=self.reset_probes.under_way,
             probed=probed,
-            active_order=order,
-            library=library,
+            orders=self.orders,
+            stores=self.stores,
         )
 
     # --- the loop ----------------------------------------------------------
@@ -433,7 +323,7 @@ class Worker:
             except JogRefused as refused:  # found once the pose was read: nothing moved
                 return self._refuse(envelope, refused.message, refused.field)
             except PauseNotHeld as exc:
-                self._post_fault(DeviceFault(exc.component, "PAUSE_NOT_HELD", str(exc)))
+                self.poster.post_fault(DeviceFault(exc.component, "PAUSE_NOT_HELD", str(exc)))
                 return self._refuse(envelope, f"pause not confirmed: {exc}; the cell stops")
         message = decide.accepted_message(state, event, decision)
         started = envelope.event_id if Action.START_RUN in decision.actions else None
@@ -453,8 +343,8 @@ class Worker:
     ) -> Outcome:
         who = (envelope.event.value, envelope.event_id, envelope.source, message)
         log.info("refused %s (%s) from %s: %s", *who)
-        outcome = self._outcome(envelope, False, message, field)
-        return replace(outcome, journal_problem=journal_problem) if journal_problem else outcome
+        what = (envelope.event_id, envelope.event, self.ctx.state, message, field, journal_problem)
+        return Outcome(False, *what)
 
     # --- action handlers ---------------------------------------------------
 
@@ -490,7 +380,7 @@ class Worker:
             robot=self.devices.robot,
             activities=self.activities,
             settings=self.settings,
-            stops=lambda: (self._estops, self._faults_posted),
+            stops=lambda: (self._estops, self.poster.faults_posted),
             known_faults=lambda: known_device_faults(self.devices),
         )
 
