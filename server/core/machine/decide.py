@@ -206,7 +206,7 @@ def _decide(
         problem = facts.journal_problem  # queued before the journal failed: decide nothing
         return Refusal(f"refused: the journal cannot write ({problem})", journal_problem=problem)
     guards, estops = facts.guards, facts.stops.estops
-    if facts.probed is not None:  # a reset back from its probe
+    if facts.probed is not None and event is Event.RESET_REQUESTED:  # back from its probe
         if facts.stops != facts.probed.began:
             return Refusal(RESET_OVERTAKEN)
         guards = GuardFacts(ready_devices=guards.ready_devices, active_faults=facts.probed.found)
