@@ -45,11 +45,12 @@ arbitrary states, events, payloads and facts.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, replace
 from typing import Final
 
 from server.common.errors import TransitionNotAllowed
-from server.core.machine.actions import EXIT_ACTIONS
+from server.core.machine.actions import EXIT_ACTIONS, actions_of
 from server.core.machine.engine import Decision, step
 from server.core.machine.engine import Facts as GuardFacts
 from server.core.machine.events import (
@@ -58,7 +59,7 @@ from server.core.machine.events import (
     Payload,
     StartPayload,
 )
-from server.core.machine.transitions import COMMANDS, Event, State, event_label
+from server.core.machine.transitions import COMMANDS, Event, State, Transition, event_label
 from server.core.operations.jog import step_problem
 from server.core.operations.safe_position import workspace_problem
 from server.drivers.base import Pose
@@ -220,15 +221,16 @@ def _decide(
     unmet = precondition(event, payload, facts, settings)
     if unmet is not None:
         return unmet
-    return Accepted(decision, payload, _checkpoint(decision), estops)
+    return Accepted(decision, payload, _checkpoint(decision.transition), estops)
 
 
-def _checkpoint(decision: Decision) -> int | None:
-    if decision.target is State.ERROR:
-        return None  # a decision into ERROR is never overtaken: it is where a stop leads
-    return next(
-        (i for i, action in enumerate(decision.actions) if action not in EXIT_ACTIONS), None
-    )
+@functools.cache
+def _checkpoint(row: Transition) -> int | None:
+    """Index of the row's first action after its exit actions; None into ERROR (where a
+    stop leads, so it is never overtaken) or when there is none."""
+    if row.target is State.ERROR:
+        return None
+    return next((i for i, action in enumerate(actions_of(row)) if action not in EXIT_ACTIONS), None)
 
 
 def precondition(
