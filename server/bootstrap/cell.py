@@ -17,7 +17,7 @@ from pydantic import ValidationError
 
 from server.bootstrap.logging_setup import log_path
 from server.core.infra.bus import Bus
-from server.core.machine.events import AuditNote, Outcome, Payload, StartPayload, StopPayload
+from server.core.machine.events import AuditNote, Outcome, Payload, StopPayload
 from server.core.machine.faults import classify
 from server.core.machine.transitions import (
     COMMANDS,
@@ -156,7 +156,7 @@ class Cell:
         # a conveyor does; the next start finds the part by contour matching, or fails).
         next_part = getattr(devices.camera, "present_next_part", None)
         self.orders = book = OrderBook(self, self.journal, next_part=next_part)
-        self.worker.preconditions.active_order = lambda: book.active
+        self.worker.orders = book  # a start while an order is active makes a part of it
         await self.orders.start()
 
     async def stop(self) -> None:
@@ -202,11 +202,6 @@ class Cell:
             stop = payload if isinstance(payload, StopPayload) else StopPayload()
             return await self.worker.emergency_stop(
                 source=source, payload=stop, audit=audit, halt=halt
-            )
-        if command is Command.START and self.orders is not None:
-            # A start while an order is active makes a part of that order.
-            payload = self.orders.claim_start(
-                payload if isinstance(payload, StartPayload) else StartPayload()
             )
         return await self.worker.request(event, source=source, payload=payload, audit=audit)
 

@@ -11,7 +11,9 @@ What it decides (docs/operations-guide.md, "Production orders"):
 
 - one order is active (running or held) at a time; others wait queued;
 - a trajectory start while an order is active makes a part for it, of its
-  workpiece (a start naming another one is refused, 409 naming workpiece_id);
+  workpiece (a start naming another one is refused, 409 naming workpiece_id):
+  the cell's decision rules this (`server/core/machine/decide.py`), reading
+  `OrderBook.active`;
 - a completed run of a running order starts the next part once the cell is
   back in IDLE, the simulated camera presenting a fresh part first;
 - any failed or cancelled run, a pause, an e-stop or a fault, the defect
@@ -258,21 +260,6 @@ class OrderBook:
             raise
         self._present_next_part()
         return order, await self._start_part(order)
-
-    def claim_start(self, payload: StartPayload) -> StartPayload:
-        """A person's start while an order is active: it makes a part of the order.
-
-        A start naming another workpiece is left as it is: the worker refuses it
-        (`Preconditions`), with its event id, on record like every refusal.
-        """
-        order = self.active
-        if (
-            order is None
-            or payload.order_id is not None  # the order's own start
-            or payload.workpiece_id not in (None, order.workpiece_id)  # not this order's part
-        ):
-            return payload
-        return StartPayload(payload.contour_matching, order.workpiece_id, order.order_id)
 
     # --- the cell's side -----------------------------------------------------
 

@@ -63,7 +63,7 @@ async def capture_undistorted(ctx: OperationContext, purpose: str) -> np.ndarray
 def robot_calibration_problem(store: CalibrationStore, purpose: str) -> OperationError | None:
     """Why the image → robot map cannot be used now, or None when it can.
 
-    Checked before a run is accepted (server/core/machine/preconditions.py) and again,
+    Checked before a run is accepted (server/core/machine/decide.py) and again,
     raised, when the operation uses it.
     """
     if store.robot is None:

@@ -3,9 +3,9 @@
 Why: a reset must ask every device for a live answer (a monitoring reading
 can be stale), and that takes up to reset_probe_timeout. The worker does not
 wait for it: it starts the probe, goes on deciding events (an e-stop above
-all), and the reset comes back to the queue when the probe has answered. A
-stop or a fault decided meanwhile makes the reset "overtaken": the cell stays
-in ERROR and a person resets again. One reset probes at a time.
+all), and the reset comes back to the queue when the probe has answered, to
+be decided again on what it found (`server.core.machine.decide`: a stop or a
+fault decided meanwhile overtakes it). One reset probes at a time.
 """
 
 from __future__ import annotations
@@ -15,16 +15,11 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from server.core.machine.decide import Probed, Stops
 from server.core.worker.devices import CellDevices
 from server.core.worker.event_queue import Envelope
 
 log = logging.getLogger(__name__)
-
-RESET_OVERTAKEN = (
-    "overtaken by an emergency stop or a fault while the devices were probed; "
-    "still in ERROR, nothing was changed: reset again"
-)
-RESET_UNDER_WAY = "a reset is already probing the devices; wait for its answer"
 
 
 @dataclass(slots=True)
@@ -32,9 +27,13 @@ class ResetProbe:
     """A reset waiting for the devices' live answers, and what was decided since it began."""
 
     envelope: Envelope
-    stops: tuple[int, int]  # (e-stops, faults) decided when the probe began
+    began: Stops  # e-stops and faults counted when the probe began
     found: list[str] = field(default_factory=list)  # the faults the probe found
     task: asyncio.Task[None] | None = None
+
+    def facts(self) -> Probed:
+        """What the reset's second pass decides on (`server.core.machine.decide`)."""
+        return Probed(self.began, tuple(self.found))
 
 
 class ResetProbes:
@@ -49,12 +48,12 @@ class ResetProbes:
         self.current: ResetProbe | None = None
 
     @property
-    def under_way(self) -> str | None:
-        """Why a reset is refused now because another one's probe is running, or None."""
-        return RESET_UNDER_WAY if self.current is not None else None
+    def under_way(self) -> bool:
+        """A reset's probe is running (another reset is refused until it answers)."""
+        return self.current is not None
 
-    def start(self, envelope: Envelope, stops: tuple[int, int]) -> None:
-        probe = ResetProbe(envelope, stops)
+    def start(self, envelope: Envelope, began: Stops) -> None:
+        probe = ResetProbe(envelope, began)
         probe.task = asyncio.create_task(self._probe(probe), name="reset-probe")
         self.current = probe
 

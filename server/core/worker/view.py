@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from server.core.machine.decide import RESET_UNDER_WAY, precondition
 from server.core.machine.engine import available_commands, check
 from server.core.machine.events import payload_of
 from server.core.machine.transitions import COMMANDS, Command, State
@@ -98,16 +99,17 @@ class CellView:
         """Whether `command` (with default parameters) would be accepted now, and why not.
 
         The same checks as the worker's, in the same order: the state (and its
-        guards), then what the command needs besides (server/core/machine/preconditions.py).
+        guards), then what the command needs besides (`decide.precondition`).
         """
         event = COMMANDS[command]
-        under_way = self._worker.reset_probes.under_way
-        if command is Command.RESET and under_way:
-            return False, f"reset is refused: {under_way}"
+        if command is Command.RESET and self._worker.reset_probes.under_way:
+            return False, f"reset is refused: {RESET_UNDER_WAY}"
         allowed, reason = check(self._ctx.state, event, self._worker.facts())
         if not allowed:
             return allowed, reason
-        unmet = self._worker.preconditions.check(event, payload_of(event, None))
+        payload = payload_of(event, None)
+        facts = self._worker.decision_facts(event, payload)
+        unmet = precondition(event, payload, facts, self._worker.settings)
         if unmet is not None:
             return False, f"{command} is refused: {unmet.message}"
         return True, reason

@@ -1,67 +1,55 @@
 """The worker: the one consumer of the event queue and the only code that changes state.
 
-It takes one envelope at a time, asks the pure engine for a decision, and runs
-the decision's actions in their order (`server.core.machine.actions`), one handler per
-action. After the exit actions it checks that no emergency stop came in
-meanwhile; a decision overtaken by a stop is abandoned unless it leads to
-ERROR itself. Then the sender's future gets the outcome, once the event and
-what it caused are durable in the journal (`recorder.py`).
+It takes one envelope at a time, gathers the facts (`facts.py`), asks the pure
+decision (`server.core.machine.decide`) and executes what it is given: a
+refusal, a reset's probe of the devices, or the decision's actions in their
+order (`server.core.machine.actions`), one handler per action. At the
+decision's checkpoint, after the exit actions, it asks the decision whether
+an emergency stop came in meanwhile and abandons it if so. Then the sender's
+future gets the outcome, once the event and what it caused are durable in
+the journal (`recorder.py`).
 
 Operations and devices talk back only by posting events (OPERATION_COMPLETED,
 OPERATION_FAILED, ERROR_OCCURRED), which keeps every change of state in this
 one loop. A reset is decided when the devices have answered its live probe,
 which runs without holding the loop (`reset_probe.py`).
 
-Running operations is `runs.py`; start-up and homing `startup.py`; warnings
-and the ERROR-timeout alert `alerts.py`.
+Running operations is `runs.py`; start-up and homing `startup.py`; a jog's
+start `jogging.py`; faults, state changes and readiness `state_changes.py`;
+warnings and the ERROR-timeout alert `alerts.py`.
 """
 
 from __future__ import annotations
 
 import asyncio
-import itertools
 import logging
-import secrets
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import replace
 
-from server.common.errors import EventQueueFull, TransitionNotAllowed, WorkerStopped
+from server.common.errors import WorkerStopped
 from server.common.event_id import current_event_id
 from server.core.infra.bus import Bus
 from server.core.infra.clock import SYSTEM_CLOCK, Clock
-from server.core.machine.actions import EXIT_ACTIONS, Action
-from server.core.machine.engine import REQUIRED_DEVICES, Decision, Facts, step
-from server.core.machine.events import (
-    AuditNote,
-    FaultPayload,
-    JogPayload,
-    Outcome,
-    Payload,
-    RunCompletedPayload,
-    StopPayload,
-    payload_of,
-)
-from server.core.machine.preconditions import Preconditions
-from server.core.machine.transitions import (
-    COMMANDS,
-    OPERATION_OF_STATE,
-    READINESS_EVENTS,
-    Event,
-    State,
-    event_label,
-)
+from server.core.machine import decide
+from server.core.machine.actions import Action
+from server.core.machine.engine import Decision, Facts
+from server.core.machine.events import AuditNote, JogPayload, Outcome, Payload, StopPayload
+from server.core.machine.transitions import OPERATION_OF_STATE, Event, event_label
 from server.core.operations.base import Operation
-from server.core.operations.jog import JogRefused, jog_target, read_pose_within
+from server.core.operations.jog import JogRefused
 from server.core.worker.alerts import Alerts
-from server.core.worker.context import FaultRecord, MachineContext, ProcessingStats
+from server.core.worker.context import MachineContext, ProcessingStats
 from server.core.worker.devices import CellDevices, HaltReport
 from server.core.worker.event_queue import Envelope, EventQueue, Priority
+from server.core.worker.facts import OrderSource, decision_facts, known_device_faults
+from server.core.worker.jogging import start_jog
+from server.core.worker.posting import EventPoster
 from server.core.worker.recorder import Recorder
-from server.core.worker.reset_probe import RESET_OVERTAKEN, RESET_UNDER_WAY, ResetProbes
+from server.core.worker.reset_probe import ResetProbes
 from server.core.worker.runs import PauseNotHeld, Runs
 from server.core.worker.snapshot import SnapshotFile
 from server.core.worker.startup import Activities
+from server.core.worker.state_changes import StateChanges
 from server.core.worker.view import CellView
 from server.drivers.base import DeviceFault
 from server.settings.model import Settings
@@ -70,11 +58,6 @@ from server.storage.journal import Journal
 
 log = logging.getLogger(__name__)
 
-COMPLETION_EVENTS = frozenset({Event.OPERATION_COMPLETED, Event.OPERATION_FAILED})
-OVERTAKEN = "overtaken by an emergency stop while it was being decided; nothing was changed"
-# A person's commands, each answered only once on record: refused while the journal cannot
-# write. The e-stop is not among them: it stops the cell whatever the disk says.
-JOURNALED_COMMANDS = frozenset(COMMANDS.values()) - {Event.EMERGENCY_STOP}
 Handler = Callable[[Decision, Envelope], Awaitable[None] | None]
 
 
@@ -102,7 +85,13 @@ class Worker:
         self.ctx = MachineContext(history_size=settings.history_size)
         self.queue = EventQueue(settings.event_queue_size)
         self.stats = ProcessingStats(settings.performance_history_size)
-        self.recorder = Recorder(journal, self._post_fault, self.ctx, snapshot_file, clock)
+        self.recorder = Recorder(
+            journal, lambda f: self.poster.post_fault(f), self.ctx, snapshot_file, clock
+        )
+        self.poster = poster = EventPoster(self.queue, self.recorder)
+        self.submit = poster.submit  # every sender's way into the queue
+        self.request = poster.request  # a command, answered once decided and on record
+        self.report_fault = poster.report_fault  # the drivers' fault listener, any thread
         self.alerts = Alerts(settings, self.ctx, bus, self.recorder, clock)
         self.runs = Runs(
             settings=settings,
@@ -114,22 +103,25 @@ class Worker:
             recorder=self.recorder,
             alerts=self.alerts,
             clock=clock,
-            post_outcome=self._post_outcome,
+            post_outcome=poster.post_outcome,
         )
         self.activities = Activities(
-            settings, devices, self._halt, self._post_ready, self._post_fault
+            settings, devices, self._halt, poster.post_ready, poster.post_fault
         )
-        self.preconditions = Preconditions(stores, settings)  # what a command needs first
+        self.stores = stores
+        self.orders: OrderSource | None = None  # the order book, once the cell has one
         self.view = CellView(self)  # what the API, the hub and metrics read
-        self._ready: set[str] = set()
-        self._ready_now: frozenset[str] = frozenset()  # _ready as the guards see it, kept
-        self._boot = secrets.token_hex(3)
-        self._ids = itertools.count(1)
-        self._loop: asyncio.AbstractEventLoop | None = None
+        self.changes = StateChanges(
+            self.ctx,
+            self.recorder,
+            bus,
+            self.alerts,
+            clock,
+            self.view.snapshot,
+            lambda: poster.post_ready(Event.SYSTEM_READY, "system"),
+        )
         self._task: asyncio.Task[None] | None = None
         self._estops = 0  # e-stops requested so far; see _handle
-        self._faults = 0  # faults recorded so far; a reset probed meanwhile is overtaken
-        self._faults_posted = 0  # faults reported so far, decided or still queued (see jog)
         self.reset_probes = ResetProbes(
             devices, settings.reset_probe_timeout, lambda e: self.queue.put(e, bounded=False)
         )
@@ -139,10 +131,10 @@ class Worker:
             Action.CANCEL_RUN: lambda _d, _e: self.runs.cancel(),
             Action.CANCEL_HOMING: lambda _d, _e: self.activities.cancel(),
             Action.HOLD: lambda _d, _e: self.runs.hold_now(),
-            Action.RECORD_FAULT: self._record_fault,
-            Action.CHANGE_STATE: self._change_state,
-            Action.NOTE_READY: self._note_ready,
-            Action.ENTER_IDLE: self._enter_idle,
+            Action.RECORD_FAULT: self.changes.record_fault,
+            Action.CHANGE_STATE: self.changes.change_state,
+            Action.NOTE_READY: self.changes.note_ready,
+            Action.ENTER_IDLE: self.changes.enter_idle,
             Action.START_HOMING: lambda _d, _e: self.activities.go_home(),
             Action.START_JOG: self._start_jog,
             Action.START_RUN: self._start_run,
@@ -154,7 +146,7 @@ class Worker:
 
     async def start(self) -> None:
         """Enter INITIALIZING, connect the devices, and begin draining the queue."""
-        self._loop = asyncio.get_running_loop()
+        self.poster.loop = asyncio.get_running_loop()
         self.devices.set_fault_listener(self.report_fault)
         self.ctx.since = self.clock.time()
         self._task = asyncio.create_task(self._run(), name="cell-worker")
@@ -178,51 +170,6 @@ class Worker:
         self.devices.set_fault_listener(None)
 
     # --- posting events ----------------------------------------------------
-
-    def submit(
-        self,
-        event: Event,
-        *,
-        source: str,
-        payload: Payload | None = None,
-        priority: Priority = Priority.REQUEST,
-        bounded: bool = True,
-        audit: AuditNote | None = None,
-    ) -> Envelope:
-        """Queue an event (loop thread only). Raises EventQueueFull when `bounded` and full."""
-        payload = payload_of(event, payload)
-        loop = self._loop or asyncio.get_running_loop()
-        if bounded and self.recorder.behind:
-            raise EventQueueFull(self.queue.capacity)  # the disk is behind: refuse, never drop
-        envelope = Envelope(
-            event_id=f"{self._boot}-{next(self._ids):06d}",
-            event=event,
-            source=source,
-            payload=payload,
-            priority=priority,
-            future=loop.create_future(),
-            audit=audit,
-        )
-        self.queue.put(envelope, bounded=bounded)
-        return envelope
-
-    async def request(
-        self,
-        event: Event,
-        *,
-        source: str,
-        payload: Payload | None = None,
-        audit: AuditNote | None = None,
-    ) -> Outcome:
-        """Queue a request and wait for the worker's decision.
-
-        Raises JournalUnavailable when the journal's last write failed and it still
-        cannot write: nothing is decided that could not be put on record.
-        """
-        await self.recorder.ensure_writable()
-        envelope = self.submit(event, source=source, payload=payload, audit=audit)
-        assert envelope.future is not None
-        return await envelope.future
 
     async def emergency_stop(
         self,
@@ -277,47 +224,28 @@ class Worker:
         envelope.halt_made = halt
         return envelope
 
-    def report_fault(self, fault: DeviceFault) -> None:
-        """Fault listener for the drivers; safe to call from any thread."""
-        loop = self._loop
-        if loop is None or loop.is_closed():
-            return
-        loop.call_soon_threadsafe(self._post_fault, fault)
-
-    def _post_fault(self, fault: DeviceFault) -> None:
-        self._faults_posted += 1
-        envelope = self.submit(
-            Event.ERROR_OCCURRED,
-            source=fault.device,
-            payload=FaultPayload(fault.code, fault.message, fault.device),
-            priority=Priority.FAULT,
-            bounded=False,
-        )
-        what = (fault.device, fault.code, fault.message, envelope.event_id)
-        log.error("device fault: %s %s: %s (event %s)", *what)
-
-    def _post_ready(self, event: Event, device: str) -> None:
-        self.submit(event, source=device, bounded=False)
-
-    def _post_outcome(self, event: Event, payload: Payload) -> None:
-        priority = Priority.REQUEST if event is Event.OPERATION_COMPLETED else Priority.FAULT
-        self.submit(event, source="operation", payload=payload, priority=priority, bounded=False)
-
     def facts(self) -> Facts:
         """Guard facts from what is known without asking the devices (a reset probes them)."""
-        devices = self.devices
-        known: list[str] = []
-        for name, device in (
-            ("robot", devices.robot),
-            ("glue", devices.glue),
-            ("camera", devices.camera),
-        ):
-            health = device.health
-            if not health.connected:
-                known.append(f"{name}: not connected")
-            elif health.active_faults:
-                known.extend(health.active_faults)
-        return Facts(ready_devices=self._ready_now, active_faults=tuple(known))
+        return Facts(self.changes.ready_now, known_device_faults(self.devices))
+
+    def decision_facts(
+        self, event: Event, payload: Payload, probed: decide.Probed | None = None
+    ) -> decide.Facts:
+        """Everything the decision on `event` reads (`server.core.machine.decide`)."""
+        running = self.ctx.operation
+        return decision_facts(
+            event,
+            payload,
+            self.ctx.state,
+            guards=self.facts(),
+            journal_problem=self.recorder.write_problem,
+            current_run=running.run_id if running is not None else None,
+            stops=decide.Stops(self._estops, self.changes.faults),
+            probing=self.reset_probes.under_way,
+            probed=probed,
+            orders=self.orders,
+            stores=self.stores,
+        )
 
     # --- the loop ----------------------------------------------------------
 
@@ -368,40 +296,26 @@ class Worker:
         await asyncio.wait((durable,), timeout=self.settings.emergency_stop_timeout)
 
     async def _handle(self, envelope: Envelope) -> Outcome | None:
-        """The event's outcome, or None for a reset that went to probe the devices first."""
+        """Decide the event, then execute the verdict; None for a reset gone to probe."""
         event, state = envelope.event, self.ctx.state
-        if event in COMPLETION_EVENTS and not self._is_current_run(envelope):
-            return self._refuse(envelope, f"{event.value} of a run that already ended; ignored")
-        facts = self.facts()
-        estops = self._estops
-        probe = self.reset_probes.returned(envelope)
-        problem = self.recorder.write_problem if event in JOURNALED_COMMANDS else None
-        if problem is not None:  # queued before the journal failed: decide nothing now
-            refusal = self._refuse(envelope, f"refused: the journal cannot write ({problem})")
-            return replace(refusal, journal_problem=problem)
-        if probe is not None:  # a reset back from its probe
-            if (self._estops, self._faults) != probe.stops:
-                return self._refuse(envelope, RESET_OVERTAKEN)
-            facts = Facts(ready_devices=facts.ready_devices, active_faults=tuple(probe.found))
-            estops = probe.stops[0]
-        elif event is Event.RESET_REQUESTED and state is State.ERROR:
-            if self.reset_probes.under_way:
-                return self._refuse(envelope, RESET_UNDER_WAY)
-            self.reset_probes.start(envelope, (self._estops, self._faults))
+        probe = self.reset_probes.returned(envelope)  # a reset back from its probe
+        probed = probe.facts() if probe is not None else None
+        facts = self.decision_facts(event, envelope.payload, probed)
+        verdict = decide.decide(state, event, envelope.payload, facts, self.settings)
+        if isinstance(verdict, decide.Refusal):
+            if verdict.payload is not None:
+                envelope.payload = verdict.payload  # recorded as decided
+            return self._refuse(envelope, verdict.message, verdict.field, verdict.journal_problem)
+        if isinstance(verdict, decide.ProbeDevices):
+            self.reset_probes.start(envelope, verdict.began)
             return None
-        try:
-            decision = step(state, event, facts)
-        except TransitionNotAllowed as refusal:
-            return self._refuse(envelope, str(refusal))
-        unmet = self.preconditions.check(event, envelope.payload)
-        if unmet is not None:
-            return self._refuse(envelope, unmet.message, unmet.field)
-        overtakable = decision.target is not State.ERROR
-        for action in decision.actions:
-            if overtakable and action not in EXIT_ACTIONS:
-                if self._estops != estops:
-                    return self._refuse(envelope, OVERTAKEN)
-                overtakable = False
+        envelope.payload = verdict.payload
+        decision = verdict.decision
+        for index, action in enumerate(decision.actions):
+            if index == verdict.checkpoint:
+                overtaken = verdict.overtaken(self._estops)
+                if overtaken is not None:
+                    return self._refuse(envelope, overtaken.message)
             try:
                 pending = self._handlers[action](decision, envelope)
                 if pending is not None:
@@ -409,9 +323,9 @@ class Worker:
             except JogRefused as refused:  # found once the pose was read: nothing moved
                 return self._refuse(envelope, refused.message, refused.field)
             except PauseNotHeld as exc:
-                self._post_fault(DeviceFault(exc.component, "PAUSE_NOT_HELD", str(exc)))
+                self.poster.post_fault(DeviceFault(exc.component, "PAUSE_NOT_HELD", str(exc)))
                 return self._refuse(envelope, f"pause not confirmed: {exc}; the cell stops")
-        message = f"{event_label(event)} accepted: {state.value} → {decision.target.value}"
+        message = decide.accepted_message(state, event, decision)
         started = envelope.event_id if Action.START_RUN in decision.actions else None
         return Outcome(True, envelope.event_id, event, self.ctx.state, message, run_id=started)
 
@@ -420,14 +334,17 @@ class Worker:
     ) -> Outcome:
         return Outcome(accepted, envelope.event_id, envelope.event, self.ctx.state, message, field)
 
-    def _refuse(self, envelope: Envelope, message: str, field: str | None = None) -> Outcome:
+    def _refuse(
+        self,
+        envelope: Envelope,
+        message: str,
+        field: str | None = None,
+        journal_problem: str | None = None,
+    ) -> Outcome:
         who = (envelope.event.value, envelope.event_id, envelope.source, message)
         log.info("refused %s (%s) from %s: %s", *who)
-        return self._outcome(envelope, False, message, field)
-
-    def _is_current_run(self, envelope: Envelope) -> bool:
-        run_id = getattr(envelope.payload, "run_id", None)
-        return run_id is not None and self.runs.is_current(run_id)
+        what = (envelope.event_id, envelope.event, self.ctx.state, message, field, journal_problem)
+        return Outcome(False, *what)
 
     # --- action handlers ---------------------------------------------------
 
@@ -455,83 +372,17 @@ class Worker:
         self.runs.halted(report.valve_closed)
         self.alerts.halt_incomplete(report.errors)
 
-    def _record_fault(self, decision: Decision, envelope: Envelope) -> None:
-        fault = FaultRecord.of(
-            envelope.payload, envelope.source, envelope.event_id, self.clock.time()
-        )
-        self.ctx.record_error(fault)
-        self._faults += 1
-        self.recorder.fault(fault, decision.target.value)
-        running = self.ctx.operation
-        context = running.fault_context() if running else {"operation": None}
-        where = (fault.code, fault.component, self.ctx.state.value, envelope.event_id)
-        log.error(
-            "fault %s from %s in %s state (%s)",
-            *where,
-            extra={"error": fault.message, "context": context},
-        )
-        self.bus.publish("error", {**fault.as_dict(), "state": decision.target.value})
-
-    def _change_state(self, decision: Decision, envelope: Envelope) -> None:
-        now = self.clock.time()
-        record = self.ctx.enter(decision.target, decision.event.value, envelope.event_id, now)
-        what = (
-            record.old_state,
-            record.new_state,
-            record.event,
-            envelope.event_id,
-            envelope.source,
-        )
-        log.info("%s → %s on %s (%s, from %s)", *what)
-        self.recorder.transition(record)
-        snapshot = self.view.snapshot()
-        self.recorder.save_snapshot(snapshot, self.ctx.operation)
-        self.bus.publish(
-            "state_changed", {**record.as_dict(), "source": envelope.source, "snapshot": snapshot}
-        )
-        self.alerts.watch_state(decision.target)
-
-    def _note_ready(self, decision: Decision, envelope: Envelope) -> None:
-        self._ready.add(READINESS_EVENTS[decision.event])
-        self._ready_now = frozenset(self._ready)
-        if self._ready >= REQUIRED_DEVICES and self.ctx.state is State.INITIALIZING:
-            self.submit(Event.SYSTEM_READY, source="system", bounded=False)
-
-    def _enter_idle(self, decision: Decision, envelope: Envelope) -> None:
-        ctx = self.ctx
-        if isinstance(envelope.payload, RunCompletedPayload):
-            ctx.operation_result = envelope.payload.result.as_dict()
-        ctx.operation_data = {}
-        if decision.event is Event.RESET_REQUESTED:
-            ctx.clear_error()
-
     async def _start_jog(self, decision: Decision, envelope: Envelope) -> None:
-        """Read the pose, check the step's target against the workspace, then move.
-
-        The pose is read here, in the worker, because the worker alone starts
-        moves outside operations: read while no move is under way, it is where
-        the step starts. The read is bounded by emergency_stop_timeout, so the
-        worker is never held long; an e-stop or a fault while it was read
-        refuses the jog before anything moves.
-        """
         payload = envelope.payload
         assert isinstance(payload, JogPayload)
-        if self.activities.moving:
-            raise JogRefused("the robot is still moving (home or a jog): jog once it stands")
-        estops, faults = self._estops, self._faults_posted
-        limit = self.settings.emergency_stop_timeout
-        try:
-            pose = await read_pose_within(self.devices.robot, limit)
-        except asyncio.CancelledError:
-            raise
-        except Exception as exc:
-            reason = f"no answer within {limit:g} s" if isinstance(exc, TimeoutError) else exc
-            message = f"the robot's position could not be read ({reason}); nothing moved"
-            raise JogRefused(message) from None
-        target = jog_target(pose, payload.axis, payload.distance_mm, self.settings)
-        if (self._estops, self._faults_posted) != (estops, faults) or self.facts().active_faults:
-            raise JogRefused("a stop or a fault came in while the jog was decided; nothing moved")
-        self.activities.jog(target)
+        await start_jog(
+            payload,
+            robot=self.devices.robot,
+            activities=self.activities,
+            settings=self.settings,
+            stops=lambda: (self._estops, self.poster.faults_posted),
+            known_faults=lambda: known_device_faults(self.devices),
+        )
 
     def _start_run(self, decision: Decision, envelope: Envelope) -> None:
         name = OPERATION_OF_STATE[decision.target]
