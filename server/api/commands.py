@@ -33,7 +33,7 @@ from server.api.schemas import (
     QueueFullResult,
     StartRequest,
 )
-from server.api.stop_lane import source_of, take_halt
+from server.api.stop_lane import source_of, stop_begun
 from server.bootstrap.cell import Cell
 from server.core.machine.events import (
     CreateWorkpiecePayload,
@@ -46,9 +46,6 @@ from server.core.machine.events import (
 from server.core.machine.transitions import Command, Event
 
 router = APIRouter(tags=["commands"], route_class=DeclaredQueryRoute)
-
-# Routes whose request is never refused over its body (server/api/limits.py).
-STOP_PATHS = ("/estop",)
 
 RESPONSES: dict[int | str, dict[str, Any]] = {
     202: {"model": CommandResult, "description": "accepted: the machine changed state"},
@@ -207,8 +204,23 @@ async def _run(request: Request, command: Command, payload: Payload | None = Non
         source=source_of(request.scope),
         payload=payload,
         audit=audit.note(request, audit_label),
-        halt=take_halt(request.scope) if command is Command.ESTOP else None,
     )
+    return _answered(request, outcome)
+
+
+async def _stop(request: Request, payload: StopPayload) -> JSONResponse:
+    """Finish the stop the stop lane began as the request passed the gate (one is made
+    here if it did not: the cell was not started then)."""
+    stop = stop_begun(request.scope) or _cell(request).stops.begin()
+    outcome = await stop.finish(
+        source=source_of(request.scope),
+        payload=payload,
+        audit=audit.note(request, audit_label),
+    )
+    return _answered(request, outcome)
+
+
+def _answered(request: Request, outcome: Outcome) -> JSONResponse:
     if outcome.journal_problem is None:
         request.state.audited = True  # its row was committed with the event
     else:  # not on record: the observer tries once more, with why
@@ -285,12 +297,7 @@ async def estop(
     dropped = getattr(request.state, "body_dropped", None)
     if dropped is not None:  # too large to read: the stop is made, the 413 says so
         return JSONResponse({"detail": dropped, **await stop_anyway(request)}, status_code=413)
-    return await _run(request, Command.ESTOP, estop_payload(body))
-
-
-def is_estop(request: Request) -> bool:
-    """Whether this is the e-stop route (its body, when unreadable, must not stop the stop)."""
-    return request.method == "POST" and request.url.path in STOP_PATHS
+    return await _stop(request, estop_payload(body))
 
 
 async def stop_anyway(request: Request) -> dict[str, Any]:
@@ -301,7 +308,7 @@ async def stop_anyway(request: Request) -> dict[str, Any]:
     the wrong way round. The answer stays a 4xx (the request was wrong: 422 or
     413), with what the cell did beside it.
     """
-    response = await _run(request, Command.ESTOP, StopPayload(None))
+    response = await _stop(request, StopPayload(None))
     answer = json.loads(bytes(response.body))
     answer["message"] = f"the stop was made without its reason: {answer.get('message', '')}"
     return {k: answer[k] for k in ("accepted", "event_id", "state", "message") if k in answer}

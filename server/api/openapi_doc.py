@@ -16,8 +16,8 @@ from typing import Any
 
 from fastapi import FastAPI
 
-from server.api.commands import STOP_PATHS
 from server.api.schemas import ErrorView
+from server.api.stop_lane import STOP_PATHS
 from server.security.policy import required_role
 from server.security.tokens import Role
 

@@ -45,7 +45,7 @@ from server.api.limits import BodySizeLimit
 from server.api.observe import ResponseObservers
 from server.api.route_warmup import prepare_routes
 from server.api.schemas import RETRY_AFTER_S
-from server.api.stop_lane import StopLane
+from server.api.stop_lane import StopLane, is_stop
 from server.bootstrap.cell import Cell
 from server.common.errors import (
     ChangeNotSaved,
@@ -135,9 +135,9 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     app.state.route_methods = methods.RouteMethods(app)
     app.add_middleware(methods.HttpManners, methods=app.state.route_methods)
     # The e-stop's devices commanded as soon as the gate lets it through (before routing).
-    app.add_middleware(StopLane, stop_paths=commands.STOP_PATHS)
+    app.add_middleware(StopLane)
     # Every HTTP request, before routing: the policy in server/security/policy.py.
-    app.add_middleware(access.AccessGate, access=app.state.access, stop_paths=commands.STOP_PATHS)
+    app.add_middleware(access.AccessGate, access=app.state.access)
     # The commands being answered: the plant's interfaces hold their work until none is.
     app.state.answers = AnswersInFlight()
     # Identical refusals within audit_repeat_window: one audit row with a count.
@@ -162,9 +162,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
             # provenance and how long to wait after a 503.
             expose_headers=["X-Frame-Time", "X-Frame-Source", "X-Frame-Run-Id", "Retry-After"],
         )
-    app.add_middleware(
-        BodySizeLimit, max_bytes=settings.max_request_bytes, stop_paths=commands.STOP_PATHS
-    )
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
     app.include_router(ws.router)
     app.include_router(camera_preview.ws_router)
     mount_dashboard(app)  # the operator dashboard at /, assets under /hmi/
@@ -271,7 +269,7 @@ def _install_error_handlers(app: FastAPI) -> None:
             problems.append(commands.problem_of(error))  # as MQTT and OPC UA word it
         body: dict[str, Any] = {"detail": commands.invalid_request(problems), "errors": problems}
         request.state.audit_reason = body["detail"]  # the refusal's audit row says why
-        if commands.is_estop(request):
+        if is_stop(request.scope):
             # A stop is never refused over its body: it is made, and the 422 says so.
             body.update(await commands.stop_anyway(request))
         return JSONResponse(body, status_code=422)

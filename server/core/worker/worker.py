@@ -39,7 +39,6 @@ from server.core.machine.events import (
     Outcome,
     Payload,
     RunCompletedPayload,
-    StopPayload,
     payload_of,
 )
 from server.core.machine.preconditions import Preconditions
@@ -55,13 +54,14 @@ from server.core.operations.base import Operation
 from server.core.operations.jog import JogRefused, jog_target, read_pose_within
 from server.core.worker.alerts import Alerts
 from server.core.worker.context import FaultRecord, MachineContext, ProcessingStats
-from server.core.worker.devices import CellDevices, HaltReport
+from server.core.worker.devices import CellDevices
 from server.core.worker.event_queue import Envelope, EventQueue, Priority
 from server.core.worker.recorder import Recorder
 from server.core.worker.reset_probe import RESET_OVERTAKEN, RESET_UNDER_WAY, ResetProbes
 from server.core.worker.runs import PauseNotHeld, Runs
 from server.core.worker.snapshot import SnapshotFile
 from server.core.worker.startup import Activities
+from server.core.worker.stop import EmergencyStops
 from server.core.worker.view import CellView
 from server.drivers.base import DeviceFault
 from server.settings.model import Settings
@@ -120,6 +120,10 @@ class Worker:
             settings, devices, self._halt, self._post_ready, self._post_fault
         )
         self.preconditions = Preconditions(stores, settings)  # what a command needs first
+        # Every e-stop: its halt at once, its event ahead of the queue, its answer (stop.py).
+        self.stops = EmergencyStops(
+            devices, self.runs.cut_leash, self.submit, settings.emergency_stop_timeout
+        )
         self.view = CellView(self)  # what the API, the hub and metrics read
         self._ready: set[str] = set()
         self._ready_now: frozenset[str] = frozenset()  # _ready as the guards see it, kept
@@ -127,7 +131,6 @@ class Worker:
         self._ids = itertools.count(1)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task[None] | None = None
-        self._estops = 0  # e-stops requested so far; see _handle
         self._faults = 0  # faults recorded so far; a reset probed meanwhile is overtaken
         self._faults_posted = 0  # faults reported so far, decided or still queued (see jog)
         self.reset_probes = ResetProbes(
@@ -177,6 +180,12 @@ class Worker:
                 envelope.future.set_exception(WorkerStopped("the server is shutting down"))
         self.devices.set_fault_listener(None)
 
+    @property
+    def _estops(self) -> int:
+        """E-stops begun so far (`EmergencyStops.requested`): a decision that saw fewer
+        than there are now was overtaken by a stop (see _handle)."""
+        return self.stops.requested
+
     # --- posting events ----------------------------------------------------
 
     def submit(
@@ -223,59 +232,6 @@ class Worker:
         envelope = self.submit(event, source=source, payload=payload, audit=audit)
         assert envelope.future is not None
         return await envelope.future
-
-    async def emergency_stop(
-        self,
-        *,
-        source: str,
-        payload: StopPayload | None = None,
-        audit: AuditNote | None = None,
-        halt: asyncio.Future[HaltReport] | None = None,
-    ) -> Outcome:
-        """Halt the devices now, without queueing, then have the machine go to ERROR.
-
-        The valve-close and robot-stop commands leave before the event is even
-        queued (`halt_for_stop`, unless the caller made that halt already, as the
-        HTTP stop lane does when the request passes the gate); the EMERGENCY_STOP
-        event then overtakes everything waiting.
-        """
-        if halt is None:
-            halt = self.halt_for_stop()
-        envelope = self.post_stop(halt, source=source, payload=payload, audit=audit)
-        assert envelope.future is not None
-        report = await asyncio.shield(halt)
-        outcome: Outcome = await envelope.future
-        if report.errors:
-            return outcome.with_note(f"; halt incomplete: {'; '.join(report.errors)}")
-        return outcome
-
-    def halt_for_stop(self) -> asyncio.Future[HaltReport]:
-        """An e-stop's first moves, in this order: anything being decided from now on
-        cannot undo it, the run commands no move and no glue, and both halt commands
-        are on their way. The stop's event must follow (`post_stop`)."""
-        self._estops += 1
-        self.runs.cut_leash()
-        return self.devices.start_halt(self.settings.emergency_stop_timeout)
-
-    def post_stop(
-        self,
-        halt: asyncio.Future[HaltReport],
-        *,
-        source: str,
-        payload: StopPayload | None = None,
-        audit: AuditNote | None = None,
-    ) -> Envelope:
-        """Queue the EMERGENCY_STOP of a halt already made, ahead of everything waiting."""
-        envelope = self.submit(
-            Event.EMERGENCY_STOP,
-            source=source,
-            payload=payload or StopPayload(),
-            priority=Priority.EMERGENCY,
-            bounded=False,
-            audit=audit,
-        )
-        envelope.halt_made = halt
-        return envelope
 
     def report_fault(self, fault: DeviceFault) -> None:
         """Fault listener for the drivers; safe to call from any thread."""
