@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 MOSQUITTO_PATHS = ("/usr/sbin/mosquitto",)
-ACL_FILE = Path(__file__).resolve().parents[1] / "deploy" / "mosquitto" / "acl"
+ACL_FILE = Path(__file__).resolve().parents[2] / "deploy" / "mosquitto" / "acl"
 # The demo's users and their passwords: public, for a broker on loopback or in a lab.
 DEMO_PASSWORDS = {
     "cell": "cell-demo-password",
