@@ -118,6 +118,23 @@ async def test_estop_overtakes_a_full_queue(make_worker, fast_settings) -> None:
     assert worker.ctx.history[-1].event == "EMERGENCY_STOP"
 
 
+async def test_a_begun_stop_halts_at_once_and_is_one_event_however_often_posted(
+    make_worker,
+) -> None:
+    """`begin` commands both devices before it returns; the stop is queued once, with the
+    reason of whoever posts it first (the route), even if the lane posts it again."""
+    glue, robot = FakeGlue(), FakeRobot()
+    worker = await make_worker(glue=glue, robot=robot)
+    stops_before = robot.stops
+    begun = worker.stops.begin()
+    assert robot.stops == stops_before + 1 and glue.valve_log[-1][1] is False
+    outcome = await begun.finish(source="route", payload=StopPayload("guard door"))
+    assert begun.post(source="lane") is begun.envelope  # nothing queued again
+    assert outcome.accepted and outcome.state is State.ERROR
+    assert "guard door" in worker.ctx.stop_reason.message
+    assert [r.event for r in worker.ctx.history].count("EMERGENCY_STOP") == 1
+
+
 async def test_leaving_an_operational_state_cancels_its_operation(make_worker) -> None:
     started, cancelled = asyncio.Event(), asyncio.Event()
     glue = FakeGlue()
