@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
@@ -57,9 +57,6 @@ from server.common.errors import (
 )
 from server.settings.model import Settings
 from server.views.camera_preview import CameraPreview
-
-if TYPE_CHECKING:
-    pass
 
 log = logging.getLogger(__name__)
 
