@@ -87,7 +87,8 @@ from server.common.errors import EventQueueFull
 from server.common.runtime import freeze_once_started, tune_garbage_collection
 from server.core.machine.events import StartPayload
 from server.core.machine.transitions import Event, State
-from server.core.worker.devices import HaltReport
+from server.core.worker import stop as stop_service
+from server.core.worker.devices import CellDevices, HaltReport
 from server.core.worker.worker import Worker
 from server.drivers.glue_registers import VALVE_COMMAND
 from server.settings.model import Settings
@@ -180,15 +181,15 @@ class StopStages:
 
     def watch_halts(self) -> None:
         devices = self.cell.devices
-        start_halt = devices.start_halt
+        made = stop_service.halt_at_once
 
-        def stamped(timeout: float) -> asyncio.Future[HaltReport]:
+        def stamped(on: CellDevices, timeout: float) -> asyncio.Future[HaltReport]:
             if self.halted is None:
                 self.halted = time.time()
                 self.line_busy = bool(getattr(devices.glue, "line_busy", False))
-            return start_halt(timeout)
+            return made(on, timeout)
 
-        devices.start_halt = stamped  # type: ignore[method-assign]
+        stop_service.halt_at_once = stamped  # type: ignore[assignment]
 
 
 async def wait_state(worker: Worker, *states: State) -> None:

@@ -74,7 +74,7 @@ async def queue_depth_point(worker: Worker, depth: int, repeats: int = REPEATS) 
         memory.append(rss_mb())
         sent = time.perf_counter()
         last = worker.submit(Event.PAUSE_REQUESTED, source="bench")
-        await worker.emergency_stop(source="bench")
+        await worker.stops.stop(source="bench")
         stops.append(time.perf_counter() - sent)
         assert last.future is not None
         await last.future

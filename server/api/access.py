@@ -15,13 +15,14 @@ import asyncio
 import ipaddress
 import logging
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable
 
 from fastapi import WebSocket
 from fastapi.responses import JSONResponse
 from starlette.requests import HTTPConnection
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from server.api.stop_lane import is_stop
 from server.security.forwarded import (
     UNKNOWN,
     client_address,
@@ -163,10 +164,9 @@ class AccessGate:
     they are in server/api/ws.py (`authenticate_websocket`).
     """
 
-    def __init__(self, app: ASGIApp, access: Access, stop_paths: Collection[str] = ()) -> None:
+    def __init__(self, app: ASGIApp, access: Access) -> None:
         self.app = app
         self.access = access
-        self.stop_paths = frozenset(stop_paths)  # never locked out (throttle.py)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -190,8 +190,7 @@ class AccessGate:
         needed = role_for_request(scope["method"], scope["path"])
         if needed is None:
             return None
-        is_stop = scope["method"] == "POST" and scope["path"] in self.stop_paths
-        locked = None if is_stop else access.locked_out(host)
+        locked = None if is_stop(scope) else access.locked_out(host)  # a stop: never (throttle.py)
         if locked is not None:
             wait, why = locked
             return 429, why, {"Retry-After": str(wait)}

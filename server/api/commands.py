@@ -27,15 +27,15 @@ from fastapi.responses import JSONResponse
 
 from server.api import audit
 from server.api.declared_query import IGNORES_UNKNOWN_QUERY, DeclaredQueryRoute
-from server.api.stop_lane import source_of, take_halt
+from server.api.stop_lane import source_of, stop_begun
 from server.bootstrap.cell import Cell
 from server.commands.answers import answer_of, audit_label
-from server.commands.catalogue import CATALOGUE, STOP_PATHS, CommandSpec
+from server.commands.catalogue import CATALOGUE, CommandSpec
 from server.commands.requests import CommandResult, QueueFullResult
-from server.core.machine.events import Payload, StopPayload
+from server.core.machine.events import Outcome, Payload, StopPayload
 from server.core.machine.transitions import Command
 
-__all__ = ["STOP_PATHS", "is_estop", "router", "stop_anyway"]
+__all__ = ["router", "stop_anyway"]
 
 router = APIRouter(tags=["commands"], route_class=DeclaredQueryRoute)
 
@@ -68,8 +68,23 @@ async def _run(request: Request, command: Command, payload: Payload | None = Non
         source=source_of(request.scope),
         payload=payload,
         audit=audit.note(request, audit_label),
-        halt=take_halt(request.scope) if command is Command.ESTOP else None,
     )
+    return _answered(request, outcome)
+
+
+async def _stop(request: Request, payload: StopPayload) -> JSONResponse:
+    """Finish the stop the stop lane began as the request passed the gate (one is made
+    here if it did not: the cell was not started then)."""
+    stop = stop_begun(request.scope) or _cell(request).stops.begin()
+    outcome = await stop.finish(
+        source=source_of(request.scope),
+        payload=payload,
+        audit=audit.note(request, audit_label),
+    )
+    return _answered(request, outcome)
+
+
+def _answered(request: Request, outcome: Outcome) -> JSONResponse:
     if outcome.journal_problem is None:
         request.state.audited = True  # its row was committed with the event
     else:  # not on record: the observer tries once more, with why
@@ -85,13 +100,15 @@ def _endpoint(spec: CommandSpec) -> Callable[..., Awaitable[JSONResponse]]:
     """
 
     async def endpoint(request: Request, body: Any = None) -> JSONResponse:
-        if spec.stop:
-            dropped = getattr(request.state, "body_dropped", None)
-            if dropped is not None:  # too large to read: the stop is made, the 413 says so
-                answer = await stop_anyway(request)
-                return JSONResponse({"detail": dropped, **answer}, status_code=413)
-        payload = spec.payload(body) if spec.payload is not None else None
-        return await _run(request, spec.command, payload)
+        if not spec.stop:
+            payload = spec.payload(body) if spec.payload is not None else None
+            return await _run(request, spec.command, payload)
+        dropped = getattr(request.state, "body_dropped", None)
+        if dropped is not None:  # too large to read: the stop is made, the 413 says so
+            answer = await stop_anyway(request)
+            return JSONResponse({"detail": dropped, **answer}, status_code=413)
+        stop = spec.payload(body) if spec.payload is not None else None
+        return await _stop(request, stop if isinstance(stop, StopPayload) else StopPayload())
 
     parameters = [
         inspect.Parameter("request", inspect.Parameter.POSITIONAL_OR_KEYWORD, annotation=Request)
@@ -125,11 +142,6 @@ for _spec in CATALOGUE:
     )
 
 
-def is_estop(request: Request) -> bool:
-    """Whether this is the e-stop route (its body, when unreadable, must not stop the stop)."""
-    return request.method == "POST" and request.url.path in STOP_PATHS
-
-
 async def stop_anyway(request: Request) -> dict[str, Any]:
     """Make the e-stop whose body was invalid or too large (no reason recorded).
 
@@ -138,7 +150,7 @@ async def stop_anyway(request: Request) -> dict[str, Any]:
     the wrong way round. The answer stays a 4xx (the request was wrong: 422 or
     413), with what the cell did beside it.
     """
-    response = await _run(request, Command.ESTOP, StopPayload(None))
+    response = await _stop(request, StopPayload(None))
     answer = json.loads(bytes(response.body))
     answer["message"] = f"the stop was made without its reason: {answer.get('message', '')}"
     return {k: answer[k] for k in ("accepted", "event_id", "state", "message") if k in answer}

@@ -8,10 +8,11 @@ make the stop and answer 413 beside it.
 from __future__ import annotations
 
 import json
-from collections.abc import Collection
 from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from server.api.stop_lane import is_stop
 
 
 def _body_headers(scope: Scope) -> tuple[bytes | None, bool]:
@@ -33,16 +34,15 @@ class BodySizeLimit:
     bounded by the Content-Length already checked (or it has none).
     """
 
-    def __init__(self, app: ASGIApp, max_bytes: int, stop_paths: Collection[str] = ()) -> None:
+    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
         self.app = app
         self.max_bytes = max_bytes
-        self.stop_paths = frozenset(stop_paths)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        if scope["method"] == "POST" and scope["path"] in self.stop_paths:
+        if is_stop(scope):
             await self.app(scope, self._dropping_oversized(scope, receive), send)
             return
         declared, chunked = _body_headers(scope)

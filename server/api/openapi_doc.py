@@ -18,8 +18,8 @@ from typing import Any
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
 
-from server.api.commands import STOP_PATHS
 from server.api.schemas import ErrorView
+from server.commands.catalogue import STOP_PATHS
 from server.security.policy import required_role
 from server.security.tokens import Role
 

@@ -1,17 +1,18 @@
-"""The HTTP application: FastAPI routes around one running Cell.
+"""The composition root: the cell, the plant interfaces and the HTTP app, built together.
 
+`create_app` builds everything a server runs (the `Cell`, the OPC UA and MQTT
+links of `plant.py`, the routes and middlewares around them); FastAPI's
+lifespan then only starts what it was given, in order, and stops it in reverse.
 Everything the cell does is decided by the worker; this module only wires the
-routes, maps the core's typed errors to HTTP answers, and starts and stops the
-cell with the server.
+routes and maps the core's typed errors to HTTP answers.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
@@ -44,49 +45,52 @@ from server.api.limits import BodySizeLimit
 from server.api.observe import ResponseObservers
 from server.api.route_warmup import prepare_routes
 from server.api.schemas import RETRY_AFTER_S
-from server.api.stop_lane import StopLane
+from server.api.stop_lane import StopLane, is_stop
 from server.bootstrap.cell import Cell
+from server.bootstrap.plant import PlantLinks
 from server.commands import answers
 from server.common.errors import (
     ChangeNotSaved,
-    ConfigurationError,
     EventQueueFull,
     JournalUnavailable,
     WorkerStopped,
 )
 from server.core.infra.answers_in_flight import AnswersInFlight
-from server.mqtt.commands import CommandDoor
-from server.mqtt.link import MqttLink
 from server.settings.model import Settings
 from server.views.camera_preview import CameraPreview
 from server.views.kpi_query import kpis_of
-
-if TYPE_CHECKING:
-    from server.opcua.interface import OpcUaInterface
 
 log = logging.getLogger(__name__)
 
 
 def create_app(settings: Settings | None = None, *, cell: Cell | None = None) -> FastAPI:
-    """Build the app; the cell starts when the server starts serving."""
+    """Build the cell (unless given), its plant interfaces and the HTTP app around them;
+    all of it starts when the server starts serving."""
     settings = settings or (cell.settings if cell else Settings())
     cell = cell or Cell(settings)
+    gate = access.Access(settings)
+    # The commands being answered: the plant's interfaces hold their work until none is.
+    in_flight = AnswersInFlight()
+    app: FastAPI
+    plant = PlantLinks(
+        cell,
+        gate.tokens,
+        in_flight,
+        health=lambda: queries.health_of(app),
+        kpis=lambda: kpis_of(cell),
+    )
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await cell.start()
-        app.state.access.tokens.ensure_admin()
+        gate.tokens.ensure_admin()
         app.state.metrics.attach(cell)
-        opcua = await _start_opcua(cell, app.state.access, app.state.answers)
-        app.state.mqtt = mqtt_link(app, settings, cell)
+        await plant.start()
         await prepare_routes(app)  # not on the first stop pressed
         try:
             yield
         finally:
-            if app.state.mqtt is not None:
-                await app.state.mqtt.stop()  # `offline` before the cell stops
-            if opcua is not None:
-                await opcua.stop()
+            await plant.stop()  # `offline` before the cell stops
             await app.state.metrics.detach()
             await app.state.camera_preview.close()
             app.state.audit_repeats.close()  # the counts folded so far, before the journal closes
@@ -106,14 +110,14 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     )
     app.state.cell = cell
     app.state.settings = settings
-    app.state.mqtt = None  # the MQTT link, once started (mqtt_url set)
+    app.state.mqtt = plant.mqtt  # the MQTT link (mqtt_url set), for /health
     app.state.ws_hub = ws.WebSocketHub(
         settings.max_broadcast_clients,
         settings.ws_client_buffer,
         per_token=settings.max_broadcast_clients_per_token,
         reserved=settings.broadcast_clients_reserved,
     )
-    app.state.access = access.Access(settings)
+    app.state.access = gate
     app.state.access.revocation_listeners.append(app.state.ws_hub.views.revoke)
     app.state.camera_preview = CameraPreview(cell, settings)
     app.state.access.revocation_listeners.append(app.state.camera_preview.revoke)
@@ -138,11 +142,10 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     app.state.route_methods = methods.RouteMethods(app)
     app.add_middleware(methods.HttpManners, methods=app.state.route_methods)
     # The e-stop's devices commanded as soon as the gate lets it through (before routing).
-    app.add_middleware(StopLane, stop_paths=commands.STOP_PATHS)
+    app.add_middleware(StopLane)
     # Every HTTP request, before routing: the policy in server/security/policy.py.
-    app.add_middleware(access.AccessGate, access=app.state.access, stop_paths=commands.STOP_PATHS)
-    # The commands being answered: the plant's interfaces hold their work until none is.
-    app.state.answers = AnswersInFlight()
+    app.add_middleware(access.AccessGate, access=app.state.access)
+    app.state.answers = in_flight
     # Identical refusals within audit_repeat_window: one audit row with a count.
     app.state.audit_repeats = AuditRepeats(settings.audit_repeat_window, lambda: cell.journal)
     app.add_middleware(
@@ -165,9 +168,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
             # provenance and how long to wait after a 503.
             expose_headers=["X-Frame-Time", "X-Frame-Source", "X-Frame-Run-Id", "Retry-After"],
         )
-    app.add_middleware(
-        BodySizeLimit, max_bytes=settings.max_request_bytes, stop_paths=commands.STOP_PATHS
-    )
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
     app.include_router(ws.router)
     app.include_router(camera_preview.ws_router)
     mount_dashboard(app)  # the operator dashboard at /, assets under /hmi/
@@ -175,57 +176,6 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     # The document says what the app really does: its 422 body and the gate's roles.
     openapi_doc.install(app)
     return app
-
-
-async def _start_opcua(
-    cell: Cell, gate: access.Access, answers: AnswersInFlight
-) -> OpcUaInterface | None:
-    """The OPC UA server (server/opcua), if `opcua_endpoint` is set; started after the cell.
-
-    A failure to serve it stops the cell again and is logged as one line: the
-    server does not start without an interface it was configured to offer.
-    """
-    if cell.settings.opcua_endpoint is None:
-        return None
-    from server.opcua.interface import OpcUaInterface  # asyncua is loaded only when asked for
-
-    interface = OpcUaInterface(cell, gate.tokens, cell.settings, answers=answers)
-    try:
-        await interface.start()
-    except BaseException as exc:
-        if isinstance(exc, ConfigurationError):
-            log.critical("cannot start: %s", exc)
-        with contextlib.suppress(Exception):
-            await interface.stop()
-        await cell.stop()
-        raise
-    return interface
-
-
-def mqtt_link(app: FastAPI, settings: Settings, cell: Cell) -> MqttLink | None:
-    """The MQTT link, started, when mqtt_url is set (docs/plant-integration.md)."""
-    if settings.mqtt_url is None:
-        return None
-    door = None
-    if settings.mqtt_commands:
-        door = CommandDoor(
-            cell,
-            app.state.access.tokens,
-            f"mqtt:{settings.mqtt_url}",
-            max_age_s=settings.mqtt_command_max_age,
-            max_skew_s=settings.mqtt_command_max_skew,
-        )
-    link = MqttLink(
-        settings,
-        cell,
-        health=lambda: queries.health_of(app),
-        kpis=lambda: kpis_of(cell),
-        commands=door,
-        answers=app.state.answers,
-    )
-    app.state.mqtt = link  # before it starts: its first health names it
-    link.start()
-    return link
 
 
 def _install_error_handlers(app: FastAPI) -> None:
@@ -274,7 +224,7 @@ def _install_error_handlers(app: FastAPI) -> None:
             problems.append(answers.problem_of(error))  # as MQTT and OPC UA word it
         body: dict[str, Any] = {"detail": answers.invalid_request(problems), "errors": problems}
         request.state.audit_reason = body["detail"]  # the refusal's audit row says why
-        if commands.is_estop(request):
+        if is_stop(request.scope):
             # A stop is never refused over its body: it is made, and the 422 says so.
             body.update(await commands.stop_anyway(request))
         return JSONResponse(body, status_code=422)

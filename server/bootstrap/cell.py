@@ -28,8 +28,9 @@ from server.core.machine.transitions import (
     State,
 )
 from server.core.operations import Operation, default_operations
-from server.core.worker.devices import CellDevices, HaltReport
+from server.core.worker.devices import CellDevices
 from server.core.worker.snapshot import SnapshotFile
+from server.core.worker.stop import EmergencyStops
 from server.core.worker.view import CellView
 from server.core.worker.worker import Worker
 from server.drivers.base import DeviceFault
@@ -86,6 +87,12 @@ class Cell:
         """The one read interface to the running cell (see server/core/worker/view.py)."""
         assert self.worker is not None, "the cell is not started"
         return self.worker.view
+
+    @property
+    def stops(self) -> EmergencyStops:
+        """Where every e-stop is made (server/core/worker/stop.py)."""
+        assert self.worker is not None, "the cell is not started"
+        return self.worker.stops
 
     @property
     def started(self) -> bool:
@@ -188,21 +195,18 @@ class Cell:
         source: str,
         payload: Payload | None = None,
         audit: AuditNote | None = None,
-        halt: asyncio.Future[HaltReport] | None = None,
     ) -> Outcome:
         """Run an operator command (start, pause, estop, ...) with its typed payload.
 
         `audit` says who sent it: its row is committed with the event, before the answer.
-        `halt` is an e-stop's halt already made (`Worker.halt_for_stop`, by the HTTP
-        stop lane); an e-stop without one makes its own.
+        An e-stop is the stop service's (`server/core/worker/stop.py`): halted at once,
+        queued ahead of everything waiting.
         """
         assert self.worker is not None, "the cell is not started"
         event = COMMANDS[command]
         if event is Event.EMERGENCY_STOP:
             stop = payload if isinstance(payload, StopPayload) else StopPayload()
-            return await self.worker.emergency_stop(
-                source=source, payload=stop, audit=audit, halt=halt
-            )
+            return await self.stops.stop(source=source, payload=stop, audit=audit)
         return await self.worker.request(event, source=source, payload=payload, audit=audit)
 
     def report_fault(self, fault: DeviceFault) -> None:

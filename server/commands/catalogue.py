@@ -224,6 +224,8 @@ CATALOGUE: Final = (
 )
 
 BY_COMMAND: Final = MappingProxyType({spec.command: spec for spec in CATALOGUE})
+# The stop routes on HTTP (POST): begun at the gate, never locked out, never refused
+# over their body (server/api/stop_lane.py).
 STOP_PATHS: Final = tuple(spec.path for spec in CATALOGUE if spec.stop)
 
 

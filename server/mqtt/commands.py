@@ -19,7 +19,7 @@ form, a bad signature, an unknown or revoked token id, stale, from the future,
 a nonce already used, too low a role, an unknown command, a body that is not
 valid) is refused here and written to the audit trail like the HTTP gate's
 refusals; no refusal repeats what the message carried. An e-stop goes by the
-e-stop path (`Cell.command` → `Worker.emergency_stop`: the devices halted
+e-stop path (`Cell.command` → `EmergencyStops.stop`: the devices halted
 before the event is queued) and is never refused over its body: it is made,
 and the 422 says so, as over HTTP. It is refused, like any command, when it is
 not signed, fresh and new: a replayed stop must not stop the cell again.

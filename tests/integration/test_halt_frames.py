@@ -1,4 +1,4 @@
-"""The e-stop's halt has written both device frames when `start_halt` returns.
+"""The e-stop's halt has written both device frames when `halt_at_once` returns.
 
 As ordinary tasks, the halt's commands would write their frames only at the loop's
 next turn, behind every callback ready by then: a crowd's WebSocket writes, a vision
@@ -20,6 +20,7 @@ import pytest
 from server.core.infra.eager import start_task
 from server.core.operations.leash import Leash, leashed
 from server.core.worker.devices import CellDevices
+from server.core.worker.stop import halt_at_once
 from server.drivers import glue_registers as regs
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.robot_jsonrpc import JsonRpcRobot
@@ -78,7 +79,7 @@ def _is_robot_stop(frame: bytes) -> bool:
 async def test_both_halt_frames_are_on_their_sockets_when_the_halt_is_made(
     devices: CellDevices, written: list[bytes]
 ) -> None:
-    halt = devices.start_halt(TIMEOUT)
+    halt = halt_at_once(devices, TIMEOUT)
     # No await yet: the loop has not turned since the halt was made.
     assert len(written) == 2, written
     assert _is_valve_close(written[0]) and _is_robot_stop(written[1])  # the valve first
@@ -109,8 +110,8 @@ async def test_an_opening_waiting_for_the_line_never_follows_the_halts_close(
     _, run_glue = leashed(devices.robot, glue, leash)
     poll = start_task(glue.read_status())  # on the line now, waiting for its answer
     opening = start_task(run_glue.set_valve(True))  # waiting for the line behind it
-    leash.cut_now(halt_follows=True)  # as an e-stop does when it arrives (halt_for_stop)
-    report = await devices.start_halt(TIMEOUT)
+    leash.cut_now(halt_follows=True)  # as an e-stop does when it arrives (EmergencyStops.begin)
+    report = await halt_at_once(devices, TIMEOUT)
     assert report.valve_closed and not report.errors
     results = await asyncio.gather(poll, opening, return_exceptions=True)
     closes = [i for i, frame in enumerate(written) if _is_valve_write(frame, False)]

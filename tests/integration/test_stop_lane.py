@@ -86,7 +86,7 @@ async def test_a_stop_whose_route_fails_is_still_made(
     async def broken(*_args: object, **_kwargs: object) -> None:
         raise RuntimeError("a defect on the route's way")
 
-    monkeypatch.setattr(commands, "_run", broken)
+    monkeypatch.setattr(commands, "_stop", broken)
     robot = FakeRobot(50)
     cell = Cell(fast_settings, devices=CellDevices(robot, FakeGlue(), FakeCamera()))
     async with serve(cell) as url, httpx.AsyncClient(base_url=url, timeout=10) as client:

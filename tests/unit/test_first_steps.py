@@ -15,6 +15,7 @@ from typing import Any
 from server.core.infra.eager import Started, start_task
 from server.core.operations.base import PauseGate
 from server.core.worker.devices import CellDevices
+from server.core.worker.stop import halt_at_once
 from server.settings.model import Settings
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
@@ -246,7 +247,7 @@ async def test_the_halt_sends_the_stop_while_the_valve_waits_for_its_answer() ->
 async def test_the_stops_halt_has_sent_both_commands_when_made() -> None:
     log: list[str] = []
     glue = _SlowValve(log)
-    halt = CellDevices(_LoggingRobot(log), glue, FakeCamera()).start_halt(1.0)
+    halt = halt_at_once(CellDevices(_LoggingRobot(log), glue, FakeCamera()), 1.0)
     assert log == ["valve sent", "stop sent"]  # valve first, before the loop turned
     glue.answer.set()
     report = await halt
@@ -267,7 +268,7 @@ async def test_no_garbage_collection_starts_while_the_stops_frames_are_written()
             await super().stop()
 
     assert gc.isenabled()
-    report = await CellDevices(WatchingRobot(), Watching(), FakeCamera()).start_halt(1.0)
+    report = await halt_at_once(CellDevices(WatchingRobot(), Watching(), FakeCamera()), 1.0)
     assert seen == [False, False] and gc.isenabled()  # off for the first steps only
     assert report.valve_closed and report.robot_stopped
 

@@ -83,7 +83,7 @@ async def test_a_command_asks_the_journal_with_a_real_write_and_goes_once_it_wri
 async def test_the_estop_is_not_held_by_a_failing_journal(make_worker) -> None:
     worker = await make_worker()
     await fail_a_write(worker)
-    outcome = await worker.emergency_stop(source="api")
+    outcome = await worker.stops.stop(source="api")
     assert outcome.accepted and worker.ctx.state is State.ERROR
     assert worker.devices.glue.valve_open is False
 

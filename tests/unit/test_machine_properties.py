@@ -85,7 +85,7 @@ class CellMachine(RuleBasedStateMachine):
 
     @rule()
     def emergency_stop(self) -> None:
-        outcome = self.loop.run_until_complete(self.worker.emergency_stop(source="property"))
+        outcome = self.loop.run_until_complete(self.worker.stops.stop(source="property"))
         assert outcome.accepted
         assert self.worker.ctx.state is State.ERROR
         assert self.glue.valve_open is False

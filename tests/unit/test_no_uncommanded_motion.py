@@ -28,7 +28,7 @@ async def test_coming_up_to_idle_moves_nothing(make_worker) -> None:
 async def test_a_reset_after_an_estop_leaves_the_robot_where_it_stopped(make_worker) -> None:
     robot = FakeRobot()
     worker = await make_worker(robot=robot)
-    await worker.emergency_stop(source="test")
+    await worker.stops.stop(source="test")
     assert (await worker.request(Event.RESET_REQUESTED, source="test")).accepted
     await _quiet()
     assert worker.ctx.state is State.IDLE and robot.moves == []

@@ -27,6 +27,7 @@ from server.common.runtime import (
 )
 from server.core.worker.devices import CellDevices
 from server.core.worker.snapshot import SnapshotFile
+from server.core.worker.stop import halt_at_once
 from server.storage.journal import Journal
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
@@ -151,7 +152,7 @@ async def test_the_journal_and_snapshot_writers_are_held_while_a_stop_is_sent(
     tmp_path: Path,
 ) -> None:
     """Woken to write, they would preempt the event loop between an e-stop's two device
-    frames (docs/benchmarks.md, "Software stop"): `start_halt` holds them back while it
+    frames (docs/benchmarks.md, "Software stop"): `halt_at_once` holds them back while it
     sends both commands, and only then."""
     journal = Journal(tmp_path / "journal.db")
     journal.open()
@@ -168,7 +169,7 @@ async def test_the_journal_and_snapshot_writers_are_held_while_a_stop_is_sent(
             await super().set_valve(open_)
 
     try:
-        halt = CellDevices(FakeRobot(), Witnessing(), FakeCamera()).start_halt(1.0)
+        halt = halt_at_once(CellDevices(FakeRobot(), Witnessing(), FakeCamera()), 1.0)
         seen["once both are sent"] = [os.sched_getscheduler(i) for i in ids]
         await halt
     finally:

@@ -12,6 +12,7 @@ from server.common.errors import EventQueueFull, OperationError
 from server.core.machine.events import FaultPayload, RunCompletedPayload, StopPayload
 from server.core.machine.transitions import Command, Event, State
 from server.core.operations import OperationContext
+from server.core.worker import stop as stop_service
 from server.core.worker.event_queue import Priority
 from server.drivers.base import Pose
 from tests.conftest import START_PAYLOAD, wait_for_state
@@ -105,7 +106,7 @@ async def test_estop_overtakes_a_full_queue(make_worker, fast_settings) -> None:
     queued = [worker.submit(Event.START_REQUESTED, source="test") for _ in range(5)]
     with pytest.raises(EventQueueFull):
         worker.submit(Event.START_REQUESTED, source="test")
-    estop = asyncio.create_task(worker.emergency_stop(source="test"))
+    estop = asyncio.create_task(worker.stops.stop(source="test"))
     await asyncio.sleep(0.05)
     # The devices were halted before the worker even ran again.
     assert robot.stops >= 1 and glue.valve_log and glue.valve_log[-1][1] is False
@@ -115,6 +116,23 @@ async def test_estop_overtakes_a_full_queue(make_worker, fast_settings) -> None:
     later = [await envelope.future for envelope in queued]
     assert not any(o.accepted for o in later)  # all refused in ERROR, none lost
     assert worker.ctx.history[-1].event == "EMERGENCY_STOP"
+
+
+async def test_a_begun_stop_halts_at_once_and_is_one_event_however_often_posted(
+    make_worker,
+) -> None:
+    """`begin` commands both devices before it returns; the stop is queued once, with the
+    reason of whoever posts it first (the route), even if the lane posts it again."""
+    glue, robot = FakeGlue(), FakeRobot()
+    worker = await make_worker(glue=glue, robot=robot)
+    stops_before = robot.stops
+    begun = worker.stops.begin()
+    assert robot.stops == stops_before + 1 and glue.valve_log[-1][1] is False
+    outcome = await begun.finish(source="route", payload=StopPayload("guard door"))
+    assert begun.post(source="lane") is begun.envelope  # nothing queued again
+    assert outcome.accepted and outcome.state is State.ERROR
+    assert "guard door" in worker.ctx.stop_reason.message
+    assert [r.event for r in worker.ctx.history].count("EMERGENCY_STOP") == 1
 
 
 async def test_leaving_an_operational_state_cancels_its_operation(make_worker) -> None:
@@ -144,7 +162,7 @@ async def spraying(make_worker) -> tuple[Any, FakeGlue, FakeRobot]:
 
 async def test_estop_mid_run_closes_the_valve_and_stops_the_robot(make_worker) -> None:
     worker, glue, robot = await spraying(make_worker)
-    outcome = await worker.emergency_stop(source="test", payload=StopPayload("hand in cell"))
+    outcome = await worker.stops.stop(source="test", payload=StopPayload("hand in cell"))
     assert outcome.state is State.ERROR
     assert glue.valve_open is False and not robot.moving and robot.stops >= 1
     assert worker.ctx.stop_reason.code == "EMERGENCY_STOP"
@@ -152,7 +170,9 @@ async def test_estop_mid_run_closes_the_valve_and_stops_the_robot(make_worker) -
     assert worker.ctx.operation is None
 
 
-async def test_an_estop_halts_once_on_arrival_with_its_runs_leash_cut(make_worker) -> None:
+async def test_an_estop_halts_once_on_arrival_with_its_runs_leash_cut(
+    make_worker, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The stop's HALT is the halt it made on arrival, its run's leash cut first; no other.
 
     The same two commands again before the run's cancellation would queue behind the
@@ -162,22 +182,25 @@ async def test_an_estop_halts_once_on_arrival_with_its_runs_leash_cut(make_worke
     """
     worker, glue, robot = await spraying(make_worker)
     halts: list[str] = []
-    start_halt, safe_halt = worker.devices.start_halt, worker.devices.safe_halt
+    safe_halt = worker.devices.safe_halt
 
-    def on_arrival(timeout: float) -> Any:
-        cut = worker.runs._leash.cut and glue.drops
-        halts.append("on arrival, leash cut, openings dropped" if cut else "on arrival")
-        return start_halt(timeout)
-
-    async def in_transition(timeout: float, then: Any = None) -> Any:
-        halts.append("in the transition")
+    async def halting(timeout: float, then: Any = None) -> Any:
+        cut = worker.runs._leash is not None and worker.runs._leash.cut and glue.drops
+        halts.append("leash cut, openings dropped" if cut else "leash not cut")
         return await safe_halt(timeout, then)
 
-    worker.devices.start_halt = on_arrival  # type: ignore[method-assign]
-    worker.devices.safe_halt = in_transition  # type: ignore[method-assign]
-    outcome = await worker.emergency_stop(source="test")
+    worker.devices.safe_halt = halting  # type: ignore[method-assign]
+    made = stop_service.halt_at_once
+    on_arrival: list[bool] = []
+
+    def at_once(devices: Any, timeout: float) -> Any:
+        on_arrival.append(True)
+        return made(devices, timeout)
+
+    monkeypatch.setattr(stop_service, "halt_at_once", at_once)
+    outcome = await worker.stops.stop(source="test")
     assert outcome.accepted and outcome.state is State.ERROR
-    assert halts == ["on arrival, leash cut, openings dropped"]
+    assert on_arrival == [True] and halts == ["leash cut, openings dropped"]
     assert glue.valve_open is False and not robot.moving
 
 
@@ -191,7 +214,7 @@ async def test_a_stopped_runs_own_close_needs_no_exchange_once_the_halt_closed_i
     """
     worker, glue, _robot = await spraying(make_worker)
     opened_at = max(at for at, open_ in glue.valve_log if open_)
-    outcome = await worker.emergency_stop(source="test")
+    outcome = await worker.stops.stop(source="test")
     assert outcome.state is State.ERROR
     closes = [at for at, open_ in glue.valve_log if not open_ and at > opened_at]
     assert len(closes) == 1 and glue.valve_open is False
@@ -210,7 +233,7 @@ async def test_the_runs_own_close_is_sent_when_the_halt_could_not_confirm_it(
         await set_valve(open_)
 
     glue.set_valve = counting  # type: ignore[method-assign]
-    outcome = await worker.emergency_stop(source="test")
+    outcome = await worker.stops.stop(source="test")
     assert outcome.state is State.ERROR
     assert closes == [False, False]  # the halt's, then the run's own
 
@@ -407,12 +430,12 @@ async def test_a_run_that_ends_while_paused_completes_to_idle(make_worker) -> No
 async def test_an_estop_during_a_reset_probe_wins(make_worker) -> None:
     robot = FakeRobot()
     worker = await make_worker(robot=robot)
-    await worker.emergency_stop(source="test")
+    await worker.stops.stop(source="test")
     robot.probe_delay = 0.3  # the reset's live probe takes a while
     reset = asyncio.create_task(worker.request(Event.RESET_REQUESTED, source="test"))
     await asyncio.sleep(0.05)
     moves_before = len(robot.moves)
-    stop = await worker.emergency_stop(source="test")
+    stop = await worker.stops.stop(source="test")
     outcome = await reset
     assert not outcome.accepted and "overtaken by an emergency stop" in outcome.message
     assert stop.state is State.ERROR and worker.ctx.state is State.ERROR
@@ -430,12 +453,12 @@ async def probing(robot: FakeRobot, reads: int) -> None:
 async def test_an_estop_is_decided_while_a_reset_probe_runs(make_worker) -> None:
     robot = FakeRobot()
     worker = await make_worker(robot=robot)
-    await worker.emergency_stop(source="test")
+    await worker.stops.stop(source="test")
     robot.probe_delay = 0.5  # the reset's live probe takes a while
     reads = robot.position_reads
     reset = asyncio.create_task(worker.request(Event.RESET_REQUESTED, source="test"))
     await probing(robot, reads)
-    stop = await worker.emergency_stop(source="test")
+    stop = await worker.stops.stop(source="test")
     assert stop.accepted and not reset.done()  # the stop did not wait for the probe
     outcome = await reset
     assert not outcome.accepted and "overtaken by an emergency stop" in outcome.message
@@ -445,7 +468,7 @@ async def test_an_estop_is_decided_while_a_reset_probe_runs(make_worker) -> None
 async def test_a_fault_during_a_reset_probe_overtakes_the_reset(make_worker) -> None:
     robot = FakeRobot()
     worker = await make_worker(robot=robot)
-    await worker.emergency_stop(source="test")
+    await worker.stops.stop(source="test")
     robot.probe_delay = 0.3
     reads = robot.position_reads
     reset = asyncio.create_task(worker.request(Event.RESET_REQUESTED, source="test"))
@@ -466,7 +489,7 @@ async def test_a_fault_during_a_reset_probe_overtakes_the_reset(make_worker) -> 
 async def test_one_reset_is_probed_at_a_time(make_worker) -> None:
     robot = FakeRobot()
     worker = await make_worker(robot=robot)
-    await worker.emergency_stop(source="test")
+    await worker.stops.stop(source="test")
     robot.probe_delay = 0.2
     reads = robot.position_reads
     first = asyncio.create_task(worker.request(Event.RESET_REQUESTED, source="test"))
@@ -486,7 +509,7 @@ async def test_the_reset_probe_is_bounded_and_begins_new_link_sessions(
     worker = await make_worker(
         fast_settings.model_copy(update={"reset_probe_timeout": 0.05}), robot=robot, glue=glue
     )
-    await worker.emergency_stop(source="test")
+    await worker.stops.stop(source="test")
     robot.probe_delay = 3600  # a controller that never answers the probe
     refused = await worker.request(Event.RESET_REQUESTED, source="test")
     assert not refused.accepted
@@ -500,7 +523,7 @@ async def test_the_reset_probe_is_bounded_and_begins_new_link_sessions(
 async def test_stop_answers_a_reset_waiting_for_its_probe(make_worker) -> None:
     robot = FakeRobot()
     worker = await make_worker(robot=robot)
-    await worker.emergency_stop(source="test")
+    await worker.stops.stop(source="test")
     robot.probe_delay = 3600
     reads = robot.position_reads
     reset = asyncio.create_task(worker.request(Event.RESET_REQUESTED, source="test"))
@@ -539,7 +562,7 @@ async def test_a_run_that_swallows_its_cancellation_moves_nothing_after_the_stop
     await worker.request(Event.CALIBRATE_CAMERA_REQUESTED, source="test")
     await asyncio.wait_for(started.wait(), 5)
     moves = len(robot.moves)
-    outcome = await worker.emergency_stop(source="test", payload=StopPayload("test"))
+    outcome = await worker.stops.stop(source="test", payload=StopPayload("test"))
     assert outcome.state is State.ERROR
     await asyncio.wait_for(went_on.wait(), 5)
     async with asyncio.timeout(5):
@@ -568,7 +591,7 @@ async def test_the_idle_a_reset_enters_is_published_without_the_cleared_stop_rea
     """The reset's state_changed message (what MQTT keeps retained, OPC UA, the webhooks
     and the state file show) carried the stop reason the reset had just cleared."""
     worker = await make_worker()
-    await worker.emergency_stop(source="test", payload=StopPayload(reason="guard door"))
+    await worker.stops.stop(source="test", payload=StopPayload(reason="guard door"))
     assert worker.view.snapshot()["stop_reason"] is not None
     states = worker.bus.subscribe(10, types=["state_changed"])
     outcome = await worker.request(Event.RESET_REQUESTED, source="test")

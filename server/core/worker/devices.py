@@ -1,9 +1,12 @@
 """The cell's three devices as one unit: halt them safely, probe them, report health.
 
-The safe halt is the one sequence every fault and stop goes through: the glue
-valve is commanded closed first, the robot stop right behind it (both on their
-way at once, neither waiting for the other's answer), each bounded by
-emergency_stop_timeout so a dead device cannot hold the cell.
+The safe halt (`CellDevices.safe_halt`) is the one halt there is: every fault,
+pause, cancel and e-stop goes through it. The glue valve is commanded closed
+first, the robot stop right behind it (both on their way at once, neither
+waiting for the other's answer), each bounded by emergency_stop_timeout so a
+dead device cannot hold the cell. The e-stop runs the same coroutine as a task
+started at once (server/core/worker/stop.py), so its frames are written before
+the stop's request goes on.
 """
 
 from __future__ import annotations
@@ -15,7 +18,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from server.common.errors import DeviceTimeout
-from server.common.runtime import background_held, collection_deferred
 from server.core.infra.eager import Started, start_task, together, within
 from server.drivers.base import Camera, FaultListener, GlueDispenser, Robot
 
@@ -49,7 +51,8 @@ class CellDevices:
     async def safe_halt(self, timeout: float, then: Callable[[], None] | None = None) -> HaltReport:
         """Close the glue valve and stop the robot now, valve first; never raises.
 
-        The halt of a transition, awaited in the worker's own task. The valve's close
+        Awaited in the worker's own task for a transition's HALT, or run as a task
+        started at once for an e-stop (`EmergencyStops.begin`). The valve's close
         takes its first step here, at once; then the robot's stop. If the valve is
         waiting for its answer, the stop is a task started at once (its frame is
         written now, and neither waits for the other's answer); if the valve answered
@@ -77,20 +80,6 @@ class CellDevices:
             _abandon(stop)
             raise
         return _report(valve_result, stop_result)
-
-    def start_halt(self, timeout: float) -> asyncio.Future[HaltReport]:
-        """Put both halt commands on their way now, valve first; the future reports how they went.
-
-        Not a coroutine, and each command a task started at once (`start_task`):
-        when this returns, each command's frame is written (unless its line is
-        busy with an exchange already under way), not left for a later turn of a
-        possibly busy loop, nor behind a garbage collection (`collection_deferred`) or
-        a journal commit (`background_held`).
-        """
-        with collection_deferred(), background_held():
-            valve = start_task(within(self.glue.set_valve(False), timeout))
-            stop = start_task(within(self.robot.stop(), timeout))
-        return asyncio.ensure_future(_halt_report(valve, stop))
 
     async def probe_faults(self, timeout: float) -> list[str]:
         """Ask every device for a live answer within `timeout` s in all; the faults left.
@@ -197,11 +186,6 @@ def _abandon(command: Started[None] | asyncio.Future[None]) -> None:
         command.close()
     else:
         command.cancel()
-
-
-async def _halt_report(valve: asyncio.Future[None], stop: asyncio.Future[None]) -> HaltReport:
-    valve_result, stop_result = await asyncio.gather(valve, stop, return_exceptions=True)
-    return _report(valve_result, stop_result)
 
 
 def _report(valve_result: object, stop_result: object) -> HaltReport:

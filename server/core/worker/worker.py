@@ -16,7 +16,8 @@ which runs without holding the loop (`reset_probe.py`).
 
 Running operations is `runs.py`; start-up and homing `startup.py`; a jog's
 start `jogging.py`; faults, state changes and readiness `state_changes.py`;
-warnings and the ERROR-timeout alert `alerts.py`.
+warnings and the ERROR-timeout alert `alerts.py`; posting events `posting.py`;
+the e-stop's halt, event and answer `stop.py`.
 """
 
 from __future__ import annotations
@@ -33,13 +34,13 @@ from server.core.infra.clock import SYSTEM_CLOCK, Clock
 from server.core.machine import decide
 from server.core.machine.actions import Action
 from server.core.machine.engine import Decision, Facts
-from server.core.machine.events import AuditNote, JogPayload, Outcome, Payload, StopPayload
+from server.core.machine.events import JogPayload, Outcome, Payload
 from server.core.machine.transitions import OPERATION_OF_STATE, Event, event_label
 from server.core.operations.base import Operation
 from server.core.operations.jog import JogRefused
 from server.core.worker.alerts import Alerts
 from server.core.worker.context import MachineContext, ProcessingStats
-from server.core.worker.devices import CellDevices, HaltReport
+from server.core.worker.devices import CellDevices
 from server.core.worker.event_queue import Envelope, EventQueue, Priority
 from server.core.worker.facts import OrderSource, decision_facts, known_device_faults
 from server.core.worker.jogging import start_jog
@@ -50,6 +51,7 @@ from server.core.worker.runs import PauseNotHeld, Runs
 from server.core.worker.snapshot import SnapshotFile
 from server.core.worker.startup import Activities
 from server.core.worker.state_changes import StateChanges
+from server.core.worker.stop import EmergencyStops
 from server.core.worker.view import CellView
 from server.drivers.base import DeviceFault
 from server.settings.model import Settings
@@ -108,6 +110,10 @@ class Worker:
         self.activities = Activities(
             settings, devices, self._halt, poster.post_ready, poster.post_fault
         )
+        # Every e-stop: its halt at once, its event ahead of the queue, its answer (stop.py).
+        self.stops = EmergencyStops(
+            devices, self.runs.cut_leash, poster.submit, settings.emergency_stop_timeout
+        )
         self.stores = stores
         self.orders: OrderSource | None = None  # the order book, once the cell has one
         self.view = CellView(self)  # what the API, the hub and metrics read
@@ -121,7 +127,6 @@ class Worker:
             lambda: poster.post_ready(Event.SYSTEM_READY, "system"),
         )
         self._task: asyncio.Task[None] | None = None
-        self._estops = 0  # e-stops requested so far; see _handle
         self.reset_probes = ResetProbes(
             devices, settings.reset_probe_timeout, lambda e: self.queue.put(e, bounded=False)
         )
@@ -169,60 +174,13 @@ class Worker:
                 envelope.future.set_exception(WorkerStopped("the server is shutting down"))
         self.devices.set_fault_listener(None)
 
-    # --- posting events ----------------------------------------------------
+    @property
+    def _estops(self) -> int:
+        """E-stops begun so far (`EmergencyStops.requested`): a decision that saw fewer
+        than there are now was overtaken by a stop (see _handle)."""
+        return self.stops.requested
 
-    async def emergency_stop(
-        self,
-        *,
-        source: str,
-        payload: StopPayload | None = None,
-        audit: AuditNote | None = None,
-        halt: asyncio.Future[HaltReport] | None = None,
-    ) -> Outcome:
-        """Halt the devices now, without queueing, then have the machine go to ERROR.
-
-        The valve-close and robot-stop commands leave before the event is even
-        queued (`halt_for_stop`, unless the caller made that halt already, as the
-        HTTP stop lane does when the request passes the gate); the EMERGENCY_STOP
-        event then overtakes everything waiting.
-        """
-        if halt is None:
-            halt = self.halt_for_stop()
-        envelope = self.post_stop(halt, source=source, payload=payload, audit=audit)
-        assert envelope.future is not None
-        report = await asyncio.shield(halt)
-        outcome: Outcome = await envelope.future
-        if report.errors:
-            return outcome.with_note(f"; halt incomplete: {'; '.join(report.errors)}")
-        return outcome
-
-    def halt_for_stop(self) -> asyncio.Future[HaltReport]:
-        """An e-stop's first moves, in this order: anything being decided from now on
-        cannot undo it, the run commands no move and no glue, and both halt commands
-        are on their way. The stop's event must follow (`post_stop`)."""
-        self._estops += 1
-        self.runs.cut_leash()
-        return self.devices.start_halt(self.settings.emergency_stop_timeout)
-
-    def post_stop(
-        self,
-        halt: asyncio.Future[HaltReport],
-        *,
-        source: str,
-        payload: StopPayload | None = None,
-        audit: AuditNote | None = None,
-    ) -> Envelope:
-        """Queue the EMERGENCY_STOP of a halt already made, ahead of everything waiting."""
-        envelope = self.submit(
-            Event.EMERGENCY_STOP,
-            source=source,
-            payload=payload or StopPayload(),
-            priority=Priority.EMERGENCY,
-            bounded=False,
-            audit=audit,
-        )
-        envelope.halt_made = halt
-        return envelope
+    # --- facts -------------------------------------------------------------
 
     def facts(self) -> Facts:
         """Guard facts from what is known without asking the devices (a reset probes them)."""

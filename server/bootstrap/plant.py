@@ -1,0 +1,105 @@
+"""The plant interfaces the composition root builds: OPC UA and MQTT, when configured.
+
+Each is a bus subscriber and a command source on the cell's own command path
+(DESIGN.md, principle 10). They are built with the HTTP app
+(`server/bootstrap/app.py: create_app`), from the app's token store and its
+answers in flight, and the app's lifespan starts them once the cell is up and
+stops them before it goes down: OPC UA first, then MQTT, stopped in the
+reverse order. Webhooks are the cell's own subscriber (`Cell.start`): they are
+stopped between the worker and the journal, so what they abandon is on record.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Any
+
+from server.bootstrap.cell import Cell
+from server.common.errors import ConfigurationError
+from server.core.infra.answers_in_flight import AnswersInFlight
+from server.mqtt.commands import CommandDoor
+from server.mqtt.link import MqttLink
+from server.security.tokens import TokenStore
+from server.settings.model import Settings
+
+if TYPE_CHECKING:
+    from server.opcua.interface import OpcUaInterface
+
+log = logging.getLogger(__name__)
+
+
+class PlantLinks:
+    """OPC UA and MQTT, each None when its setting (opcua_endpoint, mqtt_url) is unset."""
+
+    def __init__(
+        self,
+        cell: Cell,
+        tokens: TokenStore,
+        answers: AnswersInFlight,
+        *,
+        health: Callable[[], dict[str, Any]],
+        kpis: Callable[[], Awaitable[dict[str, Any]]],
+    ) -> None:
+        self.cell = cell
+        self.opcua = _opcua(cell, tokens, answers)
+        self.mqtt = _mqtt(cell, tokens, answers, health, kpis)
+
+    async def start(self) -> None:
+        """Serve OPC UA, then link MQTT; the cell is started already.
+
+        A failure to serve OPC UA stops the cell again and is logged as one line:
+        the server does not start without an interface it was configured to offer.
+        """
+        if self.opcua is not None:
+            try:
+                await self.opcua.start()
+            except BaseException as exc:
+                if isinstance(exc, ConfigurationError):
+                    log.critical("cannot start: %s", exc)
+                with contextlib.suppress(Exception):
+                    await self.opcua.stop()
+                await self.cell.stop()
+                raise
+        if self.mqtt is not None:
+            self.mqtt.start()
+
+    async def stop(self) -> None:
+        """MQTT first (its `offline` goes out before the cell stops), then OPC UA."""
+        if self.mqtt is not None:
+            await self.mqtt.stop()
+        if self.opcua is not None:
+            await self.opcua.stop()
+
+
+def _opcua(cell: Cell, tokens: TokenStore, answers: AnswersInFlight) -> OpcUaInterface | None:
+    """The OPC UA server (server/opcua), if `opcua_endpoint` is set."""
+    if cell.settings.opcua_endpoint is None:
+        return None
+    from server.opcua.interface import OpcUaInterface  # asyncua is loaded only when asked for
+
+    return OpcUaInterface(cell, tokens, cell.settings, answers=answers)
+
+
+def _mqtt(
+    cell: Cell,
+    tokens: TokenStore,
+    answers: AnswersInFlight,
+    health: Callable[[], dict[str, Any]],
+    kpis: Callable[[], Awaitable[dict[str, Any]]],
+) -> MqttLink | None:
+    """The MQTT link, when mqtt_url is set (docs/plant-integration.md)."""
+    settings: Settings = cell.settings
+    if settings.mqtt_url is None:
+        return None
+    door = None
+    if settings.mqtt_commands:
+        door = CommandDoor(
+            cell,
+            tokens,
+            f"mqtt:{settings.mqtt_url}",
+            max_age_s=settings.mqtt_command_max_age,
+            max_skew_s=settings.mqtt_command_max_skew,
+        )
+    return MqttLink(settings, cell, health=health, kpis=kpis, commands=door, answers=answers)
