@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -46,6 +48,35 @@ def pytest_configure(config: pytest.Config) -> None:
     churn swung by two frames (47.5 MiB) either way on a busy machine.
     """
     limit_malloc_arenas()
+    _terminal_size_of_the_controller(config)
+
+
+TERMINAL_SIZE = ("COLUMNS", "LINES")
+
+
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist's
+def pytest_configure_node(node: Any) -> None:
+    """pytest-xdist, on the controller: hand each worker the controller's COLUMNS and LINES."""
+    for name in TERMINAL_SIZE:
+        node.workerinput[name] = os.environ.get(name)
+
+
+def _terminal_size_of_the_controller(config: pytest.Config) -> None:
+    """In a pytest-xdist worker, COLUMNS and LINES as the controller has them.
+
+    A worker starts with COLUMNS=80 and LINES=24 set, which its child processes inherit;
+    a command-line tool that sizes its tables to a piped output when COLUMNS is unset
+    (gluectl) would then cut them to 80 columns there and nowhere else.
+    """
+    given = getattr(config, "workerinput", None)
+    if given is None:
+        return
+    for name in TERMINAL_SIZE:
+        value = given.get(name)
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
 
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups

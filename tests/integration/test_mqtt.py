@@ -13,10 +13,13 @@ topic with the correlation data, through the same path as HTTP.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import signal
+import subprocess
 import uuid
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import aiomqtt
@@ -315,7 +318,7 @@ async def test_offline_when_stopped_and_when_killed(tmp_path: Path) -> None:
         data.mkdir()
         async with subscriber(broker.port, f"{BASE}/status") as plant:
             status = f"{BASE}/status"
-            with server_process(free_port(), data, env) as server:
+            async with _server_process(free_port(), data, env) as server:
                 await plant.wait(lambda: plant.on(status)[-1:] == ["online"])
                 server.send_signal(signal.SIGTERM)  # a clean stop says offline itself
                 await asyncio.to_thread(server.wait, WAIT_S)
@@ -323,7 +326,7 @@ async def test_offline_when_stopped_and_when_killed(tmp_path: Path) -> None:
             count = len(plant.on(status))
 
             port = free_port()
-            with server_process(port, data, env) as server:
+            async with _server_process(port, data, env) as server:
                 await plant.wait(lambda: plant.on(status)[count:] == ["online"])
                 token = admin_headers(data)
                 async with httpx.AsyncClient(headers=token) as http:
@@ -332,6 +335,18 @@ async def test_offline_when_stopped_and_when_killed(tmp_path: Path) -> None:
                 os.kill(server.pid, signal.SIGKILL)  # no word from it: the broker's will
                 await asyncio.to_thread(server.wait, WAIT_S)
                 await plant.wait(lambda: plant.on(status)[count:] == ["online", "offline"])
+
+
+@contextlib.asynccontextmanager
+async def _server_process(
+    port: int, data: Path, env: dict[str, str]
+) -> AsyncIterator[subprocess.Popen[str]]:
+    """`server_process`, started and stopped on a thread: its wait for the server (which
+    commissions a fresh cell first) would otherwise hold this loop, and the plant's
+    subscriber on it, past the broker's keep-alive, which drops the subscriber."""
+    with contextlib.ExitStack() as stack:
+        yield await asyncio.to_thread(stack.enter_context, server_process(port, data, env))
+        await asyncio.to_thread(stack.close)
 
 
 async def test_the_stop_is_answered_before_the_link_publishes_it(
