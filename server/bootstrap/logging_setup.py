@@ -1,6 +1,6 @@
 """Logging as the specification writes it (section 8.3), to the console and a rotating file.
 
-    2025-08-21 14:30:25.123 [ERROR] server.core.worker.worker: fault NO_ANSWER from robot in
+    2025-08-21 14:30:25.123 [ERROR] server.core.worker.state_changes: fault NO_ANSWER from robot in
         EXECUTING_TRAJECTORY state (3f2a1c-000042)          [one line in the file]
       Error: the robot controller at 10.0.0.5:30003 stopped answering (...)
       Context: {'operation': 'trajectory', 'run_id': '3f2a1c-000040', ...}

@@ -221,7 +221,7 @@ def test_the_server_log_is_readable(cell) -> None:
     faults = [
         entry
         for entry in lines
-        if "[ERROR] server.core.worker.worker: fault EMERGENCY_STOP" in entry
+        if "[ERROR] server.core.worker.state_changes: fault EMERGENCY_STOP" in entry
     ]
     assert faults and all(re.search(r"\(\w{6}-\d{6}\)", entry) for entry in faults)
     # The specification's Error: and Context: lines, indented under the fault's line.
