@@ -24,6 +24,10 @@ from server.settings.model import Settings
 from tests.processes import server_process, simulator
 from tests.serving import admin_headers, free_port
 
+# One cell serves the module's tests in order (the log test reads what the e-stop test
+# left): the whole module is one xdist group, tests taking `api` alone included.
+pytestmark = pytest.mark.xdist_group("e2e/test_cell_cycle.py")
+
 SPEED_FACTOR = "8"
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}  # the commissioned part
 SAFE_POSITION = list(Settings().safe_position)  # the server runs with the default
