@@ -16,7 +16,6 @@ import re
 from pathlib import Path
 from typing import Any
 
-import aiomqtt
 from asyncua import Client, ua
 
 from server.commands.catalogue import CATALOGUE, CommandSpec
@@ -25,11 +24,10 @@ from tests.integration.test_one_validation import (
     BASE,
     MqttRequester,
     _opc_call,
-    _until_mqtt_linked,
+    cell_on_three_doors,
 )
-from tests.integration.test_opcua import CELL, endpoint, make_token
-from tests.mosquitto import login_of, mosquitto
-from tests.rig import WAIT_S, Rig, open_rig
+from tests.integration.test_opcua import endpoint, make_token
+from tests.rig import WAIT_S, Rig
 from tests.serving import free_port
 
 # OPC UA's status for each HTTP status a command is answered with.
@@ -117,75 +115,57 @@ def _body(spec: CommandSpec) -> dict[str, Any] | None:
 
 async def test_every_command_answers_alike_on_every_door(tmp_path: Path) -> None:
     port = free_port()
-    with mosquitto(tmp_path / "broker") as broker:
-        overrides = {
-            "cell_id": CELL,
-            "opcua_endpoint": endpoint(port),
-            **broker.cell_login,
-            "mqtt_commands": True,
-        }
-        async with (
-            open_rig(tmp_path / "data", **overrides) as rig,
-            aiomqtt.Client(
-                "127.0.0.1",
-                broker.port,
-                protocol=aiomqtt.ProtocolVersion.V5,
-                **login_of("operator"),
-            ) as mqtt_client,
-        ):
-            tokens = {role: await make_token(rig, role) for role in ("viewer", "maintenance")}
-            mqtt = MqttRequester(mqtt_client)
-            await mqtt.subscribe()
-            await _until_mqtt_linked(rig)
-            opcs = {}
+    async with cell_on_three_doors(tmp_path / "broker", tmp_path / "data", port) as (rig, mqtt):
+        tokens = {role: await make_token(rig, role) for role in ("viewer", "maintenance")}
+        opcs = {}
+        for role, token in tokens.items():
+            opcs[role] = Client(endpoint(port), timeout=WAIT_S)
+            opcs[role].set_user("plc")
+            opcs[role].set_password(token)
+        async with opcs["viewer"], opcs["maintenance"]:
+            doors = Doors(rig, mqtt, opcs)
+
+            # GET /state's `may`: what the state allows that the caller's role allows.
             for role, token in tokens.items():
-                opcs[role] = Client(endpoint(port), timeout=WAIT_S)
-                opcs[role].set_user("plc")
-                opcs[role].set_password(token)
-            async with opcs["viewer"], opcs["maintenance"]:
-                doors = Doors(rig, mqtt, opcs)
+                state = (
+                    await rig.api.get("/state", headers={"Authorization": f"Bearer {token}"})
+                ).json()
+                needs = {spec.name: spec.role for spec in CATALOGUE}
+                assert state["may"] == [
+                    name
+                    for name in state["available_commands"]
+                    if Role[role.upper()] >= needs[name]
+                ], (role, state["may"])
+                assert "estop" in state["may"]
 
-                # GET /state's `may`: what the state allows that the caller's role allows.
-                for role, token in tokens.items():
-                    state = (
-                        await rig.api.get("/state", headers={"Authorization": f"Bearer {token}"})
-                    ).json()
-                    needs = {spec.name: spec.role for spec in CATALOGUE}
-                    assert state["may"] == [
-                        name
-                        for name in state["available_commands"]
-                        if Role[role.upper()] >= needs[name]
-                    ], (role, state["may"])
-                    assert "estop" in state["may"]
+            # Too low a role: every command that needs more than a viewer.
+            for spec in CATALOGUE:
+                if spec.role > Role.VIEWER:
+                    text = await doors.compare(spec, "viewer", tokens["viewer"], 403)
+                    assert spec.role.label in text, (spec.name, text)
 
-                # Too low a role: every command that needs more than a viewer.
-                for spec in CATALOGUE:
-                    if spec.role > Role.VIEWER:
-                        text = await doors.compare(spec, "viewer", tokens["viewer"], 403)
-                        assert spec.role.label in text, (spec.name, text)
+            # Refused by the state: what IDLE does not allow.
+            for spec in CATALOGUE:
+                if spec.name in REFUSED_IN_IDLE:
+                    await doors.compare(spec, "maintenance", tokens["maintenance"], 409)
+            assert (await rig.state())["state"] == "IDLE"
 
-                # Refused by the state: what IDLE does not allow.
-                for spec in CATALOGUE:
-                    if spec.name in REFUSED_IN_IDLE:
-                        await doors.compare(spec, "maintenance", tokens["maintenance"], 409)
-                assert (await rig.state())["state"] == "IDLE"
-
-                # Accepted: the e-stop (every role) and the reset that leaves ERROR, per door.
-                estop, reset = (
-                    next(s for s in CATALOGUE if s.name == name) for name in ("estop", "reset")
-                )
-                for door in ("http", "mqtt", "opc"):
-                    for spec, role, state in (
-                        (estop, "viewer", "ERROR"),
-                        (reset, "maintenance", "IDLE"),
-                    ):
-                        token = tokens[role]
-                        if door == "http":
-                            status, _, row = await doors.http(spec, token)
-                        elif door == "mqtt":
-                            status, _, row = await doors.over_mqtt(spec, token)
-                        else:
-                            status, _, row = await doors.opc(spec, role)
-                            status = 202 if status == ua.StatusCodes.Good else status
-                        assert (status, row[0]) == (202, "accepted"), (door, spec.name, row)
-                        await rig.wait_state(state)
+            # Accepted: the e-stop (every role) and the reset that leaves ERROR, per door.
+            estop, reset = (
+                next(s for s in CATALOGUE if s.name == name) for name in ("estop", "reset")
+            )
+            for door in ("http", "mqtt", "opc"):
+                for spec, role, state in (
+                    (estop, "viewer", "ERROR"),
+                    (reset, "maintenance", "IDLE"),
+                ):
+                    token = tokens[role]
+                    if door == "http":
+                        status, _, row = await doors.http(spec, token)
+                    elif door == "mqtt":
+                        status, _, row = await doors.over_mqtt(spec, token)
+                    else:
+                        status, _, row = await doors.opc(spec, role)
+                        status = 202 if status == ua.StatusCodes.Good else status
+                    assert (status, row[0]) == (202, "accepted"), (door, spec.name, row)
+                    await rig.wait_state(state)

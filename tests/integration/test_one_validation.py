@@ -13,9 +13,11 @@ is read and refused by the model, naming the field; nothing of it is kept either
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 import uuid
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +81,34 @@ class MqttRequester:
         raise AssertionError("no answer over MQTT")
 
 
+@contextlib.asynccontextmanager
+async def cell_on_three_doors(
+    broker_dir: Path, data: Path, opcua_port: int
+) -> AsyncIterator[tuple[Rig, MqttRequester]]:
+    """A cell served over HTTP, OPC UA on `opcua_port` and MQTT commands through a
+    mosquitto of its own, with an operator's MQTT requester linked and listening."""
+    with mosquitto(broker_dir) as broker:
+        overrides = {
+            "cell_id": CELL,
+            "opcua_endpoint": endpoint(opcua_port),
+            **broker.cell_login,
+            "mqtt_commands": True,
+        }
+        async with (
+            open_rig(data, **overrides) as rig,
+            aiomqtt.Client(
+                "127.0.0.1",
+                broker.port,
+                protocol=aiomqtt.ProtocolVersion.V5,
+                **login_of("operator"),
+            ) as mqtt_client,
+        ):
+            mqtt = MqttRequester(mqtt_client)
+            await mqtt.subscribe()
+            await _until_mqtt_linked(rig)
+            yield rig, mqtt
+
+
 async def _opc_start(opc: Client, value: Any) -> ua.CallMethodResult:
     """Start with `value` as WorkpieceId, typed as a client would send it: a string, or a
     Double where a number was put in the string's place."""
@@ -106,111 +136,93 @@ async def _refusals(rig: Rig, action: str) -> list[tuple[str, str]]:
 async def test_bad_inputs_are_refused_alike_over_http_mqtt_and_opcua(tmp_path: Path) -> None:
     port = free_port()
     data = tmp_path / "data"
-    with mosquitto(tmp_path / "broker") as broker:
-        overrides = {
-            "cell_id": CELL,
-            "opcua_endpoint": endpoint(port),
-            **broker.cell_login,
-            "mqtt_commands": True,
-        }
-        async with (
-            open_rig(data, **overrides) as rig,
-            aiomqtt.Client(
-                "127.0.0.1",
-                broker.port,
-                protocol=aiomqtt.ProtocolVersion.V5,
-                **login_of("operator"),
-            ) as mqtt_client,
-        ):
-            operator = await make_token(rig, "operator")
-            maintenance = await make_token(rig, "maintenance")
-            mqtt = MqttRequester(mqtt_client)
-            await mqtt.subscribe()
-            opc = Client(endpoint(port), timeout=WAIT_S)
-            opc.set_user("plc")
-            opc.set_password(operator)
-            await _until_mqtt_linked(rig)
-            path_before, pose_before = len(rig.robot.path_snapshot()), rig.robot.position
-            size_before = _size(data)
-            async with opc:
-                for name, value in BAD_IDS.items():
-                    body = {"contour_matching": False, "workpiece_id": value}
-                    http = await rig.api.post(
-                        "/start", content=_json(body), headers={"content-type": "application/json"}
-                    )
-                    assert http.status_code == 422, (name, http.text)
-                    detail = http.json()["detail"]
-                    assert [e["field"] for e in http.json()["errors"]] == ["workpiece_id"], name
-
-                    over_mqtt = await mqtt.command("start", operator, body)
-                    assert over_mqtt["status"] == 422, (name, over_mqtt)
-                    assert over_mqtt["detail"] == detail, name
-                    assert over_mqtt["errors"] == http.json()["errors"], name
-
-                    over_opc = await _opc_start(opc, value)
-                    assert over_opc.StatusCode.value == ua.StatusCodes.BadInvalidArgument, (
-                        name,
-                        over_opc,
-                    )
-                    assert over_opc.OutputArguments[0].Value is False
-                    assert over_opc.OutputArguments[2].Value == detail, name
-                    assert "workpiece_id" in detail
-
-                # 5 MB: too large to read over HTTP (413) and OPC UA (BadRequestTooLarge).
-                huge = {"contour_matching": False, "workpiece_id": FIVE_MB}
-                http = await rig.api.post("/start", json=huge)
-                assert http.status_code == 413, http.text
-                with pytest.raises(ua.UaStatusCodeError) as too_large:
-                    await _opc_start(opc, FIVE_MB)
-                assert too_large.value.code == ua.StatusCodes.BadRequestTooLarge
-                # MQTT reads it (the broker's limit is its cap) and the model refuses it.
-                over_mqtt = await mqtt.command("start", operator, huge)
-                assert over_mqtt["status"] == 422, str(over_mqtt)[:500]
-                assert [e["field"] for e in over_mqtt["errors"]] == ["workpiece_id"]
-                huge_detail = over_mqtt["detail"]
-
-                # The session is still usable after the refusals: a good id is accepted
-                # as over HTTP (here the state's own answer to a resume).
-                resumed = await _opc_call(opc, "Resume")
-                assert resumed.StatusCode.value == ua.StatusCodes.BadInvalidState
-
-            # A number's NaN and infinity, where a command takes a number (jog: HTTP, MQTT).
-            for value in (math.nan, math.inf):
-                body = {"axis": "x", "distance_mm": value}
+    async with cell_on_three_doors(tmp_path / "broker", data, port) as (rig, mqtt):
+        operator = await make_token(rig, "operator")
+        maintenance = await make_token(rig, "maintenance")
+        opc = Client(endpoint(port), timeout=WAIT_S)
+        opc.set_user("plc")
+        opc.set_password(operator)
+        path_before, pose_before = len(rig.robot.path_snapshot()), rig.robot.position
+        size_before = _size(data)
+        async with opc:
+            for name, value in BAD_IDS.items():
+                body = {"contour_matching": False, "workpiece_id": value}
                 http = await rig.api.post(
-                    "/jog", content=_json(body), headers={"content-type": "application/json"}
+                    "/start", content=_json(body), headers={"content-type": "application/json"}
                 )
-                assert http.status_code == 422, http.text
-                assert [e["field"] for e in http.json()["errors"]] == ["distance_mm"]
-                over_mqtt = await mqtt.command("jog", maintenance, body)
-                assert over_mqtt["status"] == 422, over_mqtt
-                assert over_mqtt["detail"] == http.json()["detail"]
+                assert http.status_code == 422, (name, http.text)
+                detail = http.json()["detail"]
+                assert [e["field"] for e in http.json()["errors"]] == ["workpiece_id"], name
 
-            # Nothing reached the worker: the state, the robot, the journal's size.
-            assert (await rig.state())["state"] == "IDLE"
-            assert len(rig.robot.path_snapshot()) == path_before
-            assert rig.robot.position == pose_before
-            grown = _size(data) - size_before
-            assert grown < 512 * 1024, f"the data directory grew by {grown} bytes"
+                over_mqtt = await mqtt.command("start", operator, body)
+                assert over_mqtt["status"] == 422, (name, over_mqtt)
+                assert over_mqtt["detail"] == detail, name
+                assert over_mqtt["errors"] == http.json()["errors"], name
 
-            # The audit trail says the same of each refusal, whichever door it came by.
-            http_rows = await _refusals(rig, START)
-            mqtt_rows = await _refusals(rig, MQTT_START)
-            opc_rows = await _refusals(rig, OPC_START)
-            details = sorted(d for o, d in http_rows if o == "refused (422)")
-            assert len(details) == len(BAD_IDS), http_rows
-            assert [d for _, d in opc_rows] == details, (opc_rows, details)
-            assert {o for o, _ in opc_rows} == {"refused (BadInvalidArgument)"}
-            assert mqtt_rows == sorted(
-                [("refused (422)", d) for d in details] + [("refused (422)", huge_detail)]
-            ), mqtt_rows
-            # (HTTP's 413 for a declared Content-Length is answered by the outermost
-            # middleware, outside the audit observer: no row; OPC UA's is audited.)
-            calls = await _refusals(rig, "OPC UA Call")
-            assert [o for o, _ in calls] == ["refused (BadRequestTooLarge)"], calls
-            everything = json.dumps((await rig.api.get("/audit", params={"limit": 1000})).json())
-            for value in ("../../etc/passwd", "\u202e", "aaaaaaaaaaaaaaaaaaaaaaaaaaaa"):
-                assert value not in everything  # a refusal names the field, not the value
+                over_opc = await _opc_start(opc, value)
+                assert over_opc.StatusCode.value == ua.StatusCodes.BadInvalidArgument, (
+                    name,
+                    over_opc,
+                )
+                assert over_opc.OutputArguments[0].Value is False
+                assert over_opc.OutputArguments[2].Value == detail, name
+                assert "workpiece_id" in detail
+
+            # 5 MB: too large to read over HTTP (413) and OPC UA (BadRequestTooLarge).
+            huge = {"contour_matching": False, "workpiece_id": FIVE_MB}
+            http = await rig.api.post("/start", json=huge)
+            assert http.status_code == 413, http.text
+            with pytest.raises(ua.UaStatusCodeError) as too_large:
+                await _opc_start(opc, FIVE_MB)
+            assert too_large.value.code == ua.StatusCodes.BadRequestTooLarge
+            # MQTT reads it (the broker's limit is its cap) and the model refuses it.
+            over_mqtt = await mqtt.command("start", operator, huge)
+            assert over_mqtt["status"] == 422, str(over_mqtt)[:500]
+            assert [e["field"] for e in over_mqtt["errors"]] == ["workpiece_id"]
+            huge_detail = over_mqtt["detail"]
+
+            # The session is still usable after the refusals: a good id is accepted
+            # as over HTTP (here the state's own answer to a resume).
+            resumed = await _opc_call(opc, "Resume")
+            assert resumed.StatusCode.value == ua.StatusCodes.BadInvalidState
+
+        # A number's NaN and infinity, where a command takes a number (jog: HTTP, MQTT).
+        for value in (math.nan, math.inf):
+            body = {"axis": "x", "distance_mm": value}
+            http = await rig.api.post(
+                "/jog", content=_json(body), headers={"content-type": "application/json"}
+            )
+            assert http.status_code == 422, http.text
+            assert [e["field"] for e in http.json()["errors"]] == ["distance_mm"]
+            over_mqtt = await mqtt.command("jog", maintenance, body)
+            assert over_mqtt["status"] == 422, over_mqtt
+            assert over_mqtt["detail"] == http.json()["detail"]
+
+        # Nothing reached the worker: the state, the robot, the journal's size.
+        assert (await rig.state())["state"] == "IDLE"
+        assert len(rig.robot.path_snapshot()) == path_before
+        assert rig.robot.position == pose_before
+        grown = _size(data) - size_before
+        assert grown < 512 * 1024, f"the data directory grew by {grown} bytes"
+
+        # The audit trail says the same of each refusal, whichever door it came by.
+        http_rows = await _refusals(rig, START)
+        mqtt_rows = await _refusals(rig, MQTT_START)
+        opc_rows = await _refusals(rig, OPC_START)
+        details = sorted(d for o, d in http_rows if o == "refused (422)")
+        assert len(details) == len(BAD_IDS), http_rows
+        assert [d for _, d in opc_rows] == details, (opc_rows, details)
+        assert {o for o, _ in opc_rows} == {"refused (BadInvalidArgument)"}
+        assert mqtt_rows == sorted(
+            [("refused (422)", d) for d in details] + [("refused (422)", huge_detail)]
+        ), mqtt_rows
+        # (HTTP's 413 for a declared Content-Length is answered by the outermost
+        # middleware, outside the audit observer: no row; OPC UA's is audited.)
+        calls = await _refusals(rig, "OPC UA Call")
+        assert [o for o, _ in calls] == ["refused (BadRequestTooLarge)"], calls
+        everything = json.dumps((await rig.api.get("/audit", params={"limit": 1000})).json())
+        for value in ("../../etc/passwd", "\u202e", "aaaaaaaaaaaaaaaaaaaaaaaaaaaa"):
+            assert value not in everything  # a refusal names the field, not the value
 
 
 async def _opc_call(opc: Client, method: str) -> ua.CallMethodResult:
