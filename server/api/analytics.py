@@ -22,7 +22,7 @@ import time
 from collections.abc import Awaitable, Callable, Iterator
 from typing import Annotated, Any, Literal, get_args
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, HTTPException, Path, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
 from server.api.declared_query import DeclaredQueryRoute
@@ -158,6 +158,19 @@ TABLE_ROUTES = (
 for _path, _table, _name, _doc in TABLE_ROUTES:
     # `name` gives the summary and operationId, as a function of that name would.
     router.add_api_route(_path, table_route(_table, _name, _doc), methods=["GET"], name=_name)
+
+
+@router.get("/errors/{seq}", name="get_error")
+async def get_error(request: Request, seq: Annotated[int, Path(ge=1)]) -> dict[str, Any]:
+    """One fault by its number (`seq` in GET /errors): what it interrupted (`context`:
+    operation, run id, workpiece, waypoint) and, when an exception caused it, the stack
+    (`trace`), for a technician tracing it back to a run and its code."""
+    journal = _journal(request)
+    await journal.caught_up()
+    found = await asyncio.to_thread(journal.row, "errors", seq)
+    if found is None:
+        raise HTTPException(404, f"no fault numbered {seq}: see GET /errors for the faults kept")
+    return TABLES["errors"].decode(found)
 
 
 EXPORT_DOC = """The {table} table as CSV, oldest first, for spreadsheets and reports.
