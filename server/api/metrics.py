@@ -44,6 +44,7 @@ from starlette.types import Scope
 
 from server.api.declared_query import DeclaredQueryRoute
 from server.api.plant_metrics import BuildCollector, PlantCollector
+from server.api.schemas import text_body
 from server.bootstrap.cell import Cell
 from server.core.infra.bus import SubscriptionClosed
 from server.core.machine.transitions import State
@@ -232,7 +233,9 @@ class Metrics:
             child.observe(seconds)
 
 
-@router.get("/metrics", response_class=Response, responses={200: {"content": {"text/plain": {}}}})
+@router.get(
+    "/metrics", response_class=Response, responses={200: {"content": text_body("text/plain")}}
+)
 async def metrics(request: Request) -> Response:
     """Prometheus text exposition of the cell's metrics."""
     registry = request.app.state.metrics.registry
