@@ -24,15 +24,9 @@ from tests.rig import WAIT_S, Rig, open_rig
 from tests.serving import free_port
 
 PROMTOOL = shutil.which("promtool")
-# A webhook to a loopback port nobody listens on, allowed by the destination policy and
-# tried once: each notice fails at once, a delivery failure to count.
+# A webhook to a loopback port nobody listens on (a free one), allowed by the
+# destination policy and tried once: each notice fails at once, a delivery failure.
 SECRET_PATH = "/hooks/glue?token=never-in-metrics"
-WEBHOOK = {
-    "name": "mes",
-    "url": f"http://127.0.0.1:9{SECRET_PATH}",
-    "events": ["state"],
-    "secret": "s" * 32,
-}
 
 
 def promtool_findings(text: str) -> str:
@@ -68,11 +62,18 @@ async def test_a_scrape_is_promtool_clean_in_base_units_with_every_plant_link(
     tmp_path: Path,
 ) -> None:
     opcua_port = free_port()
+    webhook_address = f"127.0.0.1:{free_port()}"
+    webhook = {
+        "name": "mes",
+        "url": f"http://{webhook_address}{SECRET_PATH}",
+        "events": ["state"],
+        "secret": "s" * 32,
+    }
     with mosquitto(tmp_path / "broker") as broker:
         settings = {
             **broker.cell_login,
             "opcua_endpoint": f"opc.tcp://127.0.0.1:{opcua_port}",
-            "webhooks": [WEBHOOK],
+            "webhooks": [webhook],
             "webhook_allowed_networks": ["127.0.0.0/8"],
             "webhook_max_attempts": 1,
         }
@@ -121,7 +122,7 @@ async def test_a_scrape_is_promtool_clean_in_base_units_with_every_plant_link(
             assert metric(text, "glue_cell_mqtt_messages_dropped_total") == 0
             assert metric(text, "glue_cell_mqtt_backlog_messages") >= 0
             assert metric(text, 'glue_cell_webhook_queued_notices{webhook="mes"}') >= 0
-            assert "127.0.0.1:9" not in text and "never-in-metrics" not in text
+            assert webhook_address not in text and "never-in-metrics" not in text
 
             # The OPC UA client has gone: its session is no longer counted.
             await until_metric(rig, "glue_cell_opcua_sessions", 0.0)
