@@ -27,6 +27,7 @@ from fastapi.responses import Response, StreamingResponse
 
 from server.api.declared_query import DeclaredQueryRoute
 from server.api.kpi_views import KpisView
+from server.api.schemas import text_body
 from server.api.time_window import Since, TimeWindow, Until, time_window
 from server.bootstrap.cell import Cell
 from server.quality.csv_columns import INSPECTION_COLUMNS, with_inspection
@@ -217,7 +218,7 @@ for _table in EXPORT_TABLES:
         methods=["GET"],
         name=f"export_{_table}_csv",
         response_class=Response,
-        responses={200: {"content": {"text/csv": {}}}},
+        responses={200: {"content": text_body("text/csv")}},
     )
 
 
