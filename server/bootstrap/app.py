@@ -28,6 +28,7 @@ from server.api import (
     audit,
     camera_preview,
     commands,
+    diagnostics,
     inspections,
     markers,
     methods,
@@ -134,6 +135,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         inspections.router,
         metrics.router,
         admin.router,
+        diagnostics.router,
         webhooks.router,
         camera_preview.router,
     ):

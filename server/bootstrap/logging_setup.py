@@ -158,7 +158,7 @@ class RetainingFileHandler(logging.handlers.RotatingFileHandler):
 
 def log_path(settings: Settings) -> Path:
     """Where the log file is (log_file_path, by default under the data directory)."""
-    return settings.data_file(settings.log_file_path, "logs/glue_cell.log")
+    return settings.log_file
 
 
 def configure(settings: Settings) -> Path:

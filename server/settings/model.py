@@ -1069,3 +1069,13 @@ class Settings(BaseSettings):
         """A file under the data directory unless configured as an absolute path."""
         path = Path(configured) if configured else Path(default)
         return path if path.is_absolute() else self.data_path / path
+
+    @property
+    def log_file(self) -> Path:
+        """Where the log file is (log_file_path, by default under the data directory)."""
+        return self.data_file(self.log_file_path, "logs/glue_cell.log")
+
+    @property
+    def journal_file(self) -> Path:
+        """Where the journal is (analytics_database, by default under the data directory)."""
+        return self.data_file(self.analytics_database, "journal.db")
