@@ -47,6 +47,7 @@ MACHINES = (
 # How many alarms and warnings Admin shows at most (AlarmExtent, WarningExtent).
 ALARM_EXTENT = 8
 MACHINE_SPEED = 1.0  # parts per cycle the cell is built for: one part at a time
+NULL_TIME = datetime(1601, 1, 1, tzinfo=UTC)  # OPC UA's null DateTime (no time known)
 
 
 @dataclass
@@ -113,8 +114,10 @@ def _initial(member: Member, nodes: CellNodes, path: str) -> ua.Variant:
         ua.VariantType.String: "",
         ua.VariantType.NodeId: ua.NodeId(),
     }
-    if kind is ua.VariantType.ExtensionObject:
-        return ua.Variant(ua.PackMLAlarmDataType(), kind)  # type: ignore[attr-defined]
+    if kind is ua.VariantType.ExtensionObject:  # the stop reason: none yet
+        reason = ua.PackMLAlarmDataType()  # type: ignore[attr-defined]
+        reason.DateTime = reason.AckDateTime = NULL_TIME
+        return ua.Variant(reason, kind)
     return ua.Variant(defaults[kind], kind)
 
 

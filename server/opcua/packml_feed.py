@@ -30,7 +30,13 @@ from asyncua import Server, ua
 from server.core.machine.transitions import Event, State
 from server.core.worker.decisions import DecisionNote
 from server.opcua import packml_model as model
-from server.opcua.address_space import ALARM_EXTENT, MACHINES, CellNodes, data_value
+from server.opcua.address_space import (
+    ALARM_EXTENT,
+    MACHINES,
+    NULL_TIME,
+    CellNodes,
+    data_value,
+)
 from server.opcua.packml import SETTLES_IN, PackMLState, PackMLTracker, UnitMode
 from server.opcua.packml_types import STATES_TIMES
 
@@ -56,12 +62,16 @@ def alarm(record: Mapping[str, Any], active: bool = True) -> Any:
     """A fault or warning of the cell as a PackMLAlarmDataType."""
     made = ua.PackMLAlarmDataType()  # type: ignore[attr-defined]
     code = str(record.get("code") or "")
-    made.ID, made.Value = alarm_id(code), 0
-    made.Message = f"{code}: {record.get('message') or ''} ({record.get('component') or ''})"
-    made.Category = CATEGORY.get(str(record.get("classification") or "critical"), 1)
+    made.ID, made.Value = (alarm_id(code) if code else 0), 0
+    component = record.get("component")
+    made.Message = f"{code}: {record.get('message') or ''}" if code else ""
+    if code and component:
+        made.Message += f" ({component})"
+    made.Category = CATEGORY.get(str(record.get("classification") or "critical"), 1) if code else 0
     stamp = record.get("time")
-    made.DateTime = datetime.fromtimestamp(stamp, UTC) if isinstance(stamp, float | int) else None
-    made.AckDateTime = None
+    timed = isinstance(stamp, float | int)
+    made.DateTime = datetime.fromtimestamp(stamp, UTC) if timed else NULL_TIME  # type: ignore[arg-type]
+    made.AckDateTime = NULL_TIME  # acknowledged: the alarms' conditions say so, not this
     made.Trigger = active
     return made
 

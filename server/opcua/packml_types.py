@@ -296,6 +296,7 @@ async def _data_types(server: Server, ns: int) -> None:
         for field_name, data_type, rank in fields:
             field = ua.StructureField()
             field.Name, field.DataType, field.ValueRank = field_name, data_type.node(ns), rank
+            field.IsOptional = False  # asyncua's default is True: every field is present
             field.ArrayDimensions = [0] if rank == 1 else []
             sdef.Fields.append(field)
         await server.write_attribute_value(
