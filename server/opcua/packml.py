@@ -145,9 +145,9 @@ class PackMLTracker:
         pending = self.pending
         if pending is None or pending[1] is not source:
             return []
-        entered = self.settled(*pending)
+        self.pending = None
         self.early.append(pending)
-        return entered
+        return self._settle(*pending)
 
     def accepted(self, source: State, event: Event, target: State) -> list[PackMLState]:
         """The worker accepted `event` in `source` and begins to act: the acting state."""
@@ -196,6 +196,9 @@ class PackMLTracker:
             return []
         if self.pending == (old, new, event):
             self.pending = None
+        return self._settle(old, new, event)
+
+    def _settle(self, old: State, new: State, event: Event) -> list[PackMLState]:
         if new is State.ERROR:
             return self._go(S.ABORTING, S.ABORTED)
         if new is State.IDLE:
