@@ -26,7 +26,7 @@ from asyncua import Server, ua
 
 from server.core.machine.transitions import State
 from server.opcua import packml_model as model
-from server.opcua.nodes import add_object, add_property, add_variable
+from server.opcua.nodes import add_object, add_property, add_variable, nid
 from server.opcua.packml_types import (
     DECLARATIONS,
     STATES_TIMES,
@@ -102,7 +102,7 @@ def _initial(member: Member, nodes: CellNodes, path: str) -> ua.Variant:
     if member.rank == 2:
         dims = [len(model.UnitMode), STATES_TIMES]
         nodes.dimensions[path] = dims
-        return ua.Variant([0] * (dims[0] * dims[1]), kind, Dimensions=dims)
+        return ua.Variant([0] * (dims[0] * dims[1]), kind, Dimensions=[ua.Int32(d) for d in dims])
     if member.rank == 1:
         if kind is ua.VariantType.Int32:
             return ua.Variant([0] * len(model.UnitMode), kind)
@@ -155,7 +155,9 @@ async def _variable(
     value = _initial(member, nodes, path)
     if member.name == "UnitSupportedModes":
         value = ua.Variant(px(model.MODE_ENUM[1]).node(packml), ua.VariantType.NodeId)
-    kind = ua.NodeId(ua.ObjectIds.HasProperty) if member.kind is Kind.PROPERTY else member.via.node(packml)
+    kind = (
+        nid(ua.ObjectIds.HasProperty) if member.kind is Kind.PROPERTY else member.via.node(packml)
+    )
     added = await add_variable(
         server,
         parent,
@@ -176,7 +178,7 @@ async def _variable(
             node_id_of(nodes.namespace, f"{nodes.cell_id}.{path}.{prop.name}"),
             ua.QualifiedName(prop.name, 0),
             ua.Variant(ua.Range(0.0, MACHINE_SPEED)),
-            ua.NodeId(ua.ObjectIds.Range),
+            nid(ua.ObjectIds.Range),
         )
 
 
@@ -191,8 +193,8 @@ async def _current_state(server: Server, nodes: CellNodes, machine: ua.NodeId, p
         node_id_of(ns, f"{nodes.cell_id}.{here}"),
         ua.QualifiedName("CurrentState", 0),
         ua.Variant(ua.LocalizedText(""), ua.VariantType.LocalizedText),
-        ua.NodeId(ua.ObjectIds.LocalizedText),
-        type_definition=ua.NodeId(ua.ObjectIds.FiniteStateVariableType),
+        nid(ua.ObjectIds.LocalizedText),
+        type_definition=nid(ua.ObjectIds.FiniteStateVariableType),
     )
     nodes.variables[here], nodes.types[here] = node, ua.VariantType.LocalizedText
     for name, kind, data_type, initial in (
@@ -205,18 +207,22 @@ async def _current_state(server: Server, nodes: CellNodes, machine: ua.NodeId, p
             node_id_of(ns, f"{nodes.cell_id}.{here}.{name}"),
             ua.QualifiedName(name, 0),
             ua.Variant(initial, kind),
-            ua.NodeId(data_type),
+            nid(data_type),
         )
         nodes.variables[f"{here}.{name}"], nodes.types[f"{here}.{name}"] = prop, kind
 
 
-async def _own(server: Server, nodes: CellNodes, path: str, initial: object, kind: ua.VariantType) -> None:
+async def _own(
+    server: Server, nodes: CellNodes, path: str, initial: object, kind: ua.VariantType
+) -> None:
     """One of the cell's own variables (not the standard's), in the cell's namespace."""
     parent_path, _, name = path.rpartition(".")
-    parent = nodes.cell if not parent_path else node_id_of(
-        nodes.namespace, f"{nodes.cell_id}.{parent_path}"
+    parent = (
+        nodes.cell
+        if not parent_path
+        else node_id_of(nodes.namespace, f"{nodes.cell_id}.{parent_path}")
     )
-    data_type = ua.NodeId(getattr(ua.ObjectIds, kind.name))
+    data_type = nid(getattr(ua.ObjectIds, kind.name))
     node = await add_variable(
         server,
         parent,
@@ -238,8 +244,8 @@ async def build(server: Server, cell_id: str) -> CellNodes:
         server.nodes.objects.nodeid,
         node_id_of(namespace, cell_id),
         ua.QualifiedName(cell_id, namespace),
-        ua.NodeId(model.BASE_OBJECT_TYPE[1], packml),
-        kind=ua.NodeId(ua.ObjectIds.Organizes),
+        nid(model.BASE_OBJECT_TYPE[1], packml),
+        kind=nid(ua.ObjectIds.Organizes),
         description=f"the glue cell {cell_id} (OPC 30050 PackML)",
     )
     nodes = CellNodes(cell, cell_id, namespace, packml)
@@ -254,7 +260,7 @@ async def build(server: Server, cell_id: str) -> CellNodes:
         node_id_of(namespace, f"{cell_id}.Admin"),
         node_id_of(namespace, f"{cell_id}.Admin.TimeInState"),
         ua.QualifiedName("TimeInState", namespace),
-        ua.NodeId(ua.ObjectIds.FolderType),
+        nid(ua.ObjectIds.FolderType),
     )
     for state in State:
         await _own(server, nodes, f"Admin.TimeInState.{state.value}", 0.0, Double)
@@ -270,5 +276,6 @@ def data_value(
 ) -> ua.DataValue:
     """A value stamped with when it became true in the cell (`at`, Unix seconds)."""
     stamp = datetime.fromtimestamp(at, UTC) if at is not None else None
-    variant = ua.Variant(value, kind, Dimensions=dimensions)
+    shape = [ua.Int32(d) for d in dimensions] if dimensions is not None else None
+    variant = ua.Variant(value, kind, Dimensions=shape)
     return ua.DataValue(variant, SourceTimestamp=stamp)  # type: ignore[arg-type]

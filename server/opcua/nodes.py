@@ -14,12 +14,20 @@ from typing import Any
 
 from asyncua import Server, ua
 
-HAS_COMPONENT = ua.NodeId(ua.ObjectIds.HasComponent)
-HAS_PROPERTY = ua.NodeId(ua.ObjectIds.HasProperty)
-PROPERTY_TYPE = ua.NodeId(ua.ObjectIds.PropertyType)
-DATA_VARIABLE = ua.NodeId(ua.ObjectIds.BaseDataVariableType)
-MANDATORY = ua.NodeId(ua.ObjectIds.ModellingRule_Mandatory)
-OPTIONAL = ua.NodeId(ua.ObjectIds.ModellingRule_Optional)
+
+def nid(identifier: int | str, namespace: int = 0) -> ua.NodeId:
+    """A node id, numeric or string, in `namespace` (asyncua's types spelt out for mypy)."""
+    if isinstance(identifier, str):
+        return ua.NodeId(ua.String(identifier), ua.Int16(namespace))
+    return ua.NodeId(ua.Int32(identifier), ua.Int16(namespace))
+
+
+HAS_COMPONENT = nid(ua.ObjectIds.HasComponent)
+HAS_PROPERTY = nid(ua.ObjectIds.HasProperty)
+PROPERTY_TYPE = nid(ua.ObjectIds.PropertyType)
+DATA_VARIABLE = nid(ua.ObjectIds.BaseDataVariableType)
+MANDATORY = nid(ua.ObjectIds.ModellingRule_Mandatory)
+OPTIONAL = nid(ua.ObjectIds.ModellingRule_Optional)
 READ = ua.AccessLevel.CurrentRead.mask
 
 
@@ -32,7 +40,7 @@ async def _added(server: Server, item: ua.AddNodesItem, rule: ua.NodeId | None) 
     result.StatusCode.check()
     node_id: ua.NodeId = result.AddedNodeId
     if rule is not None:
-        await reference(server, node_id, ua.NodeId(ua.ObjectIds.HasModellingRule), rule)
+        await reference(server, node_id, nid(ua.ObjectIds.HasModellingRule), rule)
     return node_id
 
 
@@ -96,7 +104,8 @@ async def add_variable(
     if description:
         attributes.Description = _text(description)
     attributes.Value, attributes.DataType, attributes.ValueRank = value, data_type, rank
-    attributes.ArrayDimensions = list(dimensions) if dimensions is not None else None
+    if dimensions is not None:
+        attributes.ArrayDimensions = [ua.UInt32(d) for d in dimensions]
     attributes.AccessLevel = attributes.UserAccessLevel = READ
     attributes.WriteMask = attributes.UserWriteMask = 0
     item.NodeAttributes = attributes
@@ -172,14 +181,15 @@ async def add_method(
     ):
         if not arguments:
             continue
-        argument_id = given or ua.NodeId(f"{node_id.Identifier}.{label}", node_id.NamespaceIndex)
+        method_name = str(node_id.Identifier)
+        argument_id = given or nid(f"{method_name}.{label}", node_id.NamespaceIndex)
         await add_property(
             server,
             method,
             argument_id,
             ua.QualifiedName(label, 0),
             ua.Variant(list(arguments), ua.VariantType.ExtensionObject),
-            ua.NodeId(ua.ObjectIds.Argument),
+            nid(ua.ObjectIds.Argument),
             rank=ua.ValueRank.OneDimension,
             rule=MANDATORY if rule is not None else None,
         )

@@ -223,9 +223,9 @@ class PackMLTracker:
 
     def progressed(self, state: State) -> list[PackMLState]:
         """The running operation reported a step in `state`: Starting or Unholding is over."""
-        if state in OPERATIONAL_STATES and state is not State.PAUSED:
-            if self.state in (S.STARTING, S.UNHOLDING):
-                return self._go(S.EXECUTE)
+        running = state in OPERATIONAL_STATES and state is not State.PAUSED
+        if running and self.state in (S.STARTING, S.UNHOLDING):
+            return self._go(S.EXECUTE)
         return []
 
     def resetting(self) -> list[PackMLState]:

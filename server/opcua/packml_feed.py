@@ -27,8 +27,8 @@ from typing import Any, Final
 
 from asyncua import Server, ua
 
+from server.core.machine.decisions import DecisionNote
 from server.core.machine.transitions import Event, State
-from server.core.worker.decisions import DecisionNote
 from server.opcua import packml_model as model
 from server.opcua.address_space import (
     ALARM_EXTENT,
@@ -37,6 +37,7 @@ from server.opcua.address_space import (
     CellNodes,
     data_value,
 )
+from server.opcua.nodes import nid
 from server.opcua.packml import SETTLES_IN, PackMLState, PackMLTracker, UnitMode
 from server.opcua.packml_types import STATES_TIMES
 
@@ -183,7 +184,7 @@ class PackMLFeed:
             prefix = f"{machine}.CurrentState"
             text = ua.LocalizedText(node.name if node is not None else "")
             await self._write(prefix, text, at)
-            node_id = ua.NodeId(node.node_id, packml) if node is not None else ua.NodeId()
+            node_id = nid(node.node_id, packml) if node is not None else ua.NodeId()
             await self._write(f"{prefix}.Id", node_id, at)
             await self._write(f"{prefix}.Number", node.number if node is not None else 0, at)
         await self._write("Status.StateCurrent", int(state), at)

@@ -18,11 +18,14 @@ PackML first wants a Reset) and Reset only in Stopped or Complete.
 | ...ExecuteState.Hold / Unhold                | pause / resume    |
 
 PackML's Reset has no counterpart in the cell, which is IDLE both in PackML's
-Stopped or Complete and in its Idle: the unit shows Resetting while every device's
-health is checked (connected, no active fault), then Idle. A device found not ready
-is reported to the cell as a fault (DEVICE_UNAVAILABLE), which aborts as any fault
-does. SetMachSpeed, SetParameter, SetProduct and SetUnitMode, mandatory in the
-standard, are refused with BadNotSupported: the cell's speed is its spray settings,
+Stopped or Complete and in its Idle: the unit shows Resetting while the cell
+confirms every device is connected and without an active fault (a read of the
+devices' health, a moment), then Idle. A device not ready refuses the Reset with its
+problem (BadInvalidState) and the unit stays where it was: nothing is shown as
+Resetting that cannot end in Idle.
+
+SetMachSpeed, SetParameter, SetProduct and SetUnitMode, mandatory in the standard,
+are refused with BadNotSupported: the cell's speed is its spray settings,
 its product the part on the table, its mode what it is doing.
 """
 
@@ -37,10 +40,9 @@ from asyncua import Server, ua
 from server.bootstrap.cell import Cell
 from server.commands.catalogue import CATALOGUE
 from server.core.machine.transitions import Command, State
-from server.drivers.base import DeviceFault
 from server.opcua.address_space import CellNodes
-from server.opcua.methods import OUTPUTS, CellMethods, Gate, Method, answer
-from server.opcua.nodes import add_method, argument
+from server.opcua.methods import OUTPUTS, CellMethods, Method, answer
+from server.opcua.nodes import add_method, argument, nid
 from server.opcua.packml import PackMLState
 from server.opcua.packml_feed import PackMLFeed
 from server.security.tokens import Role
@@ -82,9 +84,7 @@ def method_of(path: str) -> Method:
 class PackMLMethods:
     """The PackML method callbacks of one cell object."""
 
-    def __init__(
-        self, server: Server, cell: Cell, methods: CellMethods, feed: PackMLFeed
-    ) -> None:
+    def __init__(self, server: Server, cell: Cell, methods: CellMethods, feed: PackMLFeed) -> None:
         self.server = server
         self.cell = cell
         self.methods = methods
@@ -94,7 +94,7 @@ class PackMLMethods:
         """Each standard method the instance has, with its callback (the arguments'
         ids are the method's with `.InputArguments`/`.OutputArguments`)."""
         packml = nodes.packml
-        outputs = [argument(name, ua.NodeId(kind.value)) for name, kind in OUTPUTS]
+        outputs = [argument(name, nid(kind.value)) for name, kind in OUTPUTS]
         for path, place in nodes.methods.items():
             inputs = [argument(n, t.node(packml), r) for n, t, r in place.member.inputs]
             name = ua.QualifiedName(place.member.name, packml)
@@ -149,7 +149,7 @@ class PackMLMethods:
                 )
                 admitted = self.methods.admit(method, (), lambda: why)
                 assert isinstance(admitted, ua.CallMethodResult)
-                admitted.StatusCode = ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
+                admitted.StatusCode = ua.StatusCode(ua.UInt32(ua.StatusCodes.BadInvalidArgument))
                 return admitted
             return await self.methods.call(method, (), self._gate_start)
         if method.command is None:
@@ -165,30 +165,27 @@ class PackMLMethods:
 
     def _gate_reset(self) -> str | None:
         state = self.feed.tracker.state
-        if state in (PackMLState.STOPPED, PackMLState.COMPLETE):
-            if self.cell.view.state is State.IDLE:
-                return None
+        if state not in (PackMLState.STOPPED, PackMLState.COMPLETE):
+            hint = "; Clear first" if state is PackMLState.ABORTED else ""
+            return (
+                f"Reset is taken in Stopped or Complete; the unit is in {state.browse_name}{hint}"
+            )
+        if self.cell.view.state is not State.IDLE:
             return f"the cell is {self._state()}: Reset waits until it is IDLE"
-        hint = "; Clear first" if state is PackMLState.ABORTED else ""
-        return f"Reset is taken in Stopped or Complete; the unit is in {state.browse_name}{hint}"
+        missing = not_ready(self.cell.view.health()["devices"])
+        if missing:
+            device, problem = missing[0]
+            return f"{device} is not ready ({problem}): Reset once it is back"
+        return None
 
     async def _reset(self, method: Method) -> ua.CallMethodResult:
-        gate: Gate = self._gate_reset
-        admitted = self.methods.admit(method, (), gate)
+        admitted = self.methods.admit(method, (), self._gate_reset)
         if isinstance(admitted, ua.CallMethodResult):
             return admitted
         await self.feed.resetting()
-        missing = not_ready(self.cell.view.health()["devices"])
-        who, address, action = admitted.who, admitted.address, admitted.action
-        if missing:
-            device, problem = missing[0]
-            message = f"{device}: {problem}; the cell stops (reset it once the device is back)"
-            self.cell.report_fault(DeviceFault(device, "DEVICE_UNAVAILABLE", message))
-            self.methods.audit(who, address, action, "refused (BadInvalidState)", message)
-            return answer(ua.StatusCodes.BadInvalidState, False, self._state(), message, "")
         await self.feed.reset_done()
         message = "every device is connected and without fault: Idle"
-        self.methods.audit(who, address, action, "accepted", message)
+        self.methods.audit(admitted.who, admitted.address, admitted.action, "accepted", message)
         return answer(ua.StatusCodes.Good, True, self._state(), message, "")
 
 

@@ -30,10 +30,11 @@ from server.opcua.nodes import (
     add_property,
     add_variable,
     argument,
+    nid,
     reference,
 )
 
-HAS_SUBTYPE = ua.NodeId(ua.ObjectIds.HasSubtype)
+HAS_SUBTYPE = nid(ua.ObjectIds.HasSubtype)
 
 
 class Kind(Enum):
@@ -51,7 +52,7 @@ class Ref:
     id: int
 
     def node(self, packml: int) -> ua.NodeId:
-        return ua.NodeId(self.id, packml if self.namespace else 0)
+        return nid(self.id, packml if self.namespace else 0)
 
 
 def ua_id(i: int) -> Ref:
@@ -137,17 +138,31 @@ DECLARATIONS: Final[dict[int, tuple[Member, ...]]] = {
         Member("ModeCurrentTime", Kind.VARIABLE, 246, data_type=INT32, rank=1, mandatory=False),
         Member("ModeCumulativeTime", Kind.VARIABLE, 247, data_type=INT32, rank=1, mandatory=False),
         Member(
-            "StopReason", Kind.VARIABLE, 244, data_type=ALARM, mandatory=False,
+            "StopReason",
+            Kind.VARIABLE,
+            244,
+            data_type=ALARM,
+            mandatory=False,
             via=px(model.HAS_STOP_REASON[1]),
         ),
         Member("StopReasonExtent", Kind.VARIABLE, 245, data_type=INT32, mandatory=False),
         Member(
-            "Alarm", Kind.VARIABLE, 238, data_type=ALARM, rank=1, mandatory=False,
+            "Alarm",
+            Kind.VARIABLE,
+            238,
+            data_type=ALARM,
+            rank=1,
+            mandatory=False,
             via=px(model.HAS_ALARM[1]),
         ),
         Member("AlarmExtent", Kind.VARIABLE, 239, data_type=INT32, mandatory=False),
         Member(
-            "Warning", Kind.VARIABLE, 242, data_type=ALARM, rank=1, mandatory=False,
+            "Warning",
+            Kind.VARIABLE,
+            242,
+            data_type=ALARM,
+            rank=1,
+            mandatory=False,
             via=px(model.HAS_WARNING[1]),
         ),
         Member("WarningExtent", Kind.VARIABLE, 243, data_type=INT32, mandatory=False),
@@ -179,7 +194,9 @@ DECLARATIONS: Final[dict[int, tuple[Member, ...]]] = {
         Member("BaseStateMachine", Kind.OBJECT, 88, px(BASE_SM)),
         Member("PackMLVersion", Kind.PROPERTY, 221, ua_id(68), STRING, mandatory=False),
         Member("TagID", Kind.PROPERTY, 218, ua_id(68), STRING, mandatory=False),
-        _method("SetMachSpeed", 400, True, inputs=(("RequestedMachineSpeed", FLOAT, -1),), inputs_id=348),
+        _method(
+            "SetMachSpeed", 400, True, inputs=(("RequestedMachineSpeed", FLOAT, -1),), inputs_id=348
+        ),
         _method("SetParameter", 402, True, inputs=(("Parameter", DESCRIPTOR, 1),), inputs_id=352),
         _method("SetProduct", 401, True, inputs=(("Product", px(18), 1),), inputs_id=349),
         _method("SetUnitMode", 362, True, inputs=(("RequestedMode", INT32, -1),), inputs_id=118),
@@ -210,7 +227,8 @@ EU_INFORMATION, UTC_TIME = ua_id(887), ua_id(294)
 STRUCTURES: Final = (
     (model.DESCRIPTOR_DATA_TYPE[0], 16, 77,
      (("ID", INT32, -1), ("Name", STRING, -1), ("Unit", EU_INFORMATION, -1), ("Value", FLOAT, -1))),
-    ("PackMLIngredientsDataType", 17, 79, (("IngredientID", INT32, -1), ("Parameter", DESCRIPTOR, 1))),
+    ("PackMLIngredientsDataType", 17, 79,
+     (("IngredientID", INT32, -1), ("Parameter", DESCRIPTOR, 1))),
     ("PackMLProductDataType", 18, 81,
      (("ProductID", INT32, -1), ("ProcessVariables", DESCRIPTOR, 1), ("Ingredients", px(17), 1))),
     (model.COUNT_DATA_TYPE[0], 14, 69,
@@ -229,9 +247,9 @@ def _q(name: str, namespace: int) -> ua.QualifiedName:
 async def _reference_types(server: Server, ns: int) -> None:
     for name, type_id, inverse in (model.HAS_ALARM, model.HAS_WARNING, model.HAS_STOP_REASON):
         item = ua.AddNodesItem()
-        item.RequestedNewNodeId, item.BrowseName = ua.NodeId(type_id, ns), _q(name, ns)
+        item.RequestedNewNodeId, item.BrowseName = nid(type_id, ns), _q(name, ns)
         item.NodeClass, item.ReferenceTypeId = ua.NodeClass.ReferenceType, HAS_SUBTYPE
-        item.ParentNodeId = ua.NodeId(ua.ObjectIds.HasComponent)
+        item.ParentNodeId = nid(ua.ObjectIds.HasComponent)
         attributes = ua.ReferenceTypeAttributes()
         attributes.DisplayName = ua.LocalizedText(name)
         attributes.InverseName = ua.LocalizedText(inverse)
@@ -243,15 +261,15 @@ async def _reference_types(server: Server, ns: int) -> None:
 
 async def _data_type(server: Server, ns: int, name: str, type_id: int, parent: int) -> ua.NodeId:
     item = ua.AddNodesItem()
-    item.RequestedNewNodeId, item.BrowseName = ua.NodeId(type_id, ns), _q(name, ns)
+    item.RequestedNewNodeId, item.BrowseName = nid(type_id, ns), _q(name, ns)
     item.NodeClass, item.ReferenceTypeId = ua.NodeClass.DataType, HAS_SUBTYPE
-    item.ParentNodeId = ua.NodeId(parent)
+    item.ParentNodeId = nid(parent)
     attributes = ua.DataTypeAttributes()
     attributes.DisplayName = ua.LocalizedText(name)
     item.NodeAttributes = attributes
     (result,) = await server.iserver.isession.add_nodes([item])
     result.StatusCode.check()
-    return ua.NodeId(type_id, ns)
+    return nid(type_id, ns)
 
 
 async def _data_types(server: Server, ns: int) -> None:
@@ -273,10 +291,10 @@ async def _data_types(server: Server, ns: int) -> None:
     await add_property(
         server,
         enum,
-        ua.NodeId(194, ns),
+        nid(194, ns),
         ua.QualifiedName("EnumValues", 0),
         ua.Variant(values, ua.VariantType.ExtensionObject),
-        ua.NodeId(ua.ObjectIds.EnumValueType),
+        nid(ua.ObjectIds.EnumValueType),
         rank=ua.ValueRank.OneDimension,
     )
     for name, type_id, encoding_id, fields in STRUCTURES:
@@ -284,21 +302,21 @@ async def _data_types(server: Server, ns: int) -> None:
         encoding = await add_object(
             server,
             structure,
-            ua.NodeId(encoding_id, ns),
+            nid(encoding_id, ns),
             ua.QualifiedName("Default Binary", 0),
-            ua.NodeId(ua.ObjectIds.DataTypeEncodingType),
-            kind=ua.NodeId(ua.ObjectIds.HasEncoding),
+            nid(ua.ObjectIds.DataTypeEncodingType),
+            kind=nid(ua.ObjectIds.HasEncoding),
         )
         sdef = ua.StructureDefinition()
-        sdef.BaseDataType = ua.NodeId(ua.ObjectIds.Structure)
+        sdef.BaseDataType = nid(ua.ObjectIds.Structure)
         sdef.StructureType = ua.StructureType.Structure
         sdef.DefaultEncodingId = encoding
         for field_name, data_type, rank in fields:
-            field = ua.StructureField()
-            field.Name, field.DataType, field.ValueRank = field_name, data_type.node(ns), rank
-            field.IsOptional = False  # asyncua's default is True: every field is present
-            field.ArrayDimensions = [0] if rank == 1 else []
-            sdef.Fields.append(field)
+            member = ua.StructureField()
+            member.Name, member.DataType, member.ValueRank = field_name, data_type.node(ns), rank
+            member.IsOptional = False  # asyncua's default is True: every field is present
+            member.ArrayDimensions = [ua.UInt32(0)] if rank == 1 else []
+            sdef.Fields.append(member)
         await server.write_attribute_value(
             structure, ua.DataValue(ua.Variant(sdef)), ua.AttributeIds.DataTypeDefinition
         )
@@ -312,14 +330,14 @@ def default_value(member: Member, ns: int) -> ua.Variant:
 
 
 async def _declare(server: Server, ns: int, parent: ua.NodeId, member: Member) -> None:
-    node_id = ua.NodeId(member.type_id, ns)
+    node_id = nid(member.type_id, ns)
     rule = MANDATORY if member.mandatory else OPTIONAL
     name = _q(member.name, 0 if member.name in UA_NAMES else ns)
     if member.kind is Kind.OBJECT:
         await add_object(server, parent, node_id, name, member.type_definition.node(ns), rule=rule)
     elif member.kind is Kind.METHOD:
         inputs = [argument(n, t.node(ns), r) for n, t, r in member.inputs]
-        given = ua.NodeId(member.inputs_id, ns) if member.inputs_id is not None else None
+        given = nid(member.inputs_id, ns) if member.inputs_id is not None else None
         await add_method(
             server, parent, node_id, name, inputs, [], rule=rule, argument_ids=(given, None)
         )
@@ -345,7 +363,7 @@ async def _declare(server: Server, ns: int, parent: ua.NodeId, member: Member) -
 async def _object_types(server: Server, ns: int) -> None:
     for (name, type_id), supertype in OBJECT_TYPES:
         item = ua.AddNodesItem()
-        item.RequestedNewNodeId, item.BrowseName = ua.NodeId(type_id, ns), _q(name, ns)
+        item.RequestedNewNodeId, item.BrowseName = nid(type_id, ns), _q(name, ns)
         item.NodeClass, item.ReferenceTypeId = ua.NodeClass.ObjectType, HAS_SUBTYPE
         item.ParentNodeId = supertype.node(ns)
         attributes = ua.ObjectTypeAttributes()
@@ -354,19 +372,19 @@ async def _object_types(server: Server, ns: int) -> None:
         (result,) = await server.iserver.isession.add_nodes([item])
         result.StatusCode.check()
         for member in DECLARATIONS[type_id]:
-            await _declare(server, ns, ua.NodeId(type_id, ns), member)
+            await _declare(server, ns, nid(type_id, ns), member)
     for state in model.STATE_NODES:
-        owner = ua.NodeId(STATE_OWNER[state.level], ns)
+        owner = nid(STATE_OWNER[state.level], ns)
         node = await add_object(
-            server, owner, ua.NodeId(state.node_id, ns), _q(state.name, ns), STATE_TYPE.node(ns)
+            server, owner, nid(state.node_id, ns), _q(state.name, ns), STATE_TYPE.node(ns)
         )
         await add_property(
             server,
             node,
-            ua.NodeId(STATE_NUMBER_IDS[state.node_id], ns),
+            nid(STATE_NUMBER_IDS[state.node_id], ns),
             ua.QualifiedName("StateNumber", 0),
             ua.Variant(state.number, ua.VariantType.UInt32),
-            ua.NodeId(ua.ObjectIds.UInt32),
+            nid(ua.ObjectIds.UInt32),
         )
 
 
@@ -380,4 +398,4 @@ async def install(server: Server) -> int:
     return ns
 
 
-__all__ = ["DECLARATIONS", "Member", "Kind", "install", "reference", "px", "ua_id"]
+__all__ = ["DECLARATIONS", "Kind", "Member", "install", "px", "reference", "ua_id"]

@@ -13,6 +13,7 @@ state change it sees is one the standard's transition table allows.
 from __future__ import annotations
 
 import asyncio
+import itertools
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -271,7 +272,7 @@ async def test_a_packml_only_client_runs_a_whole_day(tmp_path: Path) -> None:
             await states.reach("Idle")
 
     seen = states.seen
-    wrong = [(a, b) for a, b in zip(seen, seen[1:], strict=False) if (a, b) not in reference.allowed()]
+    wrong = [(a, b) for a, b in itertools.pairwise(seen) if (a, b) not in reference.allowed()]
     assert not wrong, (wrong, seen)
     for name in (
         "Starting", "Execute", "Completing", "Complete", "Resetting", "Holding", "Held",

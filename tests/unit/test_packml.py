@@ -10,6 +10,8 @@ interleave.
 
 from __future__ import annotations
 
+import itertools
+
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -127,7 +129,7 @@ def test_every_packml_change_is_one_the_standard_allows(
             entered(tracker.refused(state, Event.RESET_REQUESTED))
     while undelivered:
         entered(tracker.settled(*undelivered.pop(0)))
-    pairs = list(zip(seen, seen[1:], strict=False))
+    pairs = list(itertools.pairwise(seen))
     wrong = [(a.name, b.name) for a, b in pairs if (int(a), int(b)) not in reference.allowed()]
     assert not wrong, (wrong, [s.name for s in seen])
     assert tracker.skipped == 0

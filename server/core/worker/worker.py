@@ -33,6 +33,7 @@ from server.core.infra.bus import Bus
 from server.core.infra.clock import SYSTEM_CLOCK, Clock
 from server.core.machine import decide
 from server.core.machine.actions import Action
+from server.core.machine.decisions import DecisionListeners, DecisionNote
 from server.core.machine.engine import Decision, Facts
 from server.core.machine.events import JogPayload, Outcome, Payload
 from server.core.machine.transitions import OPERATION_OF_STATE, Event, State, event_label
@@ -40,7 +41,6 @@ from server.core.operations.base import Operation
 from server.core.operations.jog import JogRefused
 from server.core.worker.alerts import Alerts
 from server.core.worker.context import MachineContext, ProcessingStats
-from server.core.worker.decisions import DecisionListeners, DecisionNote
 from server.core.worker.devices import CellDevices
 from server.core.worker.event_queue import Envelope, EventQueue, Priority
 from server.core.worker.facts import OrderSource, decision_facts, known_device_faults

@@ -1,4 +1,4 @@
-"""Who hears of a decision as it is made, before its actions run.
+"""Who hears of a worker's decision as it is made, before its actions run.
 
 A transport that shows the cell as another state model (OPC UA's PackML, where
 Stopping, Holding, Aborting and Clearing are states of their own) must know when
