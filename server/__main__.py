@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +15,7 @@ from server.bootstrap import tls
 from server.bootstrap.app import create_app
 from server.bootstrap.logging_setup import configure as configure_logging
 from server.cli import backup as backup_cli
+from server.common.build import package_version
 from server.common.errors import ConfigurationError
 from server.common.runtime import (
     close_on_shutdown,
@@ -137,14 +137,6 @@ def uvicorn_options(settings: Settings) -> dict[str, Any]:
         "proxy_headers": False,
         **tls.uvicorn_options(settings),  # https and wss when tls_cert_file is set
     }
-
-
-def package_version() -> str:
-    """The installed distribution's version (pyproject.toml), or why it is unknown."""
-    try:
-        return metadata.version("glue-cell-server")
-    except metadata.PackageNotFoundError:
-        return "(not installed: run from a checkout)"
 
 
 if __name__ == "__main__":

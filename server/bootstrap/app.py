@@ -110,7 +110,8 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     )
     app.state.cell = cell
     app.state.settings = settings
-    app.state.mqtt = plant.mqtt  # the MQTT link (mqtt_url set), for /health
+    app.state.mqtt = plant.mqtt  # the MQTT link (mqtt_url set), for /health and /metrics
+    app.state.opcua = plant.opcua  # the OPC UA server (opcua_endpoint set), for /metrics
     app.state.ws_hub = ws.WebSocketHub(
         settings.max_broadcast_clients,
         settings.ws_client_buffer,
