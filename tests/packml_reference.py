@@ -106,6 +106,16 @@ def state_numbers() -> dict[str, int]:
     return numbers
 
 
+def state_number_ids() -> dict[int, int]:
+    """Each state object's numeric id → its StateNumber property's numeric id."""
+    nodes, _ = _document()
+    return {
+        int(node.get("ParentNodeId", "").split("i=")[1]): int(node_id.split("i=")[1])
+        for node_id, node in nodes.items()
+        if node.get("BrowseName") == "StateNumber"
+    }
+
+
 def state_ids() -> dict[str, str]:
     """Each state object's node id, by browse name."""
     nodes, _ = _document()
