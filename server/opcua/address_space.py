@@ -85,6 +85,12 @@ async def build(server: Server, cell_id: str) -> CellNodes:
 
 
 def data_value(kind: ua.VariantType, value: object, at: float | None = None) -> ua.DataValue:
-    """A value stamped with when it became true in the cell (`at`, Unix seconds)."""
+    """A value stamped with when it became true in the cell (`at`, Unix seconds, its
+    SourceTimestamp) and when the server took it (ServerTimestamp, now): asyncua stores
+    what it is given and fills in neither."""
     stamp = datetime.fromtimestamp(at, UTC) if at is not None else None
-    return ua.DataValue(ua.Variant(value, kind), SourceTimestamp=stamp)  # type: ignore[arg-type]
+    return ua.DataValue(
+        ua.Variant(value, kind),
+        SourceTimestamp=stamp,  # type: ignore[arg-type]
+        ServerTimestamp=datetime.now(UTC),  # type: ignore[arg-type]
+    )

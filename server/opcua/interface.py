@@ -31,8 +31,9 @@ from server.core.infra.answers_in_flight import AnswersInFlight, after_answers
 from server.core.infra.bus import BusMessage, SubscriptionClosed
 from server.core.infra.paced_feed import PacedFeed
 from server.core.machine.transitions import State
-from server.opcua import address_space, tags
+from server.opcua import address_space, server_info, tags
 from server.opcua.address_space import CellNodes, data_value
+from server.opcua.alarms import CellAlarms
 from server.opcua.certificate import application_uri, ensure_certificate
 from server.opcua.identity import TokenUsers
 from server.opcua.methods import CellMethods
@@ -89,8 +90,10 @@ class OpcUaInterface:
         self.answers = answers  # the commands being answered, which go first
         self.settings = settings
         self.endpoint = settings.opcua_endpoint
+        server_info.quiet_asyncua(settings.opcua_log_level)
         self.server = Server(user_manager=TokenUsers(tokens))  # type: ignore[arg-type]
         self.methods = CellMethods(self.server, cell, tokens)
+        self.alarms = CellAlarms(self.server, cell, tokens, answers)
         self.tokens = tokens
         self.nodes: CellNodes | None = None
         self._feed: PacedFeed | None = None
@@ -108,6 +111,7 @@ class OpcUaInterface:
         PasswordGuard(server, self.cell, self.tokens).install()
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"glue cell {settings.cell_id}")
+        await server_info.set_build_info(server)
         await server.set_application_uri(application_uri(settings.cell_id))
         certificate, key = await asyncio.to_thread(
             ensure_certificate, settings.data_path, settings.cell_id
@@ -126,6 +130,7 @@ class OpcUaInterface:
         server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
         self.nodes = await address_space.build(server, settings.cell_id)
         await self.methods.add(self.nodes.cell, self.nodes.cell_id, self.nodes.namespace)
+        await self.alarms.install(self.nodes.cell, self.nodes.cell_id, self.nodes.namespace)
         # Each session reads its own UserExecutable: false where a call would be refused.
         server.subscribe_server_callback(CallbackType.PostRead, self.methods.user_executable)
         # Subscribe before the first values are written: nothing falls between the two.
@@ -133,15 +138,18 @@ class OpcUaInterface:
         subscription = self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED)
         self._feed = PacedFeed(subscription, settings.plant_progress_interval)
         self._seq = self.cell.bus.last_seq
+        self.alarms.subscribe()
         await self._write_state(view.snapshot(), None)
         try:
             await server.start()
         except OSError as exc:
             subscription.close()
+            await self.alarms.stop()
             raise ConfigurationError(
                 f"the OPC UA endpoint {self.endpoint} cannot be served: {exc.strerror or exc}; "
                 "choose a free port or an address of this host (opcua_endpoint)"
             ) from None
+        await self.alarms.start()
         self._tasks = [
             asyncio.create_task(self._follow(), name="opcua-follower"),
             asyncio.create_task(self._refresh_admin(), name="opcua-admin"),
@@ -155,6 +163,7 @@ class OpcUaInterface:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         self._tasks = []
+        await self.alarms.stop()
         if self._feed is not None:
             self._feed.subscription.close()
         await self.server.stop()
