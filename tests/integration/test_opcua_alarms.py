@@ -5,6 +5,7 @@ and confirmed with the standard methods, audited, cleared when the cell clears."
 from __future__ import annotations
 
 import asyncio
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +13,7 @@ from asyncua import Client, ua
 
 from server.opcua.address_space import NAMESPACE_URI
 from tests.integration.test_opcua import CELL, client, endpoint, make_token
+from tests.processes import environment
 from tests.rig import SPRAY_DEMO, WAIT_S, Rig, open_rig, run
 from tests.serving import free_port
 
@@ -192,3 +194,34 @@ async def test_a_calibration_warning_is_an_alarm_until_a_run_no_longer_raises_it
         assert (await run(rig, "start", SPRAY_DEMO))["state"] == "IDLE"
         cleared = await events.next_of("CALIBRATION_DEGRADING", **{"ActiveState/Id": False})
         assert cleared.Retain is True  # nobody acknowledged it
+
+
+async def test_uasubscribe_shows_the_alarms(tmp_path: Path) -> None:
+    """asyncua's own command-line tool, as an integrator runs it: `uasubscribe -t event`
+    subscribes to the Server object and prints every event it is sent."""
+    port = free_port()
+    async with open_rig(tmp_path, cell_id=CELL, opcua_endpoint=endpoint(port)) as rig:
+        tool = await asyncio.create_subprocess_exec(
+            str(Path(sys.executable).parent / "uasubscribe"),
+            "-u",
+            endpoint(port),
+            "-t",
+            "event",
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.DEVNULL,
+            env=environment({"PYTHONUNBUFFERED": "1"}),
+        )
+        assert tool.stdout is not None
+        try:
+            async with asyncio.timeout(WAIT_S):
+                while b"Ctr-C" not in await tool.stdout.readline():  # subscribed
+                    pass
+                stopped = await rig.api.post("/estop", json={"reason": "door open"})
+                assert stopped.status_code == 202, stopped.text
+                while b"door open" not in (line := await tool.stdout.readline()):
+                    assert line, "uasubscribe ended before the alarm came"
+        finally:
+            tool.terminate()
+            await tool.wait()
+        assert b"Severity:1000" in line, line
+        assert b"EventType:NodeId(Identifier=10751, NamespaceIndex=0" in line, line  # TripAlarmType
