@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 from pydantic import BaseModel, Field
 
 
 class OpcUaLoggingSettings(BaseModel):
     """The OPC UA library's log level, apart from the cell's own."""
+
+    # The section of docs/settings.md it belongs to (server/settings/reference.py).
+    settings_section: ClassVar[str] = "The plant's interfaces (docs/plant-integration.md)"
 
     opcua_log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
         "WARNING",
