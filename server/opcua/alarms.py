@@ -363,6 +363,8 @@ class CellAlarms:
         if not values or not isinstance(values[0], int):
             return _status(ua.StatusCodes.BadInvalidArgument)
         subscription_id = values[0]
+        if subscription_id not in self.server.iserver.isession.subscription_service.subscriptions:
+            return _status(ua.StatusCodes.BadSubscriptionIdInvalid)
         await self._refresh_marker(event_objects.RefreshStartEvent(), subscription_id)
         for condition in self.book.retained():
             await self._emit(Notice(condition, "refreshed"), subscription_id)

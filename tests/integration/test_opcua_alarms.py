@@ -25,6 +25,7 @@ class Events:
 
     def __init__(self) -> None:
         self.seen: list[Any] = []
+        self.subscription_id = 0
 
     def event_notification(self, event: Any) -> None:
         self.seen.append(event)
@@ -46,6 +47,7 @@ async def _subscribe(opc: Client, node: Any) -> Events:
     events = Events()
     subscription = await opc.create_subscription(10, events)
     await subscription.subscribe_events(node, ALARMS, queuesize=1000)
+    events.subscription_id = subscription.subscription_id
     return events
 
 
@@ -150,6 +152,18 @@ async def test_an_estop_and_a_device_fault_are_alarms_acknowledged_and_cleared(
             # Cleared but not acknowledged: still retained until someone has seen it.
             ended = await on_server.next_of("ALARM", **{"ActiveState/Id": False})
             assert ended.Retain is True
+            # A client (re)connecting asks for what is retained: that notice again.
+            before, count = len(on_server.of("ALARM")), len(on_server.seen)
+            refreshed = await _call(
+                opc,
+                ua.ObjectIds.ConditionType_ConditionRefresh,
+                ua.NodeId(ua.ObjectIds.ConditionType),
+                ua.Variant(on_server.subscription_id, ua.VariantType.UInt32),
+            )
+            assert refreshed.is_good(), refreshed
+            assert (await on_server.next_of("ALARM", before)).EventId == ended.EventId
+            # Only what is retained: the e-stop, acknowledged and cleared, is not sent.
+            assert [e.ConditionName for e in on_server.seen[count:]] == ["ALARM"]
             assert (await acknowledge(opc, ended, "nozzle cleaned")).is_good()
             gone = await on_server.next_of("ALARM", **{"AckedState/Id": True})
             assert gone.Retain is False
