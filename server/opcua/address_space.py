@@ -274,8 +274,13 @@ def data_value(
     at: float | None = None,
     dimensions: list[int] | None = None,
 ) -> ua.DataValue:
-    """A value stamped with when it became true in the cell (`at`, Unix seconds)."""
+    """A value stamped with when it became true in the cell (`at`, Unix seconds, its
+    SourceTimestamp) and when the server took it (ServerTimestamp, now): asyncua stores
+    what it is given and fills in neither."""
     stamp = datetime.fromtimestamp(at, UTC) if at is not None else None
     shape = [ua.Int32(d) for d in dimensions] if dimensions is not None else None
-    variant = ua.Variant(value, kind, Dimensions=shape)
-    return ua.DataValue(variant, SourceTimestamp=stamp)  # type: ignore[arg-type]
+    return ua.DataValue(
+        ua.Variant(value, kind, Dimensions=shape),
+        SourceTimestamp=stamp,  # type: ignore[arg-type]
+        ServerTimestamp=datetime.now(UTC),  # type: ignore[arg-type]
+    )

@@ -31,8 +31,9 @@ from server.core.infra.answers_in_flight import AnswersInFlight, after_answers
 from server.core.infra.bus import BusMessage, SubscriptionClosed
 from server.core.infra.paced_feed import PacedFeed
 from server.core.machine.transitions import State
-from server.opcua import address_space, tags
+from server.opcua import address_space, server_info, tags
 from server.opcua.address_space import CellNodes, data_value
+from server.opcua.alarms import CellAlarms
 from server.opcua.certificate import application_uri, ensure_certificate
 from server.opcua.identity import TokenUsers
 from server.opcua.methods import CellMethods
@@ -90,8 +91,10 @@ class OpcUaInterface:
         self.answers = answers  # the commands being answered, which go first
         self.settings = settings
         self.endpoint = settings.opcua_endpoint
+        server_info.quiet_asyncua(settings.opcua_log_level)
         self.server = Server(user_manager=TokenUsers(tokens))  # type: ignore[arg-type]
         self.methods = CellMethods(self.server, cell, tokens)
+        self.alarms = CellAlarms(self.server, cell, tokens, answers)
         self.tokens = tokens
         self.nodes: CellNodes | None = None
         self.packml: PackMLFeed | None = None  # the PackML state machines, Status and Admin
@@ -111,6 +114,7 @@ class OpcUaInterface:
         PasswordGuard(server, self.cell, self.tokens).install()
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"glue cell {settings.cell_id}")
+        await server_info.set_build_info(server)
         await server.set_application_uri(application_uri(settings.cell_id))
         certificate, key = await asyncio.to_thread(
             ensure_certificate, settings.data_path, settings.cell_id
@@ -132,6 +136,7 @@ class OpcUaInterface:
         self.packml = PackMLFeed(server, nodes)
         await PackMLMethods(server, self.cell, self.methods, self.packml).add(nodes)
         await self.packml.write_constants(settings.cell_id)
+        await self.alarms.install(server.get_node(nodes.cell), nodes.cell_id, nodes.namespace)
         # Each session reads its own UserExecutable: false where a call would be refused.
         server.subscribe_server_callback(CallbackType.PostRead, self.methods.user_executable)
         # Subscribe before the first values are written: nothing falls between the two.
@@ -141,15 +146,18 @@ class OpcUaInterface:
         self._seq = self.cell.bus.last_seq
         # The worker's verdicts, as they are made: PackML's acting states (packml_feed.py).
         self.cell.worker.decisions.add(self.packml.decided)  # type: ignore[union-attr]
+        self.alarms.subscribe()
         await self._write_state(view.snapshot(), None)
         try:
             await server.start()
         except OSError as exc:
             subscription.close()
+            await self.alarms.stop()
             raise ConfigurationError(
                 f"the OPC UA endpoint {self.endpoint} cannot be served: {exc.strerror or exc}; "
                 "choose a free port or an address of this host (opcua_endpoint)"
             ) from None
+        await self.alarms.start()
         self._tasks = [
             asyncio.create_task(self._follow(), name="opcua-follower"),
             asyncio.create_task(self._refresh_admin(), name="opcua-admin"),
@@ -167,6 +175,7 @@ class OpcUaInterface:
             if self.cell.worker is not None:
                 self.cell.worker.decisions.remove(self.packml.decided)
             await self.packml.stop()
+        await self.alarms.stop()
         if self._feed is not None:
             self._feed.subscription.close()
         await self.server.stop()
