@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 from pydantic import model_validator
 from pydantic_settings import (
@@ -151,7 +151,7 @@ class Settings(
         component holding it sees a later PATCH /settings only by asking again.
         """
         values = {name: getattr(self, name) for name in kind.model_fields}
-        return kind.model_construct(self.model_fields_set & values.keys(), **values)
+        return cast(S, kind.model_construct(self.model_fields_set & values.keys(), **values))
 
     @model_validator(mode="after")
     def _pressure_inside_supervision(self) -> Settings:
