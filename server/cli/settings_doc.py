@@ -2,7 +2,7 @@
 
 `python -m server.cli.settings_doc --write` rewrites the file; without `--write`
 it prints it. A test fails when the committed file drifts from the model, so a
-setting added, renamed or re-bounded in server/settings/model.py is documented by
+setting added, renamed or re-bounded in its section (server/settings/) is documented by
 running this, not by remembering to edit a table. Each section of the settings is
 one heading, with the section's docstring under it.
 """
