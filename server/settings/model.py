@@ -23,9 +23,9 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any, TypeVar, cast
+from typing import Any, TypeVar
 
-from pydantic import model_validator
+from pydantic import BaseModel, model_validator
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -53,7 +53,7 @@ from server.settings.plant import PlantSettings, default_cell_id
 from server.settings.quality import QualitySettings
 from server.settings.robot import RobotSettings
 from server.settings.safety import SafetySettings
-from server.settings.section import SIMULATED, Section
+from server.settings.section import SIMULATED
 from server.settings.simulation import SimulationSettings
 from server.settings.storage import StorageSettings
 from server.settings.worker import WorkerSettings
@@ -71,7 +71,7 @@ __all__ = [
     "sections",
 ]
 
-S = TypeVar("S", bound=Section)
+S = TypeVar("S", bound=BaseModel)
 
 
 class JsonFileSource(PydanticBaseSettingsSource):
@@ -142,16 +142,15 @@ class Settings(
         frozen=False,
     )
 
-    title = "Settings"
-
     def section(self, kind: type[S]) -> S:
-        """This section's values in force now, as a frozen instance of `kind`.
+        """This section's values in force now, as an instance of `kind` (frozen for a
+        `Section`).
 
         Built from values already validated here, so without validating again; a
         component holding it sees a later PATCH /settings only by asking again.
         """
         values = {name: getattr(self, name) for name in kind.model_fields}
-        return cast(S, kind.model_construct(self.model_fields_set & values.keys(), **values))
+        return kind.model_construct(self.model_fields_set & values.keys(), **values)
 
     @model_validator(mode="after")
     def _pressure_inside_supervision(self) -> Settings:
@@ -242,6 +241,11 @@ class Settings(
         return notes
 
 
-def sections() -> tuple[type[Section], ...]:
-    """The section classes `Settings` is made of, in its bases' order (the docs' order)."""
-    return tuple(b for b in Settings.__bases__ if issubclass(b, Section))
+def sections() -> tuple[type[BaseModel], ...]:
+    """The section classes `Settings` is made of, in its bases' order (the docs' order):
+    every pydantic model among its bases, a `Section` or a plain BaseModel."""
+    return tuple(
+        base
+        for base in Settings.__bases__
+        if issubclass(base, BaseModel) and not issubclass(base, BaseSettings)
+    )

@@ -17,10 +17,11 @@ from dataclasses import dataclass
 from functools import cache
 from typing import Any
 
+from pydantic import BaseModel
 from pydantic_settings import EnvSettingsSource
 
 from server.settings.model import Settings, sections
-from server.settings.section import Section
+from server.settings.section import title_of
 
 CONFIG_FILE_VARIABLE = "GLUE_APP_CONFIG_PATH"
 ENV_PREFIX = "GLUE_APP_"
@@ -140,23 +141,23 @@ def known_variables() -> set[str]:
 
 
 @cache
-def groups() -> dict[str, type[Section]]:
-    """Each field's section: the `Section` class of `Settings` that declares it."""
+def groups() -> dict[str, type[BaseModel]]:
+    """Each field's section: the section class of `Settings` that declares it."""
     return {name: section for section in sections() for name in declared_fields(section)}
 
 
-def declared_fields(section: type[Section]) -> tuple[str, ...]:
+def declared_fields(section: type[BaseModel]) -> tuple[str, ...]:
     """The fields `section` declares itself, in order (not those of a section it extends)."""
     inherited = {
         name
         for base in section.__mro__[1:]
-        if issubclass(base, Section)
+        if issubclass(base, BaseModel)
         for name in base.model_fields
     }
     return tuple(name for name in section.model_fields if name not in inherited)
 
 
-def section_note(section: type[Section]) -> str:
+def section_note(section: type[BaseModel]) -> str:
     """A section's docstring as one paragraph, for the docs."""
     return " ".join(inspect.cleandoc(section.__doc__ or "").split())
 
@@ -168,7 +169,7 @@ def facts() -> list[SettingFacts]:
     return [
         SettingFacts(
             name=name,
-            group=section.title,
+            group=title_of(section),
             note=section_note(section),
             declared_in=f"{section.__module__.replace('.', '/')}.py: {section.__name__}",
             variables=variables[name],

@@ -8,11 +8,14 @@ one flat model; `Settings.section(RobotSettings)` hands a component its section
 alone, as a frozen instance, so it can read nothing else and change nothing.
 
 To add a section: a module under server/settings/ with one `Section` subclass (a
-`title` and documented fields), and that class as one more base of `Settings`.
+`title` and documented fields), and that class as one more base of `Settings`. A
+plain pydantic `BaseModel` base is taken as a section too (titled from its class
+name), so a section written without this base still joins the model and the docs.
 """
 
 from __future__ import annotations
 
+import re
 from typing import ClassVar
 
 from pydantic import BaseModel, ConfigDict
@@ -39,3 +42,14 @@ class Section(BaseModel):
 
     title: ClassVar[str]
     """The section's heading in docs/settings.md."""
+
+
+def title_of(section: type[BaseModel]) -> str:
+    """A section's heading: its `title`, or for a plain BaseModel section its class name in
+    words (`ModbusGatewaySettings` is "Modbus gateway")."""
+    title = getattr(section, "title", None)
+    if isinstance(title, str) and title:
+        return title
+    words = re.findall(r"[A-Z]+(?![a-z])|[A-Z][a-z0-9]*", section.__name__.removesuffix("Settings"))
+    text = " ".join(w if w.isupper() and len(w) > 1 else w.lower() for w in words)
+    return text[:1].upper() + text[1:]

@@ -6,6 +6,7 @@ from server.cli.settings_doc import render
 from server.settings.kpis import KpiSettings
 from server.settings.model import Settings, sections
 from server.settings.reference import facts, groups
+from server.settings.section import title_of
 
 
 def test_every_setting_has_one_row_with_its_variable_default_and_bounds() -> None:
@@ -19,7 +20,7 @@ def test_every_setting_has_one_row_with_its_variable_default_and_bounds() -> Non
 
 def test_headings_are_the_sections_in_the_order_of_settings_bases() -> None:
     headings = [line[3:] for line in render().splitlines() if line.startswith("## ")]
-    assert headings == [section.title for section in sections()]
+    assert headings == [title_of(section) for section in sections()]
     assert len(headings) == len(set(headings))
     assert groups()["shift_hours"] is KpiSettings
     assert "(`KpiSettings`, `server/settings/kpis.py`)" in render()

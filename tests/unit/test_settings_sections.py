@@ -14,7 +14,7 @@ from collections import Counter
 from pathlib import Path
 
 import pytest
-from pydantic import ValidationError
+from pydantic import BaseModel, Field, ValidationError
 
 from server.settings.glue import GlueSettings
 from server.settings.load import load_settings
@@ -23,7 +23,7 @@ from server.settings.mqtt import MqttSettings
 from server.settings.quality import QualitySettings
 from server.settings.reference import declared_fields
 from server.settings.robot import RobotSettings
-from server.settings.section import Section
+from server.settings.section import Section, title_of
 
 pytestmark = pytest.mark.unit
 
@@ -44,7 +44,20 @@ def test_each_section_is_its_own_module_under_server_settings() -> None:
     modules = [section.__module__ for section in sections()]
     assert len(modules) == len(set(modules))
     assert all(m.startswith("server.settings.") for m in modules)
-    assert all(section.title for section in sections())
+    assert all(title_of(section) for section in sections())
+
+
+def test_a_plain_basemodel_base_is_a_section_too() -> None:
+    class ModbusGatewaySettings(BaseModel):
+        gateway_port: int = Field(502, description="the gateway's TCP port")
+
+    class Extended(ModbusGatewaySettings, Settings):
+        pass
+
+    assert title_of(ModbusGatewaySettings) == "Modbus gateway"
+    assert title_of(RobotSettings) == "Robot"
+    assert declared_fields(ModbusGatewaySettings) == ("gateway_port",)
+    assert Extended(gateway_port=5020).section(ModbusGatewaySettings).gateway_port == 5020
 
 
 def test_a_section_is_a_frozen_copy_of_the_values_in_force() -> None:
