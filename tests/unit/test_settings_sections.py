@@ -23,7 +23,7 @@ from server.settings.mqtt import MqttSettings
 from server.settings.quality import QualitySettings
 from server.settings.reference import declared_fields
 from server.settings.robot import RobotSettings
-from server.settings.section import Section, title_of
+from server.settings.section import title_of
 
 pytestmark = pytest.mark.unit
 
@@ -79,7 +79,7 @@ def test_a_section_validates_alone_as_the_loader_does() -> None:
     with pytest.raises(ValidationError, match="glue_link_timeout"):
         Settings(glue_link_timeout=0.1, glue_poll_interval=0.2)
     with pytest.raises(ValidationError):
-        MqttSettings(mqtt_keepalive=float("nan"))  # type: ignore[arg-type]
+        MqttSettings(mqtt_reconnect_max=float("nan"))
 
 
 def test_environment_names_and_the_json_file_are_the_flat_names(
@@ -99,7 +99,7 @@ def test_environment_names_and_the_json_file_are_the_flat_names(
     assert settings.shift_hours == 10 and settings.mqtt_topic_prefix == "plant"
 
 
-def _section_of(annotation: ast.expr | None) -> type[Section] | None:
+def _section_of(annotation: ast.expr | None) -> type[BaseModel] | None:
     if isinstance(annotation, ast.Name):
         return SECTIONS.get(annotation.id)
     if isinstance(annotation, ast.Constant) and isinstance(annotation.value, str):
@@ -143,7 +143,7 @@ def _self_reads(node: ast.AST, attribute: str) -> set[str]:
     return found
 
 
-def _uses_of_sections() -> list[tuple[str, type[Section], set[str]]]:
+def _uses_of_sections() -> list[tuple[str, type[BaseModel], set[str]]]:
     """(where, section, attributes read) for every parameter typed as a section, and every
     `self.<attribute>` a constructor sets from one, across server/."""
     uses = []
@@ -183,7 +183,7 @@ def _uses_of_sections() -> list[tuple[str, type[Section], set[str]]]:
     return uses
 
 
-def _carried(section: type[Section]) -> set[str]:
+def _carried(section: type[BaseModel]) -> set[str]:
     """What an instance of `section` answers: its fields, properties and methods."""
     return set(section.model_fields) | set(dir(section))
 
