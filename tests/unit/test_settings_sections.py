@@ -192,7 +192,8 @@ def test_components_typed_to_a_section_read_only_what_it_carries() -> None:
     uses = _uses_of_sections()
     # The components the composition root hands a section to are among them.
     wheres = " ".join(where for where, _, _ in uses)
-    for component in ("MqttLink", "OpcUaInterface", "Notifier", "Deliverer", "glue_of"):
+    components = ("Access", "MqttLink", "OpcUaInterface", "Notifier", "Deliverer", "glue_of")
+    for component in components:
         assert component in wheres, component
     outside = [
         f"{where} reads {sorted(read - _carried(section))} not in {section.__name__}"
