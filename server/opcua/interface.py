@@ -167,6 +167,14 @@ class OpcUaInterface:
 
     # --- following the bus --------------------------------------------------------------
 
+    def session_count(self) -> int:
+        """The client sessions open on the server now (GET /metrics: glue_cell_opcua_sessions).
+
+        asyncua keeps them in a private map, registered when a session is created and
+        removed when it closes or times out; it offers no public count.
+        """
+        return len(getattr(self.server.iserver, "_external_sessions", {}))
+
     async def _follow(self) -> None:
         # A run's progress at most every plant_progress_interval, the latest kept
         # (server/core/infra/paced_feed.py says why); transitions and faults as they come.

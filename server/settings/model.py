@@ -240,6 +240,11 @@ class Settings(
             )
         return notes
 
+    @property
+    def log_file(self) -> Path:
+        """Where the log file is (log_file_path, by default under the data directory)."""
+        return self.data_file(self.log_file_path, "logs/glue_cell.log")
+
 
 def sections() -> tuple[type[BaseModel], ...]:
     """The section classes `Settings` is made of, in its bases' order (the docs' order):

@@ -40,3 +40,8 @@ class StorageSettings(Section):
         """A file under the data directory unless configured as an absolute path."""
         path = Path(configured) if configured else Path(default)
         return path if path.is_absolute() else self.data_path / path
+
+    @property
+    def journal_file(self) -> Path:
+        """Where the journal is (analytics_database, by default under the data directory)."""
+        return self.data_file(self.analytics_database, "journal.db")

@@ -133,7 +133,7 @@ class Worker:
         self._handlers: dict[Action, Handler] = {
             Action.HALT: lambda _d, e: self._halt(e),
             Action.RECORD_RUN_END: lambda d, e: self.runs.record_end(d.event, e.payload),
-            Action.CANCEL_RUN: lambda _d, _e: self.runs.cancel(),
+            Action.CANCEL_RUN: self._cancel_run,
             Action.CANCEL_HOMING: lambda _d, _e: self.activities.cancel(),
             Action.HOLD: lambda _d, _e: self.runs.hold_now(),
             Action.RECORD_FAULT: self.changes.record_fault,
@@ -329,6 +329,11 @@ class Worker:
             report = await self.devices.safe_halt(self.settings.emergency_stop_timeout)
         self.runs.halted(report.valve_closed)
         self.alerts.halt_incomplete(report.errors)
+
+    async def _cancel_run(self, decision: Decision, envelope: Envelope) -> None:
+        """Cancel the running operation, noting it on the envelope for the fault's record."""
+        envelope.interrupted = self.ctx.operation
+        await self.runs.cancel()
 
     async def _start_jog(self, decision: Decision, envelope: Envelope) -> None:
         payload = envelope.payload
