@@ -16,6 +16,7 @@ import ipaddress
 import logging
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 from fastapi import WebSocket
 from fastapi.responses import JSONResponse
@@ -33,7 +34,7 @@ from server.security.policy import WEBSOCKET_ROLE, role_for_request
 from server.security.throttle import AuthThrottle
 from server.security.tickets import TicketBook
 from server.security.tokens import Principal, TokenEntry, TokenStore
-from server.settings.model import Settings
+from server.settings.access import AccessSettings
 
 log = logging.getLogger(__name__)
 CHALLENGE = {"WWW-Authenticate": "Bearer"}  # on every 401
@@ -50,9 +51,9 @@ REWRITTEN = (
 class Access:
     """The app's token store, tickets, network allowlist and trusted proxies."""
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: AccessSettings, data_path: Path) -> None:
         self.settings = settings
-        self.tokens = TokenStore(settings.data_path)
+        self.tokens = TokenStore(data_path)
         self.tickets = TicketBook()
         self.networks = parse_networks(settings.trusted_networks)
         self.proxies = parse_networks(settings.trusted_proxies)

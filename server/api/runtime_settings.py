@@ -1,7 +1,7 @@
 """The settings PATCH /settings may change, and the body that changes them.
 
 Why the body is a model built from `Settings` itself: each setting's type,
-bounds and description are declared once, in server/settings/model.py, and the request
+bounds and description are declared once, in its section (server/settings/), and the request
 must enforce exactly those, strictly (a number never as "8" or true, never
 Infinity or 1e400), and state them in openapi.json. A hand-written copy would
 drift from them: a body of any JSON object promises nothing in openapi.json and

@@ -57,6 +57,7 @@ from server.common.errors import (
     WorkerStopped,
 )
 from server.core.infra.answers_in_flight import AnswersInFlight
+from server.settings.access import AccessSettings
 from server.settings.model import Settings
 from server.views.camera_preview import CameraPreview
 from server.views.kpi_query import kpis_of
@@ -69,7 +70,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     all of it starts when the server starts serving."""
     settings = settings or (cell.settings if cell else Settings())
     cell = cell or Cell(settings)
-    gate = access.Access(settings)
+    gate = access.Access(settings.section(AccessSettings), settings.data_path)
     # The commands being answered: the plant's interfaces hold their work until none is.
     in_flight = AnswersInFlight()
     app: FastAPI

@@ -37,6 +37,7 @@ from server.drivers.base import DeviceFault
 from server.notify.notifier import Notifier
 from server.orders.book import OrderBook
 from server.settings.model import Settings
+from server.settings.notifications import WebhookSettings
 from server.storage import CellStores
 from server.storage.journal import Journal, records
 from server.storage.permissions import tighten_data_directory
@@ -155,7 +156,13 @@ class Cell:
             interruption=interruption,
         )
         await self.worker.start()
-        self.notifier = Notifier(settings, self.bus, self.worker.view, self.journal)
+        self.notifier = Notifier(
+            settings.section(WebhookSettings),
+            settings.cell_id,
+            self.bus,
+            self.worker.view,
+            self.journal,
+        )
         self.notifier.start()
         self._feed = DeviceFeed(devices, self.bus, self.worker.view, settings.device_push_interval)
         self._feed.start()

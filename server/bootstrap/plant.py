@@ -23,6 +23,9 @@ from server.mqtt.commands import CommandDoor
 from server.mqtt.link import MqttLink
 from server.security.tokens import TokenStore
 from server.settings.model import Settings
+from server.settings.mqtt import MqttSettings
+from server.settings.opcua import OpcUaSettings
+from server.settings.plant import PlantSettings
 
 if TYPE_CHECKING:
     from server.opcua.interface import OpcUaInterface
@@ -79,7 +82,15 @@ def _opcua(cell: Cell, tokens: TokenStore, answers: AnswersInFlight) -> OpcUaInt
         return None
     from server.opcua.interface import OpcUaInterface  # asyncua is loaded only when asked for
 
-    return OpcUaInterface(cell, tokens, cell.settings, answers=answers)
+    settings = cell.settings
+    return OpcUaInterface(
+        cell,
+        tokens,
+        settings.section(OpcUaSettings),
+        settings.section(PlantSettings),
+        settings.data_path,
+        answers=answers,
+    )
 
 
 def _mqtt(
@@ -102,4 +113,12 @@ def _mqtt(
             max_age_s=settings.mqtt_command_max_age,
             max_skew_s=settings.mqtt_command_max_skew,
         )
-    return MqttLink(settings, cell, health=health, kpis=kpis, commands=door, answers=answers)
+    return MqttLink(
+        settings.section(MqttSettings),
+        settings.section(PlantSettings),
+        cell,
+        health=health,
+        kpis=kpis,
+        commands=door,
+        answers=answers,
+    )

@@ -25,12 +25,12 @@ from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 
 from server.common.errors import ConfigurationError
-from server.settings.model import Settings
+from server.settings.http import HttpSettings
 
 DOCS = 'docs/security.md, "TLS"'
 
 
-def enabled(settings: Settings) -> bool:
+def enabled(settings: HttpSettings) -> bool:
     """Whether the HTTP port serves https (both files set: the settings refuse one alone)."""
     return settings.tls_cert_file is not None and settings.tls_key_file is not None
 
@@ -42,7 +42,7 @@ def _read(name: str, path: Path) -> bytes:
         raise ConfigurationError(f"{name} {path} cannot be read: {exc.strerror or exc}") from None
 
 
-def check_files(settings: Settings) -> None:
+def check_files(settings: HttpSettings) -> None:
     """ConfigurationError, one line naming the setting, unless the files can serve https.
 
     Each is read as the server's user; the certificate must be PEM, the key PEM and not
@@ -84,7 +84,7 @@ def check_files(settings: Settings) -> None:
         ) from None
 
 
-def uvicorn_options(settings: Settings) -> dict[str, Any]:
+def uvicorn_options(settings: HttpSettings) -> dict[str, Any]:
     """uvicorn's TLS options: none for plain http."""
     if settings.tls_cert_file is None or settings.tls_key_file is None:
         return {}
@@ -95,7 +95,7 @@ def uvicorn_options(settings: Settings) -> dict[str, Any]:
     }
 
 
-def plain_http_warning(host: str, settings: Settings) -> str | None:
+def plain_http_warning(host: str, settings: HttpSettings) -> str | None:
     """The start-up warning for plain http bound beyond loopback, or None.
 
     Why only a warning: behind a TLS proxy on the same network segment, or on a lab's

@@ -18,7 +18,7 @@ outage; the next call reconnects by itself. A refused connection gives
 before anything is sent.
 
 The pymodbus client is not safe for concurrent transactions, so exchanges
-take turns on the line through `_LineArbiter`, which serves a valve close
+take turns on the line through `glue_line.LineArbiter`, which serves a valve close
 before queued commands and queued commands before monitor polls. Each
 exchange is one short request (a status poll is a single 8-register read), so
 `set_valve(False)` waits at most for the one exchange already on the wire.
@@ -42,18 +42,10 @@ the cell back to ERROR after the reset passed.
 
 The monitor task (started by connect(), stopped by close()) polls the status
 every `poll_interval` s, keeps `health.details` current (`status_at` is when
-the reading was taken) and reports once per onset, not on every poll:
-
-* "ALARM": each new alarm bit of the dispenser's own;
-* "PRESSURE_OUT_OF_RANGE": above the high end of `pressure_range_psi` at any
-  time (over-pressure is a hazard whatever the valve does), below its low end
-  while the valve reads open, on every poll for `flow_deviation_s` (a sagging
-  supply sprays thin; a supply at rest between runs is no fault, and a reset
-  probes with the valve closed);
-* "FLOW_DEVIATION": while the valve reads open, measured flow off its setpoint
-  by more than `flow_tolerance_pct` % on every poll for `flow_deviation_s`
-  (the valve's opening transient is shorter, a blocked or starved nozzle not);
-* "TEMPERATURE_OUT_OF_RANGE": outside `temperature_range_c`, at any time.
+the reading was taken); `glue_status.StatusWatch` judges every reading and
+reports once per onset, not on every poll: the dispenser's own alarms, pressure
+(high at any time, low while spraying), flow off its setpoint while spraying,
+and temperature.
 
 Silence with the valve open cannot wait for `timeout` (15 s of unsupervised
 glue). A watchdog task checks every `link_timeout / 5` s: while the valve may
@@ -74,103 +66,35 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections import deque
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
-from pymodbus import FramerType
-from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.pdu import ModbusPDU
 
 from server.common.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 from server.drivers import glue_registers as regs
 from server.drivers.base import DeviceFault, DeviceHealth, FaultListener, GlueStatus
+from server.drivers.glue_line import (
+    COMMAND,
+    DEVICE,
+    POLL,
+    URGENT,
+    LineArbiter,
+    ModbusClient,
+    cancel_dropped,
+    cancel_requests,
+    serial_client,
+    tcp_client,
+)
+from server.drivers.glue_status import StatusWatch
 
 logger = logging.getLogger(__name__)
 
-DEVICE = "glue"
-URGENT, COMMAND, POLL = 0, 1, 2  # line priorities: valve close, commands, monitor polls
-PRESSURE_HYSTERESIS_PSI = 1.0
-TEMPERATURE_HYSTERESIS_C = 0.5
 WATCHDOG_TICKS = 5  # watchdog checks per link_timeout
 _VALVE_READBACK_INTERVAL_S = 0.02
 
-ModbusClient = AsyncModbusTcpClient | AsyncModbusSerialClient
 T = TypeVar("T")
-
-
-def _cancel_requests() -> int:
-    task = asyncio.current_task()
-    return task.cancelling() if task is not None else 0
-
-
-def _cancel_dropped(before: int) -> bool:
-    """Did a cancellation come, and pymodbus swallow it, while we awaited it?
-
-    pymodbus bounds its connect and each transaction with asyncio.wait_for, which
-    on Python 3.11 returns the result and drops a cancellation that lands in the
-    loop turns between the result and wait_for returning (CPython gh-86296). A
-    run's valve or setpoint write cancelled by an e-stop would go on as if never
-    cancelled: the run would start its next move after the stop, and the worker
-    wait emergency_stop_timeout for it. The task still counts the request, so
-    the caller raises it again (an `asyncio.timeout` expiring then still turns it
-    into TimeoutError).
-    """
-    return _cancel_requests() > before
-
-
-class _LineArbiter:
-    """Mutual exclusion on the Modbus line with priorities (FIFO within a priority).
-
-    An asyncio.Lock is FIFO only, so a valve close could queue behind polls and
-    setpoint writes; here the lowest priority number goes first. A waiter taken
-    as droppable (a valve opening) can be refused while it waits (`drop_waiting`).
-    """
-
-    def __init__(self, levels: int = 3) -> None:
-        self._busy = False
-        self._queues: list[deque[asyncio.Future[None]]] = [deque() for _ in range(levels)]
-        self._droppable: set[asyncio.Future[None]] = set()
-
-    @property
-    def busy(self) -> bool:
-        return self._busy
-
-    async def acquire(self, priority: int, *, droppable: bool = False) -> None:
-        if not self._busy and not any(self._queues):
-            self._busy = True
-            return
-        waiter: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        self._queues[priority].append(waiter)
-        if droppable:
-            self._droppable.add(waiter)
-        try:
-            await waiter
-        except asyncio.CancelledError:
-            if waiter.done() and not waiter.cancelled():
-                self.release()  # the line was handed to us just as we gave up: pass it on
-            elif waiter in self._queues[priority]:  # release() may have passed it over
-                self._queues[priority].remove(waiter)
-            raise
-        finally:
-            self._droppable.discard(waiter)
-
-    def release(self) -> None:
-        for queue in self._queues:
-            while queue:
-                waiter = queue.popleft()
-                if not waiter.done():
-                    waiter.set_result(None)  # ownership passes on; _busy stays True
-                    return
-        self._busy = False
-
-    def drop_waiting(self) -> int:
-        """Refuse every droppable waiter still queued (each raises CancelledError); how many."""
-        dropped = [waiter for waiter in self._droppable if not waiter.done()]
-        for waiter in dropped:
-            waiter.cancel()
-        return len(dropped)
 
 
 class ModbusGlueDispenser:
@@ -219,19 +143,20 @@ class ModbusGlueDispenser:
         self._link_hint = link_hint
         self.health = DeviceHealth(name=DEVICE, details={"link": where, "device_id": device_id})
         self._client: ModbusClient | None = None
-        self._line = _LineArbiter()
+        self._line = LineArbiter()
         self._listener: FaultListener | None = None
         self._monitor: asyncio.Task[None] | None = None
         self._running = False
         self._link_fault = False
         self._session = 0  # see "Sessions" in the module doc
         self._line_session = 0  # the session of the exchange on the line now
-        self._active_alarms: frozenset[str] = frozenset()
-        self._pressure_fault: str | None = None  # the excursion reported: high or low
-        self._flow_fault = False
-        self._flow_off_since: float | None = None  # monotonic time of the first deviating poll
-        self._pressure_low_since: float | None = None  # the same, for pressure while spraying
-        self._temperature_fault = False
+        self._watch = StatusWatch(
+            self._report,
+            pressure_range_psi=pressure_range_psi,
+            flow_tolerance_pct=flow_tolerance_pct,
+            flow_deviation_s=flow_deviation_s,
+            temperature_range_c=temperature_range_c,
+        )
         # Valve supervision: may it be open, and what waits for the dispenser's answer.
         self._valve_may_be_open = False
         self._opening = 0  # open commands on their way: a poll must not clear the flag
@@ -253,24 +178,8 @@ class ModbusGlueDispenser:
         **options: Any,
     ) -> ModbusGlueDispenser:
         """The real dispenser on an RS-485 adapter (115200 baud, 8N1, Modbus RTU)."""
-
-        def make_client() -> ModbusClient:
-            try:
-                return AsyncModbusSerialClient(
-                    port,
-                    framer=FramerType.RTU,
-                    baudrate=regs.BAUDRATE,
-                    bytesize=regs.BYTESIZE,
-                    parity=regs.PARITY,
-                    stopbits=regs.STOPBITS,
-                    timeout=timeout,
-                    retries=0,
-                    reconnect_delay=0,
-                )
-            except RuntimeError as exc:  # pymodbus without pyserial
-                raise DeviceError(DEVICE, f"cannot open serial port {port}: {exc}") from exc
-
         options.setdefault("link_hint", "check that it exists, is free and readable by this user")
+        make_client = serial_client(port, timeout)
         where = f"serial port {port}"
         return cls(make_client, where, device_id=device_id, timeout=timeout, **options)
 
@@ -285,20 +194,11 @@ class ModbusGlueDispenser:
         **options: Any,
     ) -> ModbusGlueDispenser:
         """The simulator (or a serial-to-TCP gateway in transparent mode): RTU frames over TCP."""
-
-        def make_client() -> ModbusClient:
-            return AsyncModbusTcpClient(
-                host,
-                port=port,
-                framer=FramerType.RTU,
-                timeout=timeout,
-                retries=0,
-                reconnect_delay=0,
-            )
-
         where = f"{host}:{port} (RTU over TCP)"
         options.setdefault("link_hint", "check that the simulator or gateway is running")
-        return cls(make_client, where, device_id=device_id, timeout=timeout, **options)
+        return cls(
+            tcp_client(host, port, timeout), where, device_id=device_id, timeout=timeout, **options
+        )
 
     # --- GlueDispenser -----------------------------------------------------------
 
@@ -306,13 +206,7 @@ class ModbusGlueDispenser:
         """Open the link, read the status once, then start the monitor."""
         if self._client is not None:
             return
-        # a new session: alarms and excursions still present are news again
-        self._active_alarms = frozenset()
-        self._pressure_fault = None
-        self._flow_fault = False
-        self._flow_off_since = None
-        self._pressure_low_since = None
-        self._temperature_fault = False
+        self._watch.reset()  # a new session: alarms and excursions still present are news again
         self._unconfirmed_reported = False
         try:
             self._client = self._make_client()
@@ -368,11 +262,7 @@ class ModbusGlueDispenser:
         # Counted open from before the command may reach the line: a reply lost on
         # the way leaves a valve that may well be open.
         self._valve_may_be_open = True
-        # Each opening has its transient: the flow and the low pressure are judged from
-        # this opening on, never summed over short openings a poll did not see closed
-        # (a pause and a resume between two polls).
-        self._flow_off_since = None
-        self._pressure_low_since = None
+        self._watch.valve_opening()
         self._opening += 1
         try:
             await self._call(what, COMMAND, body, droppable=True)
@@ -487,9 +377,9 @@ class ModbusGlueDispenser:
             raise DeviceDisconnected(DEVICE, f"not connected to {self.where}: call connect() first")
         if client.connected:
             return client
-        before = _cancel_requests()
+        before = cancel_requests()
         connected = await client.connect()
-        if _cancel_dropped(before):
+        if cancel_dropped(before):
             raise asyncio.CancelledError
         if not connected:
             message = f"cannot open the link to the glue dispenser on {self.where}"
@@ -508,10 +398,10 @@ class ModbusGlueDispenser:
         self._exchange_ids += 1
         exchange = self._exchange_ids
         self._waiting_since[exchange] = time.monotonic()
-        before = _cancel_requests()
+        before = cancel_requests()
         try:
             response = await send(client)
-            if _cancel_dropped(before):
+            if cancel_dropped(before):
                 self._cancelled_after_reply = True  # the line is clean: no need to drop it
                 raise asyncio.CancelledError
         except ConnectionException as exc:
@@ -647,101 +537,7 @@ class ModbusGlueDispenser:
             self._valve_may_be_open = True
         elif not self._opening:
             self._valve_may_be_open = False
-        new = [name for name in status.alarms if name not in self._active_alarms]
-        self._active_alarms = frozenset(status.alarms)
-        if new:
-            self._report(
-                "ALARM",
-                f"glue dispenser alarm: {', '.join(new)} (pressure {status.pressure_psi:g} PSI, "
-                f"flow {status.flow_ml_min:g} ml/min, {status.temperature_c:g} °C)",
-            )
-        faults = [f"glue: alarm {', '.join(status.alarms)}"] if status.alarms else []
-        faults += self._check_pressure(status)
-        faults += self._check_flow(status)
-        faults += self._check_temperature(status)
-        self.health.active_faults = tuple(faults)
-
-    def _check_pressure(self, status: GlueStatus) -> list[str]:
-        """The high limit always; the low one while the valve reads open, for flow_deviation_s.
-
-        A valve opening draws the supply down for a moment (and the first setpoint
-        of a run is still rising): the same grace as a flow deviation's.
-        """
-        low, high = self.pressure_range_psi
-        low_applies = status.valve_open and low > 0
-        pressure = status.pressure_psi
-        sagging = False
-        if low_applies and pressure < low:
-            now = time.monotonic()
-            if self._pressure_low_since is None:
-                self._pressure_low_since = now
-            sagging = now - self._pressure_low_since >= self.flow_deviation_s
-        else:
-            self._pressure_low_since = None
-        kind = "high" if pressure > high else "low" if sagging else None
-        if kind is not None:
-            if kind != self._pressure_fault:  # a new excursion (or the other side): news
-                self._pressure_fault = kind
-                while_open = " while spraying" if kind == "low" else ""
-                self._report(
-                    "PRESSURE_OUT_OF_RANGE",
-                    f"glue pressure {pressure:g} PSI is outside the allowed {low:g}-{high:g} PSI"
-                    f"{while_open} (setpoint {status.pressure_setpoint_psi:g} PSI)",
-                )
-            return [f"glue: pressure {pressure:.1f} PSI outside {low:g}..{high:g} PSI"]
-        if self._pressure_fault is not None:
-            margin_low = low + PRESSURE_HYSTERESIS_PSI if low_applies else 0.0
-            if margin_low <= pressure <= high - PRESSURE_HYSTERESIS_PSI:
-                self._pressure_fault = None  # back inside with margin: the next excursion reports
-        return []
-
-    def _check_flow(self, status: GlueStatus) -> list[str]:
-        """Measured flow off its setpoint while the valve reads open, for flow_deviation_s."""
-        tolerance = self.flow_tolerance_pct
-        setpoint = status.flow_setpoint_ml_min
-        if tolerance is None or not status.valve_open or setpoint <= 0:
-            self._flow_off_since = None
-            self._flow_fault = False
-            return []
-        deviation_pct = abs(status.flow_ml_min - setpoint) / setpoint * 100.0
-        if deviation_pct <= tolerance:
-            self._flow_off_since = None
-            self._flow_fault = False
-            return []
-        now = time.monotonic()
-        if self._flow_off_since is None:
-            self._flow_off_since = now
-        if now - self._flow_off_since < self.flow_deviation_s:
-            return []  # the valve's opening transient, or a setpoint change settling
-        if not self._flow_fault:
-            self._flow_fault = True
-            self._report(
-                "FLOW_DEVIATION",
-                f"glue flow {status.flow_ml_min:g} ml/min is {deviation_pct:.0f} % off its "
-                f"setpoint {setpoint:g} ml/min (allowed {tolerance:g} %) for "
-                f"{self.flow_deviation_s:g} s while spraying; check the nozzle and the supply",
-            )
-        return [f"glue: flow {status.flow_ml_min:.1f} ml/min, {deviation_pct:.0f} % off setpoint"]
-
-    def _check_temperature(self, status: GlueStatus) -> list[str]:
-        if self.temperature_range_c is None:
-            return []
-        low, high = self.temperature_range_c
-        temperature = status.temperature_c
-        if not low <= temperature <= high:
-            if not self._temperature_fault:
-                self._temperature_fault = True
-                self._report(
-                    "TEMPERATURE_OUT_OF_RANGE",
-                    f"glue temperature {temperature:g} °C is outside the allowed "
-                    f"{low:g}-{high:g} °C",
-                )
-            return [f"glue: temperature {temperature:.1f} °C outside {low:g}..{high:g} °C"]
-        if self._temperature_fault and (
-            low + TEMPERATURE_HYSTERESIS_C <= temperature <= high - TEMPERATURE_HYSTERESIS_C
-        ):
-            self._temperature_fault = False
-        return []
+        self.health.active_faults = self._watch.observe(status)
 
     async def _watchdog_loop(self, link_timeout: float) -> None:
         """Silence while the valve may be open is a fault at once (see the module doc)."""

@@ -58,7 +58,8 @@ from server.mqtt.topics import (
     run_message,
     state_message,
 )
-from server.settings.model import Settings
+from server.settings.mqtt import MqttSettings
+from server.settings.plant import PlantSettings
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +96,8 @@ class MqttLink:
 
     def __init__(
         self,
-        settings: Settings,
+        settings: MqttSettings,
+        plant: PlantSettings,
         cell: Cell,
         *,
         health: Callable[[], dict[str, Any]],
@@ -105,9 +107,10 @@ class MqttLink:
     ) -> None:
         assert settings.mqtt_url is not None
         self.settings = settings
+        self.plant = plant
         self.cell = cell
         self.host, self.port, self.tls = broker_address(settings.mqtt_url)
-        self.topics = Topics(settings.mqtt_topic_prefix, settings.cell_id)
+        self.topics = Topics(settings.mqtt_topic_prefix, plant.cell_id)
         self.outbox = Outbox(settings.mqtt_buffer)
         self._health = health
         self._kpis = kpis
@@ -133,7 +136,7 @@ class MqttLink:
         subscription = self.cell.bus.subscribe(BUS_BUFFER, types=BUS_TYPES)
         self._put_state()  # the present first, then every later change from the bus
         self.cell.view.on_run_ended(self._run_ended)
-        paced = PacedFeed(subscription, self.settings.plant_progress_interval)
+        paced = PacedFeed(subscription, self.plant.plant_progress_interval)
         self._tasks = [
             asyncio.create_task(self._feed(paced), name="mqtt-feed"),
             asyncio.create_task(self._connection(), name="mqtt-connection"),
@@ -299,7 +302,7 @@ class MqttLink:
             self.port,
             username=settings.mqtt_username,
             password=password,
-            identifier=f"glue-cell-{settings.cell_id}",
+            identifier=f"glue-cell-{self.plant.cell_id}",
             protocol=aiomqtt.ProtocolVersion.V5,
             will=aiomqtt.Will(self.topics.status, OFFLINE, qos=1, retain=True),
             keepalive=settings.mqtt_keepalive,

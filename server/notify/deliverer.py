@@ -29,7 +29,7 @@ import httpx
 from server.notify import retry, signing
 from server.notify.notices import Notice
 from server.security.destinations import DestinationRefused
-from server.settings.model import Settings
+from server.settings.notifications import WebhookSettings
 from server.settings.webhooks import WebhookTarget
 from server.storage.journal import Journal, records
 
@@ -61,7 +61,8 @@ class Deliverer:
     def __init__(
         self,
         target: WebhookTarget,
-        settings: Settings,
+        settings: WebhookSettings,
+        cell_id: str,
         client: httpx.AsyncClient,
         journal: Journal,
     ) -> None:
@@ -69,6 +70,7 @@ class Deliverer:
         self.target = target
         self.name = target.name
         self.settings = settings
+        self.cell_id = cell_id
         self._client = client
         self._journal = journal
         self._queue: deque[Pending] = deque()
@@ -135,7 +137,7 @@ class Deliverer:
     async def _deliver(self, pending: Pending) -> tuple[str, str]:
         """Attempt until delivered, refused or out of attempts; (outcome, last error)."""
         settings = self.settings
-        body = pending.notice.body(pending.delivery_id, settings.cell_id)
+        body = pending.notice.body(pending.delivery_id, self.cell_id)
         error = ""
         for attempt in range(1, settings.webhook_max_attempts + 1):
             try:

@@ -32,7 +32,7 @@ from server.notify import notices
 from server.notify.deliverer import Deliverer
 from server.notify.notices import Notice
 from server.security import destinations
-from server.settings.model import Settings
+from server.settings.notifications import WebhookSettings
 from server.storage.journal import Journal
 
 log = logging.getLogger(__name__)
@@ -43,8 +43,16 @@ SUBSCRIPTION_BUFFER = 1024  # bus records; each is handled in microseconds
 class Notifier:
     """Feeds every configured webhook; `start` after the worker, `stop` before the journal."""
 
-    def __init__(self, settings: Settings, bus: Bus, view: CellView, journal: Journal) -> None:
+    def __init__(
+        self,
+        settings: WebhookSettings,
+        cell_id: str,
+        bus: Bus,
+        view: CellView,
+        journal: Journal,
+    ) -> None:
         self.settings = settings
+        self.cell_id = cell_id
         self._bus = bus
         self._view = view
         self._client = httpx.AsyncClient(
@@ -56,7 +64,9 @@ class Notifier:
                 destinations.parse_networks(settings.webhook_allowed_networks)
             ),
         )
-        self.deliverers = [Deliverer(t, settings, self._client, journal) for t in settings.webhooks]
+        self.deliverers = [
+            Deliverer(t, settings, cell_id, self._client, journal) for t in settings.webhooks
+        ]
         self._held: deque[tuple[int, Notice]] = deque()  # run notices waiting for a bus seq
         self._handled_seq = 0
         self._subscription: Subscription | None = None
@@ -93,7 +103,7 @@ class Notifier:
         return {
             "webhooks": [d.status() for d in self.deliverers],
             "missed": self.missed,
-            "cell_id": s.cell_id,
+            "cell_id": self.cell_id,
             "timeout_s": s.webhook_timeout,
             "max_attempts": s.webhook_max_attempts,
             "retry_delay_s": s.webhook_retry_delay,

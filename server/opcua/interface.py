@@ -19,6 +19,7 @@ import asyncio
 import contextlib
 import logging
 import socket
+from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
@@ -41,7 +42,8 @@ from server.opcua.packml_feed import PackMLFeed
 from server.opcua.packml_methods import PackMLMethods
 from server.opcua.protection import CallGuard, PasswordGuard
 from server.security.tokens import TokenStore
-from server.settings.model import Settings
+from server.settings.opcua import OpcUaSettings
+from server.settings.plant import PlantSettings
 from server.views.kpi_query import kpis_of
 
 log = logging.getLogger(__name__)
@@ -82,12 +84,16 @@ class OpcUaInterface:
         self,
         cell: Cell,
         tokens: TokenStore,
-        settings: Settings,
+        settings: OpcUaSettings,
+        plant: PlantSettings,
+        data_path: Path,
         *,
         answers: AnswersInFlight | None = None,
     ) -> None:
         assert settings.opcua_endpoint is not None
         self.cell = cell
+        self.plant = plant
+        self.data_path = data_path
         self.answers = answers  # the commands being answered, which go first
         self.settings = settings
         self.endpoint = settings.opcua_endpoint
@@ -113,11 +119,11 @@ class OpcUaInterface:
         # A password only where nobody else can read it (server/opcua/protection.py).
         PasswordGuard(server, self.cell, self.tokens).install()
         server.set_endpoint(self.endpoint)
-        server.set_server_name(f"glue cell {settings.cell_id}")
+        server.set_server_name(f"glue cell {self.plant.cell_id}")
         await server_info.set_build_info(server)
-        await server.set_application_uri(application_uri(settings.cell_id))
+        await server.set_application_uri(application_uri(self.plant.cell_id))
         certificate, key = await asyncio.to_thread(
-            ensure_certificate, settings.data_path, settings.cell_id
+            ensure_certificate, self.data_path, self.plant.cell_id
         )
         await server.load_certificate(str(certificate))
         await server.load_private_key(str(key))
@@ -131,18 +137,18 @@ class OpcUaInterface:
             policies, permission_ruleset=CallGuard(server, self.cell, self.tokens)
         )
         server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
-        self.nodes = nodes = await address_space.build(server, settings.cell_id)
+        self.nodes = nodes = await address_space.build(server, self.plant.cell_id)
         await self.methods.add(nodes.cell, nodes.cell_id, nodes.namespace)
         self.packml = PackMLFeed(server, nodes)
         await PackMLMethods(server, self.cell, self.methods, self.packml).add(nodes)
-        await self.packml.write_constants(settings.cell_id)
+        await self.packml.write_constants(self.plant.cell_id)
         await self.alarms.install(server.get_node(nodes.cell), nodes.cell_id, nodes.namespace)
         # Each session reads its own UserExecutable: false where a call would be refused.
         server.subscribe_server_callback(CallbackType.PostRead, self.methods.user_executable)
         # Subscribe before the first values are written: nothing falls between the two.
         view = self.cell.view
         subscription = self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED)
-        self._feed = PacedFeed(subscription, settings.plant_progress_interval)
+        self._feed = PacedFeed(subscription, self.plant.plant_progress_interval)
         self._seq = self.cell.bus.last_seq
         # The worker's verdicts, as they are made: PackML's acting states (packml_feed.py).
         self.cell.worker.decisions.add(self.packml.decided)  # type: ignore[union-attr]
@@ -162,7 +168,7 @@ class OpcUaInterface:
             asyncio.create_task(self._follow(), name="opcua-follower"),
             asyncio.create_task(self._refresh_admin(), name="opcua-admin"),
         ]
-        log.info("OPC UA served at %s (cell %s)", self.endpoint, settings.cell_id)
+        log.info("OPC UA served at %s (cell %s)", self.endpoint, self.plant.cell_id)
 
     async def stop(self) -> None:
         for task in self._tasks:

@@ -9,10 +9,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from server.settings.model import Settings
+from server.settings.quality import QualitySettings
 
 
-def precision_reasons(precision: dict[str, Any], settings: Settings) -> list[str]:
+def precision_reasons(precision: dict[str, Any], settings: QualitySettings) -> list[str]:
     limit = settings.trajectory_precision_limit_mm
     return [
         f"segment {s['index']}: the robot strayed up to {s['max_mm']:.2f} mm from the planned "
@@ -22,7 +22,7 @@ def precision_reasons(precision: dict[str, Any], settings: Settings) -> list[str
     ]
 
 
-def dispensing_reasons(dispensing: dict[str, Any], settings: Settings) -> list[str]:
+def dispensing_reasons(dispensing: dict[str, Any], settings: QualitySettings) -> list[str]:
     reasons = []
     tolerance = settings.dispensing_flow_tolerance_percent
     longest = settings.dispensing_max_out_of_tolerance_s
@@ -44,7 +44,7 @@ def dispensing_reasons(dispensing: dict[str, Any], settings: Settings) -> list[s
     return reasons
 
 
-def part_reasons(parts: Sequence[dict[str, Any]], settings: Settings) -> list[str]:
+def part_reasons(parts: Sequence[dict[str, Any]], settings: QualitySettings) -> list[str]:
     reasons = []
     limit = settings.bead_max_offset_mm
     for part in parts:

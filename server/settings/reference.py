@@ -4,23 +4,24 @@ Why derived and not written down: docs/settings.md, the start-up error for a
 bad value and the warning for a misspelt variable all say what a setting
 accepts and where it is read from; reading it from the model (its bounds, its
 description, the environment names pydantic-settings looks up) keeps the three
-true as settings are added. The groups are the model's own section comments
-(`# Safety (seconds)`), so the model stays the one place they are written.
+true as settings are added. The groups are the model's sections (each a `Section`
+class with its title and docstring), so the sections stay the one place they are
+written.
 """
 
 from __future__ import annotations
 
-import ast
 import inspect
 import json
-import textwrap
 from dataclasses import dataclass
 from functools import cache
 from typing import Any
 
+from pydantic import BaseModel
 from pydantic_settings import EnvSettingsSource
 
-from server.settings.model import Settings
+from server.settings.model import Settings, sections
+from server.settings.section import title_of
 
 CONFIG_FILE_VARIABLE = "GLUE_APP_CONFIG_PATH"
 ENV_PREFIX = "GLUE_APP_"
@@ -31,7 +32,9 @@ class SettingFacts:
     """One setting as docs/settings.md and the start-up messages describe it."""
 
     name: str
-    group: str
+    group: str  # the title of the section that declares it
+    note: str  # what that section is about
+    declared_in: str  # the section's module and class, server/settings/glue.py: GlueSettings
     variables: tuple[str, ...]  # environment variables, the GLUE_APP_ one first
     default: str
     accepted: str
@@ -138,70 +141,45 @@ def known_variables() -> set[str]:
 
 
 @cache
-def _declared_groups() -> dict[str, str]:
-    """Each field declared in Settings' own body: the comment line above the first field
-    of each section."""
-    source = textwrap.dedent(inspect.getsource(Settings))
-    lines = source.splitlines()
-    tree = ast.parse(source)
-    body = tree.body[0]
-    assert isinstance(body, ast.ClassDef)
-    group, previous_end, found = "General", 0, {}
-    for node in body.body:
-        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
-            between = lines[previous_end : node.lineno - 1]
-            comments = [ln.strip()[1:].strip() for ln in between if ln.strip().startswith("#")]
-            if comments:
-                group = comments[0]
-            found[node.target.id] = group
-        previous_end = node.end_lineno or node.lineno
-    return found
+def groups() -> dict[str, type[BaseModel]]:
+    """Each field's section: the section class of `Settings` that declares it."""
+    return {name: section for section in sections() for name in declared_fields(section)}
 
 
-@cache
-def groups() -> dict[str, str]:
-    """Each field's section: as declared in Settings' body, or, for a field of a section
-    model Settings inherits, that model's `settings_section` (one of the body's sections
-    or a section of its own)."""
-    found = dict(_declared_groups())
-    for base in Settings.__mro__[1:]:
-        section = getattr(base, "settings_section", None)
-        if isinstance(section, str):
-            for name in getattr(base, "model_fields", {}):
-                found.setdefault(name, section)
-    return found
+def declared_fields(section: type[BaseModel]) -> tuple[str, ...]:
+    """The fields `section` declares itself, in order (not those of a section it extends)."""
+    inherited = {
+        name
+        for base in section.__mro__[1:]
+        if issubclass(base, BaseModel)
+        for name in base.model_fields
+    }
+    return tuple(name for name in section.model_fields if name not in inherited)
 
 
-def _in_order() -> list[str]:
-    """The fields section by section in the order Settings' body declares them; an
-    inherited section model's fields after its section's (or at the end, in a section
-    of their own)."""
-    declared, sections = _declared_groups(), groups()
-    rank: dict[str, int] = {}
-    for name in declared:
-        rank.setdefault(declared[name], len(rank))
-    names = list(Settings.model_fields)
-    return sorted(
-        names, key=lambda n: (rank.get(sections.get(n, "General"), len(rank)), n not in declared)
-    )
+def section_note(section: type[BaseModel]) -> str:
+    """A section's docstring as one paragraph, for the docs."""
+    return " ".join(inspect.cleandoc(section.__doc__ or "").split())
 
 
 def facts() -> list[SettingFacts]:
-    """Every setting, in the model's order."""
+    """Every setting, section by section in the order of `Settings`' bases."""
     schema = Settings.model_json_schema()["properties"]
-    sections = groups()
     variables = variables_by_setting()
-    fields = Settings.model_fields
     return [
         SettingFacts(
             name=name,
-            group=sections.get(name, "General"),
+            group=title_of(section),
+            note=section_note(section),
+            declared_in=f"{section.__module__.replace('.', '/')}.py: {section.__name__}",
             variables=variables[name],
             default=_default(name),
             accepted=_accepted(schema[name]),
-            meaning=fields[name].description or "",
+            meaning=field.description or "",
         )
-        for name in _in_order()
+        for section in sections()
+        for name in declared_fields(section)
+        for field in (Settings.model_fields[name],)
     ]
 
 

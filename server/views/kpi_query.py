@@ -13,7 +13,7 @@ import time
 from typing import Any, Protocol
 
 from server.core.machine.transitions import State
-from server.settings.model import Settings
+from server.settings.kpis import KpiSettings
 from server.storage.journal import Journal
 from server.views.kpis import compute_kpis, kpi_window
 
@@ -35,7 +35,7 @@ class RunningCell(Protocol):
     @property
     def view(self) -> _StateView: ...
     @property
-    def settings(self) -> Settings: ...
+    def settings(self) -> KpiSettings: ...
 
 
 def _inspected_result(row: dict[str, Any]) -> dict[str, Any] | None:

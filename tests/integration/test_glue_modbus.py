@@ -18,7 +18,8 @@ import pytest
 from server.common.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 from server.drivers import glue_registers as regs
 from server.drivers.base import DeviceFault, GlueDispenser
-from server.drivers.glue_modbus import COMMAND, POLL, URGENT, ModbusGlueDispenser, _LineArbiter
+from server.drivers.glue_line import COMMAND, POLL, URGENT, LineArbiter
+from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.sim.glue_sim import GlueSimulator
 
 TIMEOUT = 0.5  # the driver's glue_system_timeout in these tests
@@ -256,7 +257,7 @@ async def test_concurrent_calls_share_the_line(glue: ModbusGlueDispenser) -> Non
 
 
 async def test_line_arbiter_serves_valve_close_before_queued_work() -> None:
-    arbiter = _LineArbiter()
+    arbiter = LineArbiter()
     order: list[str] = []
 
     async def use(name: str, priority: int) -> None:
@@ -281,7 +282,7 @@ async def test_line_arbiter_serves_valve_close_before_queued_work() -> None:
 
 
 async def test_line_arbiter_drops_waiting_openings_and_serves_the_rest() -> None:
-    arbiter = _LineArbiter()
+    arbiter = LineArbiter()
     order: list[str] = []
 
     async def use(name: str, priority: int, droppable: bool = False) -> None:

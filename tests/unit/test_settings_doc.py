@@ -1,10 +1,12 @@
-"""docs/settings.md as generated: every setting once, under its model section."""
+"""docs/settings.md as generated: every setting once, under the section that declares it."""
 
 from __future__ import annotations
 
 from server.cli.settings_doc import render
-from server.settings.model import Settings
+from server.settings.kpis import KpiSettings
+from server.settings.model import Settings, sections
 from server.settings.reference import facts, groups
+from server.settings.section import title_of
 
 
 def test_every_setting_has_one_row_with_its_variable_default_and_bounds() -> None:
@@ -16,8 +18,9 @@ def test_every_setting_has_one_row_with_its_variable_default_and_bounds() -> Non
     assert len(facts()) == len(Settings.model_fields)
 
 
-def test_sections_follow_the_models_comments_in_order() -> None:
+def test_headings_are_the_sections_in_the_order_of_settings_bases() -> None:
     headings = [line[3:] for line in render().splitlines() if line.startswith("## ")]
-    assert headings[:3] == ["Core state machine", "Error handling", "Performance monitoring"]
-    assert "Safety" in headings and len(headings) == len(set(headings))
-    assert groups()["shift_hours"] == "Analytics and the journal"
+    assert headings == [title_of(section) for section in sections()]
+    assert len(headings) == len(set(headings))
+    assert groups()["shift_hours"] is KpiSettings
+    assert "(`KpiSettings`, `server/settings/kpis.py`)" in render()

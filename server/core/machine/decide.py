@@ -63,7 +63,7 @@ from server.core.machine.transitions import COMMANDS, Event, State, Transition, 
 from server.core.operations.jog import step_problem
 from server.core.operations.safe_position import workspace_problem
 from server.drivers.base import Pose
-from server.settings.model import Settings
+from server.settings.motion import MotionSettings
 
 COMPLETION_EVENTS: Final = frozenset({Event.OPERATION_COMPLETED, Event.OPERATION_FAILED})
 # A person's commands, each answered only once on record: refused while the journal cannot
@@ -173,7 +173,7 @@ Verdict = Accepted | Refusal | ProbeDevices
 
 
 def decide(
-    state: State, event: Event, payload: Payload, facts: Facts, settings: Settings
+    state: State, event: Event, payload: Payload, facts: Facts, settings: MotionSettings
 ) -> Verdict:
     """Decide `event` with `payload` in `state` (see the module's theory of operation)."""
     claimed = claim_for_order(event, payload, facts.active_order)
@@ -197,7 +197,7 @@ def claim_for_order(event: Event, payload: Payload, order: ActiveOrder | None) -
 
 
 def _decide(
-    state: State, event: Event, payload: Payload, facts: Facts, settings: Settings
+    state: State, event: Event, payload: Payload, facts: Facts, settings: MotionSettings
 ) -> Verdict:
     if event in COMPLETION_EVENTS:
         run_id = getattr(payload, "run_id", None)
@@ -234,7 +234,7 @@ def _checkpoint(row: Transition) -> int | None:
 
 
 def precondition(
-    event: Event, payload: Payload, facts: Facts, settings: Settings
+    event: Event, payload: Payload, facts: Facts, settings: MotionSettings
 ) -> Refusal | None:
     """Why `event` with `payload` cannot be accepted now besides its state, or None."""
     if isinstance(payload, StartPayload):

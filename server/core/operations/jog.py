@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from server.core.operations.safe_position import workspace_problem
 from server.drivers.base import Pose, Robot
 from server.settings.model import Settings
+from server.settings.motion import MotionSettings
 
 AXES = ("x", "y", "z")
 
@@ -30,7 +31,7 @@ class JogRefused(Exception):
         return self.message
 
 
-def step_problem(axis: str, distance_mm: float, settings: Settings) -> tuple[str, str] | None:
+def step_problem(axis: str, distance_mm: float, settings: MotionSettings) -> tuple[str, str] | None:
     """(field, why) when the step itself is wrong, before anything is read or moved."""
     if axis not in AXES:
         return "axis", f"axis must be one of {', '.join(AXES)}, not {axis!r}"

@@ -14,15 +14,15 @@ from server.core.infra.eager import within
 from server.core.operations.base import OperationContext
 from server.core.operations.motion import pausable_move
 from server.drivers.base import Pose
-from server.settings.model import Settings, outside_workspace
+from server.settings.motion import MotionSettings, outside_workspace
 
 
-def workspace_problem(pose: Pose, settings: Settings) -> str | None:
+def workspace_problem(pose: Pose, settings: MotionSettings) -> str | None:
     """Which axis of `pose` leaves the workspace (the message), or None when it is inside."""
     return outside_workspace(pose, settings.workspace_min_mm, settings.workspace_max_mm)
 
 
-def safe_pose(settings: Settings) -> Pose:
+def safe_pose(settings: MotionSettings) -> Pose:
     """The safe position, refused with WORKSPACE_VIOLATION when it lies outside the workspace."""
     pose = Pose.from_sequence(settings.safe_position)
     problem = workspace_problem(pose, settings)

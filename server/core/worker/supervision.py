@@ -22,7 +22,7 @@ from server.common.errors import DeviceError, OperationError
 from server.core.infra.clock import Timer
 from server.core.machine.faults import classify
 from server.core.operations.base import Operation, OperationContext, OperationResult
-from server.settings.model import Settings
+from server.settings.worker import WorkerSettings
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +119,10 @@ class _Budget:
 
 
 async def supervise(
-    operation: Operation, op_ctx: OperationContext, settings: Settings, on_retry: RetryReporter
+    operation: Operation,
+    op_ctx: OperationContext,
+    settings: WorkerSettings,
+    on_retry: RetryReporter,
 ) -> RunOutcome:
     """Run `operation` to its end under the budget and the retry policy.
 
@@ -146,7 +149,7 @@ async def supervise(
 
 
 async def _attempt(
-    operation: Operation, op_ctx: OperationContext, settings: Settings, attempt: int
+    operation: Operation, op_ctx: OperationContext, settings: WorkerSettings, attempt: int
 ) -> RunOutcome:
     try:
         result = await _run_once(operation, op_ctx, settings.processing_timeout)
