@@ -25,6 +25,7 @@ import { refreshLibrary, refreshPanels } from "./panels.js";
 import {
   applyState, clearMessage, renderCommands, setLive, showAnswer, showMessage, tick,
 } from "./render.js";
+import { forgetMe, refreshMe } from "./role.js";
 import { hmi, REFRESH_MS, TOKEN_KEY } from "./store.js";
 import { drawTrajectory, refreshCalibration, refreshFrame, refreshTrajectory } from "./trajectory.js";
 
@@ -74,6 +75,7 @@ function startSession(token, view) {
   $("app").hidden = false;
   if (view) applyState(view);
   setLive(false, "connecting…");
+  refreshMe().then(renderCommands).catch(() => {}); // a 401 signs out by itself
   connect();
   refreshPanels();
   refreshTrajectory();
@@ -92,6 +94,7 @@ function stopSession() {
   hmi.reconnectTimer = null;
   dropSocket(null);
   hmi.token = null;
+  forgetMe();
 }
 
 // --- commands ---------------------------------------------------------------
@@ -101,7 +104,7 @@ async function sendCommand(name) {
   renderCommands();
   try {
     const response = await api("POST", `/${name}`);
-    showAnswer(response.status, await errorText(response));
+    showAnswer(response.status, await errorText(response), await stateOf(response));
   } catch (error) {
     if (!(error instanceof AuthError)) showMessage("error", `${name}: ${error.message}`);
   } finally {
@@ -110,10 +113,20 @@ async function sendCommand(name) {
   }
 }
 
+/** The state a command's answer says it left the cell in, if it says. */
+async function stateOf(response) {
+  try {
+    const body = await response.clone().json();
+    return typeof body.state === "string" ? body.state : null;
+  } catch {
+    return null;
+  }
+}
+
 async function emergencyStop() {
   try {
     const response = await api("POST", "/estop", { reason: "STOP pressed on the HMI" });
-    showAnswer(response.status, await errorText(response));
+    showAnswer(response.status, await errorText(response), await stateOf(response));
   } catch (error) {
     if (!(error instanceof AuthError)) {
       showMessage(

@@ -41,7 +41,7 @@ export async function connect() {
   let ticket;
   try {
     const response = await api("POST", "/ws-ticket");
-    if (!response.ok) throw new Error(`no ticket (${response.status}: ${await errorText(response)})`);
+    if (!response.ok) throw new Error(`no ticket: ${await errorText(response)}`);
     ticket = (await response.json()).ticket;
   } catch (error) {
     if (error instanceof AuthError) return;

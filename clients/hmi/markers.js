@@ -175,7 +175,7 @@ class MarkerPanel {
     try {
       const response = await api(method, path, body);
       if (!response.ok) {
-        this.say(`refused (${response.status}): ${await errorText(response)}`);
+        this.say(`refused: ${await errorText(response)}`);
         return null;
       }
       return response;

@@ -33,6 +33,7 @@ export const ENDINGS = {
 
 export const hmi = {
   token: null,
+  me: null,              // GET /me: name, role, the commands the role may send (role.js)
   view: null,            // the last StateView received
   health: null,          // the last GET /health, kept current by `device` messages
   enteredAtMs: 0,        // performance.now() when that state was entered

@@ -30,6 +30,7 @@ from server.api import (
     commands,
     inspections,
     markers,
+    me,
     methods,
     metrics,
     openapi_doc,
@@ -125,6 +126,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     queries.add_state_route(app)
     for router in (
         queries.router,
+        me.router,
         commands.router,
         workpieces.router,
         orders.router,
