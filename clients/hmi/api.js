@@ -13,8 +13,8 @@ export function whenUnauthorized(handler) {
   onUnauthorized = handler;
 }
 
-export async function api(method, path, body) {
-  const headers = { Authorization: `Bearer ${hmi.token}` };
+export async function api(method, path, body, extra) {
+  const headers = { ...(extra || {}), Authorization: `Bearer ${hmi.token}` };
   const init = { method, headers, cache: "no-store" };
   if (body !== undefined) {
     headers["Content-Type"] = "application/json";

@@ -98,6 +98,7 @@ export function renderCommands() {
       !hmi.live || !allowed.has(name) || !roleAllows(name) || hmi.pending.has(name);
   }
   if (hmi.view) renderFault(hmi.view);
+  for (const hook of hmi.renderHooks) hook();
 }
 
 /** A command's answer in words (never its HTTP status). It describes the state the

@@ -53,6 +53,7 @@ export const hmi = {
   thumbnails: [],        // blob URLs to release
   partImage: null,       // blob URL of the last part's inspection image, to release
   pending: new Set(),    // commands whose request is in flight
+  renderHooks: [],       // drawn again with the command buttons (orders.js: its buttons)
   counters: { connects: 0, disconnects: 0, messages: 0, gaps: 0 },
   timers: [],
 };
