@@ -171,7 +171,10 @@ function onStateChanged(message) {
     refreshFrame(); // it may have taken a picture
     refreshLastPart(); // a run ended: its part's verdict (its record is committed by now)
   }
-  if (from === "CREATING_WORKPIECE") refreshLibrary();
+  if (from === "CREATING_WORKPIECE") {
+    refreshLibrary();
+    if (to === "IDLE") hmi.onWorkpieceCreated(message.snapshot.operation_result);
+  }
 }
 
 function onProgress(message) {

@@ -53,7 +53,9 @@ export const hmi = {
   thumbnails: [],        // blob URLs to release
   partImage: null,       // blob URL of the last part's inspection image, to release
   pending: new Set(),    // commands whose request is in flight
-  renderHooks: [],       // drawn again with the command buttons (orders.js: its buttons)
+  renderHooks: [],
+  creating: null,        // the workpiece this page asked to capture: {name}
+  onWorkpieceCreated: () => {}, // app.js: what the capture this page asked for found       // drawn again with the command buttons (orders.js: its buttons)
   counters: { connects: 0, disconnects: 0, messages: 0, gaps: 0 },
   timers: [],
 };

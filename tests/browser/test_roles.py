@@ -10,6 +10,7 @@ names the token that pressed STOP. One rig and one browser for the whole module.
 from __future__ import annotations
 
 import re
+from typing import Any
 
 from playwright.async_api import Browser, Page, expect
 
@@ -128,3 +129,27 @@ async def test_each_role_is_offered_what_it_may_do_and_told_whom_to_call(
         assert not problems, (role, problems)
     # The STOP's answer described the stop: gone once the cell left ERROR.
     await expect(operator.locator("#message")).to_be_hidden()
+
+    # The operator captures the part on the table: asked its name, then told it is the
+    # stored demo part and asked before a copy is stored. No, then yes.
+    library = dashboard.rig.api
+    count = len((await library.get("/workpieces")).json()["workpieces"])
+    answers = iter(
+        [("prompt", "bracket"), ("confirm", None), ("prompt", "bracket"), ("confirm", "")]
+    )
+    asked: list[str] = []
+
+    async def answer(dialog: Any) -> None:
+        kind, text = next(answers)
+        assert dialog.type == kind, (dialog.type, dialog.message)
+        asked.append(dialog.message)
+        await (dialog.accept(text) if text is not None else dialog.dismiss())
+
+    operator.on("dialog", answer)
+    await operator.click('[data-command="create-workpiece"]')
+    await expect(operator.locator("#message")).to_contain_text("not stored: the part is")
+    assert "matches" in asked[1] and "(demo)" in asked[1] and 'as "bracket"' in asked[1], asked
+    assert len((await library.get("/workpieces")).json()["workpieces"]) == count
+    await operator.click('[data-command="create-workpiece"]')
+    await expect(operator.locator("#message")).to_contain_text("workpiece bracket stored as")
+    assert len((await library.get("/workpieces")).json()["workpieces"]) == count + 1
