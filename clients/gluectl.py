@@ -840,10 +840,18 @@ def create_workpiece(
     workpiece_id: Annotated[
         str | None, typer.Option("--id", help="Store under this id (default: the next wp-NNNN).")
     ] = None,
+    if_new: Annotated[
+        bool,
+        typer.Option(
+            "--if-new",
+            help="Store it only if it matches no stored part; `gluectl state` then shows "
+            "which part it matches and how well (operation_result.similar).",
+        ),
+    ] = False,
     json_flag: JsonFlag = False,
 ) -> None:
     """Capture the largest part on the table into the library."""
-    _command(ctx, json_flag, lambda c: c.create_workpiece(name, workpiece_id))
+    _command(ctx, json_flag, lambda c: c.create_workpiece(name, workpiece_id, if_new))
 
 
 @app.command()

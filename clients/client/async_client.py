@@ -155,10 +155,11 @@ class AsyncCellClient:
         return await self._send(builders.command("calibrate-camera"))
 
     async def create_workpiece(
-        self, name: str | None = None, workpiece_id: str | None = None
+        self, name: str | None = None, workpiece_id: str | None = None, if_new: bool = False
     ) -> CommandResult:
-        """Capture the part on the table into the library."""
-        return await self._send(builders.create_workpiece(name, workpiece_id))
+        """Capture the part on the table into the library (`if_new`: only if it matches no
+        stored part; the run's result says which it matches)."""
+        return await self._send(builders.create_workpiece(name, workpiece_id, if_new))
 
     async def state(self) -> dict[str, Any]:
         """GET /state: state, operation and progress, the fault if any."""

@@ -164,8 +164,16 @@ def jog(axis: str, distance_mm: float) -> Call[CommandResult]:
     return command("jog", {"axis": axis, "distance_mm": distance_mm})
 
 
-def create_workpiece(name: str | None, workpiece_id: str | None) -> Call[CommandResult]:
-    body = {k: v for k, v in (("name", name), ("workpiece_id", workpiece_id)) if v is not None}
+def create_workpiece(
+    name: str | None, workpiece_id: str | None, if_new: bool = False
+) -> Call[CommandResult]:
+    """`if_new`: store the part only if it matches no stored one (the run's result says
+    which it matches, `similar`, and `stored`)."""
+    body: dict[str, object] = {
+        k: v for k, v in (("name", name), ("workpiece_id", workpiece_id)) if v is not None
+    }
+    if if_new:
+        body["if_new"] = True
     return command("create-workpiece", body or None)
 
 

@@ -159,9 +159,9 @@ class AsyncMqttCommands:
         return await self.send(builders.jog(axis, distance_mm))
 
     async def create_workpiece(
-        self, name: str | None = None, workpiece_id: str | None = None
+        self, name: str | None = None, workpiece_id: str | None = None, if_new: bool = False
     ) -> CommandResult:
-        return await self.send(builders.create_workpiece(name, workpiece_id))
+        return await self.send(builders.create_workpiece(name, workpiece_id, if_new))
 
 
 def _result(payload: Any) -> CommandResult:
@@ -239,6 +239,6 @@ class MqttCellClient:
         return self.command("calibrate-camera")
 
     def create_workpiece(
-        self, name: str | None = None, workpiece_id: str | None = None
+        self, name: str | None = None, workpiece_id: str | None = None, if_new: bool = False
     ) -> CommandResult:
-        return self._send(builders.create_workpiece(name, workpiece_id))
+        return self._send(builders.create_workpiece(name, workpiece_id, if_new))

@@ -153,10 +153,11 @@ class CellClient:
         return self._send(builders.command("calibrate-camera"))
 
     def create_workpiece(
-        self, name: str | None = None, workpiece_id: str | None = None
+        self, name: str | None = None, workpiece_id: str | None = None, if_new: bool = False
     ) -> CommandResult:
-        """Capture the part on the table into the library."""
-        return self._send(builders.create_workpiece(name, workpiece_id))
+        """Capture the part on the table into the library (`if_new`: only if it matches no
+        stored part; the run's result says which it matches)."""
+        return self._send(builders.create_workpiece(name, workpiece_id, if_new))
 
     # queries
 

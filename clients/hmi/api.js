@@ -13,8 +13,8 @@ export function whenUnauthorized(handler) {
   onUnauthorized = handler;
 }
 
-export async function api(method, path, body) {
-  const headers = { Authorization: `Bearer ${hmi.token}` };
+export async function api(method, path, body, extra) {
+  const headers = { ...(extra || {}), Authorization: `Bearer ${hmi.token}` };
   const init = { method, headers, cache: "no-store" };
   if (body !== undefined) {
     headers["Content-Type"] = "application/json";
@@ -31,7 +31,7 @@ export async function api(method, path, body) {
 
 export async function getJson(path) {
   const response = await api("GET", path);
-  if (!response.ok) throw new Error(`${path}: ${response.status} ${await errorText(response)}`);
+  if (!response.ok) throw new Error(await errorText(response));
   return response.json();
 }
 
@@ -57,5 +57,5 @@ export async function tryToken(token) {
     cache: "no-store",
   });
   if (response.ok) return { ok: true, view: await response.json() };
-  return { ok: false, message: `${response.status}: ${await errorText(response)}` };
+  return { ok: false, message: await errorText(response) };
 }

@@ -25,6 +25,7 @@ import { refreshLibrary, refreshPanels } from "./panels.js";
 import {
   applyState, clearMessage, renderCommands, setLive, showAnswer, showMessage, tick,
 } from "./render.js";
+import { forgetMe, refreshMe } from "./role.js";
 import { hmi, REFRESH_MS, TOKEN_KEY } from "./store.js";
 import { drawTrajectory, refreshCalibration, refreshFrame, refreshTrajectory } from "./trajectory.js";
 
@@ -74,6 +75,7 @@ function startSession(token, view) {
   $("app").hidden = false;
   if (view) applyState(view);
   setLive(false, "connecting…");
+  refreshMe().then(renderCommands).catch(() => {}); // a 401 signs out by itself
   connect();
   refreshPanels();
   refreshTrajectory();
@@ -92,16 +94,18 @@ function stopSession() {
   hmi.reconnectTimer = null;
   dropSocket(null);
   hmi.token = null;
+  forgetMe();
 }
 
 // --- commands ---------------------------------------------------------------
 
-async function sendCommand(name) {
+async function sendCommand(name, body) {
+  if (name === "create-workpiece" && body === undefined) return askWorkpiece();
   hmi.pending.add(name);
   renderCommands();
   try {
-    const response = await api("POST", `/${name}`);
-    showAnswer(response.status, await errorText(response));
+    const response = await api("POST", `/${name}`, body);
+    showAnswer(response.status, await errorText(response), await stateOf(response));
   } catch (error) {
     if (!(error instanceof AuthError)) showMessage("error", `${name}: ${error.message}`);
   } finally {
@@ -110,10 +114,51 @@ async function sendCommand(name) {
   }
 }
 
+// --- create workpiece: named, and never a silent copy --------------------------
+
+/** Ask the new part's name, then capture it only if it matches no stored part
+ * (`if_new`); `workpieceCreated` asks before a copy is stored. */
+function askWorkpiece() {
+  const name = (window.prompt("Name of the new workpiece:") || "").trim();
+  if (!name) return;
+  hmi.creating = { name };
+  sendCommand("create-workpiece", { name, if_new: true });
+}
+
+/** The capture this page asked for ended (`result`: the run's). If the part matched a
+ * stored one, nothing was stored: say which, and store a copy only if the person says so. */
+function workpieceCreated(result) {
+  const asked = hmi.creating;
+  hmi.creating = null;
+  if (!asked || !result) return;
+  if (result.stored !== false) {
+    showMessage("ok", `workpiece ${result.name} stored as ${result.workpiece_id}`, "state:IDLE");
+    return;
+  }
+  const similar = result.similar;
+  const question = `The part on the table matches "${similar.name}" (${similar.workpiece_id}), ` +
+    `its outline within ${similar.fit_error_mm} mm. Store it anyway as "${asked.name}"?`;
+  if (window.confirm(question)) {
+    hmi.creating = asked; // its end says where the copy was stored
+    sendCommand("create-workpiece", { name: asked.name });
+  }
+  else showMessage("info", `not stored: the part is ${similar.name} (${similar.workpiece_id})`, "state:IDLE");
+}
+
+/** The state a command's answer says it left the cell in, if it says. */
+async function stateOf(response) {
+  try {
+    const body = await response.clone().json();
+    return typeof body.state === "string" ? body.state : null;
+  } catch {
+    return null;
+  }
+}
+
 async function emergencyStop() {
   try {
     const response = await api("POST", "/estop", { reason: "STOP pressed on the HMI" });
-    showAnswer(response.status, await errorText(response));
+    showAnswer(response.status, await errorText(response), await stateOf(response));
   } catch (error) {
     if (!(error instanceof AuthError)) {
       showMessage(
@@ -134,6 +179,7 @@ function init() {
     button.addEventListener("click", () => sendCommand(button.dataset.command));
   }
   initOrders();
+  hmi.onWorkpieceCreated = workpieceCreated;
   window.addEventListener("resize", drawTrajectory);
   const token = sessionStorage.getItem(TOKEN_KEY);
   if (token) startSession(token, null);

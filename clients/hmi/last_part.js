@@ -17,9 +17,22 @@ const RECENT_RUNS = 3; // the newest may still be running: the one before it has
 
 let asked = 0; // the latest refresh wins when two overlap
 
-/** What the card says of a run record (pure: no DOM). */
+/** What the card says of a run record (pure: no DOM). The words are the order's
+ * (server/orders/model.py: part_of_run), so a part counts the same on every card: a run
+ * that did not complete (stopped, cancelled, failed) left a defective part, not
+ * inspected, with why; a completed run nobody inspected is "not inspected" with why. */
 export function describePart(run) {
   if (!run) return { verdict: "none", label: "no part yet", reasons: [], figures: [] };
+  if (run.outcome && run.outcome !== "completed") {
+    const why = run.outcome === "cancelled" ? "run cancelled" : `run failed: ${run.error || run.outcome}`;
+    return {
+      verdict: "defective",
+      label: "defective (not inspected)",
+      note: `run ${run.outcome}`,
+      reasons: [why],
+      figures: [],
+    };
+  }
   const inspection = run.result && run.result.inspection;
   const verdict = inspection && ["good", "defective"].includes(inspection.verdict)
     ? inspection.verdict

@@ -41,7 +41,7 @@ export async function connect() {
   let ticket;
   try {
     const response = await api("POST", "/ws-ticket");
-    if (!response.ok) throw new Error(`no ticket (${response.status}: ${await errorText(response)})`);
+    if (!response.ok) throw new Error(`no ticket: ${await errorText(response)}`);
     ticket = (await response.json()).ticket;
   } catch (error) {
     if (error instanceof AuthError) return;
@@ -171,7 +171,10 @@ function onStateChanged(message) {
     refreshFrame(); // it may have taken a picture
     refreshLastPart(); // a run ended: its part's verdict (its record is committed by now)
   }
-  if (from === "CREATING_WORKPIECE") refreshLibrary();
+  if (from === "CREATING_WORKPIECE") {
+    refreshLibrary();
+    if (to === "IDLE") hmi.onWorkpieceCreated(message.snapshot.operation_result);
+  }
 }
 
 function onProgress(message) {

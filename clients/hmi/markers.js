@@ -1,8 +1,11 @@
 /* The marker layout panel of the Set-up page: jog the robot over a marker, teach
  * its position, correct a value by hand, apply the layout once all nine are there.
  *
- * Self-contained: `mountMarkerLayout(section)` builds the panel inside
- * <section id="marker-layout"> and keeps it current from GET /calibration/markers.
+ * Self-contained: `mountMarkerLayout(section, jogBox)` builds the panel inside
+ * <section id="marker-layout">, its jog controls in `jogBox` (beside the camera, so the
+ * technician sees both on one screen), and keeps it current from GET /calibration/markers.
+ * Jog and Teach are live only when the server would accept them: the role may
+ * (`allows`, from GET /state's `may`), the cell is IDLE and the robot stands still.
  * Every change goes through the API (POST /jog, POST /calibration/markers/draft/{n}/teach,
  * PUT /calibration/markers/draft/{n}, POST /calibration/markers/apply); the server's
  * refusals (409 not IDLE, 422 naming the marker and field) are shown as they come.
@@ -17,27 +20,28 @@ const REFRESH_MS = 1000;
 const SETTLE_POLL_MS = 150;
 const SETTLE_LIMIT_MS = 60000;
 
-export function mountMarkerLayout(section) {
-  const panel = new MarkerPanel(section);
+export function mountMarkerLayout(section, jogBox, allows) {
+  const panel = new MarkerPanel(section, jogBox, allows);
   panel.refresh();
   const timer = setInterval(() => panel.refresh(), REFRESH_MS);
-  return () => clearInterval(timer);
+  return { unmount: () => clearInterval(timer), renderControls: () => panel.renderControls() };
 }
 
 class MarkerPanel {
-  constructor(section) {
+  constructor(section, jogBox, allows) {
     this.section = section;
+    this.allows = allows; // (command) => whether the role may send it in this state
     this.layout = null;
     this.busy = false;
     section.replaceChildren();
     section.append(element("h2", "", "Marker layout"));
     this.position = element("p", "marker-position", "robot: —");
     this.position.id = "marker-robot-position";
-    this.section.append(this.position, this.buildJog());
+    jogBox.replaceChildren(element("h2", "card-title", "Jog"), this.position, this.buildJog());
     this.table = element("table", "marker-table");
     this.table.id = "marker-table";
     this.section.append(this.table);
-    this.apply = element("button", "", "Apply layout");
+    this.apply = element("button", "btn", "Apply layout");
     this.apply.id = "marker-apply";
     this.apply.addEventListener("click", () => this.act("POST", `${LAYOUT}/apply`));
     this.source = element("span", "marker-source", "");
@@ -58,13 +62,15 @@ class MarkerPanel {
       if (mm === 5) option.selected = true;
       this.step.append(option);
     }
-    box.append(element("span", "", "Jog "), this.step);
+    box.append(element("span", "jog-label", "step"), this.step);
+    this.jogButtons = [];
     for (const axis of ["x", "y", "z"]) {
       for (const sign of [-1, 1]) {
         const label = `${axis}${sign < 0 ? "−" : "+"}`;
-        const button = element("button", "jog", label);
+        const button = element("button", "btn jog", label);
         button.dataset.jog = `${axis}${sign < 0 ? "-" : "+"}`;
         button.addEventListener("click", () => this.jog(axis, sign));
+        this.jogButtons.push(button);
         box.append(button);
       }
     }
@@ -94,6 +100,19 @@ class MarkerPanel {
     this.source.textContent = ` in force: ${layout.source === "taught" ? "taught layout" : "settings"}`;
     const editing = this.table.contains(document.activeElement);
     if (!editing) this.renderTable(layout);
+    this.renderControls();
+  }
+
+  /** Jog and Teach live only when they would be accepted: the role may, the cell is
+   * IDLE, the robot stands still and nothing of ours is on its way. */
+  renderControls() {
+    const layout = this.layout;
+    const still = Boolean(layout) && layout.state === "IDLE" && !(layout.robot || {}).moving;
+    const jog = still && !this.busy && this.allows("jog");
+    for (const button of this.jogButtons) button.disabled = !jog;
+    this.step.disabled = !jog;
+    const teach = still && !this.busy && this.allows("teach");
+    for (const button of this.table.querySelectorAll("[data-teach]")) button.disabled = !teach;
   }
 
   renderTable(layout) {
@@ -116,7 +135,7 @@ class MarkerPanel {
         input.addEventListener("change", () => this.type(marker, inputs));
         return input;
       });
-      const teach = element("button", "", "Teach");
+      const teach = element("button", "btn btn-small", "Teach");
       teach.dataset.teach = String(marker);
       teach.addEventListener("click", () => this.act("POST", `${LAYOUT}/draft/${marker}/teach`));
       const cells = [
@@ -172,10 +191,11 @@ class MarkerPanel {
 
   async send(method, path, body) {
     this.busy = true;
+    this.renderControls();
     try {
       const response = await api(method, path, body);
       if (!response.ok) {
-        this.say(`refused (${response.status}): ${await errorText(response)}`);
+        this.say(`refused: ${await errorText(response)}`);
         return null;
       }
       return response;
@@ -184,6 +204,7 @@ class MarkerPanel {
       return null;
     } finally {
       this.busy = false;
+      this.renderControls();
     }
   }
 

@@ -2,6 +2,7 @@
  * bar: drawn from `hmi` (store.js), never from anything the page guessed. */
 
 import { $, clockTime, duration } from "./dom.js";
+import { callFor, roleAllows } from "./role.js";
 import { hmi, STATE_TONE } from "./store.js";
 
 // --- state ------------------------------------------------------------------
@@ -15,6 +16,11 @@ export function applyState(view) {
   hmi.view = view;
   if (!view.stop_reason) clearMessage("reset");
   if (view.state === "ERROR") clearMessage("stopped");
+  // An answer describes the state it left the cell in: gone once the cell has left it.
+  const box = $("message");
+  if (box.dataset.clears?.startsWith("state:") && box.dataset.clears !== `state:${view.state}`) {
+    clearMessage(box.dataset.clears);
+  }
   hmi.enteredAtMs = performance.now() - (view.time_in_state || 0) * 1000;
   renderState();
   renderCommands();
@@ -60,6 +66,10 @@ function renderFault(view) {
   const reason = view.state === "ERROR" ? view.stop_reason || view.error : null;
   $("fault").hidden = !reason;
   if (!reason) return;
+  // The recovery this role cannot make: whom to call, in words.
+  const call = callFor(hmi.me, view.available_commands || []);
+  $("fault-call").hidden = !call;
+  $("fault-call").textContent = call;
   $("fault-message").textContent = reason.message;
   $("fault-meta").textContent =
     `${reason.code} · ${reason.component} · ${reason.classification} · ${clockTime(reason.time)}`;
@@ -84,13 +94,18 @@ export function renderCommands() {
   const allowed = new Set((hmi.view && hmi.view.available_commands) || []);
   for (const button of document.querySelectorAll("[data-command]")) {
     const name = button.dataset.command;
-    button.disabled = !hmi.live || !allowed.has(name) || hmi.pending.has(name);
+    button.disabled =
+      !hmi.live || !allowed.has(name) || !roleAllows(name) || hmi.pending.has(name);
   }
+  if (hmi.view) renderFault(hmi.view);
+  for (const hook of hmi.renderHooks) hook();
 }
 
-export function showAnswer(status, text) {
+/** A command's answer in words (never its HTTP status). It describes the state the
+ * cell was left in (`body.state`), so it goes once the cell has left that state. */
+export function showAnswer(status, text, state) {
   const kind = status === 202 ? "ok" : status === 409 ? "refused" : "error";
-  showMessage(kind, `${status}: ${text}`);
+  showMessage(kind, text, state ? `state:${state}` : "");
 }
 
 /** Show one message. `clears`: what ends it before the next one does: "reset" (a fault:

@@ -2,17 +2,26 @@
  * focus and exposure figures, for a technician placing markers, focusing and lighting
  * the table before calibrating. The stream runs only while this page watches it.
  *
+ * Safe to work from: STOP and the cell's state are in the header at every size (the
+ * state read every half second from GET /state); Home, jog and teach are live only when
+ * the server would accept them (GET /state's `may`: the state and the role); the view,
+ * which the server ends when the cell leaves IDLE, opens again by itself once the cell
+ * is back in IDLE, unless the technician stopped it.
+ *
  * A WebSocket rather than an <img> on an MJPEG URL: an <img> cannot send the bearer
  * header. The page asks POST /ws-ticket for a one-shot ticket, as the dashboard does for
  * /ws. Each frame arrives as its figures (text) then its JPEG (binary).
  */
 
-import { api, errorText, getJson, tryToken, whenUnauthorized } from "./api.js";
+import { AuthError, api, errorText, getJson, tryToken, whenUnauthorized } from "./api.js";
 import { $, facts, number } from "./dom.js";
 import { mountMarkerLayout } from "./markers.js";
 import { TOKEN_KEY, hmi } from "./store.js";
 
-const view = { socket: null, image: null, figures: null, frames: 0 };
+const STATE_POLL_MS = 500;
+// stopped: the technician stopped the view (it does not reopen by itself).
+const view = { socket: null, image: null, figures: null, frames: 0, stopped: false };
+const cell = { state: null, may: new Set(), timer: null, setup: false };
 
 function showLogin(message) {
   $("app").hidden = true;
@@ -39,14 +48,92 @@ async function signIn(event) {
   start(token);
 }
 
-let unmountMarkers = null;
+let markers = null;
 
-function start(token) {
+async function start(token) {
   hmi.token = token;
   $("login").hidden = true;
   $("app").hidden = false;
-  if (!unmountMarkers) unmountMarkers = mountMarkerLayout($("marker-layout"));
+  try {
+    cell.setup = Boolean((await getJson("/me")).pages.setup);
+  } catch (error) {
+    if (error instanceof AuthError) return;
+  }
+  if (!markers && cell.setup) markers = mountMarkerLayout($("marker-layout"), $("setup-jog"), allows);
+  await pollState();
+  if (!cell.timer) cell.timer = setInterval(pollState, STATE_POLL_MS);
   openView();
+}
+
+/** Whether the server would accept `command` now: the state allows it and the role may. */
+function allows(command) {
+  if (command === "teach") return cell.setup && cell.state === "IDLE";
+  return cell.may.has(command);
+}
+
+/** The cell's state in the header; Home and the jog panel follow it; back in IDLE, the
+ * view opens again unless the technician stopped it. */
+async function pollState() {
+  let state;
+  try {
+    state = await getJson("/state");
+  } catch (error) {
+    if (!(error instanceof AuthError)) showState(null, "no answer from the server");
+    return;
+  }
+  const before = cell.state;
+  cell.state = state.state;
+  cell.may = new Set(state.may || []);
+  showState(state.state, state.stop_reason ? state.stop_reason.message : "");
+  $("setup-home").disabled = !allows("home");
+  if (markers) markers.renderControls();
+  if (state.state === "IDLE" && before !== "IDLE" && before !== null) {
+    if (!view.socket && !view.stopped) openView();
+  }
+  clearSetupMessage();
+}
+
+function showState(state, detail) {
+  const box = $("setup-state");
+  box.dataset.state = state || "UNKNOWN";
+  box.textContent = state ? state.replaceAll("_", " ") : "not live";
+  box.title = detail || "";
+}
+
+/** Show a message about the cell in `state` (the answer's, else the one shown now). */
+function say(kind, text, state) {
+  const box = $("setup-message");
+  box.hidden = false;
+  box.dataset.kind = kind;
+  box.dataset.state = state || cell.state || "";
+  box.textContent = text;
+}
+
+/** A message describes the state it was said in: gone once the cell has left it. */
+function clearSetupMessage() {
+  const box = $("setup-message");
+  if (box.dataset.state && box.dataset.state !== cell.state) box.hidden = true;
+}
+
+/** A command's answer in words, with the state it left the cell in. */
+async function answer(response) {
+  const text = await errorText(response);
+  let state = null;
+  try {
+    state = (await response.clone().json()).state || null;
+  } catch {
+    state = null;
+  }
+  say(response.ok ? "ok" : response.status === 409 ? "refused" : "error", text, state);
+}
+
+async function command(path, body) {
+  try {
+    await answer(await api("POST", path, body));
+  } catch (error) {
+    if (!(error instanceof AuthError)) say("error", error.message);
+  }
+  await pollState();
 }
 
 /** Ask whether the view may open; open it with a ticket if so, else say why. */
@@ -60,7 +147,8 @@ async function openView() {
     return;
   }
   if (!preview.allowed) {
-    status(`Not started: ${preview.reason}`);
+    const again = cell.state && cell.state !== "IDLE" ? "; it opens again when the cell is IDLE" : "";
+    status(`Not started: ${preview.reason}${again}`);
     return;
   }
   const answer = await api("POST", "/ws-ticket");
@@ -86,7 +174,8 @@ async function openView() {
   socket.onclose = (closed) => {
     if (view.socket === socket) view.socket = null;
     renderToggle();
-    status(closed.reason ? `Stopped: ${closed.reason}` : "Stopped.");
+    const again = view.stopped ? "" : " It opens again when the cell is IDLE.";
+    status(closed.reason ? `Stopped: ${closed.reason}.${again}` : `Stopped.${again}`);
   };
 }
 
@@ -134,12 +223,29 @@ function renderToggle() {
 }
 
 $("login-form").addEventListener("submit", signIn);
-$("view-toggle").addEventListener("click", () => (view.socket ? closeView() : openView()));
+$("view-toggle").addEventListener("click", () => {
+  view.stopped = Boolean(view.socket); // the technician's choice: kept until Start view
+  if (view.socket) closeView();
+  else openView();
+});
+$("setup-home").addEventListener("click", () => command("/home"));
+$("estop").addEventListener("click", async () => {
+  try {
+    await answer(await api("POST", "/estop", { reason: "STOP pressed on the Set-up page" }));
+  } catch (error) {
+    if (!(error instanceof AuthError)) {
+      say("error", `STOP could not reach the server (${error.message}): use the e-stop`);
+    }
+  }
+  await pollState();
+});
 whenUnauthorized((message) => {
   sessionStorage.removeItem(TOKEN_KEY);
   closeView();
-  if (unmountMarkers) unmountMarkers();
-  unmountMarkers = null;
+  clearInterval(cell.timer);
+  cell.timer = null;
+  if (markers) markers.unmount();
+  markers = null;
   showLogin(message);
 });
 window.addEventListener("pagehide", closeView);

@@ -33,6 +33,7 @@ export const ENDINGS = {
 
 export const hmi = {
   token: null,
+  me: null,              // GET /me: name, role, the commands the role may send (role.js)
   view: null,            // the last StateView received
   health: null,          // the last GET /health, kept current by `device` messages
   enteredAtMs: 0,        // performance.now() when that state was entered
@@ -52,6 +53,9 @@ export const hmi = {
   thumbnails: [],        // blob URLs to release
   partImage: null,       // blob URL of the last part's inspection image, to release
   pending: new Set(),    // commands whose request is in flight
+  renderHooks: [],
+  creating: null,        // the workpiece this page asked to capture: {name}
+  onWorkpieceCreated: () => {}, // app.js: what the capture this page asked for found       // drawn again with the command buttons (orders.js: its buttons)
   counters: { connects: 0, disconnects: 0, messages: 0, gaps: 0 },
   timers: [],
 };

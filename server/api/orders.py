@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Path, Query, Request
+from fastapi import APIRouter, Header, Path, Query, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field, create_model
 
@@ -31,6 +31,7 @@ router = APIRouter(tags=["orders"], route_class=DeclaredQueryRoute)
 ORDER_ID = r"^ord-[0-9a-f]{8}$"
 OrderId = Annotated[str, Path(pattern=ORDER_ID, description="the order's id, e.g. ord-1a2b3c4d")]
 MAX_QUANTITY = 100_000
+IDEMPOTENCY_KEY = r"^[\x21-\x7e]{1,200}$"  # printable ASCII, no spaces
 REFUSALS: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorView, "description": "no such order"},
     409: {"model": ErrorView, "description": "not now: the order's or the cell's state says why"},
@@ -146,20 +147,46 @@ async def _durably(work: Any) -> Any:
     "/orders",
     status_code=201,
     response_model=OrderAnswer,
-    responses={**REFUSALS, 422: {"description": "a field is wrong, and it is named"}},
+    responses={
+        **REFUSALS,
+        200: {"model": OrderAnswer, "description": "a retry: the order this key made"},
+        422: {"description": "a field is wrong, and it is named"},
+    },
 )
-async def create_order(request: Request, body: OrderRequest) -> Any:
+async def create_order(
+    request: Request,
+    body: OrderRequest,
+    idempotency_key: Annotated[
+        str | None,
+        Header(
+            pattern=IDEMPOTENCY_KEY,
+            description="any string the client chooses per order (a UUID): a retry with the "
+            "same key (the answer was lost) gets the order it made, 200, not a second one",
+        ),
+    ] = None,
+) -> Any:
     """A production order: `quantity` good parts of `workpiece_id`.
 
     With no order active it runs at once (409 if the cell cannot start a part now:
     nothing is created), else it is queued behind the active one. A workpiece the
-    library lacks is a 409 naming `workpiece_id`, as for POST /start.
+    library lacks is a 409 naming `workpiece_id`, as for POST /start. With an
+    `Idempotency-Key` already used by this token: 200 and that order as it stands now
+    (a 422 naming the header if that order was for another workpiece or quantity).
     """
+    book = _book(request)
+    if idempotency_key is not None:
+        made = book.made_with(idempotency_key, _who(request))
+        if made is not None:
+            return _replayed(request, made, body)
     detail = f"order {body.quantity} x {body.workpiece_id}"
     try:
         order, run_id = await _durably(
-            _book(request).create(
-                body.workpiece_id, body.quantity, _who(request), _audit(request, detail)
+            book.create(
+                body.workpiece_id,
+                body.quantity,
+                _who(request),
+                _audit(request, detail),
+                idempotency_key,
             )
         )
     except OrderRefused as refused:
@@ -167,6 +194,22 @@ async def create_order(request: Request, body: OrderRequest) -> Any:
         return _refused(request, refused)
     answer = OrderAnswer(order=_view(order), run_id=run_id)
     return JSONResponse(answer.model_dump(), status_code=201)
+
+
+def _replayed(request: Request, made: Order, body: OrderRequest) -> JSONResponse:
+    """The answer to a retry: the order the key made, or a 422 if the body differs."""
+    if (made.workpiece_id, made.quantity) != (body.workpiece_id, body.quantity):
+        return _refused(
+            request,
+            OrderRefused(
+                422,
+                f"this key made order {made.order_id} ({made.quantity} x {made.workpiece_id}); "
+                "a new order needs a new key",
+                "Idempotency-Key",
+            ),
+        )
+    request.state.audit_reason = f"retry of order {made.order_id}: nothing new made"
+    return JSONResponse(OrderAnswer(order=_view(made)).model_dump(), status_code=200)
 
 
 @router.get("/orders", response_model=OrderList)

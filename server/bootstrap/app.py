@@ -31,6 +31,7 @@ from server.api import (
     diagnostics,
     inspections,
     markers,
+    me,
     methods,
     metrics,
     openapi_doc,
@@ -128,6 +129,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     queries.add_state_route(app)
     for router in (
         queries.router,
+        me.router,
         commands.router,
         workpieces.router,
         orders.router,

@@ -89,7 +89,7 @@ def start_payload(body: StartRequest | None) -> StartPayload:
 def create_workpiece_payload(body: CreateWorkpieceRequest | None) -> CreateWorkpiecePayload:
     body = body or CreateWorkpieceRequest()
     spray = body.spray.model_dump(exclude_none=True) if body.spray is not None else None
-    return CreateWorkpiecePayload(body.name, body.workpiece_id, spray)
+    return CreateWorkpiecePayload(body.name, body.workpiece_id, spray, body.if_new)
 
 
 def estop_payload(body: EstopRequest | None) -> StopPayload:

@@ -59,6 +59,12 @@ class CreateWorkpieceRequest(Strict):
         None, pattern=IDENTIFIER, description="store under this id (default: the next wp-NNNN)"
     )
     spray: SpraySettingsIn | None = None
+    if_new: bool = Field(
+        False,
+        description="store the part only if its outline matches no stored workpiece; if it "
+        "does, the run completes without storing it, its result naming the match "
+        "(`stored`: false, `similar`) so the client can ask before storing a copy",
+    )
 
 
 class JogRequest(Strict):

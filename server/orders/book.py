@@ -16,9 +16,11 @@ What it decides (docs/operations-guide.md, "Production orders"):
   `OrderBook.active`;
 - a completed run of a running order starts the next part once the cell is
   back in IDLE, the simulated camera presenting a fresh part first;
-- any failed or cancelled run, a pause, an e-stop or a fault, the defect
-  limit, and a restart of the server hold the order: only POST
-  /orders/{id}/resume continues it, and only from IDLE;
+- a pause leaves the order running (its reason says the cell is paused): the
+  cell's Resume continues the part, and the order after it;
+- any failed or cancelled run, an e-stop or a fault, the defect limit, and a
+  restart of the server hold the order: only POST /orders/{id}/resume
+  continues it, and only from IDLE;
 - the order completes at its quantity of good parts (then the next queued
   order runs), or an operator closes it (the next queued one is held).
 """
@@ -56,6 +58,8 @@ log = logging.getLogger(__name__)
 
 SOURCE = "order"  # the journal's source of the starts an order makes itself
 RESTARTED = "the server restarted while the order was running: resume it once the cell is ready"
+# A running order's reason while the cell is paused: it is not held.
+PAUSED = "the cell is paused: Resume continues this part and the order"
 
 
 class OrderRefused(Exception):
@@ -106,6 +110,7 @@ class OrderBook:
                 state=OrderState(row["state"]),
                 updated_at=float(row["updated_at"]),
                 reason=row["reason"],
+                idempotency_key=row.get("idempotency_key"),
             )
             self.orders[order.order_id] = order
         for row in parts:
@@ -186,12 +191,26 @@ class OrderBook:
 
     # --- commands ------------------------------------------------------------
 
+    def made_with(self, key: str, who: str) -> Order | None:
+        """The order `who` made with Idempotency-Key `key`, if any (a retry's answer)."""
+        return next(
+            (o for o in self.orders.values() if o.idempotency_key == key and o.created_by == who),
+            None,
+        )
+
     async def create(
-        self, workpiece_id: str, quantity: int, who: str, audit: Record | None = None
+        self,
+        workpiece_id: str,
+        quantity: int,
+        who: str,
+        audit: Record | None = None,
+        idempotency_key: str | None = None,
     ) -> tuple[Order, str | None]:
         """A new order, running at once if nothing else is active (else queued).
 
-        Returns the order and the run id of its first part (None if queued).
+        Returns the order and the run id of its first part (None if queued). With an
+        `idempotency_key` the order keeps it, on record, so that a retry (`made_with`)
+        finds it after a restart too.
         """
         library = self._cell.stores.workpieces if self._cell.stores else None
         if library is None or not await asyncio.to_thread(library.exists, workpiece_id):
@@ -213,6 +232,7 @@ class OrderBook:
             created_by=who,
             state=OrderState.QUEUED if queued else OrderState.RUNNING,
             updated_at=now,
+            idempotency_key=idempotency_key,
         )
         await self._write([self._row(order), *([audit] if audit else [])])
         self.orders[order.order_id] = order  # once on record
@@ -354,8 +374,14 @@ class OrderBook:
         if order is None or order.state is not OrderState.RUNNING:
             return
         if state == State.PAUSED.value:
-            reason = "the cell was paused: the part under way still counts; resume the order"
-        elif state == State.ERROR.value:
+            # Not held: Resume continues the part, and the order after it.
+            self._note(order, PAUSED)
+            return
+        if state == State.EXECUTING_TRAJECTORY.value:
+            if order.reason == PAUSED:  # resumed: the part goes on, and the order
+                self._note(order, None)
+            return
+        if state == State.ERROR.value:
             stop = ((data.get("snapshot") or {}).get("stop_reason") or {}).get("message")
             reason = f"the cell stopped ({stop or data.get('event')}): reset, then resume"
         else:
@@ -365,6 +391,11 @@ class OrderBook:
         log.warning("order %s held: %s", order.order_id, reason)
 
     # --- bookkeeping ---------------------------------------------------------
+
+    def _note(self, order: Order, reason: str | None) -> None:
+        """A running order's reason changed (the cell paused, or resumed), on record."""
+        self._set(order, OrderState.RUNNING, reason)
+        self._journal.append([self._row(order)], durable=False)
 
     def _next_queued(self) -> Order | None:
         queued = [o for o in self.orders.values() if o.state is OrderState.QUEUED]
@@ -398,6 +429,7 @@ class OrderBook:
             reason=order.reason,
             created_by=order.created_by,
             updated_at=order.updated_at,
+            idempotency_key=order.idempotency_key,
         )
 
     @staticmethod

@@ -37,7 +37,7 @@ class OrderState(StrEnum):
 
     QUEUED = "queued"  # waits behind the active order
     RUNNING = "running"  # the cell works through it: each completed part starts the next
-    HELD = "held"  # stopped (a fault, a stop, a pause, the defect limit, a restart)
+    HELD = "held"  # stopped (a fault, a stop, a cancelled run, the defect limit, a restart)
     COMPLETED = "completed"  # its quantity of good parts is made
     CLOSED = "closed"  # an operator ended it before that
 
@@ -145,6 +145,8 @@ class Order:
     updated_at: float = 0.0
     reason: str | None = None  # why it is held, closed or completed
     parts: list[Part] = field(default_factory=list)
+    # The creating client's Idempotency-Key: a retry with it gets this order, not a new one.
+    idempotency_key: str | None = None
 
     @property
     def good(self) -> int:

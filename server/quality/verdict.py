@@ -44,9 +44,10 @@ def dispensing_reasons(dispensing: dict[str, Any], settings: QualitySettings) ->
     return reasons
 
 
-def part_reasons(parts: Sequence[dict[str, Any]], settings: QualitySettings) -> list[str]:
+def part_reasons(parts: Sequence[dict[str, Any]], limit: float) -> list[str]:
+    """Why each part's bead cannot be trusted: not found again, or moved over `limit`
+    (bead_max_offset_mm) since it was matched."""
     reasons = []
-    limit = settings.bead_max_offset_mm
     for part in parts:
         name = part["workpiece_id"]
         if not part["found"]:

@@ -33,6 +33,7 @@ _ROUTES: Final = MappingProxyType(
         # viewer: look, and stop
         ("GET", "/openapi.json"): VIEW,  # also in the repository, for integrators
         ("GET", "/state"): VIEW,
+        ("GET", "/me"): VIEW,  # who is signed in and what the token may do
         ("GET", "/operations/{name}/allowed"): VIEW,
         ("GET", "/history"): VIEW,
         ("GET", "/operations"): VIEW,

@@ -472,10 +472,15 @@ def annotate_bead(
     segments: Sequence[BeadSegment],
     findings: Sequence[SegmentBead],
     calibration: PlaneCalibration,
+    reasons: Sequence[str] | None = None,
 ) -> np.ndarray:
     """The frame with the plan (blue), the bead found (its centre, green on a good segment,
     red on a defective one), gaps (red along the plan) and offsets beyond tolerance (red
-    ticks from the plan to the bead), and the verdict with the first reasons."""
+    ticks from the plan to the bead), and the verdict with the first reasons.
+
+    `reasons` are the part's own (its path, its glue, its position and its bead): the
+    stamp says the part's verdict, so a clean bead on a part judged defective on its
+    glue volume is stamped DEFECTIVE. Without them the stamp says the bead's findings."""
     out = np.ascontiguousarray(frame.copy())
     shift = 4
     scale = 1 << shift
@@ -514,7 +519,7 @@ def annotate_bead(
             out, str(segment.index), (int(anchor[0]) + 6, int(anchor[1]) - 6),
             cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, 2, cv2.LINE_AA,
         )  # fmt: skip
-    problems = [p for f in findings for p in f.problems]
+    problems = list(reasons) if reasons is not None else [p for f in findings for p in f.problems]
     verdict = "GOOD" if not problems else f"DEFECTIVE ({len(problems)})"
     cv2.putText(out, verdict, (20, 50), cv2.FONT_HERSHEY_SIMPLEX, 1.4, (0, 0, 0), 6, cv2.LINE_AA)
     cv2.putText(

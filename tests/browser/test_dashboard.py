@@ -210,7 +210,7 @@ async def test_login_refuses_a_wrong_token_and_fits_a_tablet(
     await expect(page.locator("#login")).to_be_visible()
     await page.fill("#token-input", "gc_wrong_token")
     await page.click("#login-button")
-    await expect(page.locator("#login-error")).to_have_text("401: the token is unknown or revoked")
+    await expect(page.locator("#login-error")).to_have_text("the token is unknown or revoked")
     await shot(page, "01-login-refused")
 
     await log_in(page, dashboard.token)
@@ -245,7 +245,7 @@ async def test_a_cycle_then_stop_mid_run_then_reset(dashboard: Dashboard, browse
 
     # A whole run, paused and resumed on the way: the bar moves, then IDLE.
     await page.click('[data-command="start"]')
-    await expect(page.locator("#message")).to_contain_text("202: start accepted")
+    await expect(page.locator("#message")).to_contain_text("start accepted")
     await expect_state(page, "EXECUTING_TRAJECTORY")
     await expect_enabled(page, {"pause", "cancel"})
     # The run looked at the table: its frame is now under the path (GET /camera/frame).
@@ -296,7 +296,7 @@ async def test_a_cycle_then_stop_mid_run_then_reset(dashboard: Dashboard, browse
     await shot(page, "06-stopped")
 
     await page.click('[data-command="reset"]')
-    await expect(page.locator("#message")).to_contain_text("202: reset accepted")
+    await expect(page.locator("#message")).to_contain_text("reset accepted")
     await expect_state(page, "IDLE")
     await expect(page.locator("#fault")).to_be_hidden()
     await expect_enabled(page, {"start", "calibrate-robot", "calibrate-camera", "create-workpiece"})
@@ -469,15 +469,21 @@ async def test_the_last_part_card_shows_the_verdict_live_and_on_load(
 
 
 async def test_refusals_show_the_servers_message(dashboard: Dashboard, browser: Browser) -> None:
-    """403 for a role too low, 409 for a command the state forbids: the server's words."""
+    """403 for a role too low, 409 for a command the state forbids: the server's words, with
+    no HTTP status. The page does not offer the viewer Start; a press forced on the hidden
+    button still gets the server's refusal, and nothing changes."""
     created = await dashboard.rig.api.post("/tokens", json={"name": "hall", "role": "viewer"})
     viewer = created.json()["token"]
     page, problems = await open_page(browser, dashboard, PANEL)
     await log_in(page, viewer)
-    await page.click('[data-command="start"]')  # offered: the state allows it, the role does not
+    start = page.locator('[data-command="start"]')
+    await expect(start).to_be_hidden()  # the state allows it, the role does not: not offered
+    await start.evaluate("button => { button.hidden = false; button.disabled = false; }")
+    await start.click()
     await expect(page.locator("#message")).to_contain_text(
-        "403: this needs the operator role; hall has viewer"
+        "this needs the operator role; hall has viewer"
     )
+    await expect(page.locator("#message")).not_to_contain_text("403")
     await expect_state(page, "IDLE")
 
     await page.click("#logout")
@@ -486,7 +492,7 @@ async def test_refusals_show_the_servers_message(dashboard: Dashboard, browser: 
     resume = page.locator('[data-command="resume"]')
     await expect(resume).to_be_disabled()
     await resume.evaluate("button => { button.disabled = false; button.click(); }")
-    await expect(page.locator("#message")).to_contain_text("409: resume is not allowed in IDLE")
+    await expect(page.locator("#message")).to_contain_text("resume is not allowed in IDLE")
     await expect(resume).to_be_disabled()
     assert problems == []
 

@@ -40,7 +40,7 @@ async def test_the_order_card_starts_holds_resumes_and_closes(
     # An order of 2: both parts run from this one click.
     await page.fill("#order-quantity", "2")
     await page.click("#order-start")
-    await expect(page.locator("#message")).to_contain_text("order: 201")
+    await expect(page.locator("#message")).to_contain_text("started: 2 × demo")
     await expect(page.locator("#order-state")).to_have_text("completed", timeout=RUNS_S)
     await expect(card.locator("#order")).to_contain_text("2 / 2")
 
@@ -55,8 +55,12 @@ async def test_the_order_card_starts_holds_resumes_and_closes(
     await expect_state(page, "IDLE")
     await expect(page.locator("#order-state")).to_have_text("held")
     await expect(card.locator(".order-reason")).to_be_visible()
-    await page.click("#order-resume")
-    await expect(page.locator("#message")).to_contain_text("resume order: 200")
+    # The left column says an order waits, and offers its next action.
+    await expect(page.locator("#state-order")).to_contain_text("held")
+    await expect(page.locator("#state-order")).to_contain_text("Resume order")
+    await page.click("#state-order-resume")
+    await expect(page.locator("#message")).to_contain_text("resumed")
+    await expect(page.locator("#message")).not_to_contain_text("200")
     await expect(page.locator("#order-state")).to_have_text("running")
     await page.click("#order-close")
     await expect(page.locator("#order-state")).to_have_text("closed")
@@ -82,7 +86,7 @@ async def test_a_double_tap_on_start_order_makes_one_order(
     await expect_state(page, "IDLE")
     await page.fill("#order-quantity", "1")
     await page.dblclick("#order-start")  # both taps while the first is on its way
-    await expect(page.locator("#message")).to_contain_text("order: 201")
+    await expect(page.locator("#message")).to_contain_text("started: 1 × demo")
     await page.wait_for_timeout(200)  # a slower double tap: the first answered by now
     await page.click("#order-start")
     async with asyncio.timeout(10):

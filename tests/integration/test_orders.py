@@ -209,13 +209,15 @@ async def test_a_restart_leaves_the_order_held(tmp_path) -> None:
 
 
 async def test_a_restart_counts_the_paused_part_of_a_held_order(tmp_path) -> None:
-    """A pause holds the order with its part still to finish; a restart ends that part."""
+    """A paused order's part is still to finish; a restart ends that part and holds it."""
     async with open_rig(tmp_path, robot_speed_factor=1) as rig:
         created = await rig.api.post("/orders", json={"workpiece_id": "demo", "quantity": 5})
         order_id = created.json()["order"]["order_id"]
         await wait_running(rig)
         assert (await rig.api.post("/pause")).status_code == 202
-        await wait_order(rig, order_id, "held")
+        async with asyncio.timeout(WAIT_S):
+            while "paused" not in str((await order_of(rig, order_id))["reason"]):
+                await asyncio.sleep(0.05)
     async with open_rig(tmp_path, robot_speed_factor=1, wait_idle=False) as rig:
         await rig.wait_state("ERROR")
         order = await order_of(rig, order_id)

@@ -171,3 +171,26 @@ def test_the_annotated_image_marks_the_findings() -> None:
         "index", "workpiece_id", "length_mm", "width_mean_mm", "width_min_mm", "width_max_mm",
         "gaps_mm", "longest_gap_mm", "offset_mean_mm", "offset_max_mm", "problems",
     }  # fmt: skip
+
+
+def _stamp(annotated: np.ndarray) -> tuple[int, int]:
+    """Green and red pixels of the verdict's stamp (the top-left corner where it is drawn)."""
+    corner = annotated[15:60, 15:330].astype(int)
+    blue, green, red = corner[..., 0], corner[..., 1], corner[..., 2]
+    greens = int(((green > 150) & (red < 120) & (blue < 120)).sum())
+    reds = int(((red > 180) & (green < 100) & (blue < 100)).sum())
+    return greens, reds
+
+
+def test_the_stamp_follows_the_parts_verdict_not_the_bead_alone() -> None:
+    """A clean bead on a part judged defective on its glue volume is stamped DEFECTIVE,
+    in red: the stamp says the part's verdict, which weighs more than the bead."""
+    frame, segments, findings = inspect(CLEAN_PARTS[0])
+    assert not [p for f in findings for p in f.problems]
+    volume = "glue dispensed 2.588 ml, 144 % of the 1.797 ml the path needs"
+    judged = annotate_bead(frame, segments, findings, calibration(), reasons=[volume])
+    greens, reds = _stamp(judged)
+    assert reds > 200 and greens < 20, (greens, reds)
+    good = annotate_bead(frame, segments, findings, calibration(), reasons=[])
+    greens, reds = _stamp(good)
+    assert greens > 200 and reds < 20, (greens, reds)

@@ -104,10 +104,12 @@ class CreateWorkpiecePayload:
     name: str | None = None
     workpiece_id: str | None = None
     spray: dict[str, Any] | None = None
+    if_new: bool = False  # store only if the outline matches no stored part
 
     def as_dict(self) -> dict[str, Any]:
         fields = {"name": self.name, "workpiece_id": self.workpiece_id, "spray": self.spray}
-        return {key: value for key, value in fields.items() if value is not None}
+        found = {key: value for key, value in fields.items() if value is not None}
+        return {**found, "if_new": True} if self.if_new else found
 
 
 @dataclass(frozen=True, slots=True)

@@ -90,8 +90,18 @@ async def inspect_run(
     tolerances = BeadTolerances.from_settings(settings)
 
     positions = list(settings.marker_positions_mm)
-    vision, per_segment, parts, jpeg = await IMAGE_PROCESS.call(
-        _look, calibration, positions, targets, library, segments, tolerances, frame=frame
+    measured = precision_reasons(precision, settings) + dispensing_reasons(dispensing, settings)
+    vision, per_segment, parts, reasons, jpeg = await IMAGE_PROCESS.call(
+        _look,
+        calibration,
+        positions,
+        targets,
+        library,
+        segments,
+        tolerances,
+        measured,
+        settings.bead_max_offset_mm,
+        frame=frame,
     )
     scores = [t.match["score"] for t in targets if t.match is not None]
     vision["match_score"] = max(scores) if scores else None
@@ -102,12 +112,6 @@ async def inspect_run(
         entry["precision_mean_mm"] = seg.get("mean_mm")
         entry["precision_max_mm"] = seg.get("max_mm")
         entry["precision_samples"] = seg.get("samples", 0)
-    reasons = (
-        precision_reasons(precision, settings)
-        + dispensing_reasons(dispensing, settings)
-        + part_reasons(parts, settings)
-        + [problem for entry in per_segment for problem in entry["problems"]]
-    )
     warnings: tuple[OperationWarning, ...] = ()
     limit = settings.calibration_max_error_mm
     if degrading(vision["residual_mean_mm"], limit):
@@ -134,9 +138,16 @@ def _look(
     library: dict[str, np.ndarray],
     segments: list[PlannedSegment],
     tolerances: BeadTolerances,
-) -> tuple[dict[str, Any], list[dict[str, Any]], list[Any], bytes | None]:
-    """The frame's vision work: markers, parts, the bead, the annotated JPEG. Run in the
-    image process (`server.vision.process`), so only the JPEG and the findings cross."""
+    measured: list[str],
+    max_offset_mm: float,
+) -> tuple[dict[str, Any], list[dict[str, Any]], list[Any], list[str], bytes | None]:
+    """The frame's vision work: markers, parts, the bead, the part's reasons and the
+    annotated JPEG. Run in the image process (`server.vision.process`), so only the JPEG
+    and the findings cross.
+
+    The reasons are the part's whole verdict: `measured` (its path and its glue, judged
+    before the frame), its position and its bead; the image is stamped from them, so the
+    picture and the record never disagree."""
     vision = marker_residuals(frame, calibration, marker_positions)
     parts = relocate(frame, calibration, targets, library)
     moved = {p.workpiece_id: p.transform for p in parts}
@@ -152,14 +163,20 @@ def _look(
         for s in segments
     ]
     findings = inspect_bead(frame, beads, calibration, tolerances)
-    annotated = annotate_bead(frame, beads, findings, calibration)
+    found = [p.as_dict() for p in parts]
+    reasons = (
+        measured
+        + part_reasons(found, max_offset_mm)
+        + [problem for finding in findings for problem in finding.problems]
+    )
+    annotated = annotate_bead(frame, beads, findings, calibration, reasons)
     ok, jpeg = cv2.imencode(".jpg", annotated, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
     per_segment = []
     for bead, finding in zip(beads, findings, strict=True):
         per_segment.append(
             {**finding.as_dict(), "expected_width_mm": round(bead.expected_width_mm, 3)}
         )
-    return vision, per_segment, [p.as_dict() for p in parts], jpeg.tobytes() if ok else None
+    return vision, per_segment, found, reasons, jpeg.tobytes() if ok else None
 
 
 def _document(

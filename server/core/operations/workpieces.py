@@ -50,12 +50,26 @@ def _not_found(what: str) -> OperationError:
     )
 
 
-def _measure(frame: np.ndarray, homography: np.ndarray) -> tuple[np.ndarray, bytes]:
-    """The largest part's outline (mm) and its thumbnail (PNG); run in the image process."""
+def _measure(
+    frame: np.ndarray, homography: np.ndarray, library: dict[str, np.ndarray]
+) -> tuple[np.ndarray, bytes, dict[str, Any] | None]:
+    """The largest part's outline (mm), its thumbnail (PNG) and the stored part it matches
+    (id, score, fit error), if any; run in the image process."""
     outlines = part_outlines_px(frame)
     if not outlines:
         raise _not_found("workpiece creation")
-    return outline_to_mm(outlines[0], homography), _thumbnail(frame, outlines[0])
+    outline_mm = outline_to_mm(outlines[0], homography)
+    match = match_outline(outline_mm, library) if library else None
+    similar = (
+        None
+        if match is None
+        else {
+            "workpiece_id": match.workpiece_id,
+            "score": round(match.score, 5),
+            "fit_error_mm": round(match.fit_error_mm, 3),
+        }
+    )
+    return outline_mm, _thumbnail(frame, outlines[0]), similar
 
 
 async def create_workpiece(ctx: OperationContext) -> OperationResult:
@@ -64,8 +78,26 @@ async def create_workpiece(ctx: OperationContext) -> OperationResult:
     frame = await capture_undistorted(ctx, "workpiece creation")
     ctx.report({"step": "finding the outline", "fraction": 0.3})
 
-    outline_mm, thumbnail = await IMAGE_PROCESS.call(_measure, homography, frame=frame)
     library = ctx.stores.workpieces
+    entries = await asyncio.to_thread(library.list)
+    outlines = {w.id: np.asarray(w.outline_mm, dtype=np.float64) for w in entries}
+    outline_mm, thumbnail, similar = await IMAGE_PROCESS.call(
+        _measure, homography, outlines, frame=frame
+    )
+    if similar is not None:  # which stored part it is, in words as well as figures
+        similar["name"] = next(w.name for w in entries if w.id == similar["workpiece_id"])
+    if similar is not None and ctx.params.get("if_new"):
+        # Asked to store only a new part: nothing stored, the answer says which it is.
+        ctx.report({"step": "matches a stored part", "fraction": 1.0})
+        return OperationResult(
+            {
+                "stored": False,
+                "similar": similar,
+                "message": f"not stored: the part on the table matches {similar['name']!r} "
+                f"({similar['workpiece_id']}, outline within {similar['fit_error_mm']:g} mm "
+                "RMS); send it again without if_new to store a copy",
+            }
+        )
     try:
         entry = WorkpieceIn(
             name=ctx.params.get("name") or ctx.params.get("workpiece_id") or "part from camera",
@@ -100,6 +132,8 @@ async def create_workpiece(ctx: OperationContext) -> OperationResult:
     ctx.report({"step": "stored", "fraction": 1.0, "workpiece_id": stored.id})
     return OperationResult(
         {
+            "stored": True,
+            "similar": similar,  # the stored part its outline matched, if any
             "workpiece_id": stored.id,
             "name": stored.name,
             "points": len(outline_mm),

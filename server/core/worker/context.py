@@ -17,6 +17,9 @@ from server.core.machine.events import FaultPayload, Payload, RunFailedPayload, 
 from server.core.machine.faults import classify, recommended_action
 from server.core.machine.transitions import State
 
+# The transports an event's `source` may begin with ("api:<token name>", "mqtt:<name>").
+SOURCE_TRANSPORTS = frozenset({"api", "mqtt", "opcua"})
+
 
 @dataclass(slots=True)
 class TransitionRecord:
@@ -72,6 +75,16 @@ class RunningOperation:
         return context
 
 
+def sender_of(source: str) -> str:
+    """Who an event's `source` names, without its transport: `api:line 3 HMI` → `line 3 HMI`.
+
+    A stop reason is read by people at the panel; the transport stays in the fault's
+    `component`.
+    """
+    transport, sep, name = source.partition(":")
+    return name if sep and transport in SOURCE_TRANSPORTS and name else source
+
+
 @dataclass(slots=True)
 class FaultRecord:
     """The fault that put (or keeps) the cell in ERROR."""
@@ -105,7 +118,8 @@ class FaultRecord:
             if isinstance(payload, RunFailedPayload):
                 trace = payload.trace
         else:  # the e-stop: who pressed it and why
-            code, message, component = "EMERGENCY_STOP", f"emergency stop by {source}", source
+            code, component = "EMERGENCY_STOP", source
+            message = f"emergency stop by {sender_of(source)}"
             if isinstance(payload, StopPayload) and payload.reason:
                 message += f": {payload.reason}"
         context = interrupted.fault_context() if interrupted else {"operation": None}

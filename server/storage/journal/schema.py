@@ -429,6 +429,13 @@ ORDERS = Table(
         Column("reason", "TEXT", str, "why it is held, closed or completed"),
         Column("created_by", "TEXT NOT NULL", str, "who made it"),
         Column("updated_at", "REAL NOT NULL", float, "when it last changed (Unix seconds)"),
+        Column(
+            "idempotency_key",
+            "TEXT",
+            str,
+            "the Idempotency-Key it was made with: a retry with it gets this order",
+            older_rows=None,
+        ),
     ),
     time_column="created_at",
     indexes=(("orders_created", "created_at"),),

@@ -12,9 +12,14 @@ test("no run yet, and a run nobody inspected", () => {
   assert.equal(plain.verdict, "none");
   assert.equal(plain.label, "not inspected");
   assert.deepEqual(plain.reasons, []);
-  const failed = describePart({ run_id: "r2", outcome: "failed", result: null });
-  assert.equal(failed.label, "not inspected");
+  // A run that did not complete left a defective part, as the order card counts it.
+  const failed = describePart({ run_id: "r2", outcome: "failed", result: null, error: "jam" });
+  assert.equal(failed.verdict, "defective");
+  assert.equal(failed.label, "defective (not inspected)");
+  assert.deepEqual(failed.reasons, ["run failed: jam"]);
   assert.equal(failed.note, "run failed");
+  const stopped = describePart({ run_id: "r6", outcome: "cancelled", result: null });
+  assert.deepEqual([stopped.verdict, stopped.reasons], ["defective", ["run cancelled"]]);
   // A full disk took the inspection's image: the run says why it was not inspected.
   const full = describePart({
     run_id: "r5", outcome: "completed", result: { waypoints: 9, not_inspected: "no space" },
