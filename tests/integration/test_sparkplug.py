@@ -202,3 +202,5 @@ async def test_ndeath_on_a_clean_stop_and_as_the_will_of_a_killed_server(tmp_pat
                 deaths = await host.wait(lambda: host.of("NDEATH")[1:])
             assert deaths[0].value("bdSeq") == births[0].value("bdSeq")
             assert deaths[0].seq is None
+            # Each session its own bdSeq, across the restart: the host tells the deaths apart.
+            assert births[0].value("bdSeq") != host.of("NBIRTH")[0].value("bdSeq")

@@ -5,8 +5,11 @@ because Sparkplug's NDEATH must be the connection's last will, carrying the bdSe
 of the NBIRTH sent on that connection, and an MQTT connection has one will: the
 link's is its `status`. Each connection takes the next bdSeq (0 to 255, then 0):
 its NDEATH will is registered with it at connect, its NBIRTH names it, and a clean
-stop publishes the same NDEATH itself before it leaves. Within a session `seq`
-runs 0 (the NBIRTH) to 255 and wraps, one step a message.
+stop publishes the same NDEATH itself before it leaves. The next bdSeq is kept in
+the data directory (`sparkplug.bdseq`) across restarts: a killed server's will
+reaches the host up to 1.5 keep-alives late, perhaps after the restarted server's
+NBIRTH, and only a different bdSeq tells the host that death is the old session's.
+Within a session `seq` runs 0 (the NBIRTH) to 255 and wraps, one step a message.
 
 Nothing is buffered while the broker is away: on each connection the node
 subscribes to its NCMD and DCMD topics, then sends NBIRTH and DBIRTH with every
@@ -57,6 +60,7 @@ FIRST_BACKOFF_S = 0.1
 TICK_S = 1.0  # how often the devices' links are looked at for a change
 STOP_FLUSH_S = 2.0  # at a clean stop, how long the NDEATH may take to go
 BUS_BUFFER = 256
+BD_SEQ_FILE = "sparkplug.bdseq"  # the next connection's bdSeq, in the data directory
 
 
 def now_ms() -> int:
@@ -93,6 +97,7 @@ class SparkplugNode:
         self._answers = answers
         self._client: aiomqtt.Client | None = None
         self._lock = asyncio.Lock()  # one message at a time: seq is their order
+        self._bd_seq_file = settings.data_path / BD_SEQ_FILE
         self._bd_seq = 0  # this connection's (the will registered with it)
         self._seq = 0  # the next message's
         self._told: dict[str, Any] = {}  # what the host was last told, metric by metric
@@ -272,10 +277,22 @@ class SparkplugNode:
             timeout=max(10.0, 2.0 * settings.mqtt_keepalive),
         )
 
+    def _take_bd_seq(self) -> None:
+        """This connection's bdSeq: the one kept on disk (0 if none), the next one written
+        back before the connection is made, so no two sessions share one."""
+        # None yet, or unreadable: go on from the one in memory.
+        with contextlib.suppress(OSError, ValueError):
+            self._bd_seq = int(self._bd_seq_file.read_text().strip()) % sp.SEQ_LIMIT
+        try:
+            self._bd_seq_file.write_text(f"{(self._bd_seq + 1) % sp.SEQ_LIMIT}\n")
+        except OSError as exc:
+            log.warning("Sparkplug B: cannot keep the next bdSeq in %s: %s", self._bd_seq_file, exc)
+
     async def _connection(self) -> None:
         backoff = FIRST_BACKOFF_S
         first = True
         while True:
+            self._take_bd_seq()
             try:
                 async with self._client_for() as client:
                     await client.subscribe(self.topics.node("NCMD"), qos=1)
@@ -301,7 +318,7 @@ class SparkplugNode:
                 self._client = None
             if self._stopping:
                 return
-            self._bd_seq = (self._bd_seq + 1) % sp.SEQ_LIMIT  # the next connection's will
+            self._bd_seq = (self._bd_seq + 1) % sp.SEQ_LIMIT  # if the file is not there
             await asyncio.sleep(backoff * random.uniform(0.8, 1.2))
             backoff = min(2 * backoff, self.settings.mqtt_reconnect_max)
 
