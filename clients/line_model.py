@@ -4,8 +4,8 @@ Each cell publishes under `<prefix>/<cell_id>/`: `status` (retained JSON whose
 `status` is `online`, or `offline` at a clean stop and as its last will; a cell of
 an earlier release sends the bare word, read alike), `state` (retained JSON: state,
 since, stop_reason, run_id, workpiece_id), `progress` (JSON: where a run is, thinned
-by the cell) and `kpis` (retained, the body of GET /kpis). This module only folds those messages into
-rows, with no I/O, so `gluectl line` and its tests share one reading of the
+by the cell) and `kpis` (retained, the body of GET /kpis). This module only folds
+those messages into rows, with no I/O, so `gluectl line` and its tests share one reading of the
 topics; the browser's line view (clients/hmi/line_state.js) reads them the same way.
 
 A progress message belongs to a run: it is shown only while the cell's state names
