@@ -154,7 +154,25 @@ def groups() -> dict[str, str]:
                 group = comments[0]
             found[node.target.id] = group
         previous_end = node.end_lineno or node.lineno
+    # A section model among Settings' bases (server/settings/<topic>.py) names its own.
+    for base in Settings.__mro__:
+        section = base.__dict__.get("SECTION")
+        if isinstance(section, str):
+            found.update({name: section for name in base.__dict__.get("__annotations__", {})})
     return found
+
+
+def _ordered_fields() -> list[str]:
+    """The model's fields, those of the section models after Settings' own: a base's
+    fields come first in pydantic's order, but read after the sections they join."""
+    sections = {
+        name
+        for base in Settings.__mro__
+        if isinstance(base.__dict__.get("SECTION"), str)
+        for name in base.__dict__.get("__annotations__", {})
+    }
+    names = list(Settings.model_fields)
+    return [n for n in names if n not in sections] + [n for n in names if n in sections]
 
 
 def facts() -> list[SettingFacts]:
@@ -169,9 +187,9 @@ def facts() -> list[SettingFacts]:
             variables=variables[name],
             default=_default(name),
             accepted=_accepted(schema[name]),
-            meaning=field.description or "",
+            meaning=Settings.model_fields[name].description or "",
         )
-        for name, field in Settings.model_fields.items()
+        for name in _ordered_fields()
     ]
 
 

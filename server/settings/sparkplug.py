@@ -9,6 +9,8 @@ will, and the MQTT link's will is its own `status` (docs/plant-integration.md,
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from pydantic import BaseModel, Field, model_validator
 
 # Sparkplug ids are one topic level: no '/', '+' or '#' (and none of the MQTT wildcards).
@@ -18,6 +20,11 @@ TOKEN_ID_PATTERN = r"^[0-9a-f]{8}$"
 
 class SparkplugSettings(BaseModel):
     """Where the cell shows itself to a Sparkplug B host, and whether it takes its commands."""
+
+    # The heading of these settings in docs/settings.md (server/settings/reference.py).
+    SECTION: ClassVar[str] = (
+        "Sparkplug B (docs/plant-integration.md): off unless sparkplug_group is set"
+    )
 
     sparkplug_group: str | None = Field(
         None,
