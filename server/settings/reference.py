@@ -158,7 +158,7 @@ def groups() -> dict[str, str]:
     for base in Settings.__mro__:
         section = base.__dict__.get("SECTION")
         if isinstance(section, str):
-            found.update({name: section for name in base.__dict__.get("__annotations__", {})})
+            found.update({name: section for name in inspect.get_annotations(base)})
     return found
 
 
@@ -169,7 +169,7 @@ def _ordered_fields() -> list[str]:
         name
         for base in Settings.__mro__
         if isinstance(base.__dict__.get("SECTION"), str)
-        for name in base.__dict__.get("__annotations__", {})
+        for name in inspect.get_annotations(base)
     }
     names = list(Settings.model_fields)
     return [n for n in names if n not in sections] + [n for n in names if n in sections]
