@@ -117,8 +117,8 @@ class LineModel:
 
 def _liveness(payload: bytes) -> bool | None:
     """True online, False offline, None unknown: from `{"status": ...}` or the bare word."""
-    text = payload.decode("utf-8", "replace").strip()
-    if text.startswith("{"):
+    word: Any = payload.decode("utf-8", "replace").strip()
+    if word.startswith("{"):
         body = _json_object(payload)
-        text = body.get("status") if body else None
-    return {"online": True, "offline": False}.get(text) if isinstance(text, str) else None
+        word = body.get("status") if body else None
+    return {"online": True, "offline": False}.get(word) if isinstance(word, str) else None
