@@ -106,6 +106,7 @@ class SparkplugNode:
         self._tasks: list[asyncio.Task[None]] = []
         self._in_flight: set[asyncio.Task[None]] = set()
         self._stopping = False
+        self._last_error: str | None = None
         self.births = 0  # NBIRTHs sent since start (for /health and the tests)
 
     @property
@@ -309,11 +310,8 @@ class SparkplugNode:
                     backoff = FIRST_BACKOFF_S
                     await self._birth()
                     await self._listen(client)
-            except aiomqtt.MqttError as exc:
-                if self._client is not None:
-                    log.warning("Sparkplug B: lost %s:%d: %s", self.host, self.port, exc)
-            except OSError as exc:  # a TLS or socket failure before MQTT spoke
-                log.warning("Sparkplug B: cannot reach %s:%d: %s", self.host, self.port, exc)
+            except (aiomqtt.MqttError, OSError) as exc:  # OSError: TLS or socket, before MQTT
+                self._down(str(exc))
             finally:
                 self._client = None
             if self._stopping:
@@ -321,6 +319,14 @@ class SparkplugNode:
             self._bd_seq = (self._bd_seq + 1) % sp.SEQ_LIMIT  # if the file is not there
             await asyncio.sleep(backoff * random.uniform(0.8, 1.2))
             backoff = min(2 * backoff, self.settings.mqtt_reconnect_max)
+
+    def _down(self, error: str) -> None:
+        """Say a lost connection, and an unreachable broker once per distinct error."""
+        if self._client is not None:
+            log.warning("Sparkplug B: lost %s:%d: %s", self.host, self.port, error)
+        elif error != self._last_error:
+            log.warning("Sparkplug B: cannot reach %s:%d: %s", self.host, self.port, error)
+        self._last_error = error
 
     async def _listen(self, client: aiomqtt.Client) -> None:
         async for message in client.messages:
