@@ -184,8 +184,9 @@ def test_plant_latency_sees_every_transition_on_mqtt_sparkplug_and_opcua(
 ) -> None:
     """Two cycles of five cells (e-stop, reset, start, e-stop while spraying, reset):
     5 transitions × 3 MQTT cells × 2 cycles on the broker, 5 × 2 in cell-1's Sparkplug
-    DDATA and 5 × 2 on cell-1's OPC UA subscription; per condition, one device stop and one answer per cycle of each of
-    the three cells compared (cell-1, plain and the control)."""
+    DDATA and 5 × 2 on cell-1's OPC UA subscription; per condition, one device stop and
+    one answer per cycle of each of the three cells compared (cell-1, plain and the
+    control)."""
     rows = plant_latency.main(["--cycles", "2"])
     assert [row["n"] for row in rows] == [30, 10, 10] + [2] * 12
     for row in rows:
