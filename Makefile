@@ -24,7 +24,7 @@ DATA ?= data
 LOADED_LIMIT ?= 30m
 SOAK ?= 30m
 
-.PHONY: run line test test-fast test-loaded soak lint bench diagram openapi clean browser node deploy-tools mosquitto
+.PHONY: run line test test-fast test-loaded soak lint bench diagram openapi clean browser node deploy-tools mosquitto promtool
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -63,7 +63,7 @@ line: $(RUN_STAMP) mosquitto
 # node id, would run one of them per test function.
 WORKERS ?= auto
 SCHEMA_TESTS := tests/integration/test_api_schema.py
-test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools mosquitto
+test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools mosquitto promtool
 	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=20 -m "not reliability" --ignore=$(SCHEMA_TESTS)
 	$(PY) -m pytest -q $(SCHEMA_TESTS)
 	$(PY) -m pytest -m reliability --durations=5
@@ -124,6 +124,15 @@ mosquitto:
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 		$$SUDO apt-get update -qq && \
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq mosquitto mosquitto-clients; }
+
+# The metrics test pipes a real scrape through promtool's `check metrics`: Debian ships
+# promtool in its prometheus package.
+promtool:
+	@command -v promtool >/dev/null || { \
+		echo "installing Debian's prometheus (promtool) for the metrics test"; \
+		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends prometheus; }
 
 # ruff, then mypy over server/ and clients/ (configured in pyproject.toml: [tool.mypy]).
 lint: $(TEST_STAMP)

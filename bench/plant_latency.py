@@ -42,6 +42,10 @@ it minus that time, on the same machine's clock.
 - `opcua`: transition → OPC UA data change of cell-1's CellState, with the
   subscription's publishing interval (`--publishing-ms`, the server's floor is
   what asyncua grants) included: a client sees a change at the next publish.
+- `alarms`: the cell raising or clearing an alarm (an e-stop's fault recorded, the
+  reset that clears it) → the OPC UA event on a subscription to cell-1's Server
+  object, the event's own `Time` against its arrival, the same publishing interval
+  included.
 - device stop and answer, on cell-1 (every interface on and subscribed to),
   on `plain` (both off) and on `control` (both off), per condition, in the same run.
 
@@ -218,7 +222,33 @@ async def opcua_changes(
         await client.disconnect()
 
 
+@contextlib.asynccontextmanager
+async def opcua_alarms(
+    port: int, publishing_ms: float, received: list[tuple[float, float]]
+) -> AsyncIterator[None]:
+    """cell-1's alarm events on its Server object: (arrival, the event's Time) of each."""
+    from asyncua import Client, ua
+
+    class Handler:
+        def event_notification(self, event: Any) -> None:
+            arrived = time.time()
+            if event.Time is not None:
+                received.append((arrived, event.Time.timestamp()))
+
+    client = Client(f"opc.tcp://127.0.0.1:{port}")
+    await client.connect()
+    try:
+        subscription = await client.create_subscription(publishing_ms, Handler())
+        kinds = [ua.ObjectIds.TripAlarmType, ua.ObjectIds.OffNormalAlarmType]
+        await subscription.subscribe_events(client.nodes.server, kinds, queuesize=1000)
+        yield
+        await subscription.delete()
+    finally:
+        await client.disconnect()
+
+
 Received = list[tuple[float, dict[str, Any]]]
+Alarms = list[tuple[float, float]]
 
 
 @contextlib.asynccontextmanager
@@ -253,19 +283,21 @@ async def sparkplug_ddata(broker: BrokerPorts, received: Received) -> AsyncItera
 
 async def listen(
     broker: BrokerPorts, opcua_port: int, publishing_ms: float, stop: Any, ready: Any
-) -> tuple[Received, Received, Received, float]:
+) -> tuple[Received, Received, Alarms, Received, float]:
     mqtt: Received = []
     opcua: Received = []
+    alarms: Alarms = []
     sparkplug: Received = []
     async with (
         mqtt_events(broker, mqtt),
         sparkplug_ddata(broker, sparkplug),
         opcua_changes(opcua_port, publishing_ms, opcua) as granted,
+        opcua_alarms(opcua_port, publishing_ms, alarms),
     ):
         ready.set()
         while not stop.is_set():
             await asyncio.sleep(0.05)
-    return mqtt, opcua, sparkplug, granted
+    return mqtt, opcua, alarms, sparkplug, granted
 
 
 def plant(
@@ -399,7 +431,9 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
                     await cycles(client, cells, cycles_count)
                     await asyncio.sleep(2.0)  # the last transitions reach the plant
                     stop.set()
-                    mqtt, opcua, sparkplug, granted = await asyncio.to_thread(receiving.recv)
+                    mqtt, opcua, alarms, sparkplug, granted = await asyncio.to_thread(
+                        receiving.recv
+                    )
                 finally:
                     stop.set()
                     listener.join(30)
@@ -434,6 +468,10 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
         {
             "figure": f"transition → OPC UA data change (publishing {granted:g} ms)",
             **percentiles_ms(lags(opcua, "since", started)),
+        },
+        {
+            "figure": f"alarm raised or cleared → OPC UA event (publishing {granted:g} ms)",
+            **percentiles_ms([arrived - at for arrived, at in alarms if at >= started]),
         },
         *stops,
     ]

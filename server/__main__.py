@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +15,8 @@ from server.bootstrap import tls
 from server.bootstrap.app import create_app
 from server.bootstrap.logging_setup import configure as configure_logging
 from server.cli import backup as backup_cli
+from server.cli import diagnose as diagnose_cli
+from server.common.build import package_version
 from server.common.errors import ConfigurationError
 from server.common.runtime import (
     close_on_shutdown,
@@ -49,7 +50,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         description="Control server for a glue-spraying robot cell. Without hardware\n"
         "settings (ROBOT_IP, GLUE_CONTROLLER_PORT, VISION_CAMERA_ID) it starts the\n"
         "simulators on loopback and drives them through the real protocol clients.\n"
-        "Also: glue-server backup FILE, glue-server restore FILE (see their --help).",
+        "Also: glue-server backup FILE, glue-server restore FILE, glue-server diagnose\n"
+        "FILE (see their --help).",
         epilog=SETTINGS_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -67,6 +69,8 @@ def main(argv: list[str] | None = None) -> None:
     words = sys.argv[1:] if argv is None else argv
     if words[:1] and words[0] in backup_cli.COMMANDS:  # glue-server backup|restore FILE
         raise SystemExit(backup_cli.main(words))
+    if words[:1] == [diagnose_cli.COMMAND]:  # glue-server diagnose FILE
+        raise SystemExit(diagnose_cli.main(words[1:]))
     args = parse_args(argv)
     overrides = {"data_path": args.data_dir} if args.data_dir else {}
     misspelt = unknown_variables()
@@ -137,14 +141,6 @@ def uvicorn_options(settings: Settings) -> dict[str, Any]:
         "proxy_headers": False,
         **tls.uvicorn_options(settings),  # https and wss when tls_cert_file is set
     }
-
-
-def package_version() -> str:
-    """The installed distribution's version (pyproject.toml), or why it is unknown."""
-    try:
-        return metadata.version("glue-cell-server")
-    except metadata.PackageNotFoundError:
-        return "(not installed: run from a checkout)"
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ from server.api.access import access_of
 from server.api.analytics import csv_export
 from server.api.declared_query import DeclaredQueryRoute
 from server.api.runtime_settings import SettingsChange, plan_change
-from server.api.schemas import ErrorView
+from server.api.schemas import ErrorView, text_body
 from server.api.time_window import Since, Until, time_window
 from server.common.values import Name
 from server.security.tokens import Role, last_admin_refusal
@@ -144,7 +144,9 @@ async def get_audit(
     return {"audit": rows, "total": total, "limit": limit, "offset": offset}
 
 
-@router.get("/audit.csv", response_class=Response, responses={200: {"content": {"text/csv": {}}}})
+@router.get(
+    "/audit.csv", response_class=Response, responses={200: {"content": text_body("text/csv")}}
+)
 async def export_audit(
     request: Request,
     since: Since = None,

@@ -22,11 +22,12 @@ import time
 from collections.abc import Awaitable, Callable, Iterator
 from typing import Annotated, Any, Literal, get_args
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, HTTPException, Path, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
 from server.api.declared_query import DeclaredQueryRoute
 from server.api.kpi_views import KpisView
+from server.api.schemas import text_body
 from server.api.time_window import Since, TimeWindow, Until, time_window
 from server.bootstrap.cell import Cell
 from server.quality.csv_columns import INSPECTION_COLUMNS, with_inspection
@@ -160,6 +161,19 @@ for _path, _table, _name, _doc in TABLE_ROUTES:
     router.add_api_route(_path, table_route(_table, _name, _doc), methods=["GET"], name=_name)
 
 
+@router.get("/errors/{seq}", name="get_error")
+async def get_error(request: Request, seq: Annotated[int, Path(ge=1)]) -> dict[str, Any]:
+    """One fault by its number (`seq` in GET /errors): what it interrupted (`context`:
+    operation, run id, workpiece, waypoint) and, when an exception caused it, the stack
+    (`trace`), for a technician tracing it back to a run and its code."""
+    journal = _journal(request)
+    await journal.caught_up()
+    found = await asyncio.to_thread(journal.row, "errors", seq)
+    if found is None:
+        raise HTTPException(404, f"no fault numbered {seq}: see GET /errors for the faults kept")
+    return TABLES["errors"].decode(found)
+
+
 EXPORT_DOC = """The {table} table as CSV, oldest first, for spreadsheets and reports.
 
     Every matching row, with no row limit: streamed page by page, so a long table is
@@ -204,7 +218,7 @@ for _table in EXPORT_TABLES:
         methods=["GET"],
         name=f"export_{_table}_csv",
         response_class=Response,
-        responses={200: {"content": {"text/csv": {}}}},
+        responses={200: {"content": text_body("text/csv")}},
     )
 
 

@@ -14,7 +14,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Request, Response
 
-from server.api.schemas import ErrorView
+from server.api.schemas import ErrorView, binary_body
 from server.bootstrap.cell import Cell
 
 router = APIRouter(tags=["quality"])
@@ -66,7 +66,7 @@ async def get_inspection(request: Request, run_id: RunId) -> dict[str, Any]:
 @router.get(
     "/runs/{run_id}/inspection.jpg",
     response_class=Response,
-    responses={200: {"content": {"image/jpeg": {}}}, 404: {"model": ErrorView}},
+    responses={200: {"content": binary_body("image/jpeg")}, 404: {"model": ErrorView}},
 )
 async def get_inspection_image(request: Request, run_id: RunId) -> Response:
     """The run's inspection frame, annotated: the planned bead paths (green good, red a

@@ -7,7 +7,16 @@ worker's statistics hook, API requests by a middleware, operations when they
 end, transitions by a bus subscriber. Inspected parts are counted as their run
 ends, by verdict, with each part's precision and flow consistency observed
 (server/quality/part_verdict.py reads the run's inspection); a run that was not
-inspected is no part. Each app has its own registry.
+inspected is no part. Each app has its own registry, which holds the standard
+process and Python collectors too (`process_*`, `python_gc_*`, `python_info`), and
+the build and the plant links (server/api/plant_metrics.py).
+
+By Prometheus's conventions: base units (seconds, metres) and 0-1 ratios, and no
+`_created` series (prometheus-client's creation time of each series, which nothing
+here reads, doubled every counter and histogram). A part's precision and flow
+consistency are exposed in metres and as a ratio; their millimetre and percent
+series are kept beside them for one release, marked deprecated in their help, so
+dashboards and alerts move over before they go (README, "Changes").
 """
 
 from __future__ import annotations
@@ -22,7 +31,11 @@ from prometheus_client import (
     CONTENT_TYPE_LATEST,
     CollectorRegistry,
     Counter,
+    GCCollector,
     Histogram,
+    PlatformCollector,
+    ProcessCollector,
+    disable_created_metrics,
     generate_latest,
 )
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
@@ -30,6 +43,8 @@ from prometheus_client.registry import Collector
 from starlette.types import Scope
 
 from server.api.declared_query import DeclaredQueryRoute
+from server.api.plant_metrics import BuildCollector, PlantCollector
+from server.api.schemas import text_body
 from server.bootstrap.cell import Cell
 from server.core.infra.bus import SubscriptionClosed
 from server.core.machine.transitions import State
@@ -39,8 +54,13 @@ from server.quality.part_verdict import VERDICTS, figure_of, inspection_of
 router = APIRouter(tags=["queries"], route_class=DeclaredQueryRoute)
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5)
 OPERATION_BUCKETS = (1, 5, 10, 30, 60, 120, 300, 600, 1800)
+PRECISION_M_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01)
+CV_RATIO_BUCKETS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
+# The deprecated series' buckets: the same bounds in millimetres and percent.
 PRECISION_MM_BUCKETS = (0.1, 0.25, 0.5, 1, 2, 5, 10)
 CV_PERCENT_BUCKETS = (1, 2, 5, 10, 20, 50)
+MM_PER_M = 1000.0
+PERCENT_PER_RATIO = 100.0
 
 
 class CellCollector(Collector):
@@ -89,8 +109,16 @@ class Metrics:
     """The app's registry and the metrics observed as things happen."""
 
     def __init__(self, app: FastAPI) -> None:
+        # prometheus-client's switch is the process's, not a registry's: this process
+        # serves one cell, and none of its registries wants `_created` series.
+        disable_created_metrics()
         self.registry = CollectorRegistry()
         self.registry.register(CellCollector(app))
+        self.registry.register(PlantCollector(app))
+        self.registry.register(BuildCollector())
+        ProcessCollector(registry=self.registry)
+        PlatformCollector(registry=self.registry)
+        GCCollector(registry=self.registry)
         self.event_seconds = Histogram(
             "glue_cell_event_processing_seconds",
             "time to decide and act on one event",
@@ -126,15 +154,29 @@ class Metrics:
         )
         for verdict in VERDICTS:  # both series exist from the start, at 0
             self.parts_inspected.labels(verdict)
-        self.part_precision_mm = Histogram(
-            "glue_cell_part_trajectory_precision_mm",
-            "each inspected part's p95 deviation from the planned spray path",
-            buckets=PRECISION_MM_BUCKETS,
+        self.part_precision_m = Histogram(
+            "glue_cell_part_trajectory_precision_meters",
+            "each inspected part's p95 deviation from the planned spray path, in metres",
+            buckets=PRECISION_M_BUCKETS,
             registry=self.registry,
         )
         self.part_dispensing_cv = Histogram(
+            "glue_cell_part_dispensing_cv_ratio",
+            "each inspected part's flow coefficient of variation while spraying (0-1)",
+            buckets=CV_RATIO_BUCKETS,
+            registry=self.registry,
+        )
+        self.part_precision_mm = Histogram(
+            "glue_cell_part_trajectory_precision_mm",
+            "DEPRECATED, removed in the next release: use "
+            "glue_cell_part_trajectory_precision_meters (the same in millimetres)",
+            buckets=PRECISION_MM_BUCKETS,
+            registry=self.registry,
+        )
+        self.part_dispensing_cv_percent = Histogram(
             "glue_cell_part_dispensing_cv_percent",
-            "each inspected part's flow coefficient of variation while spraying",
+            "DEPRECATED, removed in the next release: use "
+            "glue_cell_part_dispensing_cv_ratio (the same in percent)",
             buckets=CV_PERCENT_BUCKETS,
             registry=self.registry,
         )
@@ -156,10 +198,12 @@ class Metrics:
         self.parts_inspected.labels(inspection["verdict"]).inc()
         precision = figure_of(inspection, "precision_p95_mm")
         if precision is not None:
+            self.part_precision_m.observe(precision / MM_PER_M)
             self.part_precision_mm.observe(precision)
         cv = figure_of(inspection, "dispensing_cv_percent")
         if cv is not None:
-            self.part_dispensing_cv.observe(cv)
+            self.part_dispensing_cv.observe(cv / PERCENT_PER_RATIO)
+            self.part_dispensing_cv_percent.observe(cv)
 
     async def detach(self) -> None:
         if self._watcher is not None:
@@ -189,7 +233,9 @@ class Metrics:
             child.observe(seconds)
 
 
-@router.get("/metrics", response_class=Response, responses={200: {"content": {"text/plain": {}}}})
+@router.get(
+    "/metrics", response_class=Response, responses={200: {"content": text_body("text/plain")}}
+)
 async def metrics(request: Request) -> Response:
     """Prometheus text exposition of the cell's metrics."""
     registry = request.app.state.metrics.registry

@@ -16,7 +16,7 @@ from pydantic import BaseModel, Field, create_model
 
 from server.api import audit
 from server.api.declared_query import DeclaredQueryRoute
-from server.api.schemas import ErrorView, Strict
+from server.api.schemas import ErrorView, Strict, text_body
 from server.bootstrap.cell import Cell
 from server.common.errors import JournalUnavailable
 from server.common.values import whole_number
@@ -225,7 +225,7 @@ async def resume_order(request: Request, order_id: OrderId) -> Any:
     "/orders/{order_id}/report",
     response_model=OrderReport,
     responses={
-        200: {"content": {"text/csv": {}}, "description": "JSON, or CSV with format=csv"},
+        200: {"content": text_body("text/csv"), "description": "JSON, or CSV with format=csv"},
         404: REFUSALS[404],
     },
 )

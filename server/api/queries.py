@@ -18,6 +18,7 @@ from server.api.schemas import (
     FramePendingView,
     HealthView,
     StateView,
+    binary_body,
 )
 from server.bootstrap.cell import Cell
 from server.commands.catalogue import may
@@ -112,7 +113,7 @@ async def get_calibration(request: Request) -> dict[str, Any]:
 @router.get(
     "/calibration/image",
     response_class=FileResponse,
-    responses={200: {"content": {"image/png": {}}}, 404: {"model": ErrorView}},
+    responses={200: {"content": binary_body("image/png")}, 404: {"model": ErrorView}},
 )
 async def get_calibration_image(request: Request) -> FileResponse:
     """The annotated frame of the last robot calibration (markers, ids, residuals)."""
@@ -162,7 +163,7 @@ RunIdQuery = Annotated[
     response_class=Response,
     responses={
         200: {
-            "content": {"image/jpeg": {}},
+            "content": binary_body("image/jpeg"),
             "description": "the latest frame, undistorted, as JPEG",
             "headers": FRAME_HEADERS,
         },

@@ -24,6 +24,17 @@ from server.commands.requests import (  # noqa: F401
 )
 
 
+def binary_body(media_type: str) -> dict[str, Any]:
+    """A response's `content` of raw bytes (an image) as OpenAPI states it: a binary
+    string, which client generators turn into a file rather than leave out."""
+    return {media_type: {"schema": {"type": "string", "format": "binary"}}}
+
+
+def text_body(media_type: str) -> dict[str, Any]:
+    """A response's `content` of text (CSV, Prometheus text): a string to generators."""
+    return {media_type: {"schema": {"type": "string"}}}
+
+
 class OperationView(BaseModel):
     name: str
     run_id: str

@@ -18,7 +18,7 @@ from pydantic import BaseModel, Field
 
 from server.api import audit
 from server.api.declared_query import DeclaredQueryRoute
-from server.api.schemas import ErrorView
+from server.api.schemas import ErrorView, binary_body
 from server.bootstrap.cell import Cell
 from server.storage.workpieces import (
     IDENTIFIER,
@@ -161,7 +161,7 @@ async def delete_workpiece(request: Request, workpiece_id: WorkpieceId) -> Respo
 @router.get(
     "/workpieces/{workpiece_id}/thumbnail",
     response_class=FileResponse,
-    responses={200: {"content": {"image/png": {}}}, **NOT_FOUND},
+    responses={200: {"content": binary_body("image/png")}, **NOT_FOUND},
 )
 async def get_thumbnail(request: Request, workpiece_id: WorkpieceId) -> FileResponse:
     """The part as the camera saw it when it was created (PNG)."""

@@ -28,6 +28,7 @@ from server.api import (
     audit,
     camera_preview,
     commands,
+    diagnostics,
     inspections,
     markers,
     methods,
@@ -110,7 +111,8 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     )
     app.state.cell = cell
     app.state.settings = settings
-    app.state.mqtt = plant.mqtt  # the MQTT link (mqtt_url set), for /health
+    app.state.mqtt = plant.mqtt  # the MQTT link (mqtt_url set), for /health and /metrics
+    app.state.opcua = plant.opcua  # the OPC UA server (opcua_endpoint set), for /metrics
     app.state.ws_hub = ws.WebSocketHub(
         settings.max_broadcast_clients,
         settings.ws_client_buffer,
@@ -133,6 +135,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         inspections.router,
         metrics.router,
         admin.router,
+        diagnostics.router,
         webhooks.router,
         camera_preview.router,
     ):

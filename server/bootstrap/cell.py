@@ -116,7 +116,7 @@ class Cell:
         self.stores = CellStores.open(settings.data_path)
         restore_taught_layout(settings, self.stores.markers.applied)
         self.journal = Journal(
-            settings.data_file(settings.analytics_database, "journal.db"),
+            settings.journal_file,
             synchronous=settings.journal_synchronous,
             retention_days=settings.analytics_retention_days,
         )

@@ -3,7 +3,9 @@
     2025-08-21 14:30:25.123 [ERROR] server.core.worker.state_changes: fault NO_ANSWER from robot in
         EXECUTING_TRAJECTORY state (3f2a1c-000042)          [one line in the file]
       Error: the robot controller at 10.0.0.5:30003 stopped answering (...)
-      Context: {'operation': 'trajectory', 'run_id': '3f2a1c-000040', ...}
+      Context: {'operation': 'trajectory', 'run_id': '3f2a1c-000040', 'workpiece_id': ...}
+      Trace:                                              [when an exception caused it]
+        Traceback (most recent call last): ...
 
 Every line logged while the worker handles an event, or by the operation that
 event started, carries the event id, so a technician can go from a log line to
@@ -87,6 +89,9 @@ class RedactingFilter(logging.Filter):
         context = getattr(record, "context", None)
         if context:
             record.context = _Shown(self.redact(repr(context)))
+        trace = getattr(record, "trace", None)
+        if trace:
+            record.trace = self.redact(str(trace))
         record.glue_redacted = True
         return True
 
@@ -104,19 +109,23 @@ _EXCEPTION_FORMATTER = logging.Formatter()
 class SpecFormatter(logging.Formatter):
     """One timestamped line, then the specification's `Error:` and `Context:` lines.
 
-    A record logged with `extra={"error": ..., "context": {...}}` (the worker's
-    fault records) gets them indented below it, so the first line stays the
-    one to grep for and every following line is visibly part of it.
+    A record logged with `extra={"error": ..., "context": {...}, "trace": ...}` (the
+    worker's fault records) gets them indented below it, so the first line stays
+    the one to grep for and every following line is visibly part of it; `Trace:`
+    follows, each line of the stack indented, when an exception caused the fault.
     """
 
     def format(self, record: logging.LogRecord) -> str:
         text = super().format(record)
         error = getattr(record, "error", None)
         context = getattr(record, "context", None)
+        trace = getattr(record, "trace", None)
         if error is not None:
             text += f"\n  Error: {error}"
         if context:
             text += f"\n  Context: {context!r}"
+        if trace:
+            text += "\n  Trace:\n" + "\n".join(f"    {line}" for line in str(trace).splitlines())
         return text
 
 
@@ -149,7 +158,7 @@ class RetainingFileHandler(logging.handlers.RotatingFileHandler):
 
 def log_path(settings: Settings) -> Path:
     """Where the log file is (log_file_path, by default under the data directory)."""
-    return settings.data_file(settings.log_file_path, "logs/glue_cell.log")
+    return settings.log_file
 
 
 def configure(settings: Settings) -> Path:

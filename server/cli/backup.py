@@ -49,7 +49,7 @@ def main(argv: list[str]) -> int:
     except SettingsRefused as exc:
         print(f"glue-server {args.command}: {exc}", file=sys.stderr)
         return 2
-    journal = settings.data_file(settings.analytics_database, "journal.db")
+    journal = settings.journal_file
     try:
         if args.command == "backup":
             made = create_backup(settings.data_path, journal, args.file)

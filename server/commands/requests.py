@@ -25,15 +25,21 @@ class StartRequest(Strict):
     """Body of POST /start (all fields optional).
 
     Without contour matching, `workpiece_id` is required: the cell refuses the start
-    otherwise (422 naming it). The schema states that rule (`anyOf`) for clients.
+    otherwise (422 naming it). The schema states that rule for validators as an
+    `if`/`then` beside the two typed properties, which generators that do not read
+    conditionals pass over: they still model the body as its two typed fields.
     """
 
     model_config = ConfigDict(
         json_schema_extra={
-            "anyOf": [
-                {"properties": {"contour_matching": {"const": True}}},
-                {"required": ["workpiece_id"], "properties": {"workpiece_id": {"type": "string"}}},
-            ]
+            "if": {
+                "required": ["contour_matching"],
+                "properties": {"contour_matching": {"const": False}},
+            },
+            "then": {
+                "required": ["workpiece_id"],
+                "properties": {"workpiece_id": {"type": "string"}},
+            },
         }
     )
 

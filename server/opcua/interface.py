@@ -31,12 +31,14 @@ from server.core.infra.answers_in_flight import AnswersInFlight, after_answers
 from server.core.infra.bus import BusMessage, SubscriptionClosed
 from server.core.infra.paced_feed import PacedFeed
 from server.core.machine.transitions import State
-from server.opcua import address_space, tags
+from server.opcua import address_space, server_info, tags
 from server.opcua.address_space import CellNodes, data_value
+from server.opcua.alarms import CellAlarms
 from server.opcua.certificate import application_uri, ensure_certificate
 from server.opcua.identity import TokenUsers
 from server.opcua.methods import CellMethods
-from server.opcua.packml import packml_state, unit_mode
+from server.opcua.packml_feed import PackMLFeed
+from server.opcua.packml_methods import PackMLMethods
 from server.opcua.protection import CallGuard, PasswordGuard
 from server.security.tokens import TokenStore
 from server.settings.model import Settings
@@ -45,7 +47,7 @@ from server.views.kpi_query import kpis_of
 log = logging.getLogger(__name__)
 
 BUS_BUFFER = 1024  # messages the follower may lag behind before it is dropped and catches up
-FOLLOWED = ("state_changed", "progress", "error")
+FOLLOWED = ("state_changed", "progress", "error", "alert")
 
 
 def endpoint_address(endpoint: str) -> tuple[str, int]:
@@ -89,10 +91,14 @@ class OpcUaInterface:
         self.answers = answers  # the commands being answered, which go first
         self.settings = settings
         self.endpoint = settings.opcua_endpoint
+        server_info.quiet_asyncua(settings.opcua_log_level)
         self.server = Server(user_manager=TokenUsers(tokens))  # type: ignore[arg-type]
         self.methods = CellMethods(self.server, cell, tokens)
+        self.alarms = CellAlarms(self.server, cell, tokens, answers)
         self.tokens = tokens
         self.nodes: CellNodes | None = None
+        self.packml: PackMLFeed | None = None  # the PackML state machines, Status and Admin
+        self._counts: dict[str, int] = {}
         self._feed: PacedFeed | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._snapshot: dict[str, Any] = {}
@@ -108,6 +114,7 @@ class OpcUaInterface:
         PasswordGuard(server, self.cell, self.tokens).install()
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"glue cell {settings.cell_id}")
+        await server_info.set_build_info(server)
         await server.set_application_uri(application_uri(settings.cell_id))
         certificate, key = await asyncio.to_thread(
             ensure_certificate, settings.data_path, settings.cell_id
@@ -124,8 +131,12 @@ class OpcUaInterface:
             policies, permission_ruleset=CallGuard(server, self.cell, self.tokens)
         )
         server.set_identity_tokens([ua.AnonymousIdentityToken, ua.UserNameIdentityToken])
-        self.nodes = await address_space.build(server, settings.cell_id)
-        await self.methods.add(self.nodes.cell, self.nodes.cell_id, self.nodes.namespace)
+        self.nodes = nodes = await address_space.build(server, settings.cell_id)
+        await self.methods.add(nodes.cell, nodes.cell_id, nodes.namespace)
+        self.packml = PackMLFeed(server, nodes)
+        await PackMLMethods(server, self.cell, self.methods, self.packml).add(nodes)
+        await self.packml.write_constants(settings.cell_id)
+        await self.alarms.install(server.get_node(nodes.cell), nodes.cell_id, nodes.namespace)
         # Each session reads its own UserExecutable: false where a call would be refused.
         server.subscribe_server_callback(CallbackType.PostRead, self.methods.user_executable)
         # Subscribe before the first values are written: nothing falls between the two.
@@ -133,15 +144,20 @@ class OpcUaInterface:
         subscription = self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED)
         self._feed = PacedFeed(subscription, settings.plant_progress_interval)
         self._seq = self.cell.bus.last_seq
+        # The worker's verdicts, as they are made: PackML's acting states (packml_feed.py).
+        self.cell.worker.decisions.add(self.packml.decided)  # type: ignore[union-attr]
+        self.alarms.subscribe()
         await self._write_state(view.snapshot(), None)
         try:
             await server.start()
         except OSError as exc:
             subscription.close()
+            await self.alarms.stop()
             raise ConfigurationError(
                 f"the OPC UA endpoint {self.endpoint} cannot be served: {exc.strerror or exc}; "
                 "choose a free port or an address of this host (opcua_endpoint)"
             ) from None
+        await self.alarms.start()
         self._tasks = [
             asyncio.create_task(self._follow(), name="opcua-follower"),
             asyncio.create_task(self._refresh_admin(), name="opcua-admin"),
@@ -155,11 +171,24 @@ class OpcUaInterface:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         self._tasks = []
+        if self.packml is not None:
+            if self.cell.worker is not None:
+                self.cell.worker.decisions.remove(self.packml.decided)
+            await self.packml.stop()
+        await self.alarms.stop()
         if self._feed is not None:
             self._feed.subscription.close()
         await self.server.stop()
 
     # --- following the bus --------------------------------------------------------------
+
+    def session_count(self) -> int:
+        """The client sessions open on the server now (GET /metrics: glue_cell_opcua_sessions).
+
+        asyncua keeps them in a private map, registered when a session is created and
+        removed when it closes or times out; it offers no public count.
+        """
+        return len(getattr(self.server.iserver, "_external_sessions", {}))
 
     async def _follow(self) -> None:
         # A run's progress at most every plant_progress_interval, the latest kept
@@ -188,8 +217,13 @@ class OpcUaInterface:
 
     async def _apply(self, message: BusMessage) -> None:
         self._seq = message.seq
+        assert self.packml is not None
         if message.type == "state_changed":
-            await self._write_state(message.data["snapshot"], None, message.time)
+            await self.packml.settled(message.data, message.time)
+            await self._write_snapshot(message.data["snapshot"], None, message.time)
+        elif message.type == "alert":  # a warning: Admin.Warning
+            self.packml.warned(message.data)
+            await self.packml.write_admin(self._snapshot, self._counts, message.time)
         elif message.type == "progress":
             # The run's steps in the state they belong to (the state_changed snapshot
             # that enters a state is taken before its run starts, so it names no run yet):
@@ -197,6 +231,7 @@ class OpcUaInterface:
             data = message.data
             if data.get("run_id") and data.get("state") == self._snapshot.get("state"):
                 self._progress = dict(data)
+                await self.packml.progressed(State(data["state"]), message.time)
                 await self._write_cell_state(message.time)
         else:  # a fault: the devices' health has changed
             await self._write_cell_state(message.time)
@@ -204,16 +239,21 @@ class OpcUaInterface:
     async def _write_state(
         self, snapshot: dict[str, Any], progress: dict[str, Any] | None, at: float | None = None
     ) -> None:
-        self._snapshot, self._progress = snapshot, progress
-        state = State(snapshot["state"])
+        """Everything from the cell's snapshot, PackML's state where the cell is (the
+        start, a catch-up after the follower was dropped)."""
+        assert self.packml is not None
         at = at if at is not None else snapshot.get("since")
-        code, text, component = tags.stop_reason(snapshot)
-        await self._write("Status.StateCurrent", int(packml_state(state)), at)
-        await self._write("Status.UnitModeCurrent", int(unit_mode(state)), at)
-        await self._write("Status.StopReason.ID", code, at)
-        await self._write("Status.StopReason.Message", text, at)
-        await self._write("Status.StopReason.Component", component, at)
-        await self._write("Status.CellStateName", state.value, at)
+        await self.packml.begin(State(snapshot["state"]), at)
+        await self._write_snapshot(snapshot, progress, at)
+
+    async def _write_snapshot(
+        self, snapshot: dict[str, Any], progress: dict[str, Any] | None, at: float | None
+    ) -> None:
+        assert self.packml is not None
+        self._snapshot, self._progress = snapshot, progress
+        at = at if at is not None else snapshot.get("since")
+        await self._write("Status.CellStateName", snapshot["state"], at)
+        await self.packml.write_admin(snapshot, self._counts, at)
         await self._write_cell_state(at)
 
     async def _write_cell_state(self, at: float | None = None) -> None:
@@ -241,8 +281,10 @@ class OpcUaInterface:
                 kpis = await kpis_of(self.cell)
                 for name, figure in tags.admin_figures(kpis).items():
                     await self._write(f"Admin.{name}", figure, None)
-                for name, count in tags.admin_counts(kpis).items():
-                    await self._write(f"Admin.{name}", count, None)
+                self._counts = tags.admin_counts(kpis)
+                if self.packml is not None:
+                    await self.packml.write_admin(self._snapshot, self._counts, None)
+                    await self.packml.write_times()
                 await self._write_cell_state()  # the devices' health, between messages
             except Exception:
                 log.exception("OPC UA: could not refresh the Admin figures")

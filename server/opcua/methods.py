@@ -31,7 +31,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any, Final
 
-from asyncua import Node, Server, ua
+from asyncua import Server, ua
 from asyncua.common.callback import ServerItemCallback
 
 from server.bootstrap.cell import Cell
@@ -43,6 +43,7 @@ from server.core.machine.events import AuditNote, Outcome
 from server.core.machine.transitions import Command
 from server.opcua.address_space import node_id_of
 from server.opcua.identity import ANONYMOUS, CellUser, caller
+from server.opcua.nodes import add_method
 from server.security.tokens import Role, TokenStore
 from server.storage.journal import records
 
@@ -55,7 +56,7 @@ class Method:
 
     name: str
     packml: str
-    command: Command
+    command: Command | None  # None: a PackML method the OPC UA layer carries out itself
     role: Role
     description: str
 
@@ -73,6 +74,17 @@ OUTPUTS: Final = (
     ("EventId", ua.VariantType.String),
 )
 INPUTS: Final = {"Start": (("WorkpieceId", ua.VariantType.String),)}
+Gate = Callable[[], str | None]  # a reason the PackML state refuses a call now, or None
+
+
+@dataclass(frozen=True)
+class Admitted:
+    """A call that passed the checks: who made it, from where, and the worker's payload."""
+
+    who: str
+    address: str
+    action: str
+    payload: Any
 
 
 # The OPC UA status for each HTTP status a command's answer can have.
@@ -158,24 +170,23 @@ class CellMethods:
         self.tokens = tokens
         self.nodes: dict[ua.NodeId, Method] = {}
 
-    async def add(self, parent: Node, cell_id: str, namespace: int) -> None:
+    async def add(self, parent: ua.NodeId, cell_id: str, namespace: int) -> None:
+        """The cell's own methods under its object; every id a string (the arguments'
+        too: `<cell_id>.<Method>.InputArguments`), the same at every start."""
         for method in METHODS:
             inputs = [self._argument(name, kind) for name, kind in INPUTS.get(method.name, ())]
             outputs = [self._argument(name, kind) for name, kind in OUTPUTS]
             node_id = node_id_of(namespace, f"{cell_id}.{method.name}")
             self.nodes[node_id] = method
-            node = await parent.add_method(
+            await add_method(
+                self.server,
+                parent,
                 node_id,
                 ua.QualifiedName(method.name, namespace),
-                self._callback(method),
                 inputs,
                 outputs,
-            )
-            await node.write_attribute(
-                ua.AttributeIds.Description,
-                ua.DataValue(
-                    ua.Variant(ua.LocalizedText(f"PackML {method.packml}: {method.description}"))
-                ),
+                callback=self._callback(method),
+                description=f"PackML {method.packml}: {method.description}",
             )
 
     def may_call(self, user: object, method: Method) -> bool:
@@ -218,8 +229,11 @@ class CellMethods:
 
         return call
 
-    async def call(self, method: Method, args: tuple[Any, ...]) -> ua.CallMethodResult:
-        """Check who calls, then send the command as HTTP does; the answer as a CallMethodResult."""
+    def admit(
+        self, method: Method, args: tuple[Any, ...], gate: Gate | None = None
+    ) -> Admitted | ua.CallMethodResult:
+        """Who calls, with which role and inputs, and whether the PackML state takes the
+        call now (`gate`: a reason to refuse, or None): admitted, or the refusal."""
         user = caller.get()
         address = peer_of(self.server, user)
         action = f"OPC UA {method.name}"
@@ -238,24 +252,38 @@ class CellMethods:
         # The route's own model checks the inputs, as over HTTP and MQTT: the same
         # refusal (the 422's detail as the message), audited alike, nothing sent.
         body, problems = body_of(method, args)
-        payload, problems = payload_of(method.command, body) if not problems else (None, problems)
+        payload = None
+        if not problems and method.command is not None:
+            payload, problems = payload_of(method.command, body)
         if problems:
             why = invalid_request(problems)
             return self._refuse(
                 principal.describe(), address, action, why, ua.StatusCodes.BadInvalidArgument
             )
-        note = AuditNote(principal.describe(), address, action, _label)
+        why_not = gate() if gate is not None else None
+        if why_not is not None:
+            return self._refuse(
+                principal.describe(), address, action, why_not, ua.StatusCodes.BadInvalidState
+            )
+        return Admitted(principal.describe(), address, action, payload)
+
+    async def call(
+        self, method: Method, args: tuple[Any, ...], gate: Gate | None = None
+    ) -> ua.CallMethodResult:
+        """Check who calls, then send the command as HTTP does; the answer as a CallMethodResult."""
+        admitted = self.admit(method, args, gate)
+        if isinstance(admitted, ua.CallMethodResult):
+            return admitted
+        assert method.command is not None
+        who, address, action = admitted.who, admitted.address, admitted.action
+        note = AuditNote(who, address, action, _label)
         try:
             outcome = await self.cell.command(
-                method.command, source=f"opcua:{address}", payload=payload, audit=note
+                method.command, source=f"opcua:{address}", payload=admitted.payload, audit=note
             )
         except (EventQueueFull, WorkerStopped, JournalUnavailable) as exc:
             return self._refuse(
-                principal.describe(),
-                address,
-                action,
-                str(exc),
-                ua.StatusCodes.BadResourceUnavailable,
+                who, address, action, str(exc), ua.StatusCodes.BadResourceUnavailable
             )
         code = status_of(outcome)
         if code != ua.StatusCodes.Good:
@@ -263,6 +291,12 @@ class CellMethods:
         return answer(
             code, outcome.accepted, outcome.state.value, outcome.message, outcome.event_id
         )
+
+    def audit(self, who: str, address: str, action: str, outcome: str, detail: str) -> None:
+        """A row in the audit trail for a call the OPC UA layer answers itself."""
+        journal = self.cell.journal
+        if journal is not None:
+            journal.append([records.audit(time.time(), who, address, action, outcome, detail)])
 
     def _refuse(
         self,

@@ -37,6 +37,7 @@ _ROUTES: Final = MappingProxyType(
         ("GET", "/history"): VIEW,
         ("GET", "/operations"): VIEW,
         ("GET", "/errors"): VIEW,
+        ("GET", "/errors/{seq}"): VIEW,
         ("GET", "/events"): VIEW,
         # one CSV route per journal table, each with that table's own filters
         ("GET", "/export/events.csv"): VIEW,
@@ -68,6 +69,8 @@ _ROUTES: Final = MappingProxyType(
         # the camera set-up view's status; its stream, WebSocket /camera/preview/ws, checks
         # the same role at its handshake (server/api/camera_preview.py)
         ("GET", "/camera/preview"): MAINT,
+        # the diagnostic bundle: settings (secrets masked), faults, logs, health
+        ("GET", "/diagnostics"): MAINT,
         ("POST", "/calibration/markers/draft/{marker}/teach"): MAINT,
         ("PUT", "/calibration/markers/draft/{marker}"): MAINT,
         ("DELETE", "/calibration/markers/draft"): MAINT,

@@ -34,6 +34,14 @@ from server.settings.reference import (
 
 DOCS = "docs/settings.md"
 
+# Variables of the specification's deployment example that this cell does not read,
+# and why: a "did you mean" naming an unrelated setting would mislead.
+SPECIFICATION_ONLY = {
+    "GLUE_APP_THREAD_POOL_SIZE": "the cell runs one event loop and no thread pool of its own",
+    "GLUE_APP_MEMORY_LIMIT": "the cell does not bound its own memory",
+}
+DIFFERENCES = "docs/specification-differences.md"
+
 
 class SettingsRefused(ConfigurationError):
     """The settings cannot be loaded; the message is one line for the console."""
@@ -61,6 +69,10 @@ def unknown_variables(environ: Mapping[str, str] | None = None) -> list[str]:
     for name in sorted(environ):
         upper = name.upper()
         if not upper.startswith(ENV_PREFIX) or upper in known:
+            continue
+        if upper in SPECIFICATION_ONLY:
+            why = SPECIFICATION_ONLY[upper]
+            warnings.append(f"{name} is not read: {why} (see {DIFFERENCES})")
             continue
         close = difflib.get_close_matches(upper, candidates, n=1, cutoff=0.6)
         hint = f"; did you mean {close[0]}?" if close else f"; the settings are in {DOCS}"

@@ -36,6 +36,7 @@ from pydantic_settings import (
 from server.common.errors import ConfigurationError
 from server.common.values import BYTE_SIZE_ACCEPTS, byte_size
 from server.security import destinations
+from server.settings.opcua_logging import OpcUaLoggingSettings
 from server.settings.sparkplug import SparkplugSettings
 from server.settings.webhooks import WebhookTarget, named
 
@@ -165,7 +166,7 @@ def default_cell_id() -> str:
     return name[:64] if name[0].isalnum() else f"cell-{name}"[:64]
 
 
-class Settings(BaseSettings, SparkplugSettings):
+class Settings(BaseSettings, OpcUaLoggingSettings, SparkplugSettings):
     """Every tunable of the cell server, with the specification's names."""
 
     # allow_inf_nan=False: no setting is ever Infinity or NaN, from any source (an
@@ -1070,3 +1071,13 @@ class Settings(BaseSettings, SparkplugSettings):
         """A file under the data directory unless configured as an absolute path."""
         path = Path(configured) if configured else Path(default)
         return path if path.is_absolute() else self.data_path / path
+
+    @property
+    def log_file(self) -> Path:
+        """Where the log file is (log_file_path, by default under the data directory)."""
+        return self.data_file(self.log_file_path, "logs/glue_cell.log")
+
+    @property
+    def journal_file(self) -> Path:
+        """Where the journal is (analytics_database, by default under the data directory)."""
+        return self.data_file(self.analytics_database, "journal.db")

@@ -138,8 +138,9 @@ def known_variables() -> set[str]:
 
 
 @cache
-def groups() -> dict[str, str]:
-    """Each field's section: the comment line above the first field of each section."""
+def _declared_groups() -> dict[str, str]:
+    """Each field declared in Settings' own body: the comment line above the first field
+    of each section."""
     source = textwrap.dedent(inspect.getsource(Settings))
     lines = source.splitlines()
     tree = ast.parse(source)
@@ -154,25 +155,35 @@ def groups() -> dict[str, str]:
                 group = comments[0]
             found[node.target.id] = group
         previous_end = node.end_lineno or node.lineno
-    # A section model among Settings' bases (server/settings/<topic>.py) names its own.
-    for base in Settings.__mro__:
-        section = base.__dict__.get("SECTION")
-        if isinstance(section, str):
-            found.update({name: section for name in inspect.get_annotations(base)})
     return found
 
 
-def _ordered_fields() -> list[str]:
-    """The model's fields, those of the section models after Settings' own: a base's
-    fields come first in pydantic's order, but read after the sections they join."""
-    sections = {
-        name
-        for base in Settings.__mro__
-        if isinstance(base.__dict__.get("SECTION"), str)
-        for name in inspect.get_annotations(base)
-    }
+@cache
+def groups() -> dict[str, str]:
+    """Each field's section: as declared in Settings' body, or, for a field of a section
+    model Settings inherits, that model's `settings_section` (one of the body's sections
+    or a section of its own)."""
+    found = dict(_declared_groups())
+    for base in Settings.__mro__[1:]:
+        section = getattr(base, "settings_section", None)
+        if isinstance(section, str):
+            for name in getattr(base, "model_fields", {}):
+                found.setdefault(name, section)
+    return found
+
+
+def _in_order() -> list[str]:
+    """The fields section by section in the order Settings' body declares them; an
+    inherited section model's fields after its section's (or at the end, in a section
+    of their own)."""
+    declared, sections = _declared_groups(), groups()
+    rank: dict[str, int] = {}
+    for name in declared:
+        rank.setdefault(declared[name], len(rank))
     names = list(Settings.model_fields)
-    return [n for n in names if n not in sections] + [n for n in names if n in sections]
+    return sorted(
+        names, key=lambda n: (rank.get(sections.get(n, "General"), len(rank)), n not in declared)
+    )
 
 
 def facts() -> list[SettingFacts]:
@@ -180,6 +191,7 @@ def facts() -> list[SettingFacts]:
     schema = Settings.model_json_schema()["properties"]
     sections = groups()
     variables = variables_by_setting()
+    fields = Settings.model_fields
     return [
         SettingFacts(
             name=name,
@@ -187,9 +199,9 @@ def facts() -> list[SettingFacts]:
             variables=variables[name],
             default=_default(name),
             accepted=_accepted(schema[name]),
-            meaning=Settings.model_fields[name].description or "",
+            meaning=fields[name].description or "",
         )
-        for name in _ordered_fields()
+        for name in _in_order()
     ]
 
 

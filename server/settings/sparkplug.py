@@ -21,8 +21,8 @@ TOKEN_ID_PATTERN = r"^[0-9a-f]{8}$"
 class SparkplugSettings(BaseModel):
     """Where the cell shows itself to a Sparkplug B host, and whether it takes its commands."""
 
-    # The heading of these settings in docs/settings.md (server/settings/reference.py).
-    SECTION: ClassVar[str] = (
+    # The section of docs/settings.md it belongs to (server/settings/reference.py).
+    settings_section: ClassVar[str] = (
         "Sparkplug B (docs/plant-integration.md): off unless sparkplug_group is set"
     )
 

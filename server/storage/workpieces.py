@@ -70,13 +70,13 @@ class SpraySettingsIn(SpraySettings):
     (`Workpiece` takes plain `SpraySettings`).
     """
 
+    # The rule as a conditional, which generators that do not read it pass over: they
+    # still model the settings as their typed fields (as StartRequest's rule).
     model_config = ConfigDict(
         extra="forbid",
         json_schema_extra={
-            "anyOf": [
-                {"properties": {"outline": {"const": True}}},
-                {"required": ["fill"], "properties": {"fill": {"enum": ["zigzag", "raster"]}}},
-            ]
+            "if": {"required": ["outline"], "properties": {"outline": {"const": False}}},
+            "then": {"required": ["fill"], "properties": {"fill": {"enum": ["zigzag", "raster"]}}},
         },
     )
 

@@ -231,4 +231,6 @@ def test_the_server_log_is_readable(cell) -> None:
     # The specification's Error: and Context: lines, indented under the fault's line.
     first = lines.index(faults[0])
     assert lines[first + 1].startswith("  Error: emergency stop by ")
-    assert lines[first + 2].startswith("  Context: {'operation': ")
+    # The e-stop came mid-run: the context names the run it stopped, not None.
+    assert lines[first + 2].startswith("  Context: {'operation': 'trajectory', 'run_id': ")
+    assert "'workpiece_id': " in lines[first + 2]

@@ -107,6 +107,7 @@ async def test_no_secret_reaches_any_log_through_any_transport(tmp_path: Path) -
         hook_url = f"http://127.0.0.1:{hook_port}/hooks/{hook_path}?auth={hook_query}"
         env = {
             "GLUE_APP_LOGGING_LEVEL": "DEBUG",
+            "GLUE_APP_OPCUA_LOG_LEVEL": "DEBUG",  # asyncua's own lines too
             "GLUE_APP_CELL_ID": CELL,
             "GLUE_APP_SIMULATION_SPEED_FACTOR": "10",
             "GLUE_APP_OPCUA_ENDPOINT": f"opc.tcp://127.0.0.1:{opcua_port}",

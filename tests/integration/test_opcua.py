@@ -101,12 +101,14 @@ async def test_the_plant_reads_follows_and_commands_the_cell(tmp_path: Path) -> 
             # Read: PackML Idle, Production; no stop reason; CellState as /state says.
             assert await tag(anonymous, "Status.StateCurrent") == 4
             assert await tag(anonymous, "Status.UnitModeCurrent") == 1
-            assert await tag(anonymous, "Status.StopReason.ID") == ""
+            await anonymous.load_data_type_definitions()  # PackML's structures
+            assert (await tag(anonymous, "Admin.StopReason")).Trigger is False
             document = json.loads(await tag(anonymous, "CellState"))
             assert document["state"] == "IDLE"
             assert set(document["devices"]) == {"robot", "glue", "camera"}
             await until(lambda: _positive(anonymous, "Admin.TimeInState.IDLE"))
-            assert await tag(anonymous, "Admin.ProdProcessedCount") == 0
+            (processed,) = await tag(anonymous, "Admin.ProdProcessedCount")
+            assert processed.Count == 0
             # Anonymous may read, never call.
             refused = await call(anonymous, "Start", "demo")
             assert refused.StatusCode.value == ua.StatusCodes.BadUserAccessDenied
@@ -143,7 +145,7 @@ async def test_the_plant_reads_follows_and_commands_the_cell(tmp_path: Path) -> 
             assert states == ["IDLE", "EXECUTING_TRAJECTORY", "IDLE"], states
             run = [json.loads(v) for v in recorder.values if json.loads(v)["waypoint"]]
             assert run and all(d["run_id"] == accepted.OutputArguments[3].Value for d in run)
-            assert await tag(running, "Status.StateCurrent") == 4
+            assert await tag(running, "Status.StateCurrent") == 17  # Complete: the part is done
             # A calibration's steps name it too: CellState took only progress with a waypoint.
             calibrating = await rig.api.post("/calibrate-robot")
             assert calibrating.status_code == 202, calibrating.text
@@ -162,7 +164,10 @@ async def test_the_plant_reads_follows_and_commands_the_cell(tmp_path: Path) -> 
             assert stopped.StatusCode.is_good(), stopped
             assert stopped.OutputArguments[1].Value == "ERROR"
             assert await tag(stopping, "Status.StateCurrent") == 9  # Aborted
-            assert await tag(stopping, "Status.StopReason.ID") == "EMERGENCY_STOP"
+            await stopping.load_data_type_definitions()
+            reason = await tag(stopping, "Admin.StopReason")
+            assert reason.Trigger is True
+            assert reason.Message.startswith("EMERGENCY_STOP: ")
             assert json.loads(await tag(stopping, "CellState"))["state"] == "ERROR"
 
         audit = (await rig.api.get("/audit", params={"limit": 50})).json()["audit"]

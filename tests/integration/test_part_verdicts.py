@@ -64,10 +64,13 @@ def metric(text: str, series: str) -> float:
 
 async def opcua_counts(port: int) -> tuple[int, int]:
     async with Client(f"opc.tcp://127.0.0.1:{port}", timeout=WAIT_S) as opc:
+        await opc.load_data_type_definitions()  # the counts are PackMLCountDataType
         ns = await opc.get_namespace_index(NAMESPACE_URI)
         processed = opc.get_node(f"ns={ns};s={CELL}.Admin.ProdProcessedCount")
         defective = opc.get_node(f"ns={ns};s={CELL}.Admin.ProdDefectiveCount")
-        return await processed.read_value(), await defective.read_value()
+        (processed_count,) = await processed.read_value()
+        (defective_count,) = await defective.read_value()
+        return processed_count.Count, defective_count.Count
 
 
 async def until_counts(port: int, expected: tuple[int, int]) -> None:

@@ -48,6 +48,8 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     # devices
     "drivers": ("common", "drivers.sim", "vision"),
     "drivers.sim": ("drivers", "settings", "vision"),
+    # the diagnostic bundle, read from the data directory
+    "diagnostics": ("common", "settings", "storage.journal"),
     # the command catalogue: each command declared once, above the machine's vocabulary
     "commands": ("common", "core.machine", "security", "storage"),
     # measuring a run
@@ -75,7 +77,8 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     # transports
     "api": (
         CELL, "commands", "common", "core.infra", "core.machine", "core.operations", "core.worker",
-        "orders", "quality", "security", "settings", "storage", "storage.journal", "views",
+        "diagnostics", "orders", "quality", "security", "settings", "storage", "storage.journal",
+        "views",
     ),
     "mqtt": (
         CELL, "commands", "common", "core.infra", "core.machine", "core.worker", "quality",
@@ -96,7 +99,7 @@ ALLOWED: dict[str, tuple[str, ...]] = {
         "drivers", "drivers.sim", "mqtt", "mqtt.sparkplug", "notify", "opcua", "orders", "security",
         "settings", "storage", "storage.journal", "views", "vision",
     ),
-    "cli": ("bootstrap", "settings", "storage"),
+    "cli": ("bootstrap", "diagnostics", "settings", "storage"),
     "line": ("api",),
     "server": (
         "api", "bootstrap", "cli", "common", "opcua", "settings", "storage", "vision",

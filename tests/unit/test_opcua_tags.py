@@ -15,7 +15,7 @@ def test_every_cell_state_has_a_packml_state_and_a_mode() -> None:
     assert packml_state(State.IDLE) is PackMLState.IDLE
     assert packml_state(State.PAUSED) is PackMLState.HELD
     assert packml_state(State.ERROR) is PackMLState.ABORTED
-    assert unit_mode(State.EXECUTING_TRAJECTORY) is UnitMode.PRODUCTION
+    assert unit_mode(State.EXECUTING_TRAJECTORY) is UnitMode.PRODUCE
     assert unit_mode(State.CALIBRATING_CAMERA) is UnitMode.MAINTENANCE
 
 

@@ -76,6 +76,18 @@ def test_an_unknown_glue_app_variable_is_a_warning_naming_the_closest_setting() 
     ]
 
 
+def test_the_specifications_unread_variables_say_why_not_what_else() -> None:
+    """The deployment example's two variables the cell does not read get a reason, not a
+    "did you mean" naming an unrelated setting (GLUE_APP_TRUSTED_PROXIES, once)."""
+    warnings = unknown_variables(
+        {"GLUE_APP_MEMORY_LIMIT": "512MB", "GLUE_APP_THREAD_POOL_SIZE": "4"}
+    )
+    assert len(warnings) == 2
+    for warning in warnings:
+        assert "is not read: " in warning and "did you mean" not in warning
+        assert warning.endswith("(see docs/specification-differences.md)")
+
+
 def test_every_variable_listed_is_one_the_settings_read(monkeypatch) -> None:
     """The documented variables are those pydantic-settings reads: each one takes effect."""
     for name, variables in variables_by_setting().items():

@@ -21,7 +21,7 @@ import pytest
 
 from server.common.errors import DeviceError, DeviceTimeout, OperationError
 from server.core.operations.base import Operation, OperationContext, OperationResult
-from server.core.worker.supervision import RunOutcome, supervise
+from server.core.worker.supervision import STACK_LIMIT, RunOutcome, stack_of, supervise
 from server.settings.model import Settings
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
@@ -252,7 +252,7 @@ async def test_a_device_error_is_a_device_fault_of_that_device(error: DeviceErro
     assert len(calls) == 1 and retries == []
 
 
-async def test_an_unexpected_exception_is_internal(caplog: pytest.LogCaptureFixture) -> None:
+async def test_an_unexpected_exception_is_internal() -> None:
     async def operation(ctx: OperationContext) -> Any:
         return {"ratio": 1 / 0}
 
@@ -260,7 +260,19 @@ async def test_an_unexpected_exception_is_internal(caplog: pytest.LogCaptureFixt
     assert outcome.code == "INTERNAL" and outcome.component == "operation"
     assert outcome.message.startswith("ZeroDivisionError: ")
     assert retries == []
-    assert "crashed" in caplog.text  # with its traceback in the log
+    # the stack goes with the fault (journal row, log line, GET /errors/{seq})
+    assert outcome.trace.startswith("Traceback (most recent call last):")
+    assert 'return {"ratio": 1 / 0}' in outcome.trace
+    assert outcome.trace.endswith("ZeroDivisionError: division by zero")
+
+
+def test_a_long_stack_keeps_its_innermost_end() -> None:
+    try:
+        raise RuntimeError("x" * (2 * STACK_LIMIT) + " the end")
+    except RuntimeError as exc:
+        trace = stack_of(exc)
+    assert len(trace) <= STACK_LIMIT + 4
+    assert trace.startswith("...\n") and trace.endswith(" the end")
 
 
 async def test_cancelling_the_supervision_cancels_the_operation() -> None:

@@ -166,6 +166,9 @@ class RunFailedPayload:
     code: str
     message: str
     component: str
+    # The stack of the exception that ended the run: kept on the fault's row, not in the
+    # event's data (every event is journaled; a stack belongs to the one fault).
+    trace: str = ""
 
     def as_dict(self) -> dict[str, Any]:
         return {

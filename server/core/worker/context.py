@@ -60,9 +60,12 @@ class RunningOperation:
         }
 
     def fault_context(self) -> dict[str, Any]:
-        """What was going on when a fault came: the operation, its run, its parameters."""
+        """What was going on when a fault came: the operation, its run, its parameters,
+        the workpiece it was on and how far it had got."""
         context: dict[str, Any] = {"operation": self.name, "run_id": self.run_id}
         context.update(self.params)
+        if "workpiece_id" in self.progress:
+            context["workpiece_id"] = self.progress["workpiece_id"]
         if "waypoint" in self.progress:
             total = self.progress.get("total", "?")
             context["waypoint"] = f"{self.progress['waypoint']} of {total}"
@@ -80,17 +83,43 @@ class FaultRecord:
     time: float
     classification: str = "critical"
     recommended_action: str = ""
+    # What the fault interrupted: {"operation": None} when no operation ran, else the
+    # operation, its run id, parameters, workpiece and waypoint (fault_context).
+    context: dict[str, Any] = field(default_factory=lambda: {"operation": None})
+    trace: str = ""  # the stack, when an exception caused the fault
 
     @classmethod
-    def of(cls, payload: Payload, source: str, event_id: str, at: float) -> FaultRecord:
-        """The fault an event into ERROR reports: an e-stop, a device fault or a failed run."""
+    def of(
+        cls,
+        payload: Payload,
+        source: str,
+        event_id: str,
+        at: float,
+        interrupted: RunningOperation | None = None,
+    ) -> FaultRecord:
+        """The fault an event into ERROR reports: an e-stop, a device fault or a failed run,
+        with the operation it interrupted (`interrupted`, None when none ran)."""
+        trace = ""
         if isinstance(payload, FaultPayload | RunFailedPayload):
             code, message, component = payload.code, payload.message, payload.component
+            if isinstance(payload, RunFailedPayload):
+                trace = payload.trace
         else:  # the e-stop: who pressed it and why
             code, message, component = "EMERGENCY_STOP", f"emergency stop by {source}", source
             if isinstance(payload, StopPayload) and payload.reason:
                 message += f": {payload.reason}"
-        return cls(code, message, component, event_id, at, classify(code), recommended_action(code))
+        context = interrupted.fault_context() if interrupted else {"operation": None}
+        return cls(
+            code,
+            message,
+            component,
+            event_id,
+            at,
+            classify(code),
+            recommended_action(code),
+            context,
+            trace,
+        )
 
     def as_dict(self) -> dict[str, Any]:
         # Spelled out: dataclasses.asdict deep-copies, and this runs on every

@@ -24,6 +24,7 @@ from server.core.machine.transitions import Event
 
 if TYPE_CHECKING:
     from server.core.machine.events import AuditNote, Outcome, Payload
+    from server.core.worker.context import RunningOperation
     from server.core.worker.devices import HaltReport
 
 
@@ -50,6 +51,9 @@ class Envelope:
     audit: AuditNote | None = None  # who sent it: its audit row goes into the event's commit
     # An e-stop's halt, made before it was queued: its transition's first HALT is this one.
     halt_made: asyncio.Future[HaltReport] | None = None
+    # The operation this event's transition cancelled (CANCEL_RUN runs before
+    # RECORD_FAULT): the fault's record names what it interrupted.
+    interrupted: RunningOperation | None = None
 
 
 class EventQueue:

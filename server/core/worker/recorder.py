@@ -113,6 +113,8 @@ class Recorder:
                 fault.classification,
                 fault.event_id,
                 state,
+                fault.context,
+                fault.trace,
             )
         )
 

@@ -197,7 +197,9 @@ class Runs:
                 Event.OPERATION_COMPLETED, RunCompletedPayload(run_id, outcome.result)
             )
         else:
-            failure = RunFailedPayload(run_id, outcome.code, outcome.message, outcome.component)
+            failure = RunFailedPayload(
+                run_id, outcome.code, outcome.message, outcome.component, outcome.trace
+            )
             self._post_outcome(Event.OPERATION_FAILED, failure)
 
     # --- while it runs -------------------------------------------------------

@@ -52,20 +52,26 @@ class StateChanges:
         """The fault in the context (the first since a reset is the stop reason), the
         journal, the log and on the bus."""
         fault = FaultRecord.of(
-            envelope.payload, envelope.source, envelope.event_id, self.clock.time()
+            envelope.payload,
+            envelope.source,
+            envelope.event_id,
+            self.clock.time(),
+            # the run this transition cancelled, or one still running (a fault in PAUSED)
+            envelope.interrupted or self.ctx.operation,
         )
         self.ctx.record_error(fault)
         self.faults += 1
         self.recorder.fault(fault, decision.target.value)
-        running = self.ctx.operation
-        context = running.fault_context() if running else {"operation": None}
         where = (fault.code, fault.component, self.ctx.state.value, envelope.event_id)
         log.error(
             "fault %s from %s in %s state (%s)",
             *where,
-            extra={"error": fault.message, "context": context},
+            extra={"error": fault.message, "context": fault.context, "trace": fault.trace},
         )
-        self.bus.publish("error", {**fault.as_dict(), "state": decision.target.value})
+        self.bus.publish(
+            "error",
+            {**fault.as_dict(), "context": fault.context, "state": decision.target.value},
+        )
 
     def change_state(self, decision: Decision, envelope: Envelope) -> None:
         """Enter the decision's target: history, journal, snapshot, bus, the ERROR alert."""

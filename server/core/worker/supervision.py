@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -37,6 +38,7 @@ class RunOutcome:
     message: str = ""
     component: str = "operation"
     attempts: int = 1
+    trace: str = ""  # the stack of the exception that ended the run, for the fault's record
 
     @property
     def succeeded(self) -> bool:
@@ -151,17 +153,35 @@ async def _attempt(
     except OperationTimeout as exc:
         return RunOutcome(code="OPERATION_TIMEOUT", message=str(exc), attempts=attempt)
     except OperationError as exc:
-        return RunOutcome(code=exc.code, message=str(exc), attempts=attempt)
+        return RunOutcome(code=exc.code, message=str(exc), attempts=attempt, trace=stack_of(exc))
     except DeviceError as exc:
         return RunOutcome(
-            code="DEVICE_FAULT", message=str(exc), component=exc.device, attempts=attempt
+            code="DEVICE_FAULT",
+            message=str(exc),
+            component=exc.device,
+            attempts=attempt,
+            trace=stack_of(exc),
         )
     except asyncio.CancelledError:
         raise
     except Exception as exc:
-        log.exception("operation %s crashed", op_ctx.run_id)
-        return RunOutcome(code="INTERNAL", message=f"{type(exc).__name__}: {exc}", attempts=attempt)
+        message = f"{type(exc).__name__}: {exc}"
+        return RunOutcome(code="INTERNAL", message=message, attempts=attempt, trace=stack_of(exc))
     return RunOutcome(result=as_result(result), attempts=attempt)
+
+
+# A fault row keeps at most this much of a stack, its innermost end: where it failed.
+STACK_LIMIT = 8_000
+
+
+def stack_of(exc: BaseException) -> str:
+    """The exception's traceback as text (with its causes), cut to STACK_LIMIT characters.
+
+    Kept with the fault (journal, log line, GET /errors/{seq}) so a technician can
+    tell a driver's refusal from a crash in the cell's own code without a debugger.
+    """
+    text = "".join(traceback.format_exception(exc)).rstrip()
+    return text if len(text) <= STACK_LIMIT else "...\n" + text[-STACK_LIMIT:]
 
 
 def as_result(value: Any) -> OperationResult:

@@ -33,9 +33,10 @@ from server.core.infra.bus import Bus
 from server.core.infra.clock import SYSTEM_CLOCK, Clock
 from server.core.machine import decide
 from server.core.machine.actions import Action
+from server.core.machine.decisions import DecisionListeners, DecisionNote
 from server.core.machine.engine import Decision, Facts
 from server.core.machine.events import JogPayload, Outcome, Payload
-from server.core.machine.transitions import OPERATION_OF_STATE, Event, event_label
+from server.core.machine.transitions import OPERATION_OF_STATE, Event, State, event_label
 from server.core.operations.base import Operation
 from server.core.operations.jog import JogRefused
 from server.core.worker.alerts import Alerts
@@ -127,13 +128,15 @@ class Worker:
             lambda: poster.post_ready(Event.SYSTEM_READY, "system"),
         )
         self._task: asyncio.Task[None] | None = None
+        # Told of every verdict before its actions run (decisions.py says who needs it).
+        self.decisions = DecisionListeners()
         self.reset_probes = ResetProbes(
             devices, settings.reset_probe_timeout, lambda e: self.queue.put(e, bounded=False)
         )
         self._handlers: dict[Action, Handler] = {
             Action.HALT: lambda _d, e: self._halt(e),
             Action.RECORD_RUN_END: lambda d, e: self.runs.record_end(d.event, e.payload),
-            Action.CANCEL_RUN: lambda _d, _e: self.runs.cancel(),
+            Action.CANCEL_RUN: self._cancel_run,
             Action.CANCEL_HOMING: lambda _d, _e: self.activities.cancel(),
             Action.HOLD: lambda _d, _e: self.runs.hold_now(),
             Action.RECORD_FAULT: self.changes.record_fault,
@@ -260,6 +263,7 @@ class Worker:
         probed = probe.facts() if probe is not None else None
         facts = self.decision_facts(event, envelope.payload, probed)
         verdict = decide.decide(state, event, envelope.payload, facts, self.settings)
+        self._tell(state, event, verdict)
         if isinstance(verdict, decide.Refusal):
             if verdict.payload is not None:
                 envelope.payload = verdict.payload  # recorded as decided
@@ -286,6 +290,17 @@ class Worker:
         message = decide.accepted_message(state, event, decision)
         started = envelope.event_id if Action.START_RUN in decision.actions else None
         return Outcome(True, envelope.event_id, event, self.ctx.state, message, run_id=started)
+
+    def _tell(self, state: State, event: Event, verdict: decide.Verdict) -> None:
+        """The verdict to the decision listeners, before any of its actions."""
+        now = self.clock.time()
+        if isinstance(verdict, decide.Refusal):
+            self.decisions.tell(DecisionNote(state, event, "refused", None, now))
+        elif isinstance(verdict, decide.ProbeDevices):
+            self.decisions.tell(DecisionNote(state, event, "probing", None, now))
+        else:
+            target = verdict.decision.target
+            self.decisions.tell(DecisionNote(state, event, "accepted", target, now))
 
     def _outcome(
         self, envelope: Envelope, accepted: bool, message: str, field: str | None = None
@@ -329,6 +344,11 @@ class Worker:
             report = await self.devices.safe_halt(self.settings.emergency_stop_timeout)
         self.runs.halted(report.valve_closed)
         self.alerts.halt_incomplete(report.errors)
+
+    async def _cancel_run(self, decision: Decision, envelope: Envelope) -> None:
+        """Cancel the running operation, noting it on the envelope for the fault's record."""
+        envelope.interrupted = self.ctx.operation
+        await self.runs.cancel()
 
     async def _start_jog(self, decision: Decision, envelope: Envelope) -> None:
         payload = envelope.payload

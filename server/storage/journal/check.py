@@ -17,6 +17,34 @@ from server.storage.journal.commit_chain import LastCommitFile
 from server.storage.journal.verify import verify
 
 
+def check(journal: Path, window: int | None = None) -> list[str]:
+    """What is wrong with the journal file, one line each (empty: nothing), or the line
+    "ok: ..." first when nothing is. Read-only, in one snapshot."""
+    found: list[str] = []
+    try:
+        noted = LastCommitFile(journal).read()
+    except (OSError, ValueError) as exc:
+        noted = None
+        found.append(f"the last-commit record is unreadable ({exc})")
+    connection = sqlite3.connect(f"{journal.resolve().as_uri()}?mode=ro", uri=True)
+    try:
+        # One snapshot for every query, taken after the note was read: a server
+        # committing meanwhile is neither half seen nor taken for damage.
+        connection.execute("BEGIN")
+        quick = connection.execute("PRAGMA quick_check").fetchone()
+        if quick is None or quick[0] != "ok":
+            raise sqlite3.DatabaseError(f"quick_check: {quick}")
+        verdict = verify(connection, noted, window=window)
+    except sqlite3.DatabaseError as exc:
+        return [*found, f"SQLite cannot read {journal}: {exc}"]
+    finally:
+        connection.close()
+    found += [damage.message for damage in verdict.damage]
+    if not found:
+        return [f"ok: commits up to {verdict.head.seq}, {verdict.digested} digested again"]
+    return found
+
+
 def main(argv: list[str] | None = None) -> int:
     """Check a journal file, every commit by default; print what is wrong (exit 1) or ok."""
     parser = argparse.ArgumentParser(description=main.__doc__)
@@ -26,32 +54,10 @@ def main(argv: list[str] | None = None) -> int:
     if not args.journal.is_file():
         print(f"no journal at {args.journal}", file=sys.stderr)
         return 2
-    found: list[str] = []
-    try:
-        noted = LastCommitFile(args.journal).read()
-    except (OSError, ValueError) as exc:
-        noted = None
-        found.append(f"the last-commit record is unreadable ({exc})")
-    connection = sqlite3.connect(f"{args.journal.resolve().as_uri()}?mode=ro", uri=True)
-    try:
-        # One snapshot for every query, taken after the note was read: a server
-        # committing meanwhile is neither half seen nor taken for damage.
-        connection.execute("BEGIN")
-        quick = connection.execute("PRAGMA quick_check").fetchone()
-        if quick is None or quick[0] != "ok":
-            raise sqlite3.DatabaseError(f"quick_check: {quick}")
-        verdict = verify(connection, noted, window=args.window)
-    except sqlite3.DatabaseError as exc:
-        print(f"SQLite cannot read {args.journal}: {exc}")
-        return 1
-    finally:
-        connection.close()
-    found += [damage.message for damage in verdict.damage]
-    for line in found:
+    lines = check(args.journal, args.window)
+    for line in lines:
         print(line)
-    if not found:
-        print(f"ok: commits up to {verdict.head.seq}, {verdict.digested} digested again")
-    return 1 if found else 0
+    return 0 if lines[0].startswith("ok: ") else 1
 
 
 if __name__ == "__main__":

@@ -129,6 +129,15 @@ class Reader:
             ).fetchall()
         return [dict(zip(columns, row, strict=True)) for row in rows]
 
+    def row(self, table: str, seq: int) -> dict[str, Any] | None:
+        """The row of `table` numbered `seq`, or None when there is none (pruned, or never)."""
+        _, columns = _columns(table)
+        with self._reader() as connection:
+            found = connection.execute(
+                f"SELECT {', '.join(columns)} FROM {table} WHERE seq = ?", (seq,)
+            ).fetchone()
+        return dict(zip(columns, found, strict=True)) if found else None
+
     def faults_of(self, event_id: str) -> list[dict[str, Any]]:
         """The `errors` rows an event recorded (the fault that took the cell to ERROR)."""
         columns = column_names("errors")

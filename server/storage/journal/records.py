@@ -213,8 +213,11 @@ def error(
     classification: str,
     event_id: str,
     state: str,
+    context: dict[str, Any] | None = None,
+    trace: str = "",
 ) -> Record:
-    """A fault."""
+    """A fault or warning, with what it interrupted (None: no operation) and the stack
+    when an exception caused it."""
     return _row(
         "errors",
         time=at,
@@ -224,6 +227,8 @@ def error(
         classification=classification,
         event_id=event_id,
         state=state,
+        context=context if context is not None else {"operation": None},
+        trace=trace,
     )
 
 

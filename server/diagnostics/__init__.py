@@ -1,0 +1,1 @@
+"""What a support engineer asks for first, in one archive (`bundle.py`)."""

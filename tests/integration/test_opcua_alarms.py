@@ -1,0 +1,241 @@
+"""The cell's faults and warnings as OPC UA alarms, through asyncua's own Client against
+the served cell: events of alarm condition types on the cell and the Server, acknowledged
+and confirmed with the standard methods, audited, cleared when the cell clears."""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from pathlib import Path
+from typing import Any
+
+from asyncua import Client, ua
+
+from server.opcua.address_space import NAMESPACE_URI
+from tests.integration.test_opcua import CELL, client, endpoint, make_token
+from tests.processes import environment
+from tests.rig import SPRAY_DEMO, WAIT_S, Rig, open_rig, run
+from tests.serving import free_port
+
+ALARMS = [ua.ObjectIds.TripAlarmType, ua.ObjectIds.OffNormalAlarmType]
+
+
+class Events:
+    """An OPC UA event handler: every notice in the order it came."""
+
+    def __init__(self) -> None:
+        self.seen: list[Any] = []
+        self.subscription_id = 0
+
+    def event_notification(self, event: Any) -> None:
+        self.seen.append(event)
+
+    def of(self, name: str) -> list[Any]:
+        return [e for e in self.seen if getattr(e, "ConditionName", None) == name]
+
+    async def next_of(self, name: str, after: int = 0, **fields: Any) -> Any:
+        """The first notice of condition `name` past the `after` first ones with `fields`."""
+        async with asyncio.timeout(WAIT_S):
+            while True:
+                for event in self.of(name)[after:]:
+                    if all(getattr(event, k, None) == v for k, v in fields.items()):
+                        return event
+                await asyncio.sleep(0.02)
+
+
+async def _subscribe(opc: Client, node: Any) -> Events:
+    events = Events()
+    subscription = await opc.create_subscription(10, events)
+    await subscription.subscribe_events(node, ALARMS, queuesize=1000)
+    events.subscription_id = subscription.subscription_id
+    return events
+
+
+async def _call(opc: Client, method: int, condition: ua.NodeId, *args: ua.Variant) -> ua.StatusCode:
+    request = ua.CallMethodRequest()
+    request.ObjectId = condition
+    request.MethodId = ua.NodeId(method)
+    request.InputArguments = list(args)
+    (result,) = await opc.uaclient.call([request])
+    return result.StatusCode
+
+
+async def acknowledge(opc: Client, event: Any, comment: str) -> ua.StatusCode:
+    return await _call(
+        opc,
+        ua.ObjectIds.AcknowledgeableConditionType_Acknowledge,
+        event.NodeId,
+        ua.Variant(event.EventId, ua.VariantType.ByteString),
+        ua.Variant(ua.LocalizedText(comment), ua.VariantType.LocalizedText),
+    )
+
+
+async def confirm(opc: Client, event: Any, comment: str) -> ua.StatusCode:
+    return await _call(
+        opc,
+        ua.ObjectIds.AcknowledgeableConditionType_Confirm,
+        event.NodeId,
+        ua.Variant(event.EventId, ua.VariantType.ByteString),
+        ua.Variant(ua.LocalizedText(comment), ua.VariantType.LocalizedText),
+    )
+
+
+async def _audit(rig: Rig) -> list[tuple[str, str, str, str]]:
+    audit = (await rig.api.get("/audit", params={"limit": 100})).json()["audit"]
+    return [(r["principal"], r["action"], r["outcome"], r["detail"]) for r in audit]
+
+
+async def test_an_estop_and_a_device_fault_are_alarms_acknowledged_and_cleared(
+    tmp_path: Path,
+) -> None:
+    port = free_port()
+    async with open_rig(tmp_path, cell_id=CELL, opcua_endpoint=endpoint(port)) as rig:
+        viewer, operator = await make_token(rig, "viewer"), await make_token(rig, "operator")
+        maintenance = await make_token(rig, "maintenance")
+        async with (
+            client(port, operator) as opc,
+            client(port, viewer) as looking,
+            client(port, maintenance) as fixing,
+        ):
+            ns = await opc.get_namespace_index(NAMESPACE_URI)
+            cell = opc.get_node(f"ns={ns};s={CELL}")
+            on_server = await _subscribe(opc, opc.nodes.server)
+            on_cell = await _subscribe(opc, cell)
+
+            # The e-stop: a trip alarm, the first-out, on the cell and the Server.
+            stopped = await rig.api.post("/estop", json={"reason": "door open"})
+            assert stopped.status_code == 202, stopped.text
+            raised = await on_server.next_of("EMERGENCY_STOP", Retain=True)
+            assert raised.EventType == ua.NodeId(ua.ObjectIds.TripAlarmType)
+            assert raised.Severity == 1000
+            assert "door open" in raised.Message.Text
+            assert raised.SourceNode == cell.nodeid
+            assert raised.FirstInGroupFlag is True
+            assert (raised.__dict__["ActiveState/Id"], raised.__dict__["AckedState/Id"]) == (
+                True,
+                False,
+            )
+            assert raised.NodeId == ua.NodeId.from_string(f"ns={ns};s={CELL}.Alarms.EMERGENCY_STOP")
+            on_cell_raised = await on_cell.next_of("EMERGENCY_STOP")
+            assert on_cell_raised.EventId == raised.EventId
+
+            # A viewer may not acknowledge; an operator may, with the notice's EventId.
+            refused = await acknowledge(looking, raised, "seen")
+            assert refused.value == ua.StatusCodes.BadUserAccessDenied
+            accepted = await acknowledge(opc, raised, "seen")
+            assert accepted.is_good(), accepted
+            acked = await on_server.next_of("EMERGENCY_STOP", **{"AckedState/Id": True})
+            assert acked.Comment.Text == "seen" and acked.ClientUserId == "plc-operator"
+            assert acked.__dict__["ActiveState/Id"] is True and acked.Retain is True
+            again = await acknowledge(opc, raised, "seen twice")  # an old EventId
+            assert again.value == ua.StatusCodes.BadEventIdUnknown
+            # Confirm: the maintenance role, on the acknowledged notice.
+            assert (await confirm(opc, acked, "fixed")).value == ua.StatusCodes.BadUserAccessDenied
+            assert (await confirm(fixing, acked, "door closed")).is_good()
+            await on_server.next_of("EMERGENCY_STOP", **{"ConfirmedState/Id": True})
+
+            # The reset clears it: inactive and, acknowledged, no longer retained.
+            assert (await rig.reset()).status_code == 202
+            await rig.wait_state("IDLE")
+            cleared = await on_server.next_of("EMERGENCY_STOP", **{"ActiveState/Id": False})
+            assert cleared.Retain is False
+
+            # A device fault: the dispenser's alarm, from the glue, first-out again.
+            rig.glue.set_alarm("NOZZLE_BLOCKED")
+            alarm = await on_server.next_of("ALARM", Retain=True)
+            assert alarm.EventType == ua.NodeId(ua.ObjectIds.TripAlarmType)
+            assert alarm.SourceName == "glue" and alarm.Severity == 800
+            assert alarm.FirstInGroupFlag is True
+            rig.glue.clear_faults()
+            assert (await rig.reset()).status_code == 202
+            await rig.wait_state("IDLE")
+            # Cleared but not acknowledged: still retained until someone has seen it.
+            ended = await on_server.next_of("ALARM", **{"ActiveState/Id": False})
+            assert ended.Retain is True
+            # A client (re)connecting asks for what is retained: that notice again.
+            before, count = len(on_server.of("ALARM")), len(on_server.seen)
+            refreshed = await _call(
+                opc,
+                ua.ObjectIds.ConditionType_ConditionRefresh,
+                ua.NodeId(ua.ObjectIds.ConditionType),
+                ua.Variant(on_server.subscription_id, ua.VariantType.UInt32),
+            )
+            assert refreshed.is_good(), refreshed
+            assert (await on_server.next_of("ALARM", before)).EventId == ended.EventId
+            # Only what is retained: the e-stop, acknowledged and cleared, is not sent.
+            assert [e.ConditionName for e in on_server.seen[count:]] == ["ALARM"]
+            assert (await acknowledge(opc, ended, "nozzle cleaned")).is_good()
+            gone = await on_server.next_of("ALARM", **{"AckedState/Id": True})
+            assert gone.Retain is False
+
+        rows = await _audit(rig)
+        assert any(
+            p.startswith("plc-viewer") and a == "OPC UA Acknowledge" and o.startswith("refused")
+            for p, a, o, _ in rows
+        ), rows
+        assert any(
+            p.startswith("plc-operator")
+            and a == "OPC UA Acknowledge"
+            and o == "accepted"
+            and d == "EMERGENCY_STOP: seen"
+            for p, a, o, d in rows
+        ), rows
+        assert any(
+            p.startswith("plc-maintenance") and a == "OPC UA Confirm" and o == "accepted"
+            for p, a, o, _ in rows
+        ), rows
+
+
+async def test_a_calibration_warning_is_an_alarm_until_a_run_no_longer_raises_it(
+    tmp_path: Path,
+) -> None:
+    port = free_port()
+    async with (
+        open_rig(tmp_path, cell_id=CELL, opcua_endpoint=endpoint(port)) as rig,
+        client(port) as opc,  # anonymous may subscribe
+    ):
+        events = await _subscribe(opc, opc.nodes.server)
+        rig.camera.knock(2.0, 0.0)
+        assert (await run(rig, "start", SPRAY_DEMO))["state"] == "IDLE"
+        warned = await events.next_of("CALIBRATION_DEGRADING", Retain=True)
+        assert warned.EventType == ua.NodeId(ua.ObjectIds.OffNormalAlarmType)
+        assert warned.Severity == 400
+        assert warned.__dict__["ActiveState/Id"] is True
+        assert warned.FirstInGroupFlag is False  # a warning stops nothing
+        assert (await rig.state())["state"] == "IDLE"  # the cell runs on
+        # The camera put back: the next run no longer raises it, and it clears.
+        rig.camera.knock(0.0, 0.0)
+        assert (await run(rig, "start", SPRAY_DEMO))["state"] == "IDLE"
+        cleared = await events.next_of("CALIBRATION_DEGRADING", **{"ActiveState/Id": False})
+        assert cleared.Retain is True  # nobody acknowledged it
+
+
+async def test_uasubscribe_shows_the_alarms(tmp_path: Path) -> None:
+    """asyncua's own command-line tool, as an integrator runs it: `uasubscribe -t event`
+    subscribes to the Server object and prints every event it is sent."""
+    port = free_port()
+    async with open_rig(tmp_path, cell_id=CELL, opcua_endpoint=endpoint(port)) as rig:
+        tool = await asyncio.create_subprocess_exec(
+            str(Path(sys.executable).parent / "uasubscribe"),
+            "-u",
+            endpoint(port),
+            "-t",
+            "event",
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.DEVNULL,
+            env=environment({"PYTHONUNBUFFERED": "1"}),
+        )
+        assert tool.stdout is not None
+        try:
+            async with asyncio.timeout(WAIT_S):
+                while b"Ctr-C" not in await tool.stdout.readline():  # subscribed
+                    pass
+                stopped = await rig.api.post("/estop", json={"reason": "door open"})
+                assert stopped.status_code == 202, stopped.text
+                while b"door open" not in (line := await tool.stdout.readline()):
+                    assert line, "uasubscribe ended before the alarm came"
+        finally:
+            tool.terminate()
+            await tool.wait()
+        assert b"Severity:1000" in line, line
+        assert b"EventType:NodeId(Identifier=10751, NamespaceIndex=0" in line, line  # TripAlarmType
