@@ -55,6 +55,7 @@ from server.settings.robot import RobotSettings
 from server.settings.safety import SafetySettings
 from server.settings.section import SIMULATED
 from server.settings.simulation import SimulationSettings
+from server.settings.sparkplug import SparkplugSettings
 from server.settings.storage import StorageSettings
 from server.settings.worker import WorkerSettings
 
@@ -111,6 +112,7 @@ class Settings(
     PlantSettings,
     OpcUaSettings,
     MqttSettings,
+    SparkplugSettings,
     WebhookSettings,
     RobotSettings,
     CameraSettings,
