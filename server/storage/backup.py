@@ -4,8 +4,8 @@ What goes in: everything the cell keeps under its data directory (the journal,
 the state snapshot, the calibrations, the workpiece library, tokens.json and
 admin.token, a journal set aside as damaged), except what is rebuilt or is not
 state: the logs (`logs/`), the lock, the journal's `-wal` and `-shm`, and
-temporary files (names starting with a dot). Settings changed with PATCH
-/settings live in memory only, so there are none on disk to copy.
+temporary files (names starting with a dot). The settings changed with PATCH
+/settings are in `runtime-settings.json`, so they come back with a restore.
 
 Why it is consistent while the server runs:
 
