@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import stat
 
+from tests.integration.test_gluectl import gluectl_process
 from tests.rig import open_rig
 
 
@@ -75,3 +76,27 @@ async def test_a_saved_value_the_settings_now_refuse_is_left_out(tmp_path) -> No
         assert settings["robot_ip"] == "127.0.0.1"
         assert settings["order_defect_limit"] == 4
         assert settings["sources"]["order_defect_limit"] == "runtime"
+
+
+async def test_gluectl_settings_get_and_set(tmp_path) -> None:
+    data = tmp_path / "data"
+    async with open_rig(data) as rig:
+        url = str(rig.api.base_url).rstrip("/")
+        base = ("--url", url, "--data-dir", str(data))
+        changed = await gluectl_process(*base, "settings", "set", "shift_hours=10")
+        assert changed.code == 0, changed.stderr
+        assert changed.stdout.strip() == "shift_hours: 8 -> 10 (saved)"
+        shown = await gluectl_process(*base, "settings", "get", "shift_hours", "robot_ip")
+        assert shown.code == 0, shown.stderr
+        lines = {line.split()[1]: line for line in shown.stdout.splitlines() if "│" in line}
+        assert "10" in lines["shift_hours"] and "runtime" in lines["shift_hours"]
+        assert "at once" in lines["shift_hours"] and "at a restart" in lines["robot_ip"]
+        as_json = await gluectl_process(*base, "--json", "settings", "get", "shift_hours")
+        assert as_json.json() == [
+            {"name": "shift_hours", "value": 10.0, "source": "runtime", "changes": "at once"}
+        ]
+        refused = await gluectl_process(*base, "settings", "set", "robot_ip=10.0.0.1")
+        assert refused.code == 6
+        assert "robot_ip takes effect only at a restart" in refused.stderr
+        unknown = await gluectl_process(*base, "settings", "get", "no_such_setting")
+        assert unknown.code == 2 and "no_such_setting names no setting" in unknown.stderr
