@@ -8,6 +8,7 @@
  *   live.js        the WebSocket: ticket, snapshot, messages, reconnect
  *   render.js      state, fault, command buttons, messages, progress
  *   panels.js      devices, KPIs, history, the workpiece library
+ *   settings_card.js  the settings changed at once, for a role that may read them
  *   trajectory.js  the trajectory canvas (fetching and drawing)
  *   geometry.js    its pure geometry: mm ↔ image ↔ canvas (tested with node)
  *   dom.js         DOM and text helpers
@@ -25,6 +26,7 @@ import { refreshLibrary, refreshPanels } from "./panels.js";
 import {
   applyState, clearMessage, renderCommands, setLive, showAnswer, showMessage, tick,
 } from "./render.js";
+import { initSettings, refreshSettings } from "./settings_card.js";
 import { hmi, REFRESH_MS, TOKEN_KEY } from "./store.js";
 import { drawTrajectory, refreshCalibration, refreshFrame, refreshTrajectory } from "./trajectory.js";
 
@@ -80,6 +82,7 @@ function startSession(token, view) {
   refreshCalibration();
   refreshFrame();
   refreshLibrary();
+  refreshSettings();
   hmi.timers.push(setInterval(refreshPanels, REFRESH_MS));
   hmi.timers.push(setInterval(tick, 250));
   hmi.timers.push(setInterval(watchdog, 1000));
@@ -92,6 +95,7 @@ function stopSession() {
   hmi.reconnectTimer = null;
   dropSocket(null);
   hmi.token = null;
+  document.querySelector(".card-settings").hidden = true; // the next person's role decides
 }
 
 // --- commands ---------------------------------------------------------------
@@ -134,6 +138,7 @@ function init() {
     button.addEventListener("click", () => sendCommand(button.dataset.command));
   }
   initOrders();
+  initSettings();
   window.addEventListener("resize", drawTrajectory);
   const token = sessionStorage.getItem(TOKEN_KEY);
   if (token) startSession(token, null);
