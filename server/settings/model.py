@@ -36,6 +36,7 @@ from pydantic_settings import (
 from server.common.errors import ConfigurationError
 from server.common.values import BYTE_SIZE_ACCEPTS, byte_size
 from server.security import destinations
+from server.settings.run_end import RunEndSettings
 from server.settings.webhooks import WebhookTarget, named
 
 SIMULATED = "sim"
@@ -164,7 +165,7 @@ def default_cell_id() -> str:
     return name[:64] if name[0].isalnum() else f"cell-{name}"[:64]
 
 
-class Settings(BaseSettings):
+class Settings(BaseSettings, RunEndSettings):
     """Every tunable of the cell server, with the specification's names."""
 
     # allow_inf_nan=False: no setting is ever Infinity or NaN, from any source (an

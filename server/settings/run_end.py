@@ -1,0 +1,29 @@
+"""How a spray run ends: the arm's retract to the safe position, and when the inspection
+may take its frame while the arm retracts.
+
+Declared apart from server/settings/model.py (a base of `Settings`), so the settings
+of one concern live together; the environment names are the usual GLUE_APP_<NAME>.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, Field
+
+
+class RunEndSettings(BaseModel):
+    """The end of a spray run (server/core/operations/trajectory.py)."""
+
+    retract_after_run: bool = Field(
+        True,
+        description="a spray run's last step moves the arm to safe_position (within the run, "
+        "checked against the workspace), so the next part can be loaded; false leaves the arm "
+        "over the last bead until the next run or `home`",
+    )
+    inspection_clearance_mm: float = Field(
+        30.0,
+        ge=0,
+        le=2000,
+        description="the inspection takes its frame once the tool is this far (x, y) outside "
+        "every sprayed bead, so the arm hides no part of it; while the arm retracts, the rest "
+        "of the inspection runs",
+    )
