@@ -154,6 +154,11 @@ def groups() -> dict[str, str]:
                 group = comments[0]
             found[node.target.id] = group
         previous_end = node.end_lineno or node.lineno
+    for base in Settings.__mro__[1:]:  # a section model among the bases: its docstring
+        if base.__module__.startswith("server.settings.") and base.__doc__:
+            title = base.__doc__.strip().splitlines()[0].rstrip(".")
+            for name in getattr(base, "__annotations__", {}):
+                found.setdefault(name, title)
     return found
 
 
@@ -171,8 +176,16 @@ def facts() -> list[SettingFacts]:
             accepted=_accepted(schema[name]),
             meaning=field.description or "",
         )
-        for name, field in Settings.model_fields.items()
+        for name, field in _in_order()
     ]
+
+
+def _in_order() -> list[tuple[str, Any]]:
+    """The model's fields, those declared in Settings itself first (in its order), then
+    those of its section models: the sections of the reference follow the model's own."""
+    own = set(Settings.__annotations__)
+    fields = list(Settings.model_fields.items())
+    return [f for f in fields if f[0] in own] + [f for f in fields if f[0] not in own]
 
 
 def facts_of(name: str) -> SettingFacts:

@@ -11,7 +11,10 @@ from pydantic import BaseModel, Field
 
 
 class RunEndSettings(BaseModel):
-    """The end of a spray run (server/core/operations/trajectory.py)."""
+    """The end of a spray run.
+
+    Read by server/core/operations/trajectory.py and safe_position.py.
+    """
 
     retract_after_run: bool = Field(
         True,
@@ -21,7 +24,7 @@ class RunEndSettings(BaseModel):
     )
     inspection_clearance_mm: float = Field(
         30.0,
-        ge=0,
+        ge=1,
         le=2000,
         description="the inspection takes its frame once the tool is this far (x, y) outside "
         "every sprayed bead, so the arm hides no part of it; while the arm retracts, the rest "
