@@ -154,8 +154,7 @@ class GlueSimulator:
         self._exception_code: int | None = None
         self._valve_stuck = False
         self.dropped_requests = 0
-        # A speed-following dispenser's speed input: the fraction of its programmed speed
-        # the robot moves at now (0 standing still). None: a fixed flow, whatever the arm does.
+        # The robot's speed as a fraction of its programmed one (None: a fixed flow).
         self.speed_source: Callable[[], float] | None = None
 
     # --- lifecycle ---------------------------------------------------------------
@@ -387,9 +386,7 @@ class GlueSimulator:
         """Write the model's present values into the input registers."""
         self._advance()
         elapsed = (time.monotonic() - self._started) * self._speed
-        # Following the robot's speed: the active setpoint, and what leaves the nozzle, are
-        # the programmed ones scaled by it, so glue per millimetre of bead stays the same
-        # however long the arm waits between moves (nothing leaves while it stands still).
+        # Speed-following: setpoint and flow scaled by the robot's speed (module docstring).
         follow = self.speed_source() if self.speed_source is not None else 1.0
         flow = max(0.0, (self._flow + self._jitter(0.1)) * follow) if self._valve_open else 0.0
         if self._forced_flow is not None and self._valve_open:
