@@ -265,11 +265,10 @@ def restore_backup(
     if data_path.exists() and not data_path.is_dir():
         raise BackupError(f"{data_path} is not a directory")
     created = not data_path.exists()
-    if not created and (data_path / LOCK_NAME).exists():
+    if not created:
         # A live server first: "in use, stop the server" is the refusal that helps; "add
-        # --force" would not (the lock refuses a forced restore too). Only probed where a
-        # lock file is, so a refusal leaves no trace in a directory that had none.
-        DataDirectoryLock(data_path, "restore").acquire().release()
+        # --force" would not (the lock refuses a forced restore too).
+        DataDirectoryLock(data_path, "restore").ensure_free()
     if not created and not force:
         _refuse_unless_empty(data_path)  # before the lock: a refusal leaves no trace
     private_directory(data_path)
