@@ -52,6 +52,7 @@ from server.settings.opcua import OpcUaSettings
 from server.settings.plant import PlantSettings, default_cell_id
 from server.settings.quality import QualitySettings
 from server.settings.robot import RobotSettings
+from server.settings.run_end import RunEndSettings
 from server.settings.safety import SafetySettings
 from server.settings.section import SIMULATED
 from server.settings.simulation import SimulationSettings
@@ -119,6 +120,7 @@ class Settings(
     GlueSettings,
     QualitySettings,
     MotionSettings,
+    RunEndSettings,
     CalibrationSettings,
     SimulationSettings,
     BaseSettings,

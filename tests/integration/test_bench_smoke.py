@@ -280,15 +280,17 @@ def test_vision_accuracy_reports_calibration_and_matching(results_in_tmp: Path) 
 
 
 def test_cycle_time_compares_runs_with_and_without_inspection(results_in_tmp: Path) -> None:
-    rows = cycle_time.main(["--runs", "1"])
+    rows = cycle_time.main(["--runs", "1", "--block", "1"])
     assert [row["measure"] for row in rows] == [
-        "cycle, inspection on",
-        "cycle, inspection off",
+        "cycle, neither",
+        "cycle, retract",
+        "cycle, inspection",
+        "cycle, both",
         "inspection itself",
     ]
     for row in rows:
         assert_ordered_latencies(row)
-        assert row["n"] == 1
+    assert [row["n"] for row in rows] == [1, 1, 1, 1, 2]
     assert written_rows(results_in_tmp, "cycle_time") == rows
 
 
