@@ -118,7 +118,14 @@ async def test_a_runs_progress_is_thinned_and_ends_with_its_final_waypoint(
             truth = rig.cell.bus.subscribe(4096, types=["progress"])
             final = await run(rig, "start", SPRAY_DEMO)
             assert final["state"] == "IDLE"
-            await plant.wait(lambda: [e for e in plant.on(f"{BASE}/event") if e["to"] == "IDLE"])
+            # The run's return to IDLE, not the start-up's (published once the link connected).
+            await plant.wait(
+                lambda: [
+                    e
+                    for e in plant.on(f"{BASE}/event")
+                    if e["to"] == "IDLE" and e["from"] != "INITIALIZING"
+                ]
+            )
             produced = []
             while truth.pending:
                 produced.append((await truth.get()).data)
