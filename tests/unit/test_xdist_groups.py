@@ -1,0 +1,71 @@
+"""`make test`'s grouping (tests/xdist_groups.py): under `pytest-xdist --dist loadgroup`, a
+module with a module-scoped fixture sets it up once, on one worker, and still runs
+every test; ungrouped tests spread over the workers as before.
+
+Runs pytest with two workers (child processes over pipes, no sockets) on a generated
+suite whose fixture records each set-up.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.processes import environment
+
+SHARED = """
+import os
+import pytest
+
+SETUPS = {setups!r}
+
+
+@pytest.fixture(scope="module")
+def shared():
+    with open(SETUPS, "a") as out:
+        out.write(os.environ.get("PYTEST_XDIST_WORKER", "none") + "\\n")
+    return 1
+
+
+@pytest.mark.parametrize("n", range(8))
+def test_reads_the_shared_fixture(shared, n):
+    assert shared == 1
+"""
+
+ALONE = """
+import os
+import pytest
+
+RUNS = {runs!r}
+
+
+@pytest.mark.parametrize("n", range(8))
+def test_alone(n):
+    with open(RUNS, "a") as out:
+        out.write(os.environ["PYTEST_XDIST_WORKER"] + "\\n")
+"""
+
+
+def test_a_module_fixture_is_set_up_once_and_the_other_tests_spread(tmp_path: Path) -> None:
+    suite = tmp_path / "suite"
+    suite.mkdir()
+    setups, runs = tmp_path / "setups.txt", tmp_path / "runs.txt"
+    (suite / "test_shared.py").write_text(SHARED.format(setups=str(setups)))
+    (suite / "test_alone.py").write_text(ALONE.format(runs=str(runs)))
+    done = subprocess.run(
+        [
+            *(sys.executable, "-m", "pytest", "-q", "-p", "tests.xdist_groups"),
+            *("-n", "2", "--dist", "loadgroup", "-p", "no:randomly", "-p", "no:cacheprovider"),
+            *("--rootdir", str(suite), "-c", "/dev/null", str(suite)),
+        ],
+        capture_output=True,
+        text=True,
+        env=environment(),
+        cwd=Path(__file__).resolve().parents[2],
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "16 passed" in done.stdout, done.stdout
+    assert len(setups.read_text().split()) == 1, setups.read_text()
+    assert set(runs.read_text().split()) == {"gw0", "gw1"}, runs.read_text()
