@@ -55,13 +55,15 @@ def test_a_module_fixture_is_set_up_once_and_the_other_tests_spread(tmp_path: Pa
     (suite / "test_alone.py").write_text(ALONE.format(runs=str(runs)))
     done = subprocess.run(
         [
-            *(sys.executable, "-m", "pytest", "-q", "-p", "tests.xdist_groups"),
-            *("-n", "2", "--dist", "loadgroup", "-p", "no:randomly", "-p", "no:cacheprovider"),
+            *(sys.executable, "-m", "pytest", "-q", "-p", "xdist", "-p", "tests.xdist_groups"),
+            *("-n", "2", "--dist", "loadgroup", "-p", "no:cacheprovider"),
             *("--rootdir", str(suite), "-c", "/dev/null", str(suite)),
         ],
         capture_output=True,
         text=True,
-        env=environment(),
+        # Only xdist and the plugin: the other installed plugins' imports, in three processes,
+        # would be most of this test's time.
+        env=environment({"PYTEST_DISABLE_PLUGIN_AUTOLOAD": "1"}),
         cwd=Path(__file__).resolve().parents[2],
         timeout=300,
     )
