@@ -22,7 +22,7 @@ import httpx
 import pytest
 
 from server.drivers.glue_modbus import ModbusGlueDispenser
-from tests.processes import has_ended, server_process, simulator
+from tests.processes import FAST_DEVICES, has_ended, server_process, simulator
 from tests.serving import admin_client, free_port
 
 KILLS = 6  # bounded for CI; each cycle starts, runs and kills a real server
@@ -136,7 +136,7 @@ def idle_server(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], Path]]:
     data = tmp_path / "cell"
     data.mkdir()
     port = free_port()
-    with server_process(port, data) as server:
+    with server_process(port, data, FAST_DEVICES) as server:
         client = admin_client(port, data)
         wait_until(lambda: client.get("/state").json()["state"] == "IDLE", what="IDLE")
         yield server, data
