@@ -52,21 +52,19 @@ LINE_ARGS ?=
 line: $(RUN_STAMP) mosquitto
 	$(PY) -m server.line.demo --host $(HOST) --data-dir $(DATA)/line $(LINE_ARGS)
 
-# The whole suite includes the benchmarks' smoke test (tests/integration/test_bench_smoke.py).
-# Every tier but reliability runs on WORKERS pytest-xdist workers (one per core by
-# default); tests sharing a module fixture stay on one worker (--dist loadgroup,
-# tests/conftest.py). The reliability tier (kills, full disks, random faults, the short
-# soak) then runs alone: its servers wait on real device timeouts, which a second
-# worker's servers on the same cores can stretch past them. The slowest tests are listed.
-# The API schema tests run in one process too: schemathesis gives each of an operation's
-# tests the same node id under the pinned pytest, and pytest-xdist, which schedules by
-# node id, would run one of them per test function.
-WORKERS ?= auto
-SCHEMA_TESTS := tests/integration/test_api_schema.py
+# The whole suite, every tier (unit, integration, e2e, browser, reliability) and the
+# benchmarks' smoke test (tests/integration/test_bench_smoke.py), in one pytest run on
+# WORKERS pytest-xdist workers, two per core by default: a worker spends most of its time
+# waiting (on a robot moving at the plan's speed, a server process starting, a browser),
+# not computing. The tests of a module that share a fixture set up once (a served cell,
+# rendered frames, the API schema run's server) run on one worker, so the fixture
+# is set up once (--dist loadgroup, tests/xdist_groups.py). The reliability tier runs
+# beside the others, as `make test-loaded` runs it beside busy loops: its device timeouts
+# and waits are settings chosen to hold on a busy machine (tests/rig.py,
+# tests/processes.py). The 20 slowest tests are listed at the end.
+WORKERS ?= $(shell echo $$(( $$(nproc) * 2 )))
 test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools mosquitto
-	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=20 -m "not reliability" --ignore=$(SCHEMA_TESTS)
-	$(PY) -m pytest -q $(SCHEMA_TESTS)
-	$(PY) -m pytest -m reliability --durations=5
+	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=20
 
 # The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
 test-fast: $(TEST_STAMP) node

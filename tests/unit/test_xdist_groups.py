@@ -1,6 +1,7 @@
 """`make test`'s grouping (tests/xdist_groups.py): under `pytest-xdist --dist loadgroup`, a
 module with a module-scoped fixture sets it up once, on one worker, and still runs
-every test; ungrouped tests spread over the workers as before.
+every test; ungrouped tests spread over the workers as before; tests that a plugin
+gave one id between them (as schemathesis does, one per API operation) each run.
 
 Runs pytest with two workers (child processes over pipes, no sockets) on a generated
 suite whose fixture records each set-up.
@@ -47,13 +48,34 @@ def test_alone(n):
 """
 
 
-def test_a_module_fixture_is_set_up_once_and_the_other_tests_spread(tmp_path: Path) -> None:
-    suite = tmp_path / "suite"
-    suite.mkdir()
-    setups, runs = tmp_path / "setups.txt", tmp_path / "runs.txt"
-    (suite / "test_shared.py").write_text(SHARED.format(setups=str(setups)))
-    (suite / "test_alone.py").write_text(ALONE.format(runs=str(runs)))
-    done = subprocess.run(
+# Four tests from a file of cases, all with the same id, as schemathesis's tests of one
+# function are under the pinned pytest.
+ONE_ID = """
+import pytest
+
+RUNS = {runs!r}
+
+
+class Case(pytest.Item):
+    def runtest(self):
+        with open(RUNS, "a") as out:
+            out.write(self.name + "\\n")
+
+
+class Cases(pytest.File):
+    def collect(self):
+        for line in self.path.read_text().split():
+            yield Case.from_parent(self, name=f"case[{{line}}]", nodeid=f"{{self.nodeid}}::case")
+
+
+def pytest_collect_file(parent, file_path):
+    if file_path.suffix == ".cases":
+        return Cases.from_parent(parent, path=file_path)
+"""
+
+
+def _run_pytest_on(suite: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
         [
             *(sys.executable, "-m", "pytest", "-q", "-p", "xdist", "-p", "tests.xdist_groups"),
             *("-n", "2", "--dist", "loadgroup", "-p", "no:cacheprovider"),
@@ -67,7 +89,33 @@ def test_a_module_fixture_is_set_up_once_and_the_other_tests_spread(tmp_path: Pa
         cwd=Path(__file__).resolve().parents[2],
         timeout=300,
     )
+
+
+def test_a_module_fixture_is_set_up_once_and_the_other_tests_spread(tmp_path: Path) -> None:
+    suite = tmp_path / "suite"
+    suite.mkdir()
+    setups, runs = tmp_path / "setups.txt", tmp_path / "runs.txt"
+    (suite / "test_shared.py").write_text(SHARED.format(setups=str(setups)))
+    (suite / "test_alone.py").write_text(ALONE.format(runs=str(runs)))
+    done = _run_pytest_on(suite)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "16 passed" in done.stdout, done.stdout
     assert len(setups.read_text().split()) == 1, setups.read_text()
     assert set(runs.read_text().split()) == {"gw0", "gw1"}, runs.read_text()
+
+
+def test_tests_given_one_id_between_them_each_run(tmp_path: Path) -> None:
+    suite = tmp_path / "suite"
+    suite.mkdir()
+    runs = tmp_path / "runs.txt"
+    (suite / "conftest.py").write_text(ONE_ID.format(runs=str(runs)))
+    (suite / "operations.cases").write_text("get post put delete")
+    done = _run_pytest_on(suite)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "4 passed" in done.stdout, done.stdout
+    assert sorted(runs.read_text().split()) == [
+        "case[delete]",
+        "case[get]",
+        "case[post]",
+        "case[put]",
+    ]
