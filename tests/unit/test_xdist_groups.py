@@ -1,6 +1,6 @@
 """`make test`'s grouping (tests/xdist_groups.py): under `pytest-xdist --dist loadgroup`, a
 module with a module-scoped fixture sets it up once, on one worker, and still runs
-every test; ungrouped tests spread over the workers as before; tests that a plugin
+every test; ungrouped tests still run on either worker; tests that a plugin
 gave one id between them (as schemathesis does, one per API operation) each run.
 
 Runs pytest with two workers (child processes over pipes, no sockets) on a generated
@@ -91,7 +91,7 @@ def _run_pytest_on(suite: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
-def test_a_module_fixture_is_set_up_once_and_the_other_tests_spread(tmp_path: Path) -> None:
+def test_a_module_fixture_is_set_up_once_and_every_test_runs(tmp_path: Path) -> None:
     suite = tmp_path / "suite"
     suite.mkdir()
     setups, runs = tmp_path / "setups.txt", tmp_path / "runs.txt"
@@ -101,7 +101,9 @@ def test_a_module_fixture_is_set_up_once_and_the_other_tests_spread(tmp_path: Pa
     assert done.returncode == 0, done.stdout + done.stderr
     assert "16 passed" in done.stdout, done.stdout
     assert len(setups.read_text().split()) == 1, setups.read_text()
-    assert set(runs.read_text().split()) == {"gw0", "gw1"}, runs.read_text()
+    # Each ungrouped test ran once, on a worker (which one is pytest-xdist's choice).
+    assert len(runs.read_text().split()) == 8, runs.read_text()
+    assert set(runs.read_text().split()) <= {"gw0", "gw1"}, runs.read_text()
 
 
 def test_tests_given_one_id_between_them_each_run(tmp_path: Path) -> None:
