@@ -12,7 +12,9 @@ pytest-xdist records a group by appending `@group` to each test's node id in the
 worker, where its scheduler (in the controller) reads it. It writes the id to
 `item._nodeid`; the pytest this suite pins reads a node's id from `item._id`, so the
 suffix never reached the controller and every test was scheduled alone. After every
-other plugin has run (`wrapper=True`), this hands the suffixed id to `_id` too.
+other plugin has run (`wrapper=True`), this hands the suffixed id to `_id` too. (The
+controller shows a parametrized one as `test[a-b]@group]`: it reads the parameters up to
+the last `]`.)
 
 pytest-xdist also needs every test's id to be its own: its scheduler keeps tests by id,
 so tests sharing one would run once between them. Under the pinned pytest,
@@ -54,7 +56,7 @@ def pytest_collection_modifyitems(
     for item in items:
         written = getattr(item, "_nodeid", None)
         if isinstance(written, str) and written != item.nodeid and hasattr(item, "_id"):
-            item._id = _with_last_name(item._id, written)
+            item._id = NodeId.parse(written)
 
 
 def _ids_of_their_own(items: list[pytest.Item]) -> None:
@@ -62,20 +64,7 @@ def _ids_of_their_own(items: list[pytest.Item]) -> None:
     counts = Counter(item.nodeid for item in items)
     for item in items:
         if counts[item.nodeid] > 1 and item.parent is not None and hasattr(item, "_id"):
-            item._id = _with_last_name(item._id, f"{item.parent.nodeid}::{item.name}")
-
-
-def _with_last_name(old: NodeId, written: str) -> NodeId:
-    """`old` with its last name (and parameters) replaced so that it reads `written`.
-
-    The parameters go into the last name rather than `params`: pytest-xdist's suffix
-    follows them (`test[a-b]@group`), and pytest rebuilds an id sent back from a worker
-    from its parts, which would otherwise read `test[a-b]@group]`.
-    """
-    prefix = "::".join((old.path, *old.names[:-1])) + "::"
-    if not old.names or not written.startswith(prefix):
-        return NodeId.parse(written)
-    return NodeId(path=old.path, names=(*old.names[:-1], written[len(prefix) :]))
+            item._id = NodeId.parse(f"{item.parent.nodeid}::{item.name}")
 
 
 def _uses_a_shared_fixture(item: pytest.Item) -> bool:

@@ -77,7 +77,7 @@ def pytest_collect_file(parent, file_path):
 def _run_pytest_on(suite: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [
-            *(sys.executable, "-m", "pytest", "-q", "-p", "xdist", "-p", "tests.xdist_groups"),
+            *(sys.executable, "-m", "pytest", "-v", "-p", "xdist", "-p", "tests.xdist_groups"),
             *("-n", "2", "--dist", "loadgroup", "-p", "no:cacheprovider"),
             *("--rootdir", str(suite), "-c", "/dev/null", str(suite)),
         ],
@@ -101,6 +101,11 @@ def test_a_module_fixture_is_set_up_once_and_every_test_runs(tmp_path: Path) -> 
     assert done.returncode == 0, done.stdout + done.stderr
     assert "16 passed" in done.stdout, done.stdout
     assert len(setups.read_text().split()) == 1, setups.read_text()
+    # The scheduler saw the group: each shared test's id carries it.
+    lines = done.stdout.splitlines()
+    grouped = [line.rstrip() for line in lines if "PASSED" in line and "test_shared.py::" in line]
+    assert len(grouped) == 8, done.stdout
+    assert all("]@test_shared.py" in line for line in grouped), done.stdout
     # Each ungrouped test ran once, on a worker (which one is pytest-xdist's choice).
     assert len(runs.read_text().split()) == 8, runs.read_text()
     assert set(runs.read_text().split()) <= {"gw0", "gw1"}, runs.read_text()
