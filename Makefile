@@ -54,18 +54,15 @@ line: $(RUN_STAMP) mosquitto
 
 # The whole suite includes the benchmarks' smoke test (tests/integration/test_bench_smoke.py).
 # Every tier but reliability runs on WORKERS pytest-xdist workers (one per core by
-# default); tests sharing a module fixture stay on one worker (--dist loadgroup,
-# tests/conftest.py). The reliability tier (kills, full disks, random faults, the short
-# soak) then runs alone: its servers wait on real device timeouts, which a second
-# worker's servers on the same cores can stretch past them. The slowest tests are listed.
-# The API schema tests run in one process too: schemathesis gives each of an operation's
-# tests the same node id under the pinned pytest, and pytest-xdist, which schedules by
-# node id, would run one of them per test function.
+# default); the tests of a module that share a fixture set up once (a served cell,
+# rendered frames, the API schema run's server) run on one worker, so it is set up once
+# (--dist loadgroup, tests/xdist_groups.py). The reliability tier (kills, full disks,
+# random faults, the short soak) then runs alone: its servers wait on real device
+# timeouts, which a second worker's servers on the same cores can stretch past them.
+# The slowest tests are listed.
 WORKERS ?= auto
-SCHEMA_TESTS := tests/integration/test_api_schema.py
 test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools mosquitto promtool
-	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=20 -m "not reliability" --ignore=$(SCHEMA_TESTS)
-	$(PY) -m pytest -q $(SCHEMA_TESTS)
+	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=20 -m "not reliability"
 	$(PY) -m pytest -m reliability --durations=5
 
 # The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
