@@ -105,14 +105,17 @@ node:
 		$$SUDO apt-get update -qq && \
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq nodejs; }
 
-# The deployment tests validate docker-compose.yml with Debian's docker-compose (no
-# engine needed) and the systemd unit with systemd-analyze.
+# The deployment tests validate docker-compose.yml with Debian's docker-compose (its
+# `config` needs no engine) and the systemd unit with systemd-analyze. Without its
+# recommends, docker-compose brings no container engine (docker.io, containerd,
+# iptables) and so no service of theirs; systemd is only installed where it is missing.
 deploy-tools:
 	@command -v docker-compose >/dev/null && command -v systemd-analyze >/dev/null || { \
-		echo "installing Debian's docker-compose and systemd for the deployment tests"; \
+		echo "installing Debian's docker-compose (no engine) and systemd-analyze for the deployment tests"; \
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 		$$SUDO apt-get update -qq && \
-		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq docker-compose systemd; }
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends \
+			docker-compose systemd; }
 
 # The plant-interface tests and the line demo run Debian's MQTT broker as a process.
 mosquitto:
