@@ -165,7 +165,7 @@ class CareMeter:
 
     def done(self, name: str) -> dict[str, Any]:
         """Restart an item's intervals from the totals now; its state after."""
-        item = self._item(name)
+        item = self.item(name)
         self.read_drivers()
         for counter in item.intervals():
             self.values[_done_key(item.name, counter)] = self.values.get(counter, 0.0)
@@ -182,7 +182,7 @@ class CareMeter:
         self.persist()
         return self.glue_level()
 
-    def _item(self, name: str) -> Any:
+    def item(self, name: str) -> Any:
         for item in self._settings().maintenance_items:
             if item.name.lower() == name.strip().lower():
                 return item
