@@ -9,9 +9,8 @@ from typing import ClassVar
 
 from pydantic import Field, field_validator, model_validator
 
+from server.settings.motion import Degrees, Millimetres
 from server.settings.section import Section
-
-Degrees = float
 
 
 class MaintenanceItem(Section):
@@ -25,14 +24,18 @@ class MaintenanceItem(Section):
         pattern=r"^[A-Za-z0-9][A-Za-z0-9 _.-]*$",
         description="the task, e.g. clean nozzle",
     )
-    every_parts: int | None = Field(None, ge=1, description="parts sprayed")
-    every_ml: float | None = Field(None, ge=0.001, description="glue dispensed, ml")
-    every_valve_cycles: int | None = Field(None, ge=1, description="valve openings")
-    every_valve_open_hours: float | None = Field(None, ge=0.001, description="valve open, hours")
-    every_travel_m: float | None = Field(None, ge=0.001, description="robot travel, metres")
-    every_motion_hours: float | None = Field(None, ge=0.001, description="robot moving, hours")
-    every_camera_frames: int | None = Field(None, ge=1, description="camera frames")
-    every_purges: int | None = Field(None, ge=1, description="purges")
+    every_parts: int | None = Field(None, ge=1, le=10**9, description="parts sprayed")
+    every_ml: float | None = Field(None, ge=0.001, le=1e9, description="glue dispensed, ml")
+    every_valve_cycles: int | None = Field(None, ge=1, le=10**12, description="valve openings")
+    every_valve_open_hours: float | None = Field(
+        None, ge=0.001, le=1e6, description="valve open, hours"
+    )
+    every_travel_m: float | None = Field(None, ge=0.001, le=1e9, description="robot travel, metres")
+    every_motion_hours: float | None = Field(
+        None, ge=0.001, le=1e6, description="robot moving, hours"
+    )
+    every_camera_frames: int | None = Field(None, ge=1, le=10**12, description="camera frames")
+    every_purges: int | None = Field(None, ge=1, le=10**9, description="purges")
 
     @model_validator(mode="after")
     def _some_interval(self) -> MaintenanceItem:
@@ -96,7 +99,7 @@ class MaintenanceSettings(Section):
         description="seconds between reads of the drivers' counters and checks of the "
         "schedule, the pot life and the glue level",
     )
-    purge_position: tuple[float, float, float, Degrees, Degrees, Degrees] = Field(
+    purge_position: tuple[Millimetres, Millimetres, Millimetres, Degrees, Degrees, Degrees] = Field(
         (400.0, 0.0, 150.0, 180.0, 0.0, 0.0),
         description="where `purge` sends the nozzle (over the purge cup): x, y, z mm (inside "
         "the workspace, checked before anything moves) and rx, ry, rz degrees",
