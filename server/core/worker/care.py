@@ -139,7 +139,7 @@ class CareMeter:
     def note_dispense(self) -> None:
         """Glue just flowed: the pot life starts again."""
         self.values[LAST_DISPENSE] = self.clock.time()
-        self._raised -= {"POT_LIFE_NEAR", "POT_LIFE_EXCEEDED"}
+        self._raised -= {"POT_LIFE_NEAR", "POT_LIFE_EXCEEDED"}  # the warnings' codes
 
     def run_ended(self, ended: RunEnded) -> None:
         """A run's parts counted and everything written (a run listener)."""
@@ -196,17 +196,22 @@ class CareMeter:
         for item in self._settings().maintenance_items:
             state = self._item_state(item)
             if state["status"] == "overdue":
-                self._raise_once(f"overdue:{item.name}", "MAINTENANCE_OVERDUE", state)
+                code = "MAINTENANCE_OVERDUE"
+                self._raise_once(f"overdue:{item.name}", code, state)
             elif state["status"] == "due":
-                self._raise_once(f"due:{item.name}", "MAINTENANCE_DUE", state)
+                code = "MAINTENANCE_DUE"
+                self._raise_once(f"due:{item.name}", code, state)
         pot = self.pot_life()
         if pot["status"] == "expired":
-            self._warn_once("POT_LIFE_EXCEEDED", pot["message"], "glue")
+            code = "POT_LIFE_EXCEEDED"
+            self._warn_once(code, pot["message"], "glue")
         elif pot["status"] == "near":
-            self._warn_once("POT_LIFE_NEAR", pot["message"], "glue")
+            code = "POT_LIFE_NEAR"
+            self._warn_once(code, pot["message"], "glue")
         level = self.glue_level()
         if level["status"] == "low":
-            self._warn_once("GLUE_LEVEL_LOW", level["message"], "glue")
+            code = "GLUE_LEVEL_LOW"
+            self._warn_once(code, level["message"], "glue")
 
     def _raise_once(self, key: str, code: str, state: dict[str, Any]) -> None:
         if key not in self._raised:

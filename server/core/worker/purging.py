@@ -19,7 +19,6 @@ itself and the new start of the pot life by the care meter.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 from collections.abc import Callable
 
@@ -83,6 +82,9 @@ async def _purge(
             post_fault(DeviceFault(stage, "PURGE_FAILED", f"the purge failed: {exc}"))
     finally:
         if opened:
-            with contextlib.suppress(Exception):
+            try:
                 await asyncio.shield(glue.set_valve(False))
-            care.purged()
+            except Exception as exc:  # the halt of the stop or fault closes it too
+                log.warning("closing the glue valve after the purge failed: %s", exc)
+            finally:
+                care.purged()

@@ -69,6 +69,12 @@ class Activities:
         self._replace(run, "purge")
 
     @property
+    def purging(self) -> bool:
+        """Whether a purge is under way (its valve may be open outside a run)."""
+        task = self._task
+        return task is not None and not task.done() and task.get_name() == "purge"
+
+    @property
     def moving(self) -> bool:
         """Whether a move to the safe position or a jog is still under way."""
         task = self._task
