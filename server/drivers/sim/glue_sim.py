@@ -147,6 +147,7 @@ class GlueSimulator:
         self._exception_code: int | None = None
         self._valve_stuck = False
         self.dropped_requests = 0
+        self.dispensed_ml = 0.0  # glue out of the nozzle so far (the flow model's integral)
 
     # --- lifecycle ---------------------------------------------------------------
 
@@ -357,6 +358,7 @@ class GlueSimulator:
         now = time.monotonic()
         dt = (now - self._last_update) * self._speed
         self._last_update = now
+        self.dispensed_ml += self._flow / 60.0 * dt
         if self._valve_open:
             target = self._flow_sp * self._clog
             self._flow += (target - self._flow) * (1 - math.exp(-dt / FLOW_TIME_CONSTANT_S))
