@@ -36,7 +36,7 @@ from server.core.worker.alerts import Alerts
 from server.core.worker.devices import CellDevices
 from server.core.worker.runs import RunEnded
 from server.drivers import wear
-from server.settings.maintenance import MaintenanceSettings
+from server.settings.maintenance import MaintenanceItem, MaintenanceSettings
 from server.storage.journal import Journal
 from server.storage.journal import wear as wear_table
 
@@ -182,7 +182,7 @@ class CareMeter:
         self.persist()
         return self.glue_level()
 
-    def item(self, name: str) -> Any:
+    def item(self, name: str) -> MaintenanceItem:
         for item in self._settings().maintenance_items:
             if item.name.lower() == name.strip().lower():
                 return item
@@ -227,7 +227,7 @@ class CareMeter:
             self._raised.add(code)
             self.alerts.warn(code, message, component)
 
-    def _item_state(self, item: Any) -> dict[str, Any]:
+    def _item_state(self, item: MaintenanceItem) -> dict[str, Any]:
         settings = self._settings()
         worst, reason = 0.0, ""
         intervals = item.intervals()

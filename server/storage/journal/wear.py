@@ -12,12 +12,13 @@ import sqlite3
 from collections.abc import Mapping
 from pathlib import Path
 
-from server.storage.journal.records import Record, _row
+from server.storage.journal import records as rows
+from server.storage.journal.records import Record
 
 
 def records(values: Mapping[str, float], at: float) -> list[Record]:
     """One row per key, replacing the one before."""
-    return [_row("wear", replace=True, key=k, value=float(v), time=at) for k, v in values.items()]
+    return [rows.wear(key, value, at) for key, value in values.items()]
 
 
 def read(path: Path) -> dict[str, float]:
