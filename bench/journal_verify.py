@@ -21,7 +21,7 @@ from typing import Any
 from bench.report import emit
 from server.storage.journal import SCHEMA, records
 from server.storage.journal.commit_chain import GENESIS, CommitChain, LastCommitFile
-from server.storage.journal.schema import add_commit_seq
+from server.storage.journal.later_columns import add_commit_seq
 from server.storage.journal.verify import WINDOW, verify
 
 PER_TRANSACTION = 1_000  # commits written per SQLite transaction while building

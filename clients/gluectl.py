@@ -533,6 +533,15 @@ def kpis_table(kpis: dict[str, Any]) -> Table:
     return _key_values(title, rows)
 
 
+def maintenance_table(state: dict[str, Any]) -> Table:
+    rows = [(f"counter {k}", _value(v)) for k, v in (state.get("counters") or {}).items()]
+    for item in state.get("items") or ():
+        rows.append((f"item {item['name']}", f"{item['status']} {item['percent']} %"))
+    for key in ("pot_life", "glue_level"):
+        rows.append((key.replace("_", " "), _value((state.get(key) or {}).get("status"))))
+    return _key_values("maintenance", rows)
+
+
 def health_table(health: dict[str, Any]) -> Table:
     table = Table(
         title=f"health: {health.get('status')} (state {health.get('state')})", title_justify="left"
@@ -625,6 +634,32 @@ def reset(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
 def home(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
     """Send the robot to its safe position; the cell stays IDLE (maintenance role)."""
     _command(ctx, json_flag, lambda c: c.home())
+
+
+@app.command()
+def purge(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """Purge the glue line at the purge position; the cell stays IDLE (maintenance role)."""
+    _command(ctx, json_flag, lambda c: c.purge())
+
+
+@app.command()
+def maintenance(
+    ctx: typer.Context,
+    done: Annotated[
+        str | None, typer.Option("--done", help="mark this item done (maintenance role)")
+    ] = None,
+    refill: Annotated[
+        bool, typer.Option("--refill", help="the glue reservoir was refilled (maintenance role)")
+    ] = False,
+    json_flag: JsonFlag = False,
+) -> None:
+    """Wear counters, the maintenance schedule, pot life and glue level; --done ITEM, --refill."""
+    options = _options(ctx, json_flag)
+    if done is not None:
+        _call(options, lambda c: c.maintenance_done(done))
+    if refill:
+        _call(options, lambda c: c.glue_refill())
+    _show(options, _call(options, lambda c: c.maintenance()), maintenance_table)
 
 
 @app.command()

@@ -182,6 +182,22 @@ class AsyncCellClient:
         """The latest `limit` transitions, newest first."""
         return await self._send(builders.history(limit))
 
+    async def purge(self) -> CommandResult:
+        """Purge the glue line at the purge position, in IDLE (maintenance role)."""
+        return await self._send(builders.command("purge"))
+
+    async def maintenance(self) -> dict[str, Any]:
+        """Wear counters, the maintenance schedule, pot life and glue level."""
+        return await self._send(builders.maintenance())
+
+    async def maintenance_done(self, item: str) -> dict[str, Any]:
+        """Mark a maintenance item done: its intervals start again (maintenance role)."""
+        return await self._send(builders.maintenance_done(item))
+
+    async def glue_refill(self) -> dict[str, Any]:
+        """The glue reservoir was refilled: its level is full again (maintenance role)."""
+        return await self._send(builders.glue_refill())
+
     async def kpis(self) -> dict[str, Any]:
         """The current shift's KPIs and OEE."""
         return await self._send(builders.kpis())

@@ -196,6 +196,18 @@ def kpis() -> Call[dict[str, Any]]:
     return Call("GET", "/kpis", _json)
 
 
+def maintenance() -> Call[dict[str, Any]]:
+    return Call("GET", "/maintenance", _json)
+
+
+def maintenance_done(item: str) -> Call[dict[str, Any]]:
+    return Call("POST", f"/maintenance/{quote(item, safe='')}/done", _json)
+
+
+def glue_refill() -> Call[dict[str, Any]]:
+    return Call("POST", "/glue/refill", _json)
+
+
 def health() -> Call[dict[str, Any]]:
     # 200 whether the devices are ok or degraded; the body says which.
     return Call("GET", "/health", _json)

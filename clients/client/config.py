@@ -43,6 +43,7 @@ COMMANDS = (
     "reset",
     "home",
     "jog",
+    "purge",
 )
 USER_AGENT = "glue-cell-client/0.1"
 WS_MAX_MESSAGE_BYTES = 16 * 2**20

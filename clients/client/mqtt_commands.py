@@ -229,6 +229,9 @@ class MqttCellClient:
     def home(self) -> CommandResult:
         return self.command("home")
 
+    def purge(self) -> CommandResult:
+        return self.command("purge")
+
     def jog(self, axis: str, distance_mm: float) -> CommandResult:
         return self._send(builders.jog(axis, distance_mm))
 

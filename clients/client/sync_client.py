@@ -183,6 +183,22 @@ class CellClient:
         """The latest `limit` transitions, newest first."""
         return self._send(builders.history(limit))
 
+    def purge(self) -> CommandResult:
+        """Purge the glue line at the purge position, in IDLE (maintenance role)."""
+        return self._send(builders.command("purge"))
+
+    def maintenance(self) -> dict[str, Any]:
+        """Wear counters, the maintenance schedule, pot life and glue level."""
+        return self._send(builders.maintenance())
+
+    def maintenance_done(self, item: str) -> dict[str, Any]:
+        """Mark a maintenance item done: its intervals start again (maintenance role)."""
+        return self._send(builders.maintenance_done(item))
+
+    def glue_refill(self) -> dict[str, Any]:
+        """The glue reservoir was refilled: its level is full again (maintenance role)."""
+        return self._send(builders.glue_refill())
+
     def kpis(self) -> dict[str, Any]:
         """The current shift's KPIs and OEE."""
         return self._send(builders.kpis())

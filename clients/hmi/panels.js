@@ -7,6 +7,7 @@
 
 import { AuthError, blobUrl, getJson } from "./api.js";
 import { $, clockTime, duration, element, facts, number, percent, span } from "./dom.js";
+import { refreshMaintenance } from "./maintenance.js";
 import { refreshOrders } from "./orders.js";
 import { HISTORY_ROWS, hmi, STATE_TONE } from "./store.js";
 
@@ -34,6 +35,7 @@ export async function refreshPanels(withHealth = !hmi.live) {
         panel("card-kpis", "/kpis", renderKpis),
         panel("card-history", `/history?limit=${HISTORY_ROWS}`, renderHistory),
         refreshOrders(),
+        refreshMaintenance(),
       ]);
     } while (refreshAgain && hmi.token);
   } finally {

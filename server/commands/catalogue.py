@@ -221,6 +221,16 @@ CATALOGUE: Final = (
         payload=jog_payload,
         body_required=True,
     ),
+    CommandSpec(
+        Command.PURGE,
+        MAINT,  # the arm moves and glue flows outside a run: the role that may home and jog
+        "purge",
+        "Purge",
+        "Purge the glue line (IDLE, stays IDLE): the nozzle to purge_position (checked\n"
+        "against the workspace first), then the valve open for purge_seconds at\n"
+        "purge_flow_ml_min into the purge cup. Restarts the pot life. Answered once it\n"
+        "has begun, like home; the e-stop or a fault stops it with the valve closed.",
+    ),
 )
 
 BY_COMMAND: Final = MappingProxyType({spec.command: spec for spec in CATALOGUE})

@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from server.common.errors import DeviceDisconnected, DeviceError, DeviceTimeout
+from server.drivers import wear
 from server.drivers.base import DeviceFault, DeviceHealth, FaultListener
 from server.drivers.sim.camera_bead import BeadSource, Shift
 from server.drivers.sim.camera_model import shifted_camera
@@ -82,6 +83,7 @@ class _CameraBase:
 
     def _frame_ok(self, started: float) -> None:
         self.health.record_ok(time.monotonic() - started)
+        wear.add(self.health.details, wear.FRAMES, 1)
         if self._outage:
             self._outage = False
             logger.info("camera delivers frames again")

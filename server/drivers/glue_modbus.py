@@ -74,6 +74,7 @@ from pymodbus.pdu import ModbusPDU
 
 from server.common.errors import DeviceDisconnected, DeviceError, DeviceTimeout
 from server.drivers import glue_registers as regs
+from server.drivers import wear
 from server.drivers.base import DeviceFault, DeviceHealth, FaultListener, GlueStatus
 from server.drivers.glue_line import (
     COMMAND,
@@ -266,6 +267,7 @@ class ModbusGlueDispenser:
         self._opening += 1
         try:
             await self._call(what, COMMAND, body, droppable=True)
+            wear.add(self.health.details, wear.VALVE_CYCLES, 1)  # an opening answered
         finally:
             self._opening -= 1
 
@@ -459,7 +461,8 @@ class ModbusGlueDispenser:
                 if not self._opening:
                     self._valve_may_be_open = False
                 # What /health and the live feed show at once, before the next poll.
-                self.health.details.update(valve_open=False, status_at=time.time())
+                wear.glue_held(self.health.details, now := time.time())
+                self.health.details.update(valve_open=False, status_at=now)
                 return
             if time.monotonic() >= deadline:
                 break
@@ -522,7 +525,9 @@ class ModbusGlueDispenser:
 
     def _observe(self, status: GlueStatus, uptime_s: int) -> None:
         """Update health.details and report the onsets one status read shows (module doc)."""
-        self.health.details.update(
+        details, now = self.health.details, time.time()
+        wear.glue_held(details, now)
+        details.update(
             valve_open=status.valve_open,
             flow_ml_min=status.flow_ml_min,
             flow_setpoint_ml_min=status.flow_setpoint_ml_min,
@@ -531,7 +536,7 @@ class ModbusGlueDispenser:
             temperature_c=status.temperature_c,
             alarms=list(status.alarms),
             uptime_s=uptime_s,
-            status_at=time.time(),
+            status_at=now,
         )
         if status.valve_open:
             self._valve_may_be_open = True

@@ -53,6 +53,7 @@ import time
 from typing import Any
 
 from server.common.errors import DeviceDisconnected, DeviceError, DeviceTimeout, RobotCommandError
+from server.drivers import wear
 from server.drivers.base import DeviceFault, DeviceHealth, FaultListener, Pose
 from server.drivers.jsonlines import (
     MAX_LINE_BYTES,
@@ -487,7 +488,9 @@ class JsonRpcRobot:
             raise DeviceError(
                 DEVICE, f"getPosition answered {result!r}, not a pose: {exc}"
             ) from exc
-        self.health.details.update(position=[round(v, 3) for v in pose], position_at=time.time())
+        details = self.health.details
+        wear.add(details, wear.TRAVEL_M, wear.travel_m(details.get("position"), pose))
+        details.update(position=[round(v, 3) for v in pose], position_at=time.time())
         return pose
 
     async def is_moving(self) -> bool:
@@ -532,6 +535,7 @@ class JsonRpcRobot:
         sends a shielded stop before re-raising, so the arm never keeps going
         for a caller that gave up.
         """
+        began = time.monotonic()
         try:
             start = await self.get_position()
             loop = asyncio.get_running_loop()
@@ -556,6 +560,8 @@ class JsonRpcRobot:
             with contextlib.suppress(asyncio.CancelledError):
                 await asyncio.shield(stopping)
             raise
+        finally:
+            wear.add(self.health.details, wear.MOTION_S, time.monotonic() - began)
         if not self._arrived(reached, target):
             raise MotionInterrupted(method, target, reached)
 

@@ -59,6 +59,7 @@ _ROUTES: Final = MappingProxyType(
         ("GET", "/orders/{order_id}"): VIEW,
         ("GET", "/orders/{order_id}/report"): VIEW,
         ("GET", "/workpieces"): VIEW,
+        ("GET", "/maintenance"): VIEW,
         ("GET", "/workpieces/{workpiece_id}"): VIEW,
         ("GET", "/workpieces/{workpiece_id}/thumbnail"): VIEW,
         ("POST", "/ws-ticket"): VIEW,
@@ -72,6 +73,8 @@ _ROUTES: Final = MappingProxyType(
         ("GET", "/camera/preview"): MAINT,
         # the diagnostic bundle: settings (secrets masked), faults, logs, health
         ("GET", "/diagnostics"): MAINT,
+        ("POST", "/maintenance/{item}/done"): MAINT,
+        ("POST", "/glue/refill"): MAINT,
         ("POST", "/calibration/markers/draft/{marker}/teach"): MAINT,
         ("PUT", "/calibration/markers/draft/{marker}"): MAINT,
         ("DELETE", "/calibration/markers/draft"): MAINT,

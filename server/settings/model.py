@@ -45,6 +45,7 @@ from server.settings.glue import GlueSettings, parse_tcp_address
 from server.settings.http import HttpSettings
 from server.settings.kpis import KpiSettings
 from server.settings.logs import LogSettings
+from server.settings.maintenance import MaintenanceSettings
 from server.settings.motion import Millimetres, MotionSettings, outside_workspace
 from server.settings.mqtt import MqttSettings
 from server.settings.notifications import WebhookSettings
@@ -123,6 +124,7 @@ class Settings(
     RunEndSettings,
     CalibrationSettings,
     SimulationSettings,
+    MaintenanceSettings,
     BaseSettings,
 ):
     """Every tunable of the cell server, with the specification's names: the sections,

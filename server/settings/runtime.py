@@ -47,6 +47,15 @@ RUNTIME_SETTINGS = (
     "bead_max_gap_mm",
     "bead_max_offset_mm",
     "order_defect_limit",
+    # The maintenance technician's: the schedule and the glue line (operations guide)
+    "maintenance_items",
+    "maintenance_overdue_percent",
+    "purge_seconds",
+    "purge_flow_ml_min",
+    "pot_life_minutes",
+    "pot_life_warning_percent",
+    "glue_reservoir_ml",
+    "glue_low_level_percent",
 )
 
 Source = Literal["runtime", "command line", "environment", "file", "default"]

@@ -15,6 +15,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from pydantic_core import to_jsonable_python
+
 from server.storage.files import read_json, write_json_atomic
 
 FILE_NAME = "runtime-settings.json"
@@ -38,4 +40,6 @@ class RuntimeSettingsStore:
 
     def save(self, values: dict[str, Any]) -> None:
         """Replace the saved changes with `values` (atomically; OSError if the disk refuses)."""
-        write_json_atomic(self.path, dict(sorted(values.items())))
+        # Settings values as JSON holds them (a section model such as a maintenance item
+        # as its fields), read back through the settings model at the next start.
+        write_json_atomic(self.path, to_jsonable_python(dict(sorted(values.items()))))

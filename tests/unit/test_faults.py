@@ -32,6 +32,11 @@ EXPECTED = {
     "CALIBRATION_DEGRADING": "warning",
     "JOURNAL_DAMAGED": "warning",  # the cell works on; the record of the past is incomplete
     "INSPECTION_NO_SPACE": "warning",  # a full disk took the image: part not inspected
+    "MAINTENANCE_DUE": "warning",  # the schedule: work to plan, the cell runs on
+    "MAINTENANCE_OVERDUE": "warning",
+    "POT_LIFE_NEAR": "warning",
+    "POT_LIFE_EXCEEDED": "warning",  # starts refused until a purge; nothing stops
+    "GLUE_LEVEL_LOW": "warning",
     # critical: a person looks before the cell runs again
     "EMERGENCY_STOP": "critical",
     "COMM_LOST": "critical",
@@ -49,6 +54,7 @@ EXPECTED = {
     "CAPTURE_FAILED": "critical",
     "SAFE_POSITION_FAILED": "critical",
     "JOG_FAILED": "critical",
+    "PURGE_FAILED": "critical",
     "PAUSE_NOT_HELD": "critical",
     "HALT_INCOMPLETE": "critical",
     "JOURNAL_WRITE_FAILED": "critical",

@@ -111,7 +111,9 @@ class CellMachine(RuleBasedStateMachine):
 
     @invariant()
     def the_valve_is_closed_whenever_no_trajectory_runs(self) -> None:
-        if self.worker.ctx.state not in (State.EXECUTING_TRAJECTORY, State.PAUSED):
+        """Outside a run the valve is open only during a purge (an activity in IDLE)."""
+        purging = self.worker.activities.purging
+        if self.worker.ctx.state not in (State.EXECUTING_TRAJECTORY, State.PAUSED) and not purging:
             assert self.glue.valve_open is False
 
 

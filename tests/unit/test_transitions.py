@@ -32,6 +32,7 @@ EXPECTED: dict[tuple[State, Event], State] = {
     (S.IDLE, E.CREATE_WORKPIECE_REQUESTED): S.CREATING_WORKPIECE,
     (S.IDLE, E.HOME_REQUESTED): S.IDLE,
     (S.IDLE, E.JOG_REQUESTED): S.IDLE,
+    (S.IDLE, E.PURGE_REQUESTED): S.IDLE,
     (S.EXECUTING_TRAJECTORY, E.OPERATION_COMPLETED): S.IDLE,
     (S.EXECUTING_TRAJECTORY, E.CANCEL_REQUESTED): S.IDLE,
     (S.EXECUTING_TRAJECTORY, E.PAUSE_REQUESTED): S.PAUSED,
@@ -110,6 +111,7 @@ def test_available_commands_follow_the_table() -> None:
         "estop",
         "home",
         "jog",
+        "purge",
     ]
     assert available_commands(S.EXECUTING_TRAJECTORY) == ["pause", "cancel", "estop"]
     assert available_commands(S.PAUSED) == ["resume", "cancel", "estop"]

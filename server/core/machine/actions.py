@@ -60,6 +60,7 @@ class Action(StrEnum):
     ENTER_IDLE = "enter idle"  # keep the result, clear the run's data (and the fault on reset)
     START_HOMING = "start homing"  # send the robot to its safe position (the home command)
     START_JOG = "start jog"  # read the pose, check the step's target, move one bounded step
+    START_PURGE = "start purge"  # to the purge position, then the valve open for a set time
     START_RUN = "start run"  # start the state's operation
     OPEN_GATE = "open gate"  # let a held operation continue
 
@@ -113,6 +114,8 @@ def actions_of(row: Transition) -> tuple[Action, ...]:
         actions.append(Action.START_HOMING)
     if row.event is Event.JOG_REQUESTED:
         actions.append(Action.START_JOG)
+    if row.event is Event.PURGE_REQUESTED:
+        actions.append(Action.START_PURGE)
     if starts_operation(row):
         actions.append(Action.START_RUN)
     if row.event is Event.RESUME_REQUESTED:

@@ -127,6 +127,7 @@ class Facts:
     probed: Probed | None = None  # set when this event is that reset, back from its probe
     active_order: ActiveOrder | None = None
     library: Library = field(default_factory=Library)
+    glue_line_problem: str | None = None  # why a start must wait for a purge (pot life)
 
 
 @dataclass(frozen=True, slots=True)
@@ -238,7 +239,7 @@ def precondition(
 ) -> Refusal | None:
     """Why `event` with `payload` cannot be accepted now besides its state, or None."""
     if isinstance(payload, StartPayload):
-        return _start(payload, facts)
+        return _start(payload, facts) or _glue_line(facts)
     if isinstance(payload, CreateWorkpiecePayload):
         return _create_workpiece(payload, facts.library)
     if isinstance(payload, JogPayload):
@@ -282,6 +283,11 @@ def _start(start: StartPayload, facts: Facts) -> Refusal | None:
         if library.calibration_problem is not None:
             return Refusal(library.calibration_problem)
     return None
+
+
+def _glue_line(facts: Facts) -> Refusal | None:
+    problem = facts.glue_line_problem
+    return Refusal(f"{problem} (maintenance: POST /purge)") if problem is not None else None
 
 
 def _create_workpiece(create: CreateWorkpiecePayload, library: Library) -> Refusal | None:

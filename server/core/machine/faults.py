@@ -32,6 +32,12 @@ WARNING = frozenset(
         "CALIBRATION_DEGRADING",
         "JOURNAL_DAMAGED",
         "INSPECTION_NO_SPACE",  # the part is sprayed; its inspection could not be kept
+        # the care meter's (server/core/worker/care.py): the cell runs on, a person plans work
+        "MAINTENANCE_DUE",
+        "MAINTENANCE_OVERDUE",
+        "POT_LIFE_NEAR",
+        "POT_LIFE_EXCEEDED",  # a start is refused until a purge; nothing stops
+        "GLUE_LEVEL_LOW",
     }
 )
 
@@ -67,6 +73,8 @@ RECOMMENDED_ACTION = {
     "PAUSE_NOT_HELD": "check the named device answers (valve closed, robot still), then reset",
     "JOG_FAILED": "check the robot controller (fault, protective stop) and the path of the "
     "jog, then reset",
+    "PURGE_FAILED": "check the named device (robot controller, dispenser) and the purge cup "
+    "at purge_position, then reset",
 }
 
 

@@ -74,6 +74,7 @@ class Event(StrEnum):
     RESET_REQUESTED = "RESET_REQUESTED"
     HOME_REQUESTED = "HOME_REQUESTED"
     JOG_REQUESTED = "JOG_REQUESTED"
+    PURGE_REQUESTED = "PURGE_REQUESTED"
 
 
 class Guard(StrEnum):
@@ -125,6 +126,8 @@ _ROWS: Final[tuple[Transition, ...]] = (
     Transition(State.IDLE, Event.HOME_REQUESTED, State.IDLE),
     # Maintenance moves the robot one bounded step (teaching marker positions); stays IDLE.
     Transition(State.IDLE, Event.JOG_REQUESTED, State.IDLE),
+    # Maintenance purges the glue line over the purge cup: an activity in IDLE, like home.
+    Transition(State.IDLE, Event.PURGE_REQUESTED, State.IDLE),
     # Spraying: finish, cancel or pause.
     Transition(State.EXECUTING_TRAJECTORY, Event.OPERATION_COMPLETED, State.IDLE),
     Transition(State.EXECUTING_TRAJECTORY, Event.CANCEL_REQUESTED, State.IDLE),
@@ -179,6 +182,7 @@ class Command(StrEnum):
     RESET = "reset"
     HOME = "home"
     JOG = "jog"
+    PURGE = "purge"
 
 
 # The event each command posts.
@@ -195,6 +199,7 @@ COMMANDS: Final = MappingProxyType(
         Command.RESET: Event.RESET_REQUESTED,
         Command.HOME: Event.HOME_REQUESTED,
         Command.JOG: Event.JOG_REQUESTED,
+        Command.PURGE: Event.PURGE_REQUESTED,
     }
 )
 COMMAND_OF_EVENT: Final = MappingProxyType({event: name for name, event in COMMANDS.items()})

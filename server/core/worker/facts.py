@@ -8,6 +8,7 @@ calibrations say. Only these two events read the library, so only they pay for i
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 from server.core.machine import decide
@@ -51,6 +52,7 @@ def decision_facts(
     probed: decide.Probed | None,
     orders: OrderSource | None,
     stores: CellStores,
+    glue_line: Callable[[], str | None] = lambda: None,
 ) -> decide.Facts:
     """The facts of one decision, with the active order and the library read now.
 
@@ -73,6 +75,7 @@ def decision_facts(
         probed=probed,
         active_order=order,
         library=library,
+        glue_line_problem=glue_line() if event is Event.START_REQUESTED else None,
     )
 
 

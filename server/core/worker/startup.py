@@ -23,7 +23,7 @@ PostFault = Callable[[DeviceFault], None]
 
 
 # The activities that move the robot (the others only bring device links up).
-MOVES = ("homing", "jog")
+MOVES = ("homing", "jog", "purge")
 
 
 class Activities:
@@ -63,6 +63,16 @@ class Activities:
     def jog(self, target: Pose) -> None:
         """Move the robot to `target` (one jog step, checked by the caller) at jog speed."""
         self._replace(self._jog_to(target), "jog")
+
+    def purge(self, run: Coroutine[Any, Any, None]) -> None:
+        """Run a purge of the glue line (server/core/worker/purging.py) as the activity."""
+        self._replace(run, "purge")
+
+    @property
+    def purging(self) -> bool:
+        """Whether a purge is under way (its valve may be open outside a run)."""
+        task = self._task
+        return task is not None and not task.done() and task.get_name() == "purge"
 
     @property
     def moving(self) -> bool:

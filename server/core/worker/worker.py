@@ -40,12 +40,14 @@ from server.core.machine.transitions import OPERATION_OF_STATE, Event, State, ev
 from server.core.operations.base import Operation
 from server.core.operations.jog import JogRefused
 from server.core.worker.alerts import Alerts
+from server.core.worker.care import CareMeter
 from server.core.worker.context import MachineContext, ProcessingStats
 from server.core.worker.devices import CellDevices
 from server.core.worker.event_queue import Envelope, EventQueue, Priority
 from server.core.worker.facts import OrderSource, decision_facts, known_device_faults
 from server.core.worker.jogging import start_jog
 from server.core.worker.posting import EventPoster
+from server.core.worker.purging import start_purge
 from server.core.worker.recorder import Recorder
 from server.core.worker.reset_probe import ResetProbes
 from server.core.worker.runs import PauseNotHeld, Runs
@@ -108,6 +110,9 @@ class Worker:
             clock=clock,
             post_outcome=poster.post_outcome,
         )
+        # Wear counters, the maintenance schedule, pot life and glue level (care.py).
+        self.care = CareMeter(lambda: settings, devices, journal, self.alerts, clock)
+        self.runs.listeners.append(self.care.run_ended)
         self.activities = Activities(
             settings, devices, self._halt, poster.post_ready, poster.post_fault
         )
@@ -145,6 +150,7 @@ class Worker:
             Action.ENTER_IDLE: self.changes.enter_idle,
             Action.START_HOMING: lambda _d, _e: self.activities.go_home(),
             Action.START_JOG: self._start_jog,
+            Action.START_PURGE: self._start_purge,
             Action.START_RUN: self._start_run,
             Action.OPEN_GATE: lambda _d, _e: self.runs.release(),
         }
@@ -159,12 +165,15 @@ class Worker:
         self.ctx.since = self.clock.time()
         self._task = asyncio.create_task(self._run(), name="cell-worker")
         self.activities.bring_up(self.interruption)
+        self.care.load(self.recorder.journal.path)
+        self.care.start()
 
     async def stop(self) -> None:
         """Stop draining; every waiting sender gets WorkerStopped, never a hang."""
         if self._task is not None:
             self._task.cancel()
         self.alerts.stop()
+        self.care.stop()
         probing = await self.reset_probes.stop()  # a reset waiting for its probe's answer
         await asyncio.gather(
             *(t for t in (self._task,) if t is not None),
@@ -206,6 +215,7 @@ class Worker:
             probed=probed,
             orders=self.orders,
             stores=self.stores,
+            glue_line=self.care.start_problem,
         )
 
     # --- the loop ----------------------------------------------------------
@@ -360,6 +370,18 @@ class Worker:
             settings=self.settings,
             stops=lambda: (self._estops, self.poster.faults_posted),
             known_faults=lambda: known_device_faults(self.devices),
+        )
+
+    def _start_purge(self, decision: Decision, envelope: Envelope) -> None:
+        devices = self.devices
+        start_purge(
+            robot=devices.robot,
+            glue=devices.glue,
+            activities=self.activities,
+            settings=self.settings,
+            care=self.care,
+            stops=lambda: (self._estops, self.poster.faults_posted),
+            post_fault=self.poster.post_fault,
         )
 
     def _start_run(self, decision: Decision, envelope: Envelope) -> None:

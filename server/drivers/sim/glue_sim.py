@@ -18,7 +18,8 @@ robot simulator's `speed_fraction`, wired where both run in one process) it is a
 speed-following dispenser, as real cells use: the active flow setpoint and the
 flow out of the nozzle are the programmed ones scaled by the robot's speed, so
 the glue per millimetre of bead does not depend on how long the arm waits
-between moves (a run stretched by a busy machine does not over-dispense).
+between moves (a run stretched by a busy machine does not over-dispense); a valve
+opened with the arm at rest (a purge) gives the fixed flow until it closes.
 `speed_factor` > 1 makes the
 dynamics faster, like the cell's `simulation_speed_factor`. `close_commanded_at`
 is the time.time() of the last write of "closed" to the valve command; `valve_closed_at`
@@ -87,6 +88,10 @@ logger = logging.getLogger(__name__)
 
 PRESSURE_TIME_CONSTANT_S = 0.1
 AMBIENT_C = 25.0
+# A valve opened after the arm has stood still this long gives the fixed flow until it
+# closes, as a speed-following controller does with no motion to follow (a purge, which
+# lets the arm settle first: server/core/worker/purging.py); a run opens it on its way.
+FIXED_FLOW_AFTER_S = 0.3
 _HOLDING_FCS = {3, 6, 16}
 _INPUT_FCS = {4}
 _CONTROL_LINE_LIMIT = 64 * 1024
@@ -156,6 +161,9 @@ class GlueSimulator:
         self.dropped_requests = 0
         # The robot's speed as a fraction of its programmed one (None: a fixed flow).
         self.speed_source: Callable[[], float] | None = None
+        self._last_motion = 0.0  # time.monotonic() the robot was last seen moving
+        self._fixed_flow = False  # the valve opened with the arm at rest: no speed to follow
+        self.dispensed_ml = 0.0  # glue out of the nozzle so far (the flow model's integral)
 
     # --- lifecycle ---------------------------------------------------------------
 
@@ -355,6 +363,8 @@ class GlueSimulator:
             self._open_valve(due[1])
 
     def _open_valve(self, wall: float) -> None:
+        self._follow()  # the arm's motion seen up to now
+        self._fixed_flow = time.monotonic() - self._last_motion >= FIXED_FLOW_AFTER_S
         self.valve_opened_at = wall
         self.valve_log.append((wall, True))
         self._valve_open = True
@@ -366,6 +376,7 @@ class GlueSimulator:
         now = time.monotonic()
         dt = (now - self._last_update) * self._speed
         self._last_update = now
+        self.dispensed_ml += self._flow * self._follow() / 60.0 * dt
         if self._valve_open:
             target = self._flow_sp * self._clog
             self._flow += (target - self._flow) * (1 - math.exp(-dt / FLOW_TIME_CONSTANT_S))
@@ -382,12 +393,21 @@ class GlueSimulator:
             return self._forced_pressure
         return max(0.0, self._pressure + self._jitter(0.05))
 
+    def _follow(self) -> float:
+        """The speed-following factor (module docstring): the robot's speed fraction, or
+        1.0, the fixed flow, for a valve opened with the arm at rest (a purge)."""
+        if self.speed_source is None:
+            return 1.0
+        follow = self.speed_source()
+        if follow > 0.0:
+            self._last_motion = time.monotonic()
+        return 1.0 if self._fixed_flow else follow
+
     def _refresh(self, registers: list[int]) -> None:
         """Write the model's present values into the input registers."""
         self._advance()
         elapsed = (time.monotonic() - self._started) * self._speed
-        # Speed-following: setpoint and flow scaled by the robot's speed (module docstring).
-        follow = self.speed_source() if self.speed_source is not None else 1.0
+        follow = self._follow()
         flow = max(0.0, (self._flow + self._jitter(0.1)) * follow) if self._valve_open else 0.0
         if self._forced_flow is not None and self._valve_open:
             flow = self._forced_flow

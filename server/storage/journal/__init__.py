@@ -32,6 +32,7 @@ from pathlib import Path
 from server.storage.journal import records
 from server.storage.journal.commit_chain import GENESIS, CommitChain, LastCommitFile
 from server.storage.journal.inspection import inspect
+from server.storage.journal.later_columns import add_commit_seq
 from server.storage.journal.reader import Cursor, Reader
 from server.storage.journal.records import Record
 from server.storage.journal.schema import (
@@ -42,7 +43,6 @@ from server.storage.journal.schema import (
     Column,
     Filter,
     Table,
-    add_commit_seq,
     filter_columns,
 )
 from server.storage.journal.verify import Damage

@@ -310,3 +310,8 @@ def order_part(**columns: Any) -> Record:
     """One part made for an order, the columns of `order_parts` by name: its run, how the
     run ended, the part's verdict and its inspection figures."""
     return _row("order_parts", **columns)
+
+
+def wear(key: str, value: float, at: float) -> Record:
+    """A wear counter or maintenance mark (`wear` table), replacing the one of its key."""
+    return _row("wear", replace=True, key=key, value=float(value), time=at)

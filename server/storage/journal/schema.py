@@ -24,7 +24,6 @@ rewritten by each write that checks a failing journal can write again.
 from __future__ import annotations
 
 import json
-import sqlite3
 from dataclasses import dataclass
 from typing import Any, Final
 
@@ -67,7 +66,7 @@ class Column:
     meaning: str
     filter: Filtered | None = None
     # A column added after journals were written without it: the value every older
-    # row takes. Added at open (`add_commit_seq`), and a sealed row holding it is
+    # row takes. Added at open (`later_columns.add_commit_seq`), and a sealed row holding it is
     # digested without it (`sealed_form`), so older commits verify as before.
     older_rows: object = ALWAYS
     # On `order_parts`: a figure of the run's inspection summary, copied onto the part.
@@ -495,6 +494,18 @@ WRITE_CHECK = Table(
     internal=True,
 )
 
+WEAR = Table(
+    "wear",
+    "Wear counters and maintenance marks (server/core/worker/care.py), kept across restarts.",
+    (
+        Column("key", "TEXT PRIMARY KEY", str, "the counter or mark"),
+        Column("value", "REAL NOT NULL", float, "its value"),
+        _time("when it was last written (Unix seconds)"),
+    ),
+    time_column=None,
+    internal=True,
+)
+
 # Every table, in the order SCHEMA creates them.
 ALL_TABLES: tuple[Table, ...] = (
     EVENTS,
@@ -510,6 +521,7 @@ ALL_TABLES: tuple[Table, ...] = (
     COMMITS,
     JOURNAL_META,
     WRITE_CHECK,
+    WEAR,
 )
 
 SCHEMA = "\n".join(table.create_sql() for table in ALL_TABLES) + "\n"
@@ -538,31 +550,6 @@ FILTERS: dict[str, tuple[Filter, ...]] = {name: t.filters for name, t in TABLES.
 
 # The inspection figures a part of an order carries (server/orders/model.py).
 PART_FIGURES: tuple[str, ...] = tuple(c.name for c in ORDER_PARTS.columns if c.part_figure)
-
-
-def add_commit_seq(connection: sqlite3.Connection) -> None:
-    """Give each sealed table its `commit_seq` column where an older journal lacks it,
-    and each table the LATER_COLUMNS it lacks."""
-    for table in SEALED:
-        columns = {row[1] for row in connection.execute(f"PRAGMA table_info({table})")}
-        if COMMIT_SEQ not in columns:
-            connection.execute(f"ALTER TABLE {table} ADD COLUMN {COMMIT_SEQ} INTEGER")
-    for table, later in LATER_COLUMNS.items():
-        columns = {row[1] for row in connection.execute(f"PRAGMA table_info({table})")}
-        for name, declaration, _ in later:
-            if name not in columns:
-                connection.execute(f"ALTER TABLE {table} ADD COLUMN {name} {declaration}")
-
-
-def stored_columns(connection: sqlite3.Connection, table: str) -> str:
-    """TABLES' columns of `table` for a SELECT, a LATER_COLUMNS one the file does not have
-    yet as its default (the journal is verified before it is opened and given it)."""
-    have = {row[1] for row in connection.execute(f"PRAGMA table_info({table})")}
-    defaults = {name: default for name, _, default in LATER_COLUMNS.get(table, ())}
-    return ", ".join(
-        name if name in have or name not in defaults else f"{defaults[name]!r} AS {name}"
-        for name in TABLES[table].column_names
-    )
 
 
 def sealed_form(table: str, row: tuple[Any, ...]) -> tuple[Any, ...]:

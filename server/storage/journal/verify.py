@@ -34,7 +34,8 @@ from server.storage.journal.commit_chain import (
     head_of,
     rows_json,
 )
-from server.storage.journal.schema import COMMIT_SEQ, SEALED, sealed_form, stored_columns
+from server.storage.journal.later_columns import stored_columns
+from server.storage.journal.schema import COMMIT_SEQ, SEALED, sealed_form
 
 WINDOW = 10_000  # the newest commits whose rows start-up digests again
 

@@ -1,0 +1,317 @@
+"""The cell's wear and the glue line's care: counters, the maintenance schedule, pot life, level.
+
+Wear is counted by the drivers as they work (`server/drivers/wear.py`: valve
+openings, open time and glue dispensed, robot travel and motion time, camera
+frames); `CareMeter` reads what grew every care_check_interval, adds it to the
+totals the journal keeps (table `wear`) and counts what the drivers cannot see:
+parts sprayed (a completed trajectory run's workpieces) and purges. It never
+blocks the worker: the totals live in memory, and are written (one replace per
+key, not awaited) every wear_persist_interval, at each run's end and at a clean
+stop; a crash loses at most one interval of wear.
+
+From the totals it judges, at each check:
+
+- each maintenance item (settings) is `ok`, `due` (100 % of any interval used)
+  or `overdue` (maintenance_overdue_percent); `done` restarts its intervals;
+- the adhesive's pot life since the last dispense (a run's glue or a purge):
+  a warning at pot_life_warning_percent, and past it `start_problem` refuses a
+  start until a purge;
+- the reservoir's level, estimated from the glue dispensed since the last
+  `refill`, with a warning at glue_low_level_percent.
+
+Each warning is raised once as its condition begins, through `Alerts.warn`:
+logged, journaled as a warning, and on the bus as an `alert` (the WebSocket,
+MQTT, OPC UA alarm events and webhooks all take it from there).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from server.core.infra.clock import Clock, Timer
+from server.core.worker.alerts import Alerts
+from server.core.worker.devices import CellDevices
+from server.core.worker.runs import RunEnded
+from server.drivers import wear
+from server.settings.maintenance import MaintenanceItem, MaintenanceSettings
+from server.storage.journal import Journal
+from server.storage.journal import wear as wear_table
+
+log = logging.getLogger(__name__)
+
+# The totals kept, each from a driver's counter (device, health.details key) or counted here.
+FROM_DRIVERS = {
+    "valve_cycles": ("glue", wear.VALVE_CYCLES),
+    "valve_open_s": ("glue", wear.VALVE_OPEN_S),
+    "glue_ml": ("glue", wear.GLUE_ML),
+    "travel_m": ("robot", wear.TRAVEL_M),
+    "motion_s": ("robot", wear.MOTION_S),
+    "camera_frames": ("camera", wear.FRAMES),
+}
+COUNTERS = (*FROM_DRIVERS, "parts", "purges")
+LAST_DISPENSE = "mark:last_dispense_at"
+REFILLED_AT_ML = "mark:refilled_at_glue_ml"
+
+
+def _done_key(item: str, counter: str) -> str:
+    return f"done:{item}:{counter}"
+
+
+class UnknownItem(LookupError):
+    """No maintenance item of that name in the settings."""
+
+
+class CareMeter:
+    """Wear totals, the maintenance schedule, pot life and glue level (see the module doc)."""
+
+    def __init__(
+        self,
+        settings: Callable[[], MaintenanceSettings],
+        devices: CellDevices,
+        journal: Journal,
+        alerts: Alerts,
+        clock: Clock,
+    ) -> None:
+        self._settings = settings  # read at each use: PATCH /settings may change them
+        self.devices = devices
+        self.journal = journal
+        self.alerts = alerts
+        self.clock = clock
+        self.values: dict[str, float] = {name: 0.0 for name in COUNTERS}
+        self._seen: dict[str, float] = {}  # the drivers' counters at the last read
+        self._raised: set[str] = set()  # conditions warned of, until they end
+        self._timer: Timer | None = None
+        self._persisted_at = 0.0
+
+    # --- lifecycle -------------------------------------------------------------
+
+    def load(self, path: Path) -> None:
+        """The totals and marks as the journal last kept them."""
+        self.values.update(wear_table.read(path))
+
+    def start(self) -> None:
+        self._persisted_at = self.clock.monotonic()
+        self._schedule()
+
+    def stop(self) -> None:
+        """Stop checking; the totals are written a last time."""
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self.read_drivers()
+        self.persist()
+
+    def _schedule(self) -> None:
+        self._timer = self.clock.call_later(self._settings().care_check_interval, self._tick)
+
+    def _tick(self) -> None:
+        try:
+            self.check()
+            if (
+                self.clock.monotonic() - self._persisted_at
+                >= self._settings().wear_persist_interval
+            ):
+                self.persist()
+        except Exception:  # a check must never stop the checks
+            log.exception("the wear and maintenance check failed")
+        finally:
+            self._schedule()
+
+    # --- counting --------------------------------------------------------------
+
+    def read_drivers(self) -> None:
+        """Add what each driver's counters grew by since the last read."""
+        health = self.devices.by_name()
+        dispensed = False
+        for name, (device, key) in FROM_DRIVERS.items():
+            now = float(health[device].health.details.get(key, 0.0))
+            grew = now - self._seen.get(name, 0.0)
+            self._seen[name] = now
+            if grew > 0:
+                self.values[name] = self.values.get(name, 0.0) + grew
+                dispensed = dispensed or name in ("valve_cycles", "glue_ml")
+        if dispensed:
+            self.note_dispense()
+
+    def note_dispense(self) -> None:
+        """Glue just flowed: the pot life starts again."""
+        self.values[LAST_DISPENSE] = self.clock.time()
+        self._raised -= {"POT_LIFE_NEAR", "POT_LIFE_EXCEEDED"}  # the warnings' codes
+
+    def run_ended(self, ended: RunEnded) -> None:
+        """A run's parts counted and everything written (a run listener)."""
+        if ended.operation == "trajectory" and ended.outcome == "completed":
+            self.values["parts"] = self.values.get("parts", 0.0) + ended.workpieces
+        self.check()
+        self.persist()
+
+    def purged(self) -> None:
+        """A purge ended (the valve closed after it had opened)."""
+        self.values["purges"] = self.values.get("purges", 0.0) + 1
+        self.read_drivers()
+        self.note_dispense()
+        self.check()
+        self.persist()
+
+    def persist(self) -> None:
+        """Every total and mark to the journal, not awaited (durable=False)."""
+        self._persisted_at = self.clock.monotonic()
+        self.journal.append(wear_table.records(self.values, self.clock.time()), durable=False)
+
+    # --- what people do --------------------------------------------------------
+
+    def done(self, name: str) -> dict[str, Any]:
+        """Restart an item's intervals from the totals now; its state after."""
+        item = self.item(name)
+        self.read_drivers()
+        for counter in item.intervals():
+            self.values[_done_key(item.name, counter)] = self.values.get(counter, 0.0)
+        self.values[f"done_at:{item.name}"] = self.clock.time()
+        self._raised -= {f"due:{item.name}", f"overdue:{item.name}"}
+        self.persist()
+        return self._item_state(item)
+
+    def refill(self) -> dict[str, Any]:
+        """The reservoir was filled: the level is full from the glue dispensed now."""
+        self.read_drivers()
+        self.values[REFILLED_AT_ML] = self.values.get("glue_ml", 0.0)
+        self._raised.discard("GLUE_LEVEL_LOW")
+        self.persist()
+        return self.glue_level()
+
+    def item(self, name: str) -> MaintenanceItem:
+        for item in self._settings().maintenance_items:
+            if item.name.lower() == name.strip().lower():
+                return item
+        raise UnknownItem(name)
+
+    # --- judging ---------------------------------------------------------------
+
+    def check(self) -> None:
+        """Read the drivers, then raise each warning whose condition has just begun."""
+        self.read_drivers()
+        for item in self._settings().maintenance_items:
+            state = self._item_state(item)
+            if state["status"] == "overdue":
+                code = "MAINTENANCE_OVERDUE"
+                self._raise_once(f"overdue:{item.name}", code, state)
+            elif state["status"] == "due":
+                code = "MAINTENANCE_DUE"
+                self._raise_once(f"due:{item.name}", code, state)
+        pot = self.pot_life()
+        if pot["status"] == "expired":
+            code = "POT_LIFE_EXCEEDED"
+            self._warn_once(code, pot["message"], "glue")
+        elif pot["status"] == "near":
+            code = "POT_LIFE_NEAR"
+            self._warn_once(code, pot["message"], "glue")
+        level = self.glue_level()
+        if level["status"] == "low":
+            code = "GLUE_LEVEL_LOW"
+            self._warn_once(code, level["message"], "glue")
+
+    def _raise_once(self, key: str, code: str, state: dict[str, Any]) -> None:
+        if key not in self._raised:
+            self._raised.add(key)
+            message = (
+                f"maintenance {state['status']}: {state['name']} ({state['reason']}); "
+                f"when done, POST /maintenance/{state['name']}/done"
+            )
+            self.alerts.warn(code, message, "maintenance")
+
+    def _warn_once(self, code: str, message: str, component: str) -> None:
+        if code not in self._raised:
+            self._raised.add(code)
+            self.alerts.warn(code, message, component)
+
+    def _item_state(self, item: MaintenanceItem) -> dict[str, Any]:
+        settings = self._settings()
+        worst, reason = 0.0, ""
+        intervals = item.intervals()
+        for counter, every in intervals.items():
+            used = self.values.get(counter, 0.0) - self.values.get(
+                _done_key(item.name, counter), 0.0
+            )
+            share = used / every * 100.0
+            if share >= worst:
+                worst, reason = share, f"{counter} {used:g} of {every:g}"
+        status = "ok"
+        if worst >= settings.maintenance_overdue_percent:
+            status = "overdue"
+        elif worst >= 100.0:
+            status = "due"
+        return {
+            "name": item.name,
+            "status": status,
+            "percent": round(worst, 1),
+            "reason": reason,
+            "intervals": intervals,
+            "done_at": self.values.get(f"done_at:{item.name}"),
+        }
+
+    def pot_life(self) -> dict[str, Any]:
+        """The open time since the last dispense against the adhesive's pot life."""
+        settings = self._settings()
+        last = self.values.get(LAST_DISPENSE)
+        if settings.pot_life_minutes is None or last is None:
+            return {"status": "off" if settings.pot_life_minutes is None else "ok", "open_s": None}
+        limit = settings.pot_life_minutes * 60.0
+        open_s = max(0.0, self.clock.time() - last)
+        share = open_s / limit * 100.0
+        status = "ok"
+        if share >= 100.0:
+            status = "expired"
+        elif share >= settings.pot_life_warning_percent:
+            status = "near"
+        message = (
+            f"the glue in the line has been open {open_s / 60:.1f} min of its "
+            f"{settings.pot_life_minutes:g} min pot life: purge the line"
+            + (" before the next start (starts are refused until then)" if share >= 100 else "")
+        )
+        return {
+            "status": status,
+            "open_s": round(open_s, 1),
+            "percent": round(share, 1),
+            "message": message,
+        }
+
+    def start_problem(self) -> str | None:
+        """Why a start must wait for a purge (pot life past), or None."""
+        pot = self.pot_life()
+        return pot["message"] if pot["status"] == "expired" else None
+
+    def glue_level(self) -> dict[str, Any]:
+        """The reservoir's estimated level from the glue dispensed since the last refill."""
+        settings = self._settings()
+        if settings.glue_reservoir_ml is None:
+            return {"status": "off", "level_ml": None}
+        used = self.values.get("glue_ml", 0.0) - self.values.get(REFILLED_AT_ML, 0.0)
+        level = max(0.0, settings.glue_reservoir_ml - used)
+        percent = level / settings.glue_reservoir_ml * 100.0
+        status = "low" if percent <= settings.glue_low_level_percent else "ok"
+        message = (
+            f"the glue reservoir is at about {level:.0f} ml ({percent:.0f} %) by the glue "
+            "dispensed since its last refill: refill it, then POST /glue/refill"
+        )
+        return {
+            "status": status,
+            "level_ml": round(level, 1),
+            "percent": round(percent, 1),
+            "message": message,
+        }
+
+    def state(self) -> dict[str, Any]:
+        """What GET /maintenance shows."""
+        self.read_drivers()
+        counters = {name: round(self.values.get(name, 0.0), 3) for name in COUNTERS}
+        counters["valve_open_hours"] = round(counters.pop("valve_open_s") / 3600.0, 4)
+        counters["motion_hours"] = round(counters.pop("motion_s") / 3600.0, 4)
+        return {
+            "counters": counters,
+            "items": [self._item_state(item) for item in self._settings().maintenance_items],
+            "pot_life": self.pot_life(),
+            "glue_level": self.glue_level(),
+        }

@@ -1,0 +1,109 @@
+"""The care meter and the purge on fakes: the schedule's judgement, warnings raised once,
+done and refill, pot life; and a purge never opening the valve after a stop."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+from server.core.machine.transitions import Event, State
+from server.core.worker.runs import RunEnded
+from server.drivers import wear
+from server.settings.maintenance import MaintenanceItem
+from tests.conftest import START_PAYLOAD
+from tests.fakes import FakeClock, FakeGlue, FakeRobot
+
+
+def ended(parts: int) -> RunEnded:
+    return RunEnded("r", "trajectory", "completed", 1.0, "EXECUTING_TRAJECTORY", {}, None, parts)
+
+
+def alerts_of(worker: Any) -> list[str]:
+    return [
+        row["code"]
+        for row in worker.recorder.journal.query("errors", limit=1000)
+        if row["classification"] == "warning"
+    ]
+
+
+async def test_an_item_is_due_at_its_interval_overdue_past_it_and_warned_once(
+    make_worker, fast_settings
+) -> None:
+    items = (MaintenanceItem(name="clean nozzle", every_parts=4, every_ml=500.0),)
+    settings = fast_settings.model_copy(update={"maintenance_items": items})
+    worker = await make_worker(settings)
+    care = worker.care
+    for _ in range(3):
+        care.run_ended(ended(1))
+    assert care.state()["items"][0]["status"] == "ok"
+    care.run_ended(ended(1))
+    care.run_ended(ended(0))  # a run that made no part: no new warning
+    assert care.state()["items"][0]["status"] == "due"
+    await worker.recorder.journal.caught_up()
+    assert alerts_of(worker).count("MAINTENANCE_DUE") == 1
+    care.run_ended(ended(1))  # 5 of 4: 125 %, past the 120 % overdue share
+    assert care.state()["items"][0]["status"] == "overdue"
+    done = care.done("Clean Nozzle")
+    assert done["status"] == "ok" and done["percent"] == 0.0
+    care.run_ended(ended(4))
+    await worker.recorder.journal.caught_up()
+    codes = alerts_of(worker)
+    assert codes.count("MAINTENANCE_OVERDUE") == 1 and codes.count("MAINTENANCE_DUE") == 2
+
+
+async def test_glue_counted_by_the_driver_empties_the_reservoir_until_a_refill(
+    make_worker, fast_settings
+) -> None:
+    settings = fast_settings.model_copy(
+        update={"glue_reservoir_ml": 100.0, "glue_low_level_percent": 20.0}
+    )
+    glue = FakeGlue()
+    worker = await make_worker(settings, glue=glue)
+    wear.add(glue.health.details, wear.GLUE_ML, 85.0)
+    worker.care.check()
+    level = worker.care.glue_level()
+    assert level["status"] == "low" and level["level_ml"] == 15.0
+    assert worker.care.refill()["level_ml"] == 100.0
+    wear.add(glue.health.details, wear.GLUE_ML, 10.0)
+    assert worker.care.state()["glue_level"]["level_ml"] == 90.0
+
+
+async def test_pot_life_warns_near_its_end_and_refuses_a_start_after_it(
+    make_worker, fast_settings
+) -> None:
+    clock = FakeClock()
+    settings = fast_settings.model_copy(update={"pot_life_minutes": 10.0})
+    glue = FakeGlue()
+    worker = await make_worker(settings, glue=glue, clock=clock)
+    wear.add(glue.health.details, wear.VALVE_CYCLES, 1)  # glue flowed
+    worker.care.check()
+    await clock.advance(8.5 * 60)
+    worker.care.check()
+    assert worker.care.pot_life()["status"] == "near"
+    await clock.advance(2 * 60)
+    outcome = await worker.request(Event.START_REQUESTED, source="test", payload=START_PAYLOAD)
+    assert not outcome.accepted and "purge" in outcome.message, outcome.message
+    assert worker.ctx.state is State.IDLE
+
+
+async def test_a_stop_during_the_purges_move_keeps_the_valve_closed(
+    make_worker, fast_settings
+) -> None:
+    """The robot's stop ends the move normally on this fake: without the check of the
+    stops before the valve opens, the purge would go on to open it after the halt."""
+    robot = FakeRobot(speed_factor=0.01)  # the move to the purge position takes minutes
+    glue = FakeGlue()
+    worker = await make_worker(fast_settings, robot=robot, glue=glue)
+    outcome = await worker.request(Event.PURGE_REQUESTED, source="test")
+    assert outcome.accepted and outcome.state is State.IDLE
+    async with asyncio.timeout(5):
+        while not robot.moving:
+            await asyncio.sleep(0.005)
+    await worker.stops.stop(source="test")
+    assert worker.ctx.state is State.ERROR
+    async with asyncio.timeout(5):
+        while worker.activities.purging:
+            await asyncio.sleep(0.005)
+    await asyncio.sleep(0.05)  # anything the purge had left to send
+    assert [opened for _, opened in glue.valve_log if opened] == []
+    assert glue.valve_open is False
