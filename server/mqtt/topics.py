@@ -158,7 +158,7 @@ def run_message(cell_id: str, ended: RunEnded, at: float) -> dict[str, Any]:
         "workpieces": ended.workpieces,
         "error": ended.error,
         "at": at,
-        **verdict_details(ended.result),
+        **verdict_details(ended.operation, ended.outcome, ended.result, ended.error),
     }
 
 

@@ -78,6 +78,7 @@ def from_run(ended: RunEnded, at: float) -> Notice | None:
         "seconds": round(ended.seconds, 3),
         "workpieces": ended.workpieces,
         "result": ended.result,
-        **verdict_details(ended.result),  # verdict, reasons, inspection: the part's quality
+        # verdict, inspected, reasons, label, inspection: the part's, as every path says it
+        **verdict_details(ended.operation, ended.outcome, ended.result, ended.error),
     }
     return Notice("run_completed", at, ended.state, details)
