@@ -6,8 +6,9 @@ Under `<prefix>/<cell_id>/` (prefix `mqtt_topic_prefix`, default `glue`):
 - `state`: retained, the state with its since, stop reason, run and workpiece;
 - `event`: one per transition, in order (`seq` is the bus's number);
 - `progress`: a run's progress; `alert`: each warning and each fault;
-- `run`: one per run that ended, with its outcome and its part's verdict and reasons
-  (`verdict` null: the part was not inspected);
+- `run`: one per run that ended, with its outcome and its part's one verdict
+  (server/quality/part_verdict.py: good, defective or not_inspected, with why; null for
+  a run that makes no part);
 - `kpis`, `health`: retained, what GET /kpis and GET /health answer;
 - `command/<name>`: commands in (off by default), answered on the v5 response topic.
 

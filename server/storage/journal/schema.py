@@ -369,7 +369,7 @@ WEBHOOK_DELIVERIES = Table(
             "TEXT NOT NULL",
             str,
             "the notice",
-            Filtered(values=("fault", "alert", "state", "run_completed")),
+            Filtered(values=("fault", "alert", "state", "run_completed", "part")),
         ),
         Column("event_at", "REAL NOT NULL", float, "when what it tells happened (Unix seconds)"),
         Column(
