@@ -2,12 +2,12 @@
  * annotated image. Read from the journal (GET /operations, newest trajectory run
  * that ended), on each snapshot and whenever an operation ends (a state change out
  * of a busy state on /ws): the run's record is committed before that answer, so the
- * card shows the run that just ended. A run whose result holds no `inspection` was
- * not inspected (inspection off, or it did not complete; "no space" when a full disk
- * took its image, as the result's `not_inspected` says): the card says so rather
- * than show a verdict nobody made. The image (GET /runs/{run_id}/inspection.jpg) is
- * asked for only when the inspection says it kept one; any answer but an image
- * (404: not kept, or a server without it) leaves the card without a picture. */
+ * card shows the run that just ended. The verdict and its words are the server's
+ * (`part` of the row, server/quality/part_verdict.py), the same the order card, the
+ * KPIs, the CSV export, MQTT, OPC UA and the webhooks give the part. The image
+ * (GET /runs/{run_id}/inspection.jpg) is asked for only when the inspection says it
+ * kept one; any answer but an image (404: not kept, or a server without it) leaves
+ * the card without a picture. */
 
 import { AuthError, blobUrl, getJson } from "./api.js";
 import { $, element, facts, number } from "./dom.js";
@@ -17,45 +17,27 @@ const RECENT_RUNS = 3; // the newest may still be running: the one before it has
 
 let asked = 0; // the latest refresh wins when two overlap
 
-/** What the card says of a run record (pure: no DOM). The words are the order's
- * (server/orders/model.py: part_of_run), so a part counts the same on every card: a run
- * that did not complete (stopped, cancelled, failed) left a defective part, not
- * inspected, with why; a completed run nobody inspected is "not inspected" with why. */
+/** What the card says of a run record (pure: no DOM): its `part` as the server judged
+ * it (verdict good, defective or not_inspected; label; reasons), and the inspection's
+ * figures when it was inspected. A row without `part` shows no verdict. */
 export function describePart(run) {
   if (!run) return { verdict: "none", label: "no part yet", reasons: [], figures: [] };
-  if (run.outcome && run.outcome !== "completed") {
-    const why = run.outcome === "cancelled" ? "run cancelled" : `run failed: ${run.error || run.outcome}`;
-    return {
-      verdict: "defective",
-      label: "defective (not inspected)",
-      note: `run ${run.outcome}`,
-      reasons: [why],
-      figures: [],
-    };
+  const note = `run ${run.outcome || "ended"}`;
+  const part = run.part;
+  if (!part || typeof part.verdict !== "string") {
+    return { verdict: "none", label: "no verdict", note, reasons: [], figures: [] };
   }
-  const inspection = run.result && run.result.inspection;
-  const verdict = inspection && ["good", "defective"].includes(inspection.verdict)
-    ? inspection.verdict
-    : null;
-  if (!verdict) {
-    // Why, when the run says (`not_inspected`: "no space" when the disk was full)
-    const why = run.result && typeof run.result.not_inspected === "string"
-      ? run.result.not_inspected
-      : "";
-    return {
-      verdict: "none",
-      label: why ? `not inspected (${why})` : "not inspected",
-      note: `run ${run.outcome || "ended"}`,
-      reasons: [],
-      figures: [],
-    };
+  const reasons = Array.isArray(part.reasons) ? part.reasons.map(String) : [];
+  const inspection = part.inspected && run.result ? run.result.inspection : null;
+  if (!inspection) {
+    return { verdict: part.verdict, label: String(part.label), note, reasons, figures: [] };
   }
   const mm = (value) => (typeof value === "number" ? `${number(value, 2)} mm` : "—");
   return {
-    verdict,
-    label: verdict === "good" ? "good" : "defective",
-    note: `run ${run.outcome}`,
-    reasons: Array.isArray(inspection.reasons) ? inspection.reasons.map(String) : [],
+    verdict: part.verdict,
+    label: String(part.label),
+    note,
+    reasons,
     figures: [
       ["path deviation p95", mm(inspection.precision_p95_mm)],
       ["flow CV", typeof inspection.dispensing_cv_percent === "number"

@@ -48,6 +48,10 @@ function renderOrders(listing) {
       ["Good", `${shown.good} / ${shown.quantity}`],
       ["Defective", `${shown.defective} (${shown.defects_in_row} in a row)`],
     ];
+    // Parts nobody inspected count toward the quantity too: say how many, in the same words.
+    if (shown.not_inspected) {
+      rows.splice(2, 1, ["Good", `${shown.good} + ${shown.not_inspected} not inspected / ${shown.quantity}`]);
+    }
     const children = [facts(rows)];
     if (shown.reason) children.push(element("p", "order-reason small", shown.reason));
     body.replaceChildren(...children);
@@ -79,7 +83,9 @@ function renderOrderSummary() {
   box.dataset.state = order.state;
   const next = nextAction(order, hmi.view?.state);
   $("state-order-text").textContent =
-    `Order ${order.order_id} · ${order.state} · Good ${order.good} of ${order.quantity}` +
+    `Order ${order.order_id} · ${order.state} · Good ${order.good}` +
+    (order.not_inspected ? ` + ${order.not_inspected} not inspected` : "") +
+    ` of ${order.quantity}` +
     (next ? ` · next: ${next}` : "");
 }
 

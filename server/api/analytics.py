@@ -31,6 +31,7 @@ from server.api.schemas import ErrorView, text_body
 from server.api.time_window import Since, TimeWindow, Until, time_window
 from server.bootstrap.cell import Cell
 from server.quality.csv_columns import INSPECTION_COLUMNS, with_inspection
+from server.quality.part_verdict import part_verdict
 from server.storage.journal import FILTERS, TABLES, Cursor, Filter, Journal
 from server.views.kpi_query import kpis_of
 
@@ -79,7 +80,19 @@ async def _page(
         asyncio.to_thread(journal.count, table, since=since, until=until, filters=wanted),
     )
     decode = TABLES[table].decode  # JSON columns parsed, flags as booleans
-    return {table: [decode(row) for row in rows], "total": total, "limit": limit, "offset": offset}
+    decoded = [decode(row) for row in rows]
+    if table == "operations":
+        decoded = [with_part(row) for row in decoded]
+    return {table: decoded, "total": total, "limit": limit, "offset": offset}
+
+
+def with_part(row: dict[str, Any]) -> dict[str, Any]:
+    """An operations row with `part`: for a spray run that ended, its part's verdict as
+    every path gives it (server/quality/part_verdict.py: verdict, inspected, reasons,
+    label), which the dashboard's Last part card shows; null for any other row."""
+    ended = row.get("kind") == "trajectory" and row.get("outcome") is not None
+    judged = part_verdict(row["outcome"], row.get("result"), row.get("error")) if ended else None
+    return {**row, "part": judged.as_dict() if judged is not None else None}
 
 
 def _filter_parameter(spec: Filter) -> inspect.Parameter:
@@ -141,7 +154,9 @@ TABLE_ROUTES = (
         "/operations",
         "operations",
         "get_operations",
-        "Operations, newest first: kind, start, end, outcome, result summary, error.",
+        "Operations, newest first: kind, start, end, outcome, result summary, error, and "
+        "for a spray run that ended its part's verdict (`part`: verdict, inspected, reasons, "
+        "label; null for any other row).",
     ),
     (
         "/errors",

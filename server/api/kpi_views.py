@@ -34,10 +34,14 @@ class PrecisionView(BaseModel):
 
 
 class QualityView(BaseModel):
-    """What the inspections of the window's parts found (one part = one inspected run)."""
+    """The window's parts (one part = one spray run that ended), each with the verdict
+    every path gives it, and what their inspections measured."""
 
-    parts_good: int = Field(description="inspected parts judged good")
-    parts_defective: int = Field(description="inspected parts judged defective")
+    parts_good: int = Field(description="parts inspected and judged good")
+    parts_defective: int = Field(
+        description="parts judged defective, or whose run did not complete (not inspected)"
+    )
+    parts_not_inspected: int = Field(description="parts sprayed whole that nobody inspected")
     trajectory_precision_mm: PrecisionView = Field(
         description="the robot's sampled path against the planned spray segments"
     )

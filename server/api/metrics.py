@@ -6,9 +6,10 @@ at scrape time; durations are observed as they happen: event processing by the
 worker's statistics hook, API requests by a middleware, operations when they
 end, transitions by a bus subscriber. Inspected parts are counted as their run
 ends, by verdict, with each part's precision and flow consistency observed
-(server/quality/part_verdict.py reads the run's inspection); a run that was not
-inspected is no part. Each app has its own registry, which holds the standard
-process and Python collectors too (`process_*`, `python_gc_*`, `python_info`), and
+(server/quality/part_verdict.py reads the run's inspection); every spray run's
+part is counted too, by the verdict every path gives it (`glue_cell_parts_total`).
+Each app has its own registry, which holds the standard process and Python
+collectors too (`process_*`, `python_gc_*`, `python_info`), and
 the build and the plant links (server/api/plant_metrics.py).
 
 By Prometheus's conventions: base units (seconds, metres) and 0-1 ratios, and no
@@ -49,7 +50,13 @@ from server.bootstrap.cell import Cell
 from server.core.infra.bus import SubscriptionClosed
 from server.core.machine.transitions import State
 from server.core.worker.runs import RunEnded
-from server.quality.part_verdict import VERDICTS, figure_of, inspection_of
+from server.quality.part_verdict import (
+    PART_VERDICTS,
+    VERDICTS,
+    figure_of,
+    inspection_of,
+    part_verdict,
+)
 
 router = APIRouter(tags=["queries"], route_class=DeclaredQueryRoute)
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5)
@@ -154,6 +161,15 @@ class Metrics:
         )
         for verdict in VERDICTS:  # both series exist from the start, at 0
             self.parts_inspected.labels(verdict)
+        self.parts = Counter(
+            "glue_cell_parts",
+            "every spray run's part by the verdict every path gives it: good, defective "
+            "(a run that did not complete included), not_inspected",
+            ["verdict"],
+            registry=self.registry,
+        )
+        for verdict in PART_VERDICTS:
+            self.parts.labels(verdict)
         self.part_precision_m = Histogram(
             "glue_cell_part_trajectory_precision_meters",
             "each inspected part's p95 deviation from the planned spray path, in metres",
@@ -192,6 +208,8 @@ class Metrics:
     def observe_run(self, ended: RunEnded) -> None:
         """A run ended (in the worker: only counts): its duration, and its part if inspected."""
         self.operation_seconds.labels(ended.operation, ended.outcome).observe(ended.seconds)
+        if ended.operation == "trajectory":
+            self.parts.labels(part_verdict(ended.outcome, ended.result, ended.error).verdict).inc()
         inspection = inspection_of(ended.result)
         if inspection is None:
             return

@@ -44,7 +44,7 @@ class OrderRequest(Strict):
 
     workpiece_id: str = Field(pattern=IDENTIFIER, description="the library workpiece to make")
     quantity: whole_number(Field(ge=1, le=MAX_QUANTITY)) = Field(  # type: ignore[valid-type]
-        description="how many good parts the order makes"
+        description="how many parts the order makes, good or not inspected"
     )
 
 
@@ -55,8 +55,14 @@ class OrderView(BaseModel):
     defect_limit: int = Field(description="defective parts in a row that stop it (a setting)")
     state: Literal["queued", "running", "held", "completed", "closed"]
     reason: str | None = Field(description="why it is held, closed or completed")
-    good: int
-    defective: int
+    good: int = Field(description="parts inspected and judged good")
+    defective: int = Field(
+        description="parts judged defective, or whose run did not complete (not inspected)"
+    )
+    not_inspected: int = Field(description="parts sprayed whole that nobody inspected")
+    counted: int = Field(
+        description="parts toward the quantity: good and not inspected (nothing found them wrong)"
+    )
     defects_in_row: int
     parts_made: int
     created_at: float
@@ -81,8 +87,10 @@ class _PartOutcome(BaseModel):
     run_id: str
     started_at: float | None
     ended_at: float
-    outcome: str = Field(description="how the run ended: completed, failed or cancelled")
-    verdict: Literal["good", "defective"]
+    outcome: str = Field(
+        description="how the run ended: completed, failed, cancelled or interrupted"
+    )
+    verdict: Literal["good", "defective", "not_inspected"]
     inspected: bool
     reasons: list[str]
 

@@ -8,8 +8,9 @@ Under `<prefix>/<cell_id>/` (prefix `mqtt_topic_prefix`, default `glue`):
 - `event`: one per transition, in order (`seq` is the bus's number), with the
   WebSocket's names (`old_state`, `new_state`, `timestamp`, `time_in_old_state`);
 - `progress`: a run's progress; `alert`: each warning and each fault;
-- `run`: one per run that ended, with its outcome and its part's verdict and reasons
-  (`verdict` null: the part was not inspected);
+- `run`: one per run that ended, with its outcome and its part's one verdict
+  (server/quality/part_verdict.py: good, defective or not_inspected, with why; null for
+  a run that makes no part);
 - `kpis`, `health`: retained, what GET /kpis and GET /health answer;
 - `command/<name>`: commands in (off by default), answered on the v5 response topic.
 
@@ -169,7 +170,7 @@ def run_message(cell_id: str, ended: RunEnded, at: float) -> dict[str, Any]:
         "workpieces": ended.workpieces,
         "error": ended.error,
         "at": at,
-        **verdict_details(ended.result),
+        **verdict_details(ended.operation, ended.outcome, ended.result, ended.error),
     }
 
 

@@ -1,4 +1,5 @@
-"""What the cell tells a webhook: a notice per fault, alert, state change or completed run.
+"""What the cell tells a webhook: a notice per fault, alert, state change, completed run
+or part (every spray run's, whatever its outcome, with the verdict every path gives it).
 
 Built from what the cell already says (the bus's `error`, `alert` and
 `state_changed` records, and the run-ended hook of CellView), so a notice never
@@ -78,6 +79,24 @@ def from_run(ended: RunEnded, at: float) -> Notice | None:
         "seconds": round(ended.seconds, 3),
         "workpieces": ended.workpieces,
         "result": ended.result,
-        **verdict_details(ended.result),  # verdict, reasons, inspection: the part's quality
+        # verdict, inspected, reasons, label, inspection: the part's, as every path says it
+        **verdict_details(ended.operation, ended.outcome, ended.result, ended.error),
     }
     return Notice("run_completed", at, ended.state, details)
+
+
+def from_part(ended: RunEnded, at: float) -> Notice | None:
+    """The notice of the part a spray run made, however the run ended: a part stopped by
+    STOP is told too, defective and not inspected, as the order card and the KPIs count it
+    (server/quality/part_verdict.py). None for a run that makes no part."""
+    if ended.operation != "trajectory":
+        return None
+    details = {
+        "run_id": ended.run_id,
+        "outcome": ended.outcome,
+        "error": ended.error,
+        "workpieces": ended.workpieces,
+        "order_id": ended.params.get("order_id"),
+        **verdict_details(ended.operation, ended.outcome, ended.result, ended.error),
+    }
+    return Notice("part", at, ended.state, details)

@@ -80,7 +80,7 @@ class Notifier:
             deliverer.start()
         self._subscription = self._subscribe()
         self._task = asyncio.create_task(self._consume(), name="webhook-notifier")
-        if any("run_completed" in d.target.events for d in self.deliverers):
+        if any({"run_completed", "part"} & set(d.target.events) for d in self.deliverers):
             self._view.on_run_ended(self._run_ended)
         names = ", ".join(f"{d.name} ({d.target.shown_url})" for d in self.deliverers)
         log.info("webhooks: %s", names)
@@ -145,10 +145,11 @@ class Notifier:
 
     def _run_ended(self, ended: RunEnded) -> None:
         """In the worker: only appends (see the module docstring for the order)."""
-        notice = notices.from_run(ended, time.time())
-        if notice is None:
+        at = time.time()
+        told = [n for n in (notices.from_run(ended, at), notices.from_part(ended, at)) if n]
+        if not told:
             return
-        self._held.append((self._bus.last_seq, notice))
+        self._held.extend((self._bus.last_seq, notice) for notice in told)
         if self._handled_seq >= self._bus.last_seq:
             self._release(self._handled_seq)
 

@@ -237,7 +237,7 @@ class PackMLFeed:
         await self._write("Admin.Alarm", alarms[:ALARM_EXTENT], at)
         await self._write("Admin.Warning", [alarm(w) for w in self.warnings], at)
         for name, value in counts.items():
-            label = "parts inspected" if name == "ProdProcessedCount" else "parts defective"
+            label = "parts processed" if name == "ProdProcessedCount" else "parts defective"
             await self._write(f"Admin.{name}", [count(label, value)], None)
 
     async def write_constants(self, cell_id: str) -> None:

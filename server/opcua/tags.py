@@ -24,10 +24,11 @@ ADMIN_FIGURES: Final = (
     ("MTTR", ("mttr_s",)),
 )
 # Admin's counts (names as in the OPC UA PackML companion specification) and the
-# `quality` figures of /kpis they add up: a processed part is an inspected one (good or
-# defective); a run that was not inspected is no part here, as in OEE quality.
+# `quality` figures of /kpis they add up: every part of the shift is processed (good,
+# defective, or not inspected), and a defective one is what every path calls defective
+# (server/quality/part_verdict.py), a part whose run was stopped included.
 ADMIN_COUNTS: Final = (
-    ("ProdProcessedCount", ("parts_good", "parts_defective")),
+    ("ProdProcessedCount", ("parts_good", "parts_defective", "parts_not_inspected")),
     ("ProdDefectiveCount", ("parts_defective",)),
 )
 # What CellState keeps of each device's health: what changes when something is wrong,
@@ -64,7 +65,7 @@ def admin_figures(kpis: Mapping[str, Any]) -> dict[str, float]:
 
 
 def admin_counts(kpis: Mapping[str, Any]) -> dict[str, int]:
-    """Admin's Int32 counts from a /kpis dict: inspected parts of the shift."""
+    """Admin's Int32 counts from a /kpis dict: the parts of the shift."""
     quality = kpis.get("quality") or {}
     return {name: sum(int(quality.get(k) or 0) for k in keys) for name, keys in ADMIN_COUNTS}
 

@@ -42,6 +42,8 @@ from server.core.worker.runs import RunEnded
 from server.drivers.base import DeviceFault
 from server.orders.model import (
     ACTIVE_STATES,
+    GOOD,
+    NOT_INSPECTED,
     OPEN_STATES,
     Next,
     Order,
@@ -328,7 +330,7 @@ class OrderBook:
         rows = [self._part_row(order, part)]
         start_next: Order | None = None
         if following is Next.COMPLETE:
-            self._set(order, OrderState.COMPLETED, f"{order.good} good parts made")
+            self._set(order, OrderState.COMPLETED, order.completed_reason())
             follower = self._next_queued()
             if follower is not None:
                 self._set(follower, OrderState.RUNNING, None)
@@ -448,13 +450,17 @@ class OrderBook:
 
 
 def _part_of_row(row: dict[str, Any]) -> Part:
+    inspected = bool(row["inspected"])
+    verdict = row["verdict"]
+    if verdict == GOOD and not inspected:  # recorded before parts nobody judged had their word
+        verdict = NOT_INSPECTED
     return Part(
         run_id=row["run_id"],
         started_at=row["started_at"],
         ended_at=float(row["time"]),
         outcome=row["outcome"],
-        verdict=row["verdict"],
-        inspected=bool(row["inspected"]),
+        verdict=verdict,
+        inspected=inspected,
         reasons=tuple(json.loads(row["reasons"] or "[]")),
         figures={name: row[name] for name in PART_FIGURES},
     )

@@ -1,21 +1,16 @@
 """An order and its parts, and how a part counts: pure, so it is tested with data.
 
-A part is one trajectory run of the order. Its verdict comes from the run's
-end (docs/operations-guide.md, "Production orders"):
+A part is one trajectory run of the order. Its verdict is the one every path
+gives it (server/quality/part_verdict.py: `part_verdict`): good, defective
+(inspected, or a run that did not complete: not inspected, with why), or
+not_inspected (completed, nobody judged it: inspection off, or no space for
+its image).
 
-- completed and inspected: the inspection's verdict and reasons;
-- completed without an inspection (inspection_enabled off): good, marked
-  "not inspected", because nothing found it wrong and the operator chose not
-  to judge parts; likewise a part whose inspection image a full disk could not
-  take, marked "not inspected (no space)": it was sprayed whole. If that
-  inspection had found it defective, it is defective with those reasons too:
-  a missing image never lets a defect pass as good;
-- failed or cancelled: defective ("run failed: ...", "run cancelled"): the
-  part was started and did not get its whole bead.
-
-The order completes at its quantity of good parts; `defect_limit` defective
-parts in a row stop it (the nozzle or the calibration is wrong, and every
-further part would be scrap).
+The order completes at its quantity of parts made whole and not found wrong:
+good ones, and not inspected ones (nothing found them wrong and the operator
+chose not to judge parts); `defect_limit` defective parts in a row stop it
+(the nozzle or the calibration is wrong, and every further part would be
+scrap).
 """
 
 from __future__ import annotations
@@ -25,11 +20,10 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
+from server.quality.part_verdict import DEFECTIVE, GOOD, NOT_INSPECTED, part_verdict
 from server.storage.journal import PART_FIGURES
 
-GOOD = "good"
-DEFECTIVE = "defective"
-NOT_INSPECTED = "not inspected (inspection_enabled is off)"
+__all__ = ["DEFECTIVE", "GOOD", "NOT_INSPECTED", "Next", "Order", "OrderState", "Part"]
 
 
 class OrderState(StrEnum):
@@ -65,8 +59,8 @@ class Part:
     run_id: str
     started_at: float | None
     ended_at: float
-    outcome: str  # how the run ended: completed, failed, cancelled
-    verdict: str  # good or defective
+    outcome: str  # how the run ended: completed, failed, cancelled, interrupted
+    verdict: str  # good, defective or not_inspected (part_verdict)
     inspected: bool
     reasons: tuple[str, ...] = ()
     figures: Mapping[str, float | None] = field(default_factory=dict)
@@ -101,33 +95,23 @@ def part_of_run(
     result: dict[str, Any] | None,
     error: str | None,
 ) -> Part:
-    """The part a run made, judged from how it ended and its inspection summary."""
-    if outcome != "completed":
-        reason = "run cancelled" if outcome == "cancelled" else f"run failed: {error or outcome}"
-        return Part(run_id, started_at, ended_at, outcome, DEFECTIVE, False, (reason,))
-    inspection = (result or {}).get("inspection")
-    if not isinstance(inspection, dict):
-        why = (result or {}).get("not_inspected")  # e.g. "no space": the disk was full
-        reason = f"not inspected ({why})" if isinstance(why, str) and why else NOT_INSPECTED
-        found = (result or {}).get("inspection_found")
-        if isinstance(found, dict) and found.get("verdict") == DEFECTIVE:
-            # What the inspection found stands, image or not: no defect passes as good.
-            found_reasons = tuple(str(r) for r in found.get("reasons") or ())
-            return Part(
-                run_id, started_at, ended_at, outcome, DEFECTIVE, False, (reason, *found_reasons)
-            )
-        return Part(run_id, started_at, ended_at, outcome, GOOD, False, (reason,))
-    verdict = DEFECTIVE if inspection.get("verdict") == DEFECTIVE else GOOD
-    reasons = tuple(str(r) for r in inspection.get("reasons") or ())
+    """The part a run made, judged by `part_verdict` from how it ended and its result."""
+    judged = part_verdict(outcome, result, error)
+    inspection = (result or {}).get("inspection") if judged.inspected else None
+    figures = (
+        {name: _number(inspection.get(name)) for name in PART_FIGURES}
+        if isinstance(inspection, dict)
+        else {}
+    )
     return Part(
         run_id,
         started_at,
         ended_at,
         outcome,
-        verdict,
-        True,
-        reasons,
-        {name: _number(inspection.get(name)) for name in PART_FIGURES},
+        judged.verdict,
+        judged.inspected,
+        judged.reasons,
+        figures,
     )
 
 
@@ -153,6 +137,15 @@ class Order:
         return sum(1 for p in self.parts if p.verdict == GOOD)
 
     @property
+    def not_inspected(self) -> int:
+        return sum(1 for p in self.parts if p.verdict == NOT_INSPECTED)
+
+    @property
+    def counted(self) -> int:
+        """The parts that count toward the quantity: good ones and ones nobody judged."""
+        return self.good + self.not_inspected
+
+    @property
     def defective(self) -> int:
         return sum(1 for p in self.parts if p.verdict == DEFECTIVE)
 
@@ -169,11 +162,16 @@ class Order:
     def count(self, part: Part) -> Next:
         """Add `part` and say what follows it."""
         self.parts.append(part)
-        if self.good >= self.quantity:
+        if self.counted >= self.quantity:
             return Next.COMPLETE
         if self.defects_in_row >= self.defect_limit:
             return Next.DEFECT_LIMIT
         return Next.CONTINUE
+
+    def completed_reason(self) -> str:
+        """Why the order completed: its parts counted toward the quantity, by verdict."""
+        unjudged = f", {self.not_inspected} not inspected" if self.not_inspected else ""
+        return f"{self.counted} parts made: {self.good} good{unjudged}"
 
     def defect_limit_reason(self) -> str:
         """The stop reason at the defect limit: what happened and what to check."""
@@ -197,6 +195,8 @@ class Order:
             "reason": self.reason,
             "good": self.good,
             "defective": self.defective,
+            "not_inspected": self.not_inspected,
+            "counted": self.counted,
             "defects_in_row": self.defects_in_row,
             "parts_made": len(self.parts),
             "created_at": self.created_at,

@@ -1,15 +1,27 @@
-"""A run's part verdict, read from the inspection summary in its result.
+"""A part's verdict: the one set of words every path uses for the part a run made.
 
-Why one reader: the KPIs, the Prometheus counters, the OPC UA counts, the MQTT
-run message and the webhooks' run notice all ask the same question of a run's
-result (was its part inspected, and was it good?), and must answer it the same
-way. The summary is the inspection's contract (server/quality/):
+Why one function: the order card, the Last part card (through GET /operations'
+`part`), the KPIs (and so OPC UA's Admin counts and the MQTT `kpis` message),
+the CSV export, the MQTT run message, the webhooks' run notice and the
+Prometheus counters all say what became of a part, and must say it alike. A
+part is one trajectory run; `part_verdict(outcome, result, error)` judges it
+from how the run ended and the inspection summary in its result:
+
+- completed and inspected: the inspection's verdict, ``good`` or ``defective``,
+  with its reasons;
+- not completed (stopped, cancelled, failed, cut short by a restart):
+  ``defective``, not inspected, the first reason saying why (the part did not
+  get its whole bead);
+- completed but not inspected: ``not_inspected``, the reason saying why
+  ("inspection_enabled is off", or "no space" when a full disk took its image);
+  but a part whose inspection had found it defective before its image could
+  not be kept stays ``defective``: a missing image never lets a defect pass.
+
+The inspection summary is the inspection's contract (server/quality/):
 ``result["inspection"] = {"verdict": "good" | "defective", "reasons": [...],
 "precision_mean_mm", "precision_p95_mm", "dispensing_cv_percent", "glue_ml",
-"vision_residual_mm", "image"}``; no "inspection" key means the part was not
-inspected (inspection off, or the run did not complete). A summary whose
-verdict is neither good nor defective is treated as not inspected rather than
-guessed at, so a malformed record never counts as a part.
+"vision_residual_mm", "image"}``. A summary whose verdict is neither good nor
+defective is treated as no inspection rather than guessed at.
 
 Pure: no I/O.
 """
@@ -18,9 +30,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any, Final
 
-VERDICTS: Final = ("good", "defective")
+GOOD: Final = "good"
+DEFECTIVE: Final = "defective"
+NOT_INSPECTED: Final = "not_inspected"
+# Every verdict a part can have, in the order the counts list them.
+PART_VERDICTS: Final = (GOOD, DEFECTIVE, NOT_INSPECTED)
+# What an inspection itself can find.
+VERDICTS: Final = (GOOD, DEFECTIVE)
 # The summary's figures, each a float or None (not measured).
 FIGURES: Final = (
     "precision_mean_mm",
@@ -29,6 +48,41 @@ FIGURES: Final = (
     "glue_ml",
     "vision_residual_mm",
 )
+# The run's error when a STOP (the emergency stop) ended it: the event's name.
+EMERGENCY_STOP: Final = "EMERGENCY_STOP"
+# Why a completed part was not inspected when its result does not say.
+INSPECTION_OFF: Final = "inspection_enabled is off"
+
+
+@dataclass(frozen=True, slots=True)
+class PartVerdict:
+    """What became of one part: its verdict, whether an inspection judged it, and why.
+
+    `reasons` are sentences: why it is defective, or why it was not inspected
+    (then first). `label` is the words a person reads: "good", "defective",
+    "defective (not inspected)" or "not inspected (why)".
+    """
+
+    verdict: str
+    inspected: bool
+    reasons: tuple[str, ...] = ()
+
+    @property
+    def label(self) -> str:
+        if self.verdict == NOT_INSPECTED:
+            return self.reasons[0] if self.reasons else "not inspected"
+        if self.verdict == DEFECTIVE and not self.inspected:
+            return "defective (not inspected)"
+        return self.verdict
+
+    def as_dict(self) -> dict[str, Any]:
+        """The verdict as every message carries it: verdict, inspected, reasons, label."""
+        return {
+            "verdict": self.verdict,
+            "inspected": self.inspected,
+            "reasons": list(self.reasons),
+            "label": self.label,
+        }
 
 
 def inspection_of(result: Any) -> Mapping[str, Any] | None:
@@ -41,17 +95,36 @@ def inspection_of(result: Any) -> Mapping[str, Any] | None:
     return inspection
 
 
-def verdict_of(result: Any) -> str | None:
-    """ "good", "defective", or None (not inspected)."""
-    inspection = inspection_of(result)
-    return None if inspection is None else str(inspection["verdict"])
+def _sentences(value: Any) -> tuple[str, ...]:
+    return tuple(str(r) for r in value) if isinstance(value, list | tuple) else ()
 
 
-def reasons_of(result: Any) -> list[str]:
-    """Why the part is defective, as sentences; empty for a good or uninspected part."""
+def why_not_completed(outcome: str, error: str | None) -> str:
+    """Why a run that did not complete left a defective part, in words."""
+    if outcome == "cancelled":
+        return "run cancelled"
+    if outcome == "interrupted":
+        return "run cut short: the server stopped during it"
+    if error == EMERGENCY_STOP:
+        return "run stopped: emergency stop (STOP)"
+    return f"run failed: {error or outcome}"
+
+
+def part_verdict(outcome: str, result: Any, error: str | None = None) -> PartVerdict:
+    """The verdict of the part a trajectory run made, from how it ended (`outcome`:
+    completed, failed, cancelled, interrupted), its `result` and its `error`."""
+    if outcome != "completed":
+        return PartVerdict(DEFECTIVE, False, (why_not_completed(outcome, error),))
     inspection = inspection_of(result)
-    reasons = inspection.get("reasons") if inspection is not None else None
-    return [str(reason) for reason in reasons] if isinstance(reasons, list) else []
+    if inspection is not None:
+        return PartVerdict(str(inspection["verdict"]), True, _sentences(inspection.get("reasons")))
+    why = result.get("not_inspected") if isinstance(result, Mapping) else None
+    reason = f"not inspected ({why if isinstance(why, str) and why else INSPECTION_OFF})"
+    found = result.get("inspection_found") if isinstance(result, Mapping) else None
+    if isinstance(found, Mapping) and found.get("verdict") == DEFECTIVE:
+        # What the inspection found stands, image or not: no defect passes as good.
+        return PartVerdict(DEFECTIVE, False, (reason, *_sentences(found.get("reasons"))))
+    return PartVerdict(NOT_INSPECTED, False, (reason,))
 
 
 def figure_of(inspection: Mapping[str, Any], name: str) -> float | None:
@@ -62,16 +135,23 @@ def figure_of(inspection: Mapping[str, Any], name: str) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-def verdict_details(result: Any) -> dict[str, Any]:
-    """What a run message (MQTT, webhook) says of the part: verdict, reasons, the summary.
+def verdict_details(operation: str, outcome: str, result: Any, error: str | None) -> dict[str, Any]:
+    """What a run message (MQTT, webhook) says of the part: `part_verdict`'s fields and the
+    inspection summary.
 
-    `verdict` is null for a part that was not inspected; `inspection` is the
-    summary as the run record holds it (null likewise), so a receiver has the
-    figures without asking GET /runs/{run_id}/inspection.
+    A run that makes no part (a calibration, a create-workpiece) has `verdict` null,
+    `inspected` false, `reasons` [] and `label` null; `inspection` is the summary as the
+    run record holds it (null when none), so a receiver has the figures without asking
+    GET /runs/{run_id}/inspection.
     """
     inspection = inspection_of(result)
-    return {
-        "verdict": verdict_of(result),
-        "reasons": reasons_of(result),
-        "inspection": dict(inspection) if inspection is not None else None,
-    }
+    summary = dict(inspection) if inspection is not None else None
+    if operation != "trajectory":
+        return {
+            "verdict": None,
+            "inspected": False,
+            "reasons": [],
+            "label": None,
+            "inspection": summary,
+        }
+    return {**part_verdict(outcome, result, error).as_dict(), "inspection": summary}

@@ -34,9 +34,12 @@ Formulas (the same text as docs/kpis.md)::
     ENDED = operations whose ended_at is in W (any outcome); running ones are ignored
     DONE  = ENDED with outcome "completed"
     ENDED_TRAJ, DONE_TRAJ = the same, of kind "trajectory"
-    INSPECTED = ENDED_TRAJ whose result holds an inspection (result["inspection"]
-            with verdict "good" or "defective"): one inspected part each
-    GOOD, DEFECTIVE = INSPECTED with verdict "good", "defective"
+    PARTS = ENDED_TRAJ, one part each, judged by part_verdict(outcome, result, error)
+            (server/quality/part_verdict.py), as every other path judges it
+    GOOD, DEFECTIVE, NOT_INSPECTED = PARTS with verdict "good", "defective",
+            "not_inspected" (a run that did not complete left a defective part)
+    INSPECTED = PARTS whose result holds an inspection (result["inspection"]
+            with verdict "good" or "defective")
     p95(v) = the nearest-rank 95th percentile: v sorted, its ceil(0.95 * |v|)-th value
 
     operations_completed_per_hour = |DONE| / hours
@@ -52,10 +55,11 @@ Formulas (the same text as docs/kpis.md)::
     workpieces_failed             = sum(workpieces) over ENDED_TRAJ failed or interrupted
     oee.availability              = (A - R) / A
     oee.performance               = min(1, design_cycle_time_s * |DONE_TRAJ| / X)
-    oee.quality                   = |GOOD| / |INSPECTED|
+    oee.quality                   = |GOOD| / (|GOOD| + |DEFECTIVE|)
     oee.oee                       = availability * performance * quality
     quality.parts_good            = |GOOD|
     quality.parts_defective       = |DEFECTIVE|
+    quality.parts_not_inspected   = |NOT_INSPECTED|
     quality.trajectory_precision_mm.mean = mean(precision_mean_mm) over INSPECTED
     quality.trajectory_precision_mm.p95  = p95(precision_p95_mm over INSPECTED)
     quality.dispensing_cv_percent = mean(dispensing_cv_percent) over INSPECTED
@@ -73,7 +77,14 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 from server.core.machine.transitions import State
-from server.quality.part_verdict import figure_of, inspection_of
+from server.quality.part_verdict import (
+    DEFECTIVE,
+    GOOD,
+    NOT_INSPECTED,
+    figure_of,
+    inspection_of,
+    part_verdict,
+)
 
 # The operation kinds the journal records (the names of server/core/operations).
 OPERATION_KINDS: Final = ("trajectory", "calibrate_robot", "calibrate_camera", "create_workpiece")
@@ -200,20 +211,28 @@ def _p95(values: list[float]) -> float | None:
 
 def quality_of(ended_trajectories: Iterable[Row]) -> tuple[dict[str, Any], int]:
     """The `quality` block over trajectory runs that ended in the window, and how many
-    of them were inspected (OEE quality's denominator).
+    parts were judged good or defective (OEE quality's denominator).
 
-    A part is a run whose result carries an inspection (server/quality/part_verdict.py);
-    the figures are per part, so a long run weighs no more than a short one.
+    Each run is one part, judged by `part_verdict` (server/quality/part_verdict.py) as
+    the order card, the Last part card, the CSV and the run messages judge it: a run that
+    did not complete left a defective part. The figures are those of inspected parts,
+    per part, so a long run weighs no more than a short one.
     """
-    inspected = [i for op in ended_trajectories if (i := inspection_of(op.get("result")))]
+    runs = list(ended_trajectories)
+    verdicts = [
+        part_verdict(str(op.get("outcome")), op.get("result"), op.get("error")).verdict
+        for op in runs
+    ]
+    inspected = [i for op in runs if (i := inspection_of(op.get("result")))]
 
     def measured(name: str) -> list[float]:
         return [v for i in inspected if (v := figure_of(i, name)) is not None]
 
-    good = sum(1 for i in inspected if i["verdict"] == "good")
+    good, defective = verdicts.count(GOOD), verdicts.count(DEFECTIVE)
     block = {
         "parts_good": good,
-        "parts_defective": len(inspected) - good,
+        "parts_defective": defective,
+        "parts_not_inspected": verdicts.count(NOT_INSPECTED),
         "trajectory_precision_mm": {
             "mean": _mean(measured("precision_mean_mm")),
             "p95": _p95(measured("precision_p95_mm")),
@@ -221,7 +240,7 @@ def quality_of(ended_trajectories: Iterable[Row]) -> tuple[dict[str, Any], int]:
         "dispensing_cv_percent": _mean(measured("dispensing_cv_percent")),
         "vision_residual_mm": _mean(measured("vision_residual_mm")),
     }
-    return block, len(inspected)
+    return block, good + defective
 
 
 def compute_kpis(
@@ -300,8 +319,8 @@ def compute_kpis(
     availability = _ratio(up, available)
     ideal = _ratio(design_cycle_time_s * len(done_traj), executing)
     performance = None if ideal is None else min(1.0, ideal)
-    quality_block, inspected = quality_of(ended_traj)
-    quality = _ratio(quality_block["parts_good"], inspected)
+    quality_block, judged = quality_of(ended_traj)
+    quality = _ratio(quality_block["parts_good"], judged)
     oee = (
         None
         if availability is None or performance is None or quality is None

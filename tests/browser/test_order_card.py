@@ -27,7 +27,7 @@ async def test_the_order_card_starts_holds_resumes_and_closes(
 ) -> None:
     # The card, not the parts' verdicts (tests/integration/test_orders.py has those): the
     # rig's arm runs four times faster than its plan, which an inspection rightly finds
-    # short of glue, so parts are not inspected here and count good.
+    # short of glue, so parts are not inspected here: they count toward the quantity.
     patched = await dashboard.rig.api.patch("/settings", json={"inspection_enabled": False})
     assert patched.status_code == 200, patched.text
     page, problems = await open_page(browser, dashboard, PANEL)
@@ -42,7 +42,7 @@ async def test_the_order_card_starts_holds_resumes_and_closes(
     await page.click("#order-start")
     await expect(page.locator("#message")).to_contain_text("started: 2 × demo")
     await expect(page.locator("#order-state")).to_have_text("completed", timeout=RUNS_S)
-    await expect(card.locator("#order")).to_contain_text("2 / 2")
+    await expect(card.locator("#order")).to_contain_text("0 + 2 not inspected / 2")
 
     # Another, held by STOP mid-part; nothing continues until it is resumed here.
     await page.fill("#order-quantity", "3")

@@ -37,7 +37,8 @@ async def test_a_retry_with_the_same_key_gets_the_first_order(tmp_path: Path) ->
 
 
 async def test_resume_after_a_pause_continues_the_part_and_the_order(tmp_path: Path) -> None:
-    # The card's flow, not the parts' verdicts: parts are not inspected here and count good.
+    # The card's flow, not the parts' verdicts: parts are not inspected here and count
+    # toward the quantity.
     async with open_rig(tmp_path, inspection_enabled=False) as rig:
         created = await rig.api.post("/orders", json={"workpiece_id": "demo", "quantity": 2})
         assert created.status_code == 201, created.text
@@ -52,4 +53,4 @@ async def test_resume_after_a_pause_continues_the_part_and_the_order(tmp_path: P
         assert (await rig.api.post("/resume")).status_code == 202
         order = await wait_order(rig, order_id, "completed", "held")
         assert order["state"] == "completed", order
-        assert (order["good"], order["parts_made"]) == (2, 2), order
+        assert (order["not_inspected"], order["counted"], order["parts_made"]) == (2, 2, 2), order

@@ -278,17 +278,18 @@ def test_shift_oee() -> None:
     # 3 completed runs × 3600 s design / 14400 s executing: the 30 min of the failed run C
     # and the 20 min of the cancelled run D are spent without a good run to show for them.
     assert k["oee"]["performance"] == 0.75
-    # 2 good parts (A, E) / 3 inspected (A, B, E); the failed C and the cancelled D were
-    # not inspected (they did not complete) and are outside quality.
-    assert k["oee"]["quality"] == 2 / 3
-    assert k["oee"]["oee"] == pytest.approx(47 / 96, rel=1e-15)  # 47/48 × 3/4 × 2/3
+    # 2 good parts (A, E) / 5 judged (A, B, E, and the failed C and the cancelled D: parts
+    # whose run did not complete are defective, as the order card counts them).
+    assert k["oee"]["quality"] == 2 / 5
+    assert k["oee"]["oee"] == pytest.approx(47 / 160, rel=1e-15)  # 47/48 × 3/4 × 2/5
 
 
 def test_shift_quality() -> None:
     k = shift_kpis()
     assert k["quality"] == {
         "parts_good": 2,  # A, E
-        "parts_defective": 1,  # B
+        "parts_defective": 3,  # B inspected; C failed and D cancelled, not inspected
+        "parts_not_inspected": 0,
         "trajectory_precision_mm": {
             "mean": 0.5,  # (0.25 + 0.5 + 0.75) / 3
             "p95": 1.5,  # of [0.5, 0.75, 1.5]: the ceil(0.95 × 3) = 3rd
@@ -513,9 +514,10 @@ def test_cancelled_only_trajectory_runs_have_no_quality() -> None:
         design_cycle_time_s=DESIGN_CYCLE_S,
     )
     assert k["operations_ended"] == 1  # a cancelled run did end: it counts for the error rate
-    assert k["oee"]["quality"] is None
+    # Its part did not get its whole bead: defective, as the order card counts it.
+    assert (k["quality"]["parts_defective"], k["oee"]["quality"]) == (1, 0.0)
     assert k["oee"]["performance"] == 0.0
-    assert k["oee"]["oee"] is None
+    assert k["oee"]["oee"] == 0.0
     assert k["workpieces_failed"] == 0
 
 
@@ -538,9 +540,11 @@ def test_interrupted_runs_count_as_spoiled() -> None:
     )
     assert k["workpieces_processed"] == 4
     assert k["workpieces_failed"] == 5  # 3 interrupted + 2 failed
-    # None of them was inspected (inspection off, or it did not complete): no quality claimed.
-    assert k["oee"]["quality"] is None
-    assert k["oee"]["oee"] is None
+    # r1 completed without an inspection; r2 and r3 did not complete: defective parts.
+    quality = k["quality"]
+    assert (quality["parts_good"], quality["parts_defective"]) == (0, 2)
+    assert quality["parts_not_inspected"] == 1
+    assert k["oee"]["quality"] == 0.0
 
 
 def kpis_of_runs(ops: list[dict[str, Any]]) -> dict[str, Any]:
@@ -560,13 +564,14 @@ def kpis_of_runs(ops: list[dict[str, Any]]) -> dict[str, Any]:
 NO_QUALITY = {
     "parts_good": 0,
     "parts_defective": 0,
+    "parts_not_inspected": 2,
     "trajectory_precision_mm": {"mean": None, "p95": None},
     "dispensing_cv_percent": None,
     "vision_residual_mm": None,
 }
 
 
-def test_uninspected_runs_are_not_parts() -> None:
+def test_uninspected_runs_are_parts_not_inspected() -> None:
     # Completed runs with inspection off: their results carry no "inspection" key.
     ops = [
         op("r1", "trajectory", 90, 150, "completed", 4),
@@ -584,7 +589,7 @@ def test_quality_counts_only_well_formed_trajectory_inspections_ended_in_the_win
     ops = [
         op("good", "trajectory", 90, 150, "completed", 1, inspected("good", 1.0, 2.0, 3.0, 0.5)),
         op("bad", "trajectory", 160, 240, "completed", 1, inspected("defective", None, None)),
-        # A verdict the contract does not know: not a part, not guessed at.
+        # A verdict the contract does not know: not guessed at, a part not inspected.
         op("odd", "trajectory", 250, 280, "completed", 1, inspected("maybe", 9.0, 9.0, 9.0, 9.0)),
         # Not a trajectory: a calibration's result is never a part.
         op("cal", "calibrate_robot", 70, 80, "completed", 0, inspected("good", 9.0, 9.0)),
@@ -598,6 +603,7 @@ def test_quality_counts_only_well_formed_trajectory_inspections_ended_in_the_win
     assert k["quality"] == {
         "parts_good": 1,
         "parts_defective": 1,
+        "parts_not_inspected": 1,  # "odd"
         # "bad" measured nothing: its nulls are left out, not taken for 0.
         "trajectory_precision_mm": {"mean": 1.0, "p95": 2.0},
         "dispensing_cv_percent": 3.0,

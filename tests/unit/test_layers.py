@@ -72,7 +72,8 @@ ALLOWED: dict[str, tuple[str, ...]] = {
         "core.infra", "core.worker", "quality", "security", "settings", "storage.journal",
     ),
     "orders": (
-        CELL, "core.infra", "core.machine", "core.worker", "drivers", "storage.journal",
+        CELL, "core.infra", "core.machine", "core.worker", "drivers", "quality",
+        "storage.journal",
     ),
     # transports
     "api": (

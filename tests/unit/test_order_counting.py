@@ -39,16 +39,17 @@ def test_the_inspections_verdict_and_figures_make_the_part() -> None:
     assert completed(2, summary("good")).verdict == GOOD
 
 
-def test_a_completed_run_without_inspection_is_good_and_marked_not_inspected() -> None:
+def test_a_completed_run_without_inspection_is_not_inspected_saying_why() -> None:
     part = completed(1, {"path_length_mm": 400.0})
-    assert (part.verdict, part.inspected, part.reasons) == (GOOD, False, (NOT_INSPECTED,))
+    reasons = ("not inspected (inspection_enabled is off)",)
+    assert (part.verdict, part.inspected, part.reasons) == (NOT_INSPECTED, False, reasons)
 
 
 def test_a_part_whose_image_a_full_disk_refused_is_not_inspected_no_space() -> None:
     """The run completed (the part is sprayed whole) but its inspection could not be kept:
     it counts as the order's parts without inspection do, saying why."""
     part = completed(1, {"path_length_mm": 400.0, "not_inspected": "no space"})
-    assert (part.verdict, part.inspected) == (GOOD, False)
+    assert (part.verdict, part.inspected) == (NOT_INSPECTED, False)
     assert part.reasons == ("not inspected (no space)",)
 
 
@@ -62,11 +63,23 @@ def test_a_defect_the_inspection_found_stands_when_a_full_disk_refused_its_image
     assert part.reasons == ("not inspected (no space)", "glue volume 144 % of the bead's need")
 
 
-def test_a_failed_or_cancelled_run_is_a_defective_part_saying_why() -> None:
+def test_a_failed_stopped_or_cancelled_run_is_a_defective_part_saying_why() -> None:
     failed = part_of_run("r1", "failed", 1.0, 2.0, None, "robot: link lost")
     cancelled = part_of_run("r2", "cancelled", 1.0, 2.0, None, None)
+    stopped = part_of_run("r3", "failed", 1.0, 2.0, None, "EMERGENCY_STOP")
     assert (failed.verdict, failed.reasons) == (DEFECTIVE, ("run failed: robot: link lost",))
     assert (cancelled.verdict, cancelled.reasons) == (DEFECTIVE, ("run cancelled",))
+    assert stopped.reasons == ("run stopped: emergency stop (STOP)",)
+    assert not (failed.inspected or cancelled.inspected or stopped.inspected)
+
+
+def test_parts_nobody_inspected_count_toward_the_quantity_not_as_good() -> None:
+    o = order(quantity=2, limit=5)
+    assert o.count(completed(1, None)) is Next.CONTINUE
+    assert o.count(completed(2, summary("good"))) is Next.COMPLETE
+    assert (o.good, o.not_inspected, o.counted, o.defective) == (1, 1, 2, 0)
+    assert o.completed_reason() == "2 parts made: 1 good, 1 not inspected"
+    assert o.as_dict()["not_inspected"] == 1 and o.as_dict()["counted"] == 2
 
 
 def test_the_order_completes_at_its_quantity_of_good_parts_not_of_parts() -> None:
@@ -99,3 +112,4 @@ def test_the_report_lists_every_part_in_json_and_csv() -> None:
     lines = report_csv(o).strip().splitlines()
     assert lines[0].startswith("part,run_id,started_at,ended_at,outcome,verdict")
     assert len(lines) == 3 and ",r2," in lines[2] and NOT_INSPECTED in lines[2]
+    assert "not inspected (inspection_enabled is off)" in lines[2]

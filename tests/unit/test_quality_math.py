@@ -87,7 +87,21 @@ def test_spray_segments_follow_consecutive_spray_waypoints() -> None:
 
 def test_csv_columns_from_the_result() -> None:
     summary = {"verdict": "defective", "reasons": ["a", "b"], "glue_ml": 1.5}
-    values = inspection_values(json.dumps({"inspection": summary}))
-    assert dict(zip(INSPECTION_COLUMNS, values, strict=True))["reasons"] == "a | b"
-    assert values[0] == "defective"
-    assert inspection_values(None) == [""] * len(INSPECTION_COLUMNS)
+    values = inspection_values("trajectory", "completed", None, json.dumps({"inspection": summary}))
+    row = dict(zip(INSPECTION_COLUMNS, values, strict=True))
+    assert (row["verdict"], row["reasons"], row["inspected"], row["glue_ml"]) == (
+        "defective",
+        "a | b",
+        "yes",
+        1.5,
+    )
+    assert inspection_values("calibrate_robot", "completed", None, None) == [""] * len(
+        INSPECTION_COLUMNS
+    )
+
+
+def test_csv_columns_of_a_stopped_run_say_defective_not_inspected() -> None:
+    values = inspection_values("trajectory", "failed", "EMERGENCY_STOP", None)
+    row = dict(zip(INSPECTION_COLUMNS, values, strict=True))
+    assert (row["verdict"], row["inspected"], row["glue_ml"]) == ("defective", "no", "")
+    assert row["reasons"] == "run stopped: emergency stop (STOP)"

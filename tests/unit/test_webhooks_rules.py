@@ -59,7 +59,7 @@ def test_a_webhook_needs_exactly_one_secret_long_enough(tmp_path) -> None:
 def test_webhooks_are_named_by_position_and_names_must_differ() -> None:
     settings = Settings(webhooks=[webhook(), webhook(name="mes", events=["fault", "fault"])])
     assert [(t.name, t.events) for t in settings.webhooks] == [
-        ("webhook-1", ["fault", "alert", "state", "run_completed"]),
+        ("webhook-1", ["fault", "alert", "state", "run_completed", "part"]),
         ("mes", ["fault"]),
     ]
     with pytest.raises(ValidationError, match="two webhooks are named 'a'"):
@@ -149,8 +149,37 @@ def test_a_run_notice_carries_its_parts_verdict_and_reasons() -> None:
     body = body_of(inspected, "d1")
     assert (body["verdict"], body["reasons"]) == ("defective", [reason])
     assert body["inspection"] == inspection
+    assert (body["inspected"], body["label"]) == (True, "defective")
     plain = body_of(ended, "d2")
-    assert (plain["verdict"], plain["reasons"], plain["inspection"]) == (None, [], None)
+    off = ["not inspected (inspection_enabled is off)"]
+    assert (plain["verdict"], plain["reasons"], plain["inspection"]) == ("not_inspected", off, None)
     # A verdict outside the contract is not passed on as one.
     odd = replace(ended, result={"inspection": {"verdict": "unsure", "reasons": ["?"]}})
-    assert body_of(odd, "d3")["verdict"] is None
+    assert body_of(odd, "d3")["verdict"] == "not_inspected"
+
+
+def test_a_part_notice_tells_a_stopped_part_defective_not_inspected() -> None:
+    stopped = RunEnded(
+        "r2",
+        "trajectory",
+        "failed",
+        1.0,
+        "EXECUTING_TRAJECTORY",
+        None,
+        "EMERGENCY_STOP",
+        1,
+        {"order_id": "ord-1"},
+    )
+    assert notices.from_run(stopped, 10.0) is None  # no run_completed: it did not complete
+    notice = notices.from_part(stopped, 10.0)
+    assert notice is not None and notice.kind == "part"
+    body = json.loads(notice.body("d4", "cell"))
+    assert (body["verdict"], body["inspected"], body["label"]) == (
+        "defective",
+        False,
+        "defective (not inspected)",
+    )
+    assert body["reasons"] == ["run stopped: emergency stop (STOP)"]
+    assert body["order_id"] == "ord-1"
+    calibration = replace(stopped, operation="calibrate_robot")
+    assert notices.from_part(calibration, 10.0) is None  # no part

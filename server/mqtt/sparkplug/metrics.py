@@ -11,8 +11,10 @@ device's metrics, each with the type a host binds to (docs/plant-integration.md,
 - `Stop Reason/Code`, `Stop Reason/Message` (String, null when none): the
   first-out reason;
 - `Run/Id`, `Run/Workpiece Id` (String, null when none): the run under way;
-- `Counts/Good`, `Counts/Defective`, `Counts/Total` (Int64): the shift's
-  inspected parts (GET /kpis: quality.parts_good, parts_defective, their sum);
+- `Counts/Good`, `Counts/Defective`, `Counts/Total` (Int64): the shift's parts
+  by the verdict every path gives them (GET /kpis: quality.parts_good,
+  parts_defective, and every part: those two and parts_not_inspected), as OPC UA's
+  ProdProcessedCount and ProdDefectiveCount count them;
 - `OEE/OEE`, `OEE/Availability`, `OEE/Performance`, `OEE/Quality` (Double, ratios
   0 to 1, null over nothing): the shift's OEE as GET /kpis computes it;
 - `Devices/Robot/Connected`, `Devices/Glue/Connected`, `Devices/Camera/Connected`
@@ -139,6 +141,7 @@ def sample(
     quality = (kpis or {}).get("quality") or {}
     oee = (kpis or {}).get("oee") or {}
     good, defective = _count(quality.get("parts_good")), _count(quality.get("parts_defective"))
+    unjudged = _count(quality.get("parts_not_inspected"))
     values: dict[str, Value] = {
         "State": snapshot["state"],
         "State/Since": round(float(snapshot["since"]) * 1000),
@@ -149,7 +152,7 @@ def sample(
         "Run/Workpiece Id": run.get("workpiece_id"),
         "Counts/Good": good,
         "Counts/Defective": defective,
-        "Counts/Total": good + defective,
+        "Counts/Total": good + defective + unjudged,
         "OEE/OEE": _ratio(oee.get("oee")),
         "OEE/Availability": _ratio(oee.get("availability")),
         "OEE/Performance": _ratio(oee.get("performance")),

@@ -368,7 +368,7 @@ WEBHOOK_DELIVERIES = Table(
             "TEXT NOT NULL",
             str,
             "the notice",
-            Filtered(values=("fault", "alert", "state", "run_completed")),
+            Filtered(values=("fault", "alert", "state", "run_completed", "part")),
         ),
         Column("event_at", "REAL NOT NULL", float, "when what it tells happened (Unix seconds)"),
         Column(
@@ -450,7 +450,7 @@ ORDER_PARTS = Table(
         Column("run_id", "TEXT NOT NULL", str, "the run that made it"),
         Column("started_at", "REAL", float, "when its run started (Unix seconds)"),
         Column("outcome", "TEXT NOT NULL", str, "how the run ended: completed, failed, cancelled"),
-        Column("verdict", "TEXT NOT NULL", str, "good or defective", Filtered()),
+        Column("verdict", "TEXT NOT NULL", str, "good, defective or not_inspected", Filtered()),
         Column("inspected", "INTEGER NOT NULL", bool, "whether its inspection judged it"),
         Column("reasons", "TEXT NOT NULL", list, "why it is defective, or not inspected"),
         Column("precision_mean_mm", "REAL", float, "mean path deviation", part_figure=True),
