@@ -56,6 +56,7 @@ from server.settings.safety import SafetySettings
 from server.settings.section import SIMULATED
 from server.settings.simulation import SimulationSettings
 from server.settings.storage import StorageSettings
+from server.settings.watch import WatchSettings
 from server.settings.worker import WorkerSettings
 
 __all__ = [
@@ -104,6 +105,7 @@ class Settings(
     SafetySettings,
     LogSettings,
     StorageSettings,
+    WatchSettings,
     KpiSettings,
     BroadcastSettings,
     AccessSettings,
