@@ -35,7 +35,7 @@ class ProcessView(BaseModel):
 
 
 class MemoryView(BaseModel):
-    used_bytes: int | None = Field(description="the server's and image process's resident memory")
+    used_bytes: int | None = Field(description="the server's resident memory")
     limit_bytes: int | None = Field(description="memory_limit; None when not watched")
     level: str = Field(description="ok, warning (memory_warning_percent) or alert (the limit)")
 

@@ -21,9 +21,9 @@ class WatchSettings(Section):
 
     memory_limit: str | None = Field(
         "512MB",
-        description="the memory the cell may use (the server's and its image process's "
-        "resident memory together): a warning at memory_warning_percent of it, an alert at "
-        "all of it; the cell runs on either way; unset: not watched",
+        description="the memory the server may use (its resident memory; the image process is "
+        "shown beside it in GET /health): a warning at memory_warning_percent of it, an alert "
+        "at all of it; the cell runs on either way; unset: not watched",
         json_schema_extra={"accepts": f"{BYTE_SIZE_ACCEPTS}, at least 1MB, or unset"},
     )
     memory_warning_percent: float = Field(
@@ -91,10 +91,11 @@ class WatchSettings(Section):
         description="good parts needed before a control chart is judged at all",
     )
     trend_run_length: int = Field(
-        7,
+        8,
         ge=3,
         le=100,
-        description="parts in a row on one side of the centre line that are a drift",
+        description="parts in a row on one side of the centre line that are a drift (8: a "
+        "steady cell has such a run by chance about once in 128 parts; 7, once in 64)",
     )
     trend_sigma: float = Field(
         3.0, ge=1, le=10, description="a part this many standard deviations out is a drift"

@@ -140,9 +140,11 @@ class CellWatch:
         pids = self._image_pids()
         image = process_use(pids[0]) if pids else None
         cpu = self._cpu_percent(now, server, image)
+        # The server's own resident memory is what memory_limit bounds: the specification's
+        # application is this process. The image process is shown beside it, not counted:
+        # its memory is OpenCV and the frame buffers, sized by the camera, not by how long
+        # the cell has run, so a leak shows in the server's figure.
         memory = server.resident_bytes
-        if memory is not None and image is not None and image.resident_bytes is not None:
-            memory += image.resident_bytes
         level = self._judge_memory(memory, settings)
         disk = disk_space(self.data_path)
         self._judge_disk(disk.free_bytes if disk else None, settings)
@@ -186,7 +188,7 @@ class CellWatch:
             if level == "alert":
                 self._warn(
                     "MEMORY_LIMIT_REACHED",
-                    f"the cell uses {used} (the server and its image process): it runs on, "
+                    f"the server uses {used}: it runs on, "
                     "but a machine short of memory will slow and may end it; restart the "
                     "server in a pause and report it (glue-server diagnose)",
                     "system",
@@ -195,7 +197,7 @@ class CellWatch:
             else:
                 self._warn(
                     "MEMORY_HIGH",
-                    f"the cell uses {used}, over {settings.memory_warning_percent:g} %: "
+                    f"the server uses {used}, over {settings.memory_warning_percent:g} %: "
                     "watch it; restart the server in a pause if it keeps rising",
                     "system",
                 )
@@ -244,6 +246,12 @@ class CellWatch:
 
     def judge_run(self, ended: RunEnded) -> None:
         """Count its outcome in the error rate, and put its part on the charts."""
+        try:
+            self._judge_run(ended)
+        except Exception:  # judging must never fail the cell
+            log.exception("the cell's self-watch could not judge run %s", ended.run_id)
+
+    def _judge_run(self, ended: RunEnded) -> None:
         if ended.outcome in ("completed", "failed") and self.errors.add(ended.outcome == "failed"):
             settings = self._settings()
             rate = self.errors.per_100() or 0.0
@@ -265,8 +273,9 @@ class CellWatch:
         (not when `quiet`: the history read at start)."""
         self.points.append(point)
         settings = self._settings()
+        points = list(self.points)  # the rule slices the series; a deque does not
         for figure in FIGURES:
-            drift = drift_of(self.points, figure, settings)
+            drift = drift_of(points, figure, settings)
             if self._drifts[figure.name].rises(drift is not None) and drift and not quiet:
                 self._warn(drift.code, drift.message(point.run_id), "quality")
 
@@ -278,7 +287,7 @@ class CellWatch:
             "baseline_parts": settings.trend_baseline_parts,
             "run_length": settings.trend_run_length,
             "sigma": settings.trend_sigma,
-            "charts": charts(self.points, settings),
+            "charts": charts(list(self.points), settings),
         }
 
     # --- what is shown ---------------------------------------------------------------------
