@@ -28,6 +28,7 @@ import {
 import { forgetMe, refreshMe } from "./role.js";
 import { hmi, REFRESH_MS, TOKEN_KEY } from "./store.js";
 import { drawTrajectory, refreshCalibration, refreshFrame, refreshTrajectory } from "./trajectory.js";
+import { refreshTrends, TRENDS_MS } from "./trends.js";
 
 // --- login ------------------------------------------------------------------
 
@@ -82,7 +83,9 @@ function startSession(token, view) {
   refreshCalibration();
   refreshFrame();
   refreshLibrary();
+  refreshTrends();
   hmi.timers.push(setInterval(refreshPanels, REFRESH_MS));
+  hmi.timers.push(setInterval(refreshTrends, TRENDS_MS));
   hmi.timers.push(setInterval(tick, 250));
   hmi.timers.push(setInterval(watchdog, 1000));
 }
