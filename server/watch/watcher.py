@@ -255,11 +255,12 @@ class CellWatch:
         if ended.outcome in ("completed", "failed") and self.errors.add(ended.outcome == "failed"):
             settings = self._settings()
             rate = self.errors.per_100() or 0.0
+            failed = sum(self.errors.outcomes)
             self._warn(
                 "ERROR_RATE_RISING",
-                f"{rate:.0f} of the last {len(self.errors.outcomes)} operations failed per 100 "
-                f"(error_rate_alert_per_100 {settings.error_rate_alert_per_100:g}): see "
-                "GET /errors for what failed",
+                f"{failed} of the last {len(self.errors.outcomes)} operations failed, "
+                f"{rate:.0f} per 100 (over error_rate_alert_per_100, "
+                f"{settings.error_rate_alert_per_100:g}): see GET /errors for what failed",
                 "system",
                 severity="alert",
             )

@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 from websockets.asyncio.client import ClientConnection, connect
 
+from server.core.worker.runs import RunEnded
 from server.watch.system import process_use
 from tests.rig import Rig, open_rig
 
@@ -129,3 +130,26 @@ async def test_health_and_metrics_show_the_cells_own_figures(rig: Rig) -> None:
         'glue_cell_device_rtt_p95_seconds{device="robot"}',
     ):
         assert series in metrics, series
+
+
+async def test_a_rising_error_rate_raises_an_alert(tmp_path) -> None:
+    """Runs' ends told to the run listeners as the worker tells them: with a window of 4
+    and at most 40 per 100, the second failure among the latest four is the alert."""
+    settings = {**FAST_WATCH, "error_rate_window_operations": 4, "error_rate_alert_per_100": 40}
+    async with open_rig(tmp_path, **settings) as rig, alerts_socket(rig) as ws:
+        await ws.recv()
+        listeners = rig.cell.worker.runs.listeners  # type: ignore[union-attr]
+        for index, outcome in enumerate(("completed", "failed", "completed", "completed")):
+            ended = RunEnded(f"r{index}", "trajectory", outcome, 1.0, "SPRAYING", None, None, 1)
+            for listener in listeners:
+                listener(ended)
+        await asyncio.sleep(0.1)
+        assert (await rig.api.get("/health")).json()["system"]["error_rate"] == {
+            "per_100": 25.0, "operations": 4, "window": 4,
+        }  # fmt: skip
+        failed = RunEnded("r4", "trajectory", "failed", 1.0, "SPRAYING", None, "jam", 1)
+        for listener in listeners:
+            listener(failed)
+        alert = await alert_on(ws, "ERROR_RATE_RISING")
+    assert alert["severity"] == "alert"
+    assert alert["message"].startswith("2 of the last 4 operations failed, 50 per 100")
