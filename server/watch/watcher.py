@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import os
 import time
@@ -44,7 +45,7 @@ from server.storage.journal import Journal
 from server.vision.process import IMAGE_PROCESS
 from server.watch.loop_lag import LoopLag
 from server.watch.rules import ErrorRate, Latch, RttTrend, memory_level
-from server.watch.system import ProcessUse, disk_space, process_use
+from server.watch.system import DiskSpace, ProcessUse, disk_space, process_use
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +112,7 @@ class CellWatch:
             inspections, outcomes = await asyncio.to_thread(self._history, journal)
             self._load(inspections, outcomes)
         self.loop_lag.start()
-        self.look()
+        self._judge(*await asyncio.to_thread(self._read))
         self._task = asyncio.create_task(self._every_interval(), name="cell-watch")
 
     async def stop(self) -> None:
@@ -126,7 +127,9 @@ class CellWatch:
         while True:
             await asyncio.sleep(self._settings().watch_interval_s)
             try:
-                self.look()
+                # The reads off the loop (a large process's smaps_rollup takes a while);
+                # the judging on it, where the alerts are raised.
+                self._judge(*await asyncio.to_thread(self._read))
             except Exception:  # a reading must never end the watch, nor the cell
                 log.exception("the cell's self-watch could not take its figures")
 
@@ -134,11 +137,23 @@ class CellWatch:
 
     def look(self) -> Sample:
         """Take every figure once, and raise what has just started to hold."""
-        settings = self._settings()
-        now = time.monotonic()
-        server = process_use(os.getpid())
+        return self._judge(*self._read())
+
+    def _read(self) -> tuple[float, ProcessUse, ProcessUse | None, DiskSpace | None]:
+        """The figures of /proc and the disk (any thread)."""
         pids = self._image_pids()
-        image = process_use(pids[0]) if pids else None
+        return (
+            time.monotonic(),
+            process_use(os.getpid()),
+            process_use(pids[0]) if pids else None,
+            disk_space(self.data_path),
+        )
+
+    def _judge(
+        self, now: float, server: ProcessUse, image: ProcessUse | None, disk: DiskSpace | None
+    ) -> Sample:
+        """The figures kept for /health and /metrics, and what they raise (on the loop)."""
+        settings = self._settings()
         cpu = self._cpu_percent(now, server, image)
         # The server's own resident memory is what memory_limit bounds: the specification's
         # application is this process. The image process is shown beside it, not counted:
@@ -146,7 +161,6 @@ class CellWatch:
         # the cell has run, so a leak shows in the server's figure.
         memory = server.resident_bytes
         level = self._judge_memory(memory, settings)
-        disk = disk_space(self.data_path)
         self._judge_disk(disk.free_bytes if disk else None, settings)
         self._judge_links(settings)
         self.latest = Sample(
@@ -336,7 +350,7 @@ class CellWatch:
 
     def _load(self, inspections: list[dict[str, Any]], outcomes: list[str]) -> None:
         for row in inspections:
-            document = row["document"] if isinstance(row["document"], dict) else {}
+            document = _document_of(row["document"])
             point = Point(
                 str(row["run_id"]),
                 float(row["time"]),
@@ -345,3 +359,15 @@ class CellWatch:
             )
             self.add_part(point, quiet=True)
         self.errors.extend(o == "failed" for o in outcomes if o in ("completed", "failed"))
+
+
+def _document_of(stored: Any) -> dict[str, Any]:
+    """An inspection row's document (JSON text in the journal); {} if it is unreadable, so
+    one damaged row leaves a gap in the charts, not a cell that cannot start."""
+    if isinstance(stored, dict):
+        return stored
+    try:
+        document = json.loads(stored)
+    except (TypeError, ValueError):
+        return {}
+    return document if isinstance(document, dict) else {}

@@ -141,3 +141,26 @@ async def test_a_clogging_nozzle_is_warned_of_before_the_first_defective_part(ri
     assert chart["drift"]["direction"] == "down"
     assert chart["lower"] < chart["centre"] < chart["upper"]
     assert len(charts["bead_width_percent"]["points"]) == PARTS
+
+
+async def test_the_charts_come_back_from_the_journal_after_a_restart(tmp_path) -> None:
+    """The parts on record are charted again at start-up, without raising again the
+    warnings they raised the first time."""
+    noise = random.Random(36)
+    runs = [f"clog-{index:02d}" for index in range(PARTS)]
+    async with open_rig(tmp_path) as rig:
+        for index, run_id in enumerate(runs):
+            await record_part(rig, run_id, clogged_inspection(run_id, index, noise))
+        before = (await rig.api.get("/quality/trends")).json()
+    async with open_rig(tmp_path) as rig:
+        after = (await rig.api.get("/quality/trends")).json()
+        warned = (
+            await rig.api.get("/errors", params={"code": "QUALITY_DRIFT_GLUE_VOLUME_PERCENT"})
+        ).json()["errors"]
+    assert after["parts"] == PARTS
+    glue = {chart["figure"]: chart for chart in after["charts"]}["glue_volume_percent"]
+    assert [point["run_id"] for point in glue["points"]] == runs
+    was = {chart["figure"]: chart for chart in before["charts"]}["glue_volume_percent"]
+    assert [p["value"] for p in glue["points"]] == [p["value"] for p in was["points"]]
+    assert glue["drift"] == was["drift"] and glue["centre"] == was["centre"]
+    assert len(warned) == 1  # the first run's warning only
