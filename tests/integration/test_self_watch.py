@@ -153,3 +153,21 @@ async def test_a_rising_error_rate_raises_an_alert(tmp_path) -> None:
         alert = await alert_on(ws, "ERROR_RATE_RISING")
     assert alert["severity"] == "alert"
     assert alert["message"].startswith("2 of the last 4 operations failed, 50 per 100")
+
+
+async def test_a_robot_link_answering_late_raises_the_degrading_warning(tmp_path) -> None:
+    """The robot simulator answers 150 ms late after a baseline of quick answers: its p95
+    round trip over the latest window passes 3 times the baseline's and 20 ms over it."""
+    settings = {**FAST_WATCH, "robot_heartbeat_interval": 0.05, "rtt_window_samples": 5}
+    async with open_rig(tmp_path, **settings) as rig, alerts_socket(rig) as ws:
+        await ws.recv()
+        async with asyncio.timeout(30):  # the baseline: the first full window
+            while rig.cell.watch is None or rig.cell.watch.links["robot"].baseline is None:
+                await asyncio.sleep(0.05)
+        rig.robot.delay_answers(150)
+        alert = await alert_on(ws, "LINK_DEGRADING")
+        link = (await rig.api.get("/health")).json()["system"]["links"]["robot"]
+        rig.robot.clear_faults()
+    assert alert["component"] == "robot" and alert["severity"] == "warning"
+    assert alert["message"].startswith("the robot's round trips are degrading: p95 ")
+    assert link["samples"] == 5 and link["baseline_p95_ms"] < link["p95_ms"]
