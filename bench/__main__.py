@@ -26,6 +26,7 @@ BENCHMARKS = (
     ("ws_fanout", []),
     ("rest_throughput", []),
     ("memory", []),
+    ("self_watch", []),
     ("scaling", []),
     ("vision", []),
     ("vision_accuracy", []),

@@ -30,6 +30,7 @@ import { forgetMe, refreshMe } from "./role.js";
 import { initSettings, refreshSettings } from "./settings_card.js";
 import { hmi, REFRESH_MS, TOKEN_KEY } from "./store.js";
 import { drawTrajectory, refreshCalibration, refreshFrame, refreshTrajectory } from "./trajectory.js";
+import { refreshTrends, TRENDS_MS } from "./trends.js";
 
 // --- login ------------------------------------------------------------------
 
@@ -84,8 +85,10 @@ function startSession(token, view) {
   refreshCalibration();
   refreshFrame();
   refreshLibrary();
+  refreshTrends();
   refreshSettings();
   hmi.timers.push(setInterval(refreshPanels, REFRESH_MS));
+  hmi.timers.push(setInterval(refreshTrends, TRENDS_MS));
   hmi.timers.push(setInterval(tick, 250));
   hmi.timers.push(setInterval(watchdog, 1000));
 }

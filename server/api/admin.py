@@ -216,4 +216,20 @@ async def patch_settings(request: Request, body: SettingsChange) -> dict[str, An
     cell.runtime_settings |= set(changes)
     if "logging_level" in changes:
         logging.getLogger().setLevel(settings.logging_level)
+    if changes:
+        _alert_change(request, changes)
     return {"changed": {k: {"old": old, "new": new} for k, (old, new) in changes.items()}}
+
+
+def _alert_change(request: Request, changes: dict[str, tuple[Any, Any]]) -> None:
+    """A configuration change, on every channel: who made it and what it changed, so a
+    shift leader hears of it as it happens, not from the audit trail afterwards."""
+    principal = request.state.principal
+    what = "; ".join(f"{name} from {old!r} to {new!r}" for name, (old, new) in changes.items())
+    cell = request.app.state.cell
+    if cell.started:
+        cell.alert(
+            "CONFIGURATION_CHANGED",
+            f"{principal.name} ({principal.role.label}) changed {what}",
+            "settings",
+        )

@@ -10,7 +10,8 @@ ends, by verdict, with each part's precision and flow consistency observed
 part is counted too, by the verdict every path gives it (`glue_cell_parts_total`).
 Each app has its own registry, which holds the standard process and Python
 collectors too (`process_*`, `python_gc_*`, `python_info`), and
-the build and the plant links (server/api/plant_metrics.py).
+the build and the plant links (server/api/plant_metrics.py), and the cell's own
+resources, link trends and error rate (server/api/watch.py).
 
 By Prometheus's conventions: base units (seconds, metres) and 0-1 ratios, and no
 `_created` series (prometheus-client's creation time of each series, which nothing
@@ -46,6 +47,7 @@ from starlette.types import Scope
 from server.api.declared_query import DeclaredQueryRoute
 from server.api.plant_metrics import BuildCollector, PlantCollector
 from server.api.schemas import text_body
+from server.api.watch import SystemCollector
 from server.bootstrap.cell import Cell
 from server.core.infra.bus import SubscriptionClosed
 from server.core.machine.transitions import State
@@ -123,6 +125,7 @@ class Metrics:
         self.registry.register(CellCollector(app))
         self.registry.register(PlantCollector(app))
         self.registry.register(BuildCollector())
+        self.registry.register(SystemCollector(app))
         ProcessCollector(registry=self.registry)
         PlatformCollector(registry=self.registry)
         GCCollector(registry=self.registry)

@@ -20,6 +20,7 @@ from server.api.schemas import (
     StateView,
     binary_body,
 )
+from server.api.watch import system_of
 from server.bootstrap.cell import Cell
 from server.commands.catalogue import may
 from server.core.machine.transitions import Command, normalize_command
@@ -95,7 +96,12 @@ async def get_health(request: Request) -> dict:
 
 def health_of(app: FastAPI) -> dict[str, Any]:
     """What GET /health answers (the MQTT link publishes the same, retained, on `health`)."""
-    health = {**app.state.cell.view.health(), "websocket_clients": app.state.ws_hub.client_count}
+    cell = app.state.cell
+    health = {
+        **cell.view.health(),
+        "websocket_clients": app.state.ws_hub.client_count,
+        "system": system_of(cell),
+    }
     link = getattr(app.state, "mqtt", None)
     if link is not None:
         health["mqtt"] = link.health()

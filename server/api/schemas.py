@@ -12,6 +12,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 
 # The commands' own messages live with the catalogue; named here too, as the API's.
+from server.api.watch import SystemHealthView
 from server.commands.requests import (  # noqa: F401
     RETRY_AFTER_S,
     CommandResult,
@@ -156,6 +157,9 @@ class HealthView(BaseModel):
     journal: JournalHealthView
     websocket_clients: int
     mqtt: MqttHealthView | None = Field(None, description="the MQTT link, when mqtt_url is set")
+    system: SystemHealthView | None = Field(
+        None, description="the cell's own resources, link trends and error rate"
+    )
 
 
 class ErrorView(BaseModel):

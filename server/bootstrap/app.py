@@ -38,6 +38,7 @@ from server.api import (
     openapi_doc,
     orders,
     queries,
+    watch,
     webhooks,
     workpieces,
     ws,
@@ -143,6 +144,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
         diagnostics.router,
         webhooks.router,
         camera_preview.router,
+        watch.router,
     ):
         app.include_router(router)
     app.state.metrics = metrics.Metrics(app)

@@ -39,11 +39,13 @@ from server.orders.book import OrderBook
 from server.settings.model import Settings
 from server.settings.notifications import WebhookSettings
 from server.settings.runtime import restore_saved
+from server.settings.watch import WatchSettings
 from server.storage import CellStores
 from server.storage.journal import Journal, records
 from server.storage.permissions import tighten_data_directory
 from server.views.live import DeviceFeed
 from server.vision.process import IMAGE_PROCESS
+from server.watch.watcher import CellWatch
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +80,8 @@ class Cell:
         self.notifier: Notifier | None = None
         # Production orders (server/orders/): drive the cell through `command`, like a person.
         self.orders: OrderBook | None = None
+        # The cell watching itself (server/watch/): resources, links, error rate, trends.
+        self.watch: CellWatch | None = None
         # The settings changed at runtime and in force (saved in the data directory).
         self.runtime_settings: set[str] = set()
 
@@ -170,6 +174,15 @@ class Cell:
         self.notifier.start()
         self._feed = DeviceFeed(devices, self.bus, self.worker.view, settings.device_push_interval)
         self._feed.start()
+        self.watch = CellWatch(
+            lambda: settings.section(WatchSettings),
+            settings.data_path,
+            devices.health,
+            self.worker.alerts.warn,
+            self.journal,
+        )
+        self.worker.view.on_run_ended(self.watch.on_run_ended)
+        await self.watch.start()
         # The simulated cell presents a fresh part after each one (a real cell: a person or
         # a conveyor does; the next start finds the part by contour matching, or fails).
         next_part = getattr(devices.camera, "present_next_part", None)
@@ -184,6 +197,9 @@ class Cell:
         if self._feed is not None:
             await self._feed.stop()
             self._feed = None
+        if self.watch is not None:
+            await self.watch.stop()
+            self.watch = None
         if self.worker is not None:
             await self.worker.stop()
             await self.worker.devices.safe_halt(self.settings.emergency_stop_timeout)
@@ -219,6 +235,12 @@ class Cell:
             stop = payload if isinstance(payload, StopPayload) else StopPayload()
             return await self.stops.stop(source=source, payload=stop, audit=audit)
         return await self.worker.request(event, source=source, payload=payload, audit=audit)
+
+    def alert(self, code: str, message: str, component: str) -> None:
+        """An alert on every channel (log, journal, WebSocket, MQTT, OPC UA, webhooks), for
+        what a person did that others must hear of, such as a configuration change."""
+        assert self.worker is not None, "the cell is not started"
+        self.worker.alerts.warn(code, message, component, severity="alert")
 
     def report_fault(self, fault: DeviceFault) -> None:
         """Stop the cell on a fault found outside the drivers (an order's defect limit): the

@@ -47,6 +47,7 @@ _ROUTES: Final = MappingProxyType(
         ("GET", "/export/errors.csv"): VIEW,
         ("GET", "/export/recoveries.csv"): VIEW,
         ("GET", "/kpis"): VIEW,
+        ("GET", "/quality/trends"): VIEW,
         ("GET", "/metrics"): VIEW,
         ("GET", "/calibration"): VIEW,
         ("GET", "/calibration/image"): VIEW,

@@ -38,7 +38,6 @@ DOCS = "docs/settings.md"
 # and why: a "did you mean" naming an unrelated setting would mislead.
 SPECIFICATION_ONLY = {
     "GLUE_APP_THREAD_POOL_SIZE": "the cell runs one event loop and no thread pool of its own",
-    "GLUE_APP_MEMORY_LIMIT": "the cell does not bound its own memory",
 }
 DIFFERENCES = "docs/specification-differences.md"
 

@@ -59,6 +59,7 @@ from server.settings.section import SIMULATED
 from server.settings.simulation import SimulationSettings
 from server.settings.sparkplug import SparkplugSettings
 from server.settings.storage import StorageSettings
+from server.settings.watch import WatchSettings
 from server.settings.worker import WorkerSettings
 
 __all__ = [
@@ -107,6 +108,7 @@ class Settings(
     SafetySettings,
     LogSettings,
     StorageSettings,
+    WatchSettings,
     KpiSettings,
     BroadcastSettings,
     AccessSettings,

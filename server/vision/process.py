@@ -167,6 +167,13 @@ class ImageProcess:
         """Start the child now (it imports numpy and OpenCV), not on the first frame."""
         self._submit(_run_in_child, os.getpid, (), None, None)
 
+    def pids(self) -> list[int]:
+        """The child's process id, while it runs (the cell's self-watch reads its memory)."""
+        with self._lock:
+            pool = self._pool
+        processes = getattr(pool, "_processes", None) or {}
+        return [pid for pid, child in list(processes.items()) if child.is_alive()]
+
     def close(self) -> None:
         """End the child and free the shared memory (at exit; a later call starts afresh).
 

@@ -33,6 +33,7 @@ from bench import (
     reset_probe,
     rest_throughput,
     scaling,
+    self_watch,
     vision,
     vision_accuracy,
     ws_fanout,
@@ -202,6 +203,13 @@ def test_pause_latency_reports_each_measure(results_in_tmp: Path) -> None:
     for row in rows:
         assert row["n"] == 3 and row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
     assert rows[0]["p50_ms"] > 0
+
+
+def test_self_watch_times_each_step(results_in_tmp: Path) -> None:
+    rows = self_watch.main(["--looks", "5", "--parts", "20"])
+    assert [row["n"] for row in rows] == [5, 5, 20, 1]
+    for row in rows:
+        assert 0 <= row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
 
 
 def test_memory_and_scaling_report_every_point(results_in_tmp: Path) -> None:

@@ -192,6 +192,8 @@ ZERO_MEANS_SOMETHING = {
     "default_pressure_psi",
     "camera_calibration_view_interval_s",
     "mqtt_command_max_skew",  # 0: a command may not be ahead of the cell's clock at all
+    "rtt_degraded_min_ms",  # 0: a link is degrading on rtt_degraded_factor alone
+    "error_rate_alert_per_100",  # 0: any failed operation in a full window is an alert
 }
 
 

@@ -63,6 +63,10 @@ ALLOWED: dict[str, tuple[str, ...]] = {
         "common", "core.infra", "core.machine", "core.operations", "drivers", "settings",
         "storage", "storage.journal",
     ),
+    # the cell watching itself: its processes, links, error rate and parts' trends
+    "watch": (
+        "common", "core.worker", "quality", "settings", "storage.journal", "vision",
+    ),
     # read models and the plant's services, above the core
     "views": (
         "common", "core.infra", "core.machine", "core.operations", "core.worker", "drivers",
@@ -79,7 +83,7 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     "api": (
         CELL, "commands", "common", "core.infra", "core.machine", "core.operations", "core.worker",
         "diagnostics", "orders", "quality", "security", "settings", "storage", "storage.journal",
-        "views",
+        "views", "watch",
     ),
     "mqtt": (
         CELL, "commands", "common", "core.infra", "core.machine", "core.worker", "quality",
@@ -98,7 +102,7 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     "bootstrap": (
         "api", "commands", "common", "core.infra", "core.machine", "core.operations", "core.worker",
         "drivers", "drivers.sim", "mqtt", "mqtt.sparkplug", "notify", "opcua", "orders", "security",
-        "settings", "storage", "storage.journal", "views", "vision",
+        "settings", "storage", "storage.journal", "views", "vision", "watch",
     ),
     "cli": ("bootstrap", "diagnostics", "settings", "storage"),
     "line": ("api",),

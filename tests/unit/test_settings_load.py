@@ -7,8 +7,10 @@ import json
 import re
 
 import pytest
+from pydantic import ValidationError
 
 from server.settings.load import SettingsRefused, load_settings, unknown_variables
+from server.settings.model import Settings
 from server.settings.reference import facts, known_variables, variables_by_setting
 
 
@@ -77,12 +79,13 @@ def test_an_unknown_glue_app_variable_is_a_warning_naming_the_closest_setting() 
 
 
 def test_the_specifications_unread_variables_say_why_not_what_else() -> None:
-    """The deployment example's two variables the cell does not read get a reason, not a
-    "did you mean" naming an unrelated setting (GLUE_APP_TRUSTED_PROXIES, once)."""
+    """The deployment example's variable the cell does not read gets a reason, not a
+    "did you mean" naming an unrelated setting (GLUE_APP_TRUSTED_PROXIES, once); its
+    memory limit is a setting the cell reads."""
     warnings = unknown_variables(
         {"GLUE_APP_MEMORY_LIMIT": "512MB", "GLUE_APP_THREAD_POOL_SIZE": "4"}
     )
-    assert len(warnings) == 2
+    assert len(warnings) == 1 and warnings[0].startswith("GLUE_APP_THREAD_POOL_SIZE ")
     for warning in warnings:
         assert "is not read: " in warning and "did you mean" not in warning
         assert warning.endswith("(see docs/specification-differences.md)")
@@ -103,3 +106,13 @@ def test_every_setting_has_a_meaning_a_group_and_what_it_accepts() -> None:
     for setting in facts():
         assert setting.meaning and setting.accepted and setting.group, setting
         assert setting.variables[0] == f"GLUE_APP_{setting.name.upper()}", setting
+
+
+def test_the_specifications_memory_limit_is_read(monkeypatch) -> None:
+    """GLUE_APP_MEMORY_LIMIT (Appendix A: 512MB) is the self-watch's memory_limit."""
+    assert Settings().memory_limit == "512MB"
+    monkeypatch.setenv("GLUE_APP_MEMORY_LIMIT", "1GB")
+    assert Settings().memory_limit == "1GB"
+    monkeypatch.setenv("GLUE_APP_MEMORY_LIMIT", "a lot")
+    with pytest.raises(ValidationError, match="memory_limit"):
+        Settings()

@@ -25,6 +25,7 @@ from server.core.operations.workpieces import Target
 from server.quality.dispensing import dispensing_consistency
 from server.quality.model import PlannedSegment, RunSamples
 from server.quality.precision import trajectory_precision
+from server.quality.trends import bead_width_percent, glue_volume_percent
 from server.quality.verdict import dispensing_reasons, part_reasons, precision_reasons, verdict_of
 from server.quality.vision_check import degrading, marker_residuals, relocate
 from server.vision.bead import (
@@ -62,6 +63,8 @@ def summary_of(document: dict[str, Any]) -> dict[str, Any]:
         "dispensing_cv_percent": document["dispensing"]["cv_percent"],
         "glue_ml": document["dispensing"]["glue_ml"],
         "vision_residual_mm": document["vision"]["residual_mean_mm"],
+        "bead_width_percent": bead_width_percent(document),
+        "glue_volume_percent": glue_volume_percent(document),
         "image": bool(document["image"]),
     }
 

@@ -43,9 +43,16 @@ class Alerts:
         self.clock = clock
         self._error_timer: Timer | None = None
 
-    def warn(self, code: str, message: str, component: str) -> None:
-        """A warning-class condition: logged, journaled, pushed on /ws; the cell runs on."""
-        log.warning("warning %s from %s: %s", code, component, message)
+    def warn(self, code: str, message: str, component: str, *, severity: str = "warning") -> None:
+        """A warning-class condition: logged, journaled, pushed on /ws; the cell runs on.
+
+        `severity` is "warning", or "alert" for one that needs someone now (the memory
+        limit reached, the error rate risen, the configuration changed): the same
+        channels, said in the message's `severity` and at the log's ERROR level. Either
+        is journaled as a warning: neither is a fault, nor counts in the KPIs' error rate.
+        """
+        level = logging.ERROR if severity == "alert" else logging.WARNING
+        log.log(level, "%s %s from %s: %s", severity, code, component, message)
         state = self.ctx.state.value
         self.bus.publish(
             "alert",
@@ -54,6 +61,7 @@ class Alerts:
                 "message": message,
                 "component": component,
                 "classification": "warning",
+                "severity": severity,
                 "state": state,
             },
         )

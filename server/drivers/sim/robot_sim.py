@@ -36,6 +36,10 @@ answered even while a stall is injected so a test can always clear it):
   sim.clearFaults()
   sim.stats()             method counts, stop count, time of the last stop, clients
 
+In-process only (a test's Python API): `delay_answers(ms)` answers every request `ms`
+milliseconds late, as a congested network or a loaded controller would (the cell's
+round-trip trend warns of it); `clear_faults()` ends it too.
+
 Motion is computed from elapsed time (no background task): the pose is a
 linear interpolation of all six values between start and target, reached after
 distance / speed / speed_factor seconds. Acceleration is validated but not
@@ -224,6 +228,7 @@ class RobotSimulator:
         self._clients: dict[asyncio.StreamWriter, asyncio.Task[None] | None] = {}
         self._stalled = False
         self._stall_until: float | None = None
+        self._answer_delay_s = 0.0  # delay_answers
         self._refuse_until = 0.0
         self._fail_next = False
         # Like a controller's communication watchdog: motion stops when the link
@@ -360,8 +365,15 @@ class RobotSimulator:
         else:
             self._fail_next = True
 
+    def delay_answers(self, ms: float) -> None:
+        """Answer every request `ms` milliseconds late (0 to 60000)."""
+        if not 0 <= ms <= 60000:
+            raise ValueError(f"answer delay is between 0 and 60000 ms, got {ms}")
+        self._answer_delay_s = float(ms) / 1000.0
+
     def clear_faults(self) -> None:
-        """End a stall, a connection-refusal window and a pending fail_next."""
+        """End a stall, a connection-refusal window, a pending fail_next and late answers."""
+        self._answer_delay_s = 0.0
         self._stalled = False
         self._stall_until = None
         self._refuse_until = 0.0
@@ -569,6 +581,8 @@ class RobotSimulator:
                     response = self.handle(message)
                     self._serving = None
                     if response is not None:
+                        if self._answer_delay_s:
+                            await asyncio.sleep(self._answer_delay_s)
                         writer.write(encode_message(response))
                 await writer.drain()
         except asyncio.CancelledError:
