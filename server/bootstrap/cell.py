@@ -38,10 +38,12 @@ from server.notify.notifier import Notifier
 from server.orders.book import OrderBook
 from server.settings.model import Settings
 from server.settings.notifications import WebhookSettings
+from server.settings.recording import RecordingSettings
 from server.storage import CellStores
 from server.storage.journal import Journal, records
 from server.storage.permissions import tighten_data_directory
 from server.views.live import DeviceFeed
+from server.views.recording import FlightRecorder
 from server.vision.process import IMAGE_PROCESS
 
 log = logging.getLogger(__name__)
@@ -73,6 +75,8 @@ class Cell:
         self.journal: Journal | None = None
         self._snapshot_file: SnapshotFile | None = None
         self._feed: DeviceFeed | None = None
+        # Each run's device samples, journaled (server/views/recording.py).
+        self.recorder: FlightRecorder | None = None
         # The webhooks (server/notify/): one more bus subscriber, never waited on.
         self.notifier: Notifier | None = None
         # Production orders (server/orders/): drive the cell through `command`, like a person.
@@ -165,6 +169,11 @@ class Cell:
         )
         self.notifier.start()
         self._feed = DeviceFeed(devices, self.bus, self.worker.view, settings.device_push_interval)
+        self.recorder = recorder = FlightRecorder(
+            settings.section(RecordingSettings), self.journal, self.worker.view
+        )
+        self._feed.listeners.append(recorder.sample)
+        self.worker.view.on_run_ended(lambda ended: recorder.run_ended(ended.run_id))
         self._feed.start()
         # The simulated cell presents a fresh part after each one (a real cell: a person or
         # a conveyor does; the next start finds the part by contour matching, or fails).
@@ -180,6 +189,8 @@ class Cell:
         if self._feed is not None:
             await self._feed.stop()
             self._feed = None
+        if self.recorder is not None:  # what the last run left, before the journal stops
+            self.recorder.flush()
         if self.worker is not None:
             await self.worker.stop()
             await self.worker.devices.safe_halt(self.settings.emergency_stop_timeout)

@@ -55,6 +55,7 @@ _ROUTES: Final = MappingProxyType(
         ("GET", "/trajectory"): VIEW,
         ("GET", "/runs/{run_id}/inspection"): VIEW,
         ("GET", "/runs/{run_id}/inspection.jpg"): VIEW,
+        ("GET", "/runs/{run_id}/recording"): VIEW,
         ("GET", "/orders"): VIEW,
         ("GET", "/orders/{order_id}"): VIEW,
         ("GET", "/orders/{order_id}/report"): VIEW,

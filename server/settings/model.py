@@ -51,6 +51,7 @@ from server.settings.notifications import WebhookSettings
 from server.settings.opcua import OpcUaSettings
 from server.settings.plant import PlantSettings, default_cell_id
 from server.settings.quality import QualitySettings
+from server.settings.recording import RecordingSettings
 from server.settings.robot import RobotSettings
 from server.settings.safety import SafetySettings
 from server.settings.section import SIMULATED
@@ -105,6 +106,7 @@ class Settings(
     LogSettings,
     StorageSettings,
     KpiSettings,
+    RecordingSettings,
     BroadcastSettings,
     AccessSettings,
     HttpSettings,

@@ -310,3 +310,9 @@ def order_part(**columns: Any) -> Record:
     """One part made for an order, the columns of `order_parts` by name: its run, how the
     run ended, the part's verdict and its inspection figures."""
     return _row("order_parts", **columns)
+
+
+def run_sample(**columns: Any) -> Record:
+    """One device sample of a run (the flight recorder), the columns of `run_samples` by
+    name."""
+    return _row("run_samples", **columns)
