@@ -44,6 +44,7 @@ from server.storage.journal import Journal, records
 from server.storage.permissions import tighten_data_directory
 from server.views.live import DeviceFeed
 from server.views.recording import FlightRecorder
+from server.views.reports import ShiftReports
 from server.vision.process import IMAGE_PROCESS
 
 log = logging.getLogger(__name__)
@@ -77,6 +78,8 @@ class Cell:
         self._feed: DeviceFeed | None = None
         # Each run's device samples, journaled (server/views/recording.py).
         self.recorder: FlightRecorder | None = None
+        # The report of each shift and production day as it ends (server/views/reports.py).
+        self.reports: ShiftReports | None = None
         # The webhooks (server/notify/): one more bus subscriber, never waited on.
         self.notifier: Notifier | None = None
         # Production orders (server/orders/): drive the cell through `command`, like a person.
@@ -168,10 +171,14 @@ class Cell:
             self.journal,
         )
         self.notifier.start()
-        self._feed = DeviceFeed(devices, self.bus, self.worker.view, settings.device_push_interval)
-        self.recorder = recorder = FlightRecorder(
-            settings.section(RecordingSettings), self.journal, self.worker.view
+        recording = settings.section(RecordingSettings)
+        self.reports = ShiftReports(
+            self, self.journal, settings.cell_id, settings.shift_hours, recording.shift_start_hour
         )
+        if recording.shift_reports:
+            self.reports.start()
+        self._feed = DeviceFeed(devices, self.bus, self.worker.view, settings.device_push_interval)
+        self.recorder = recorder = FlightRecorder(recording, self.journal, self.worker.view)
         self._feed.listeners.append(recorder.sample)
         self.worker.view.on_run_ended(lambda ended: recorder.run_ended(ended.run_id))
         self._feed.start()
@@ -195,6 +202,8 @@ class Cell:
             await self.worker.stop()
             await self.worker.devices.safe_halt(self.settings.emergency_stop_timeout)
             await self.worker.devices.close()
+        if self.reports is not None:
+            await self.reports.stop()
         if self.notifier is not None:  # before the journal: what it abandons is on record
             await self.notifier.stop()
             self.notifier = None

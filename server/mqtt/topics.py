@@ -9,6 +9,8 @@ Under `<prefix>/<cell_id>/` (prefix `mqtt_topic_prefix`, default `glue`):
 - `run`: one per run that ended, with its outcome and its part's verdict and reasons
   (`verdict` null: the part was not inspected);
 - `kpis`, `health`: retained, what GET /kpis and GET /health answer;
+- `report`: retained, the latest shift or daily report (GET /reports/{id}'s JSON, its id
+  as `report_id`);
 - `command/<name>`: commands in (off by default), answered on the v5 response topic.
 
 Why JSON built here and not the bus message as it is: the plant reads a
@@ -68,6 +70,10 @@ class Topics:
     @property
     def kpis(self) -> str:
         return f"{self.base}/kpis"
+
+    @property
+    def report(self) -> str:
+        return f"{self.base}/report"
 
     @property
     def health(self) -> str:

@@ -47,6 +47,8 @@ _ROUTES: Final = MappingProxyType(
         ("GET", "/export/errors.csv"): VIEW,
         ("GET", "/export/recoveries.csv"): VIEW,
         ("GET", "/kpis"): VIEW,
+        ("GET", "/reports"): VIEW,
+        ("GET", "/reports/{report_id}"): VIEW,
         ("GET", "/metrics"): VIEW,
         ("GET", "/calibration"): VIEW,
         ("GET", "/calibration/image"): VIEW,

@@ -28,3 +28,15 @@ class RecordingSettings(Section):
         description="seconds of a run's samples written to the journal together (one "
         "transaction); a run's end writes what is left at once",
     )
+    shift_reports: bool = Field(
+        True,
+        description="make a report at the end of each shift and production day, kept in the "
+        "journal (GET /reports) and sent by webhook (report) and MQTT (report topic)",
+    )
+    shift_start_hour: float = Field(
+        6.0,
+        ge=0,
+        lt=24,
+        description="the local hour the production day's first shift starts; the day is cut "
+        "into shifts of shift_hours from it",
+    )

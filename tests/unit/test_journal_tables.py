@@ -182,6 +182,11 @@ def _one_of_each() -> dict[str, list[records.Record]]:
                 glue_at=0.98,
             )
         ],
+        "reports": [
+            records.report(
+                time=2.0, kind="shift", window_start=0.0, window_end=1.0, document={"oee": None}
+            )
+        ],
     }
 
 

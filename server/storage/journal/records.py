@@ -316,3 +316,8 @@ def run_sample(**columns: Any) -> Record:
     """One device sample of a run (the flight recorder), the columns of `run_samples` by
     name."""
     return _row("run_samples", **columns)
+
+
+def report(**columns: Any) -> Record:
+    """A shift or daily report as made, the columns of `reports` by name."""
+    return _row("reports", **columns)

@@ -369,7 +369,7 @@ WEBHOOK_DELIVERIES = Table(
             "TEXT NOT NULL",
             str,
             "the notice",
-            Filtered(values=("fault", "alert", "state", "run_completed")),
+            Filtered(values=("fault", "alert", "state", "run_completed", "report")),
         ),
         Column("event_at", "REAL NOT NULL", float, "when what it tells happened (Unix seconds)"),
         Column(
@@ -484,6 +484,21 @@ RUN_SAMPLES = Table(
     indexes=(("run_samples_time", "time"), ("run_samples_run", "run_id")),
 )
 
+REPORTS = Table(
+    "reports",
+    "Shift and daily reports (server/views/reports.py): one row per report, as made.",
+    (
+        _seq(),
+        _time("when it was made (Unix seconds)"),
+        Column("kind", "TEXT NOT NULL", str, "the report", Filtered(values=("shift", "day"))),
+        Column("window_start", "REAL NOT NULL", float, "the start of the window it covers"),
+        Column("window_end", "REAL NOT NULL", float, "the end of the window (excluded)"),
+        Column("document", "TEXT NOT NULL", dict, "the whole report"),
+    ),
+    sealed=True,
+    indexes=(("reports_time", "time"),),
+)
+
 COMMITS = Table(
     "commits",
     "The commit chain (commit_chain.py): one row per transaction the writer committed.",
@@ -530,6 +545,7 @@ ALL_TABLES: tuple[Table, ...] = (
     ORDERS,
     ORDER_PARTS,
     RUN_SAMPLES,
+    REPORTS,
     COMMITS,
     JOURNAL_META,
     WRITE_CHECK,
