@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from server.views.kpis import Window
+from tests.integration.test_gluectl import gluectl_process
 from tests.integration.test_webhooks import RECEIVER_ON_THIS_HOST, Receiver, hook, receiving, until
 from tests.mosquitto import mosquitto, subscriber
 from tests.rig import SPRAY_DEMO, open_rig, run
@@ -64,6 +65,19 @@ async def test_a_shift_report_counts_the_parts_and_the_stops_and_goes_everywhere
             assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
             assert page.text.count("<svg") >= 3 and "EMERGENCY_STOP" in page.text
             assert (await rig.api.get("/reports/9999")).status_code == 404
+
+            # gluectl report shift: the latest shift's, as a table, as JSON, as the page.
+            cli = ("--url", str(rig.api.base_url), "--data-dir", str(tmp_path / "data"))
+            table = await gluectl_process(*cli, "report", "shift")
+            assert table.code == 0, table.stderr
+            assert "EMERGENCY_STOP" in table.stdout and "parts good" in table.stdout
+            as_json = await gluectl_process(*cli, "--json", "report", "shift")
+            assert as_json.json() == report  # type: ignore[comparison-overlap]
+            printable = tmp_path / "shift.html"
+            wrote = await gluectl_process(*cli, "report", "shift", "--html", str(printable))
+            assert wrote.code == 0 and printable.read_text().startswith("<!doctype html>")
+            none = await gluectl_process(*cli, "report", "day")
+            assert none.code == 3 and "no day report yet" in none.stderr
 
             notice = (await until(lambda: receiver.notices("report")))[0]
             assert notice["report_id"] == made["id"] and notice["period"] == "shift"
