@@ -35,6 +35,7 @@ BENCHMARKS = (
     ("planning", []),
     ("plant_latency", []),
     ("cycle_time", []),
+    ("recording_cost", []),
 )
 
 

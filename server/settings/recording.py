@@ -33,10 +33,10 @@ class RecordingSettings(Section):
         description="make a report at the end of each shift and production day, kept in the "
         "journal (GET /reports) and sent by webhook (report) and MQTT (report topic)",
     )
-    shift_start_hour: float = Field(
-        6.0,
+    shift_start_hour: int = Field(
+        6,
         ge=0,
-        lt=24,
-        description="the local hour the production day's first shift starts; the day is cut "
-        "into shifts of shift_hours from it",
+        le=23,
+        description="the local hour (whole) the production day's first shift starts; the day "
+        "is cut into shifts of shift_hours from it",
     )

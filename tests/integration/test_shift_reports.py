@@ -30,7 +30,6 @@ async def test_a_shift_report_counts_the_parts_and_the_stops_and_goes_everywhere
                 **RECEIVER_ON_THIS_HOST,
                 **broker.cell_login,
                 cell_id=CELL,
-                shift_reports=False,  # the test makes the report for its own window
             ) as rig,
         ):
             start = time.time()
