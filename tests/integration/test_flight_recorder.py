@@ -5,6 +5,7 @@ period."""
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import io
 import math
@@ -13,7 +14,7 @@ from collections.abc import Sequence
 import pytest
 
 from server.drivers.sim.robot_sim import PathSegment
-from tests.rig import SPRAY_DEMO, Rig, open_rig
+from tests.rig import SPRAY_DEMO, WAIT_S, Rig, open_rig
 
 
 def robot_pose_at(path: Sequence[PathSegment], t: float) -> tuple[float, float, float] | None:
@@ -143,3 +144,25 @@ async def test_the_recording_needs_a_token(tmp_path, role_path: str) -> None:
     async with open_rig(tmp_path) as rig:
         response = await rig.api.get(role_path, headers={"Authorization": ""})
         assert response.status_code == 401
+
+
+async def test_a_run_stopped_mid_spray_names_its_stop_and_its_recording_ends_there(
+    tmp_path,
+) -> None:
+    async with open_rig(tmp_path) as rig:
+        started = await rig.api.post("/start", json=SPRAY_DEMO)
+        assert started.status_code == 202
+        run_id = started.json()["run_id"]
+        async with asyncio.timeout(WAIT_S):
+            while not rig.glue.valve_open:
+                await asyncio.sleep(0.005)
+        await asyncio.sleep(0.3)  # a few samples with glue flowing
+        assert (await rig.api.post("/estop", json={"reason": "test"})).status_code == 202
+        await rig.wait_state("ERROR")
+        recording = (await rig.api.get(f"/runs/{run_id}/recording")).json()
+        assert recording["stop_reason"]["code"] == "EMERGENCY_STOP"
+        assert recording["run"]["outcome"] != "completed"
+        assert recording["inspection"] is None
+        samples = recording["samples"]
+        assert any(s["valve_open"] for s in samples)
+        assert samples[-1]["time"] <= recording["run"]["ended_at"] + 1.0
