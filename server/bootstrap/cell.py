@@ -173,7 +173,11 @@ class Cell:
         self.notifier.start()
         recording = settings.section(RecordingSettings)
         self.reports = ShiftReports(
-            self, self.journal, settings.cell_id, settings.shift_hours, recording.shift_start_hour
+            self,
+            self.journal,
+            settings.cell_id,
+            lambda: settings.shift_hours,  # changed at run time by PATCH /settings
+            recording.shift_start_hour,
         )
         if recording.shift_reports:
             self.reports.start()

@@ -28,7 +28,7 @@ import logging
 import math
 import time
 from collections import defaultdict
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -245,7 +245,12 @@ class ShiftReports:
     """Makes, stores and publishes the report of each shift and day as it ends."""
 
     def __init__(
-        self, cell: _Cell, journal: Journal, cell_id: str, shift_hours: float, start_hour: float
+        self,
+        cell: _Cell,
+        journal: Journal,
+        cell_id: str,
+        shift_hours: Callable[[], float],
+        start_hour: float,
     ) -> None:
         self.cell = cell
         self.journal = journal
@@ -265,7 +270,7 @@ class ShiftReports:
             await asyncio.wait({task})
 
     def shift_at(self, now: float) -> Shift:
-        return shift_at(now, self.shift_hours, self.start_hour, utc_offset(now))
+        return shift_at(now, self.shift_hours(), self.start_hour, utc_offset(now))
 
     async def make(self, window: Window, kind: str) -> dict[str, Any]:
         """Build the report of `window`, journal it (durably) and publish it; the report
@@ -304,15 +309,20 @@ class ShiftReports:
             await self._catch_up()
         except Exception:  # a report is bookkeeping: it never stops the cell
             log.exception("the missed shift report could not be made")
+        shift = self.shift_at(time.time())
         while True:
-            shift = self.shift_at(time.time())
-            await _sleep_until(shift.end)
-            try:
-                await self.make(Window(shift.start, shift.end), "shift")
-                if shift.ends_day:
-                    await self.make(Window(shift.end - DAY_S, shift.end), "day")
-            except Exception:
-                log.exception("the %s report could not be made", "shift")
+            # A minute at most between looks: a clock set forward (NTP after a cold start),
+            # or shift_hours changed at run time (PATCH /settings), is seen within a minute.
+            await asyncio.sleep(min(60.0, max(0.0, shift.end - time.time())))
+            now = time.time()
+            if now >= shift.end:
+                try:
+                    await self.make(Window(shift.start, shift.end), "shift")
+                    if shift.ends_day:
+                        await self.make(Window(shift.end - DAY_S, shift.end), "day")
+                except Exception:  # a report is bookkeeping: it never stops the cell
+                    log.exception("the report of the shift ending %s could not be made", shift.end)
+            shift = self.shift_at(now)
 
     async def _catch_up(self) -> None:
         """The last shift's report, when the server was down at its end."""
@@ -325,16 +335,6 @@ class ShiftReports:
             )
             if ran:  # the server ran in that shift and stopped before its end
                 await self.make(Window(last.start, last.end), "shift")
-
-
-async def _sleep_until(end: float) -> None:
-    """Sleep until Unix time `end`, a minute at most at a time, so a clock set forward (NTP
-    after a cold start) is seen within a minute."""
-    while True:
-        left = end - time.time()
-        if left <= 0:
-            return
-        await asyncio.sleep(min(left, 60.0))
 
 
 def _span(window: Window) -> str:
