@@ -27,7 +27,7 @@ from fastapi.responses import Response, StreamingResponse
 
 from server.api.declared_query import DeclaredQueryRoute
 from server.api.kpi_views import KpisView
-from server.api.schemas import text_body
+from server.api.schemas import ErrorView, text_body
 from server.api.time_window import Since, TimeWindow, Until, time_window
 from server.bootstrap.cell import Cell
 from server.quality.csv_columns import INSPECTION_COLUMNS, with_inspection
@@ -38,6 +38,8 @@ router = APIRouter(tags=["analytics"], route_class=DeclaredQueryRoute)
 
 Limit = Annotated[int, Query(ge=1, le=10_000)]
 Offset = Annotated[int, Query(ge=0, le=10_000_000)]
+# A journal row's number (SQLite's INTEGER PRIMARY KEY): the largest a 64-bit integer holds.
+ROW_NUMBER_MAX = 2**63 - 1
 TEXT_MAX_LENGTH = 64
 TEXT_PATTERN = r"^[A-Za-z0-9_.:-]+$"
 ExportTable = Literal["events", "transitions", "operations", "errors", "recoveries"]
@@ -161,8 +163,10 @@ for _path, _table, _name, _doc in TABLE_ROUTES:
     router.add_api_route(_path, table_route(_table, _name, _doc), methods=["GET"], name=_name)
 
 
-@router.get("/errors/{seq}", name="get_error")
-async def get_error(request: Request, seq: Annotated[int, Path(ge=1)]) -> dict[str, Any]:
+@router.get("/errors/{seq}", name="get_error", responses={404: {"model": ErrorView}})
+async def get_error(
+    request: Request, seq: Annotated[int, Path(ge=1, le=ROW_NUMBER_MAX)]
+) -> dict[str, Any]:
     """One fault by its number (`seq` in GET /errors): what it interrupted (`context`:
     operation, run id, workpiece, waypoint) and, when an exception caused it, the stack
     (`trace`), for a technician tracing it back to a run and its code."""

@@ -13,6 +13,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
 
+from server.api.analytics import ROW_NUMBER_MAX
 from server.api.schemas import ErrorView
 from server.bootstrap.cell import Cell
 from server.storage.journal import TABLES
@@ -63,7 +64,10 @@ async def list_reports(
 )
 async def get_report(
     request: Request,
-    report_id: Annotated[int, Path(ge=1, description="the report's id, as GET /reports lists")],
+    report_id: Annotated[
+        int,
+        Path(ge=1, le=ROW_NUMBER_MAX, description="the report's id, as GET /reports lists"),
+    ],
     format: Annotated[
         Literal["json", "html"] | None,
         Query(description="json or html (a printable page); without it, the Accept header"),
