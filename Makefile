@@ -54,18 +54,15 @@ line: $(RUN_STAMP) mosquitto
 
 # The whole suite includes the benchmarks' smoke test (tests/integration/test_bench_smoke.py).
 # Every tier but reliability runs on WORKERS pytest-xdist workers (one per core by
-# default); tests sharing a module fixture stay on one worker (--dist loadgroup,
-# tests/conftest.py). The reliability tier (kills, full disks, random faults, the short
-# soak) then runs alone: its servers wait on real device timeouts, which a second
-# worker's servers on the same cores can stretch past them. The slowest tests are listed.
-# The API schema tests run in one process too: schemathesis gives each of an operation's
-# tests the same node id under the pinned pytest, and pytest-xdist, which schedules by
-# node id, would run one of them per test function.
+# default); the tests of a module that share a fixture set up once (a served cell,
+# rendered frames, the API schema run's server) run on one worker, so it is set up once
+# (--dist loadgroup, tests/xdist_groups.py). The reliability tier (kills, full disks,
+# random faults, the short soak) then runs alone: its servers wait on real device
+# timeouts, which a second worker's servers on the same cores can stretch past them.
+# The slowest tests are listed.
 WORKERS ?= auto
-SCHEMA_TESTS := tests/integration/test_api_schema.py
 test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools mosquitto promtool
-	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=20 -m "not reliability" --ignore=$(SCHEMA_TESTS)
-	$(PY) -m pytest -q $(SCHEMA_TESTS)
+	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=20 -m "not reliability"
 	$(PY) -m pytest -m reliability --durations=5
 
 # The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
@@ -108,14 +105,17 @@ node:
 		$$SUDO apt-get update -qq && \
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq nodejs; }
 
-# The deployment tests validate docker-compose.yml with Debian's docker-compose (no
-# engine needed) and the systemd unit with systemd-analyze.
+# The deployment tests validate docker-compose.yml with Debian's docker-compose (its
+# `config` needs no engine) and the systemd unit with systemd-analyze. Without its
+# recommends, docker-compose brings no container engine (docker.io, containerd,
+# iptables) and so no service of theirs; systemd is only installed where it is missing.
 deploy-tools:
 	@command -v docker-compose >/dev/null && command -v systemd-analyze >/dev/null || { \
-		echo "installing Debian's docker-compose and systemd for the deployment tests"; \
+		echo "installing Debian's docker-compose (no engine) and systemd-analyze for the deployment tests"; \
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 		$$SUDO apt-get update -qq && \
-		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq docker-compose systemd; }
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends \
+			docker-compose systemd; }
 
 # The plant-interface tests and the line demo run Debian's MQTT broker as a process.
 mosquitto:

@@ -1,16 +1,24 @@
-"""A spray run's cycle time with and without its inspection, and the inspection's own time.
+"""A spray run's cycle time with and without its inspection and its retract.
 
 The default simulated cell (the robot and glue simulators in their thread at
 real speed, the simulated camera, the commissioned demo part on the table) runs
-the demo part again and again, start to back in IDLE, with inspection_enabled
-switched on and off between runs (interleaved, so both see the same machine):
+the demo part again and again, start to back in IDLE, in four modes: neither
+(inspection_enabled and retract_after_run off), the retract alone, the
+inspection alone, and both (the default). Each mode runs a block of runs in a
+row and its first run is left out, so every run measured begins where the
+previous run of its own mode left the arm (at the safe position after a
+retract, over the last bead without one: the run's first step then travels to
+the safe position). The blocks go round the modes in turn, so all see the same
+machine.
 
-- `cycle`: START accepted → the cell back in IDLE, for each setting;
-- `inspection`: what the inspection itself took (the frame, re-locating the
-  part, the bead along every segment, the annotated JPEG), from its record.
+- `cycle`: START accepted → the cell back in IDLE, for each mode;
+- `inspection`: what the inspection itself took (from its frame on: re-locating
+  the part, the bead along every segment, the annotated JPEG), from its record.
 
-What the plant pays for each part's verdict is the difference of the two cycle
-rows; the inspection row says where it went.
+`both / neither` is what a verdict and an arm out of the way cost the plant per
+part: the retract replaces the next run's first travel, and the inspection takes
+its frame as soon as the arm is clear of the beads and does its work while the arm
+travels on (server/core/operations/safe_position.py).
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ import asyncio
 import json
 import logging
 import shutil
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -56,10 +65,18 @@ async def one_cycle(cell: Cell, worker: Worker) -> tuple[float, dict[str, Any] |
     return elapsed, json.loads(rows[0]["document"]) if rows else None
 
 
-async def run(runs: int) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+MODES = {  # name: (inspection_enabled, retract_after_run)
+    "neither": (False, False),
+    "retract": (False, True),
+    "inspection": (True, False),
+    "both": (True, True),
+}
+
+
+async def run(runs: int, block: int) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     data = Path(tempfile.mkdtemp(prefix="bench-cycle-"))
     cell = Cell(Settings(data_path=data))
-    cycles: dict[bool, list[float]] = {True: [], False: []}
+    cycles: dict[str, list[float]] = {mode: [] for mode in MODES}
     inspection_s: list[float] = []
     verdicts: dict[str, int] = {}
     try:
@@ -67,35 +84,47 @@ async def run(runs: int) -> tuple[list[dict[str, Any]], dict[str, Any]]:
         worker = cell.worker
         assert worker is not None
         await wait_state(worker, State.IDLE)
-        for index in range(2 * runs):
-            inspecting = index % 2 == 0
-            cell.settings.inspection_enabled = inspecting
-            elapsed, record = await one_cycle(cell, worker)
-            cycles[inspecting].append(elapsed)
-            assert (record is not None) == inspecting, "inspected when off, or not when on"
-            if record is not None:
-                inspection_s.append(float(record["took_s"]))
-                verdicts[record["verdict"]] = verdicts.get(record["verdict"], 0) + 1
+        while min(len(c) for c in cycles.values()) < runs:
+            for mode, (inspecting, retracting) in MODES.items():
+                cell.settings.inspection_enabled = inspecting
+                cell.settings.retract_after_run = retracting
+                for index in range(block + 1):
+                    elapsed, record = await one_cycle(cell, worker)
+                    assert (record is not None) == inspecting, "inspected when off, or not on"
+                    if index == 0:
+                        continue  # began where another mode left the arm
+                    cycles[mode].append(elapsed)
+                    if record is not None:
+                        inspection_s.append(float(record["took_s"]))
+                        verdicts[record["verdict"]] = verdicts.get(record["verdict"], 0) + 1
     finally:
         await cell.stop()
         shutil.rmtree(data, ignore_errors=True)  # a journal and images per run: not worth keeping
     rows = [
-        {"measure": "cycle, inspection on", **percentiles_ms(cycles[True])},
-        {"measure": "cycle, inspection off", **percentiles_ms(cycles[False])},
-        {"measure": "inspection itself", **percentiles_ms(inspection_s)},
+        {"measure": f"cycle, {mode}", **percentiles_ms(samples)} for mode, samples in cycles.items()
     ]
-    return rows, {"verdicts": verdicts}
+    rows.append({"measure": "inspection itself", **percentiles_ms(inspection_s)})
+    neither = statistics.median(cycles["neither"])
+    ratio = {
+        f"{mode} / neither": round(statistics.median(samples) / neither, 4)
+        for mode, samples in cycles.items()
+        if mode != "neither"
+    }
+    return rows, {"verdicts": verdicts, "p50_ratios": ratio}
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--runs", type=int, default=10, help="runs with inspection, and without")
+    parser.add_argument("--runs", type=int, default=10, help="runs measured in each mode")
+    parser.add_argument("--block", type=int, default=2, help="runs in a row in one mode")
     args = parser.parse_args(argv)
     logging.disable(logging.WARNING)
-    rows, extra = asyncio.run(run(args.runs))
-    emit("cycle_time", rows, {"runs": args.runs, **extra})
+    rows, extra = asyncio.run(run(args.runs, args.block))
+    emit("cycle_time", rows, {"runs": args.runs, "block": args.block, **extra})
+    for name, value in extra["p50_ratios"].items():
+        print(f"{name}: {value:.3f} (p50)")
     return rows
 
 

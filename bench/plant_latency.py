@@ -9,8 +9,9 @@ measured exactly as `plain` is. Two identical cells differ too (where each
 process lands on the two cores, what else runs at that moment): the gap between
 `control` and `plain` in the same run is the noise floor that the gap between
 `cell-1` and `plain` is read against. This process is the plant: an MQTT
-subscriber to every cell's `event` topic and an OPC UA client subscribed to
-cell-1's `CellState`, in a process of their own, and the HTTP client that drives
+subscriber to every cell's `event` topic, a Sparkplug B host subscribed to
+cell-1's DDATA (cell-1 is also an edge node, group `bench`) and an OPC UA client
+subscribed to cell-1's `CellState`, in a process of their own, and the HTTP client that drives
 the cycles, in this one.
 
 The stops of `cell-1`, `plain` and `control` are sent by a witness each
@@ -32,10 +33,12 @@ A cycle has two stops per cell, one in each condition:
   is stopped in turn. This is when a stop is pressed on a line.
 The order of the stops alternates from cycle to cycle, so neither the cell with
 the interfaces nor the one without always goes first. Each transition carries
-the time the cell made it (`at` on MQTT, `since` in CellState); a lag is the
-time the plant received it minus that time, on the same machine's clock.
+the time the cell made it (`timestamp` on MQTT, `since` in CellState, the
+`State/Since` metric in Sparkplug's DDATA); a lag is the time the plant received
+it minus that time, on the same machine's clock.
 
 - `mqtt`: transition → MQTT subscriber, over the three cells' transitions.
+- `sparkplug`: transition → Sparkplug B DDATA (cell-1's, to the `scada` user).
 - `opcua`: transition → OPC UA data change of cell-1's CellState, with the
   subscription's publishing interval (`--publishing-ms`, the server's floor is
   what asyncua grants) included: a client sees a change at the next publish.
@@ -43,7 +46,7 @@ time the plant received it minus that time, on the same machine's clock.
   reset that clears it) → the OPC UA event on a subscription to cell-1's Server
   object, the event's own `Time` against its arrival, the same publishing interval
   included.
-- device stop and answer, on cell-1 (both interfaces on, both subscribed to),
+- device stop and answer, on cell-1 (every interface on and subscribed to),
   on `plain` (both off) and on `control` (both off), per condition, in the same run.
 
 Run: `python -m bench.plant_latency` (`--cycles 100` by default; about six
@@ -83,6 +86,7 @@ CONDITIONS = ("after a reset", "spraying")
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
 SPEED_FACTOR = "3.0"  # the witness's simulators' speed (bench/stop_witness.py), for every cell
 WITHOUT_INTERFACES = ("plain", "control")
+SPARKPLUG_GROUP = "bench"  # cell-1's Sparkplug B group
 WITNESSED = ("cell-1", *WITHOUT_INTERFACES)  # each stop timed at the devices too
 
 
@@ -247,21 +251,53 @@ Received = list[tuple[float, dict[str, Any]]]
 Alarms = list[tuple[float, float]]
 
 
+@contextlib.asynccontextmanager
+async def sparkplug_ddata(broker: BrokerPorts, received: Received) -> AsyncIterator[None]:
+    """cell-1's Sparkplug DDATA that carry a transition (`State/Since`), each with the
+    time it arrived, as `{"cell_id", "since"}` (seconds)."""
+    from server.mqtt.sparkplug.payload import decode
+
+    ready = asyncio.Event()
+
+    async def listen() -> None:
+        login = {"username": "scada", "password": DEMO_PASSWORDS["scada"]}
+        async with aiomqtt.Client(broker.host, broker.mqtt, **login) as client:
+            await client.subscribe(f"spBv1.0/{SPARKPLUG_GROUP}/DDATA/cell-1/cell", qos=0)
+            ready.set()
+            async for message in client.messages:
+                arrived = time.time()
+                metrics = {m.name: m.value for m in decode(bytes(message.payload)).metrics}
+                since = metrics.get("State/Since")
+                if isinstance(since, int):
+                    received.append((arrived, {"cell_id": "cell-1", "since": since / 1000}))
+
+    task = asyncio.create_task(listen())
+    await asyncio.wait_for(ready.wait(), 30)
+    try:
+        yield
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
 async def listen(
     broker: BrokerPorts, opcua_port: int, publishing_ms: float, stop: Any, ready: Any
-) -> tuple[Received, Received, Alarms, float]:
+) -> tuple[Received, Received, Alarms, Received, float]:
     mqtt: Received = []
     opcua: Received = []
     alarms: Alarms = []
+    sparkplug: Received = []
     async with (
         mqtt_events(broker, mqtt),
+        sparkplug_ddata(broker, sparkplug),
         opcua_changes(opcua_port, publishing_ms, opcua) as granted,
         opcua_alarms(opcua_port, publishing_ms, alarms),
     ):
         ready.set()
         while not stop.is_set():
             await asyncio.sleep(0.05)
-    return mqtt, opcua, alarms, granted
+    return mqtt, opcua, alarms, sparkplug, granted
 
 
 def plant(
@@ -366,6 +402,7 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
         if name == "cell-1":
             cell.opcua_port = free_port()
             cell.env["GLUE_APP_OPCUA_ENDPOINT"] = f"opc.tcp://127.0.0.1:{cell.opcua_port}"
+            cell.env["GLUE_APP_SPARKPLUG_GROUP"] = SPARKPLUG_GROUP
         cells.append(cell)
     broker_process = start_broker(broker, data / "broker")
     try:
@@ -394,7 +431,9 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
                     await cycles(client, cells, cycles_count)
                     await asyncio.sleep(2.0)  # the last transitions reach the plant
                     stop.set()
-                    mqtt, opcua, alarms, granted = await asyncio.to_thread(receiving.recv)
+                    mqtt, opcua, alarms, sparkplug, granted = await asyncio.to_thread(
+                        receiving.recv
+                    )
                 finally:
                     stop.set()
                     listener.join(30)
@@ -407,7 +446,7 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
             if cell.witness is not None:
                 await asyncio.to_thread(cell.witness.close)
     compared = (
-        (cells[0], "OPC UA + MQTT on"),
+        (cells[0], "OPC UA + MQTT + Sparkplug on"),
         (cells[3], "both off"),
         (cells[4], "both off, control cell"),
     )
@@ -420,7 +459,11 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
     return [
         {
             "figure": "transition → MQTT subscriber (3 cells, 1 broker)",
-            **percentiles_ms(lags(mqtt, "at", started)),
+            **percentiles_ms(lags(mqtt, "timestamp", started)),
+        },
+        {
+            "figure": "transition → Sparkplug B DDATA (cell-1)",
+            **percentiles_ms(lags(sparkplug, "since", started)),
         },
         {
             "figure": f"transition → OPC UA data change (publishing {granted:g} ms)",

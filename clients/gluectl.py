@@ -5,6 +5,7 @@
     gluectl wait IDLE --timeout 120      block until the cell is back in IDLE
     gluectl watch                        live view: progress bar and state timeline
     gluectl order start demo 20          make 20 good parts, one run after another
+    gluectl settings set shift_hours=10  change a runtime setting; it stays over a restart
     gluectl line --broker mqtt://host:1883   every cell of a line, live from the broker
     gluectl --json history --limit 5     anything as JSON (--json before or after the command)
     gluectl --mqtt mqtt://broker:1883 --cell-id cell-1 start   the same command, signed, over MQTT
@@ -94,6 +95,7 @@ from clients.gluectl_format import key_values as _key_values
 from clients.gluectl_format import value as _value
 from clients.gluectl_format import when as _when
 from clients.gluectl_report import report_table, reports_table
+from clients.gluectl_settings import parse_assignments, settings_rows, settings_table
 from clients.line_model import DEFAULT_PREFIX, LineModel
 from clients.line_table import line_table
 from clients.line_watch import Broker, LineUnreachable, LineWatcher
@@ -912,6 +914,53 @@ def health(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
     """Each device's link, last round trip and last error (needs no token)."""
     options = _options(ctx, json_flag)
     _show(options, _call(options, lambda c: c.health()), health_table)
+
+
+settings_app = typer.Typer(help="The settings in force, and the runtime ones changed (admin).")
+app.add_typer(settings_app, name="settings")
+
+
+@settings_app.command("get")
+def settings_get(
+    ctx: typer.Context,
+    names: Annotated[
+        list[str] | None, typer.Argument(help="Settings to show (all if none).")
+    ] = None,
+    json_flag: JsonFlag = False,
+) -> None:
+    """Each setting's value, where it comes from, and whether a change applies at once."""
+    options = _options(ctx, json_flag)
+    data = _call(options, lambda c: c.settings())
+    try:
+        rows = settings_rows(data, names or None)
+    except KeyError as missing:
+        raise typer.BadParameter(
+            f"{missing.args[0]} names no setting", param_hint="NAMES"
+        ) from None
+    _show(options, rows, settings_table)
+
+
+@settings_app.command("set")
+def settings_set(
+    ctx: typer.Context,
+    assignments: Annotated[list[str], typer.Argument(help="NAME=VALUE, e.g. shift_hours=10.")],
+    json_flag: JsonFlag = False,
+) -> None:
+    """Change runtime settings at once; they are saved and stay over a restart."""
+    options = _options(ctx, json_flag)
+    try:
+        body = parse_assignments(assignments)
+    except ValueError as error:
+        raise typer.BadParameter(str(error), param_hint="NAME=VALUE") from None
+    answer = _call(options, lambda c: c.change_settings(**body))
+    if options.json:
+        _print_json(answer)
+        return
+    changed = answer.get("changed") or {}
+    for name, change in changed.items():
+        typer.echo(f"{name}: {_value(change['old'])} -> {_value(change['new'])} (saved)")
+    if not changed:
+        typer.echo("nothing changed: each value was in force already")
 
 
 @app.command()

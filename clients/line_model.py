@@ -1,10 +1,11 @@
 """A line of cells as their MQTT topics describe it: one row per cell, folded from messages.
 
-Each cell publishes under `<prefix>/<cell_id>/`: `status` (retained `online`, or
-`offline` as its last will), `state` (retained JSON: state, since, stop_reason,
-run_id, workpiece_id), `progress` (JSON: where a run is, thinned by the cell) and `kpis`
-(retained, the body of GET /kpis). This module only folds those messages into
-rows, with no I/O, so `gluectl line` and its tests share one reading of the
+Each cell publishes under `<prefix>/<cell_id>/`: `status` (retained JSON whose
+`status` is `online`, or `offline` at a clean stop and as its last will; a cell of
+an earlier release sends the bare word, read alike), `state` (retained JSON: state,
+since, stop_reason, run_id, workpiece_id), `progress` (JSON: where a run is, thinned
+by the cell) and `kpis` (retained, the body of GET /kpis). This module only folds
+those messages into rows, with no I/O, so `gluectl line` and its tests share one reading of the
 topics; the browser's line view (clients/hmi/line_state.js) reads them the same way.
 
 A progress message belongs to a run: it is shown only while the cell's state names
@@ -86,8 +87,7 @@ class LineModel:
         cell_id, kind = found
         row = self.cells.setdefault(cell_id, CellRow(cell_id))
         if kind == "status":
-            text = payload.decode("utf-8", "replace").strip()
-            row.online = {"online": True, "offline": False}.get(text)
+            row.online = _liveness(payload)
             return True
         body = _json_object(payload) if payload else {}
         if body is None:
@@ -113,3 +113,12 @@ class LineModel:
 
     def as_json(self) -> dict[str, Any]:
         return {"prefix": self.prefix, "cells": [row.as_json() for row in self.rows()]}
+
+
+def _liveness(payload: bytes) -> bool | None:
+    """True online, False offline, None unknown: from `{"status": ...}` or the bare word."""
+    word: Any = payload.decode("utf-8", "replace").strip()
+    if word.startswith("{"):
+        body = _json_object(payload)
+        word = body.get("status") if body else None
+    return {"online": True, "offline": False}.get(word) if isinstance(word, str) else None

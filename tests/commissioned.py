@@ -99,8 +99,21 @@ async def seed_commissioned(settings: Settings) -> Template | None:
         _templates.append(template)
     if not template.commissioned:
         return None
-    shutil.copytree(template.directory, settings.data_path, dirs_exist_ok=True)
+    _copy_into(template.directory, settings.data_path)
     return template
+
+
+def _copy_into(template: Path, data_path: Path) -> None:
+    """The template's files into `data_path`; a directory that exists keeps its own mode
+    (the cell tightens a loose one at start, and says so, as it would have)."""
+    if not data_path.exists():
+        shutil.copytree(template, data_path)  # private, as CellStores made the template
+        return
+    for entry in template.iterdir():
+        if entry.is_dir():
+            shutil.copytree(entry, data_path / entry.name)
+        else:
+            shutil.copy2(entry, data_path / entry.name)
 
 
 def continue_noise(camera: SimulatedCamera, template: Template) -> None:

@@ -20,6 +20,7 @@ from server.core.infra.bus import Bus
 from server.core.machine.events import StartPayload
 from server.core.machine.transitions import State
 from server.core.operations import Operation, default_operations
+from server.core.operations.safe_position import RETRACT_STEP
 from server.core.worker.devices import CellDevices
 from server.core.worker.worker import Worker
 from server.settings.model import Settings
@@ -30,6 +31,8 @@ from tests.fakes import FakeCamera, FakeClock, FakeGlue, FakeRobot
 
 TESTS = Path(__file__).parent
 TIERS = ("unit", "integration", "e2e", "browser", "reliability")  # registered in pyproject
+# Under pytest-xdist, a module with a shared fixture runs on one worker (make test).
+pytest_plugins = ["tests.xdist_groups"]
 
 
 @pytest.fixture(autouse=True)
@@ -79,17 +82,8 @@ def _terminal_size_of_the_controller(config: pytest.Config) -> None:
             os.environ[name] = value
 
 
-@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Mark each test with its tier (the first directory under tests/), and keep the tests
-    that share a module-scoped fixture on one worker under pytest-xdist.
-
-    `make test` runs the suite on several workers with `--dist loadgroup`: ungrouped
-    tests go to whichever worker is free, and a group goes to one worker whole. A
-    module fixture (a served cell, a commissioned data directory, a browser session)
-    is set up once per worker that runs its tests, so the tests that use one are a
-    group, named after their module.
-    """
+    """Mark each test with its tier: the first directory under tests/."""
     for item in items:
         try:
             tier = item.path.relative_to(TESTS).parts[0]
@@ -97,19 +91,6 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             continue
         if tier in TIERS:
             item.add_marker(getattr(pytest.mark, tier))
-        if _uses_a_module_fixture(item) and item.get_closest_marker("xdist_group") is None:
-            item.add_marker(pytest.mark.xdist_group(item.path.relative_to(TESTS).as_posix()))
-
-
-def _uses_a_module_fixture(item: pytest.Item) -> bool:
-    info = getattr(item, "_fixtureinfo", None)
-    if info is None:
-        return False
-    return any(
-        definition.scope in ("module", "package", "class")
-        for definitions in info.name2fixturedefs.values()
-        for definition in definitions
-    )
 
 
 # A 120 × 80 mm rectangle in the library as "demo"; start it without the camera.
@@ -196,3 +177,13 @@ async def make_worker(fast_settings: Settings, tmp_path) -> AsyncIterator[Worker
         await worker.stop()
     for journal in journals:
         journal.stop()
+
+
+def is_waypoint(message: dict) -> bool:
+    """A bus/WebSocket/MQTT message of a run reaching its next waypoint: a progress message
+    with a waypoint, other than the retract (the run's last step, which repeats the last)."""
+    return (
+        message.get("type", "progress") == "progress"
+        and "waypoint" in message
+        and message.get("step") != RETRACT_STEP
+    )

@@ -49,7 +49,8 @@ def kpis_message(oee: float | None) -> dict[str, Any]:
 def connected_client(port: int, cell_id: str, keepalive: int = 60) -> mqtt.Client:
     client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"test-{cell_id}")
     client.username_pw_set("cell", DEMO_PASSWORDS["cell"])  # the demo broker's cell user
-    client.will_set(f"{PREFIX}/{cell_id}/status", b"offline", qos=1, retain=True)
+    will = {"cell_id": cell_id, "status": "offline", "time": None, "clean": False}
+    client.will_set(f"{PREFIX}/{cell_id}/status", json.dumps(will).encode(), qos=1, retain=True)
     connected = threading.Event()
     client.on_connect = lambda *_: connected.set()
     client.connect("127.0.0.1", port, keepalive=keepalive)
@@ -70,7 +71,8 @@ def publish_contract(
     oee: float | None,
     progress: dict[str, Any] | None = None,
 ) -> None:
-    publish(client, cell_id, "status", b"online", retain=True)
+    online = {"cell_id": cell_id, "status": "online", "time": time.time(), "clean": True}
+    publish(client, cell_id, "status", online, retain=True)
     publish(client, cell_id, "state", state, retain=True)
     publish(client, cell_id, "kpis", kpis_message(oee), retain=True)
     if progress is not None:

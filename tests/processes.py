@@ -95,6 +95,18 @@ def stop(process: subprocess.Popen[str]) -> None:
 
 # A test's port is free when picked, not reserved: see server_process.
 BIND_RETRIES = 2
+# What every served process gets unless the test sets it. vision_processing_timeout
+# (5 s by default) also bounds the camera coming up at start, and the simulated camera's
+# image process is a fresh Python importing NumPy and OpenCV: on a machine busy with
+# other work (the suite's other workers, other jobs) that took longer, and the cell
+# started in ERROR. No test waits for that timeout to fire, so it is set far from any
+# start-up, as the rig's cells have it (tests/rig.py, VISION_TIMEOUT).
+SERVED = {"GLUE_APP_VISION_PROCESSING_TIMEOUT": "30"}
+# A served cell whose simulated devices run ten times faster: its first start commissions
+# the cell (the robot calibration moves the arm to each pose) in a tenth of the time, and
+# so does any move. For the tests that are about what survives a kill or a restart, not
+# about how long a move lasts.
+FAST_DEVICES = {"GLUE_APP_SIMULATION_SPEED_FACTOR": "10"}
 
 
 @contextlib.contextmanager
@@ -110,7 +122,8 @@ def server_process(
 ) -> Iterator[subprocess.Popen[str]]:
     """Run `python -m server` on `port`; wait until GET /health answers.
 
-    Its output goes to `log_path` (default `<data_dir>/server.log`); `preexec_fn`
+    `env` adds to (or overrides) `SERVED`. Its output goes to `log_path` (default
+    `<data_dir>/server.log`); `preexec_fn`
     runs in the child before the server (e.g. to set a resource limit). With
     `ca_file` the server serves https (GLUE_APP_TLS_*) and is asked over https,
     trusting that CA.
@@ -125,7 +138,7 @@ def server_process(
             stdout=log,
             stderr=subprocess.STDOUT,
             text=True,
-            env=_env(env),
+            env=_env({**SERVED, **(env or {})}),
             cwd=ROOT,
             preexec_fn=preexec_fn,
         )

@@ -146,6 +146,15 @@ class AsyncCellClient:
         """Put the draft layout in force once all nine pass the check (maintenance role)."""
         return await self._send(builders.apply_markers())
 
+    async def settings(self) -> dict[str, Any]:
+        """The settings in force, `sources` (where each comes from) and `runtime_settings`
+        (those a change applies at once) (admin role)."""
+        return await self._send(builders.settings())
+
+    async def change_settings(self, **values: Any) -> dict[str, Any]:
+        """Change runtime settings at once and keep them over a restart (admin role)."""
+        return await self._send(builders.change_settings(values))
+
     async def calibrate_robot(self) -> CommandResult:
         """Fit the image → robot map from the ArUco markers (maintenance role)."""
         return await self._send(builders.command("calibrate-robot"))

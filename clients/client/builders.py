@@ -230,6 +230,14 @@ def apply_markers() -> Call[dict[str, Any]]:
     return Call("POST", "/calibration/markers/apply", _json)
 
 
+def settings() -> Call[dict[str, Any]]:
+    return Call("GET", "/settings", _json)
+
+
+def change_settings(values: dict[str, Any]) -> Call[dict[str, Any]]:
+    return Call("PATCH", "/settings", _json, json=values)
+
+
 def create_order(workpiece_id: str, quantity: int) -> Call[dict[str, Any]]:
     body = {"workpiece_id": workpiece_id, "quantity": quantity}
     return Call("POST", "/orders", _json, json=body)

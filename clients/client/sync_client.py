@@ -144,6 +144,16 @@ class CellClient:
         """Put the draft layout in force once all nine pass the check (maintenance role)."""
         return self._send(builders.apply_markers())
 
+    def settings(self) -> dict[str, Any]:
+        """The settings in force, `sources` (where each comes from) and `runtime_settings`
+        (those a change applies at once) (admin role)."""
+        return self._send(builders.settings())
+
+    def change_settings(self, **values: Any) -> dict[str, Any]:
+        """Change runtime settings at once and keep them over a restart (admin role):
+        `{"changed": {name: {"old": ..., "new": ...}}}`."""
+        return self._send(builders.change_settings(values))
+
     def calibrate_robot(self) -> CommandResult:
         """Fit the image → robot map from the ArUco markers (maintenance role)."""
         return self._send(builders.command("calibrate-robot"))

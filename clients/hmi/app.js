@@ -8,6 +8,7 @@
  *   live.js        the WebSocket: ticket, snapshot, messages, reconnect
  *   render.js      state, fault, command buttons, messages, progress
  *   panels.js      devices, KPIs, history, the workpiece library
+ *   settings_card.js  the settings changed at once, for a role that may read them
  *   trajectory.js  the trajectory canvas (fetching and drawing)
  *   geometry.js    its pure geometry: mm ↔ image ↔ canvas (tested with node)
  *   dom.js         DOM and text helpers
@@ -26,6 +27,7 @@ import {
   applyState, clearMessage, renderCommands, setLive, showAnswer, showMessage, tick,
 } from "./render.js";
 import { forgetMe, refreshMe } from "./role.js";
+import { initSettings, refreshSettings } from "./settings_card.js";
 import { hmi, REFRESH_MS, TOKEN_KEY } from "./store.js";
 import { drawTrajectory, refreshCalibration, refreshFrame, refreshTrajectory } from "./trajectory.js";
 
@@ -82,6 +84,7 @@ function startSession(token, view) {
   refreshCalibration();
   refreshFrame();
   refreshLibrary();
+  refreshSettings();
   hmi.timers.push(setInterval(refreshPanels, REFRESH_MS));
   hmi.timers.push(setInterval(tick, 250));
   hmi.timers.push(setInterval(watchdog, 1000));
@@ -95,6 +98,7 @@ function stopSession() {
   dropSocket(null);
   hmi.token = null;
   forgetMe();
+  document.querySelector(".card-settings").hidden = true; // the next person's role decides
 }
 
 // --- commands ---------------------------------------------------------------
@@ -180,6 +184,7 @@ function init() {
   }
   initOrders();
   hmi.onWorkpieceCreated = workpieceCreated;
+  initSettings();
   window.addEventListener("resize", drawTrajectory);
   const token = sessionStorage.getItem(TOKEN_KEY);
   if (token) startSession(token, null);

@@ -1,7 +1,7 @@
 /* A line of cells as their MQTT topics describe it: one row per cell, folded from
  * messages. Pure (no DOM, no network), read the same way as clients/line_model.py:
  *
- *   <prefix>/<cell_id>/status    retained "online", or "offline" (the cell's last will)
+ *   <prefix>/<cell_id>/status    retained JSON: status "online", or "offline" (a clean stop, the last will), time
  *   <prefix>/<cell_id>/state     retained JSON: state, since, stop_reason, run_id, ...
  *   <prefix>/<cell_id>/progress  JSON, where a run is (thinned by the cell): run_id, waypoint, total, fraction
  *   <prefix>/<cell_id>/kpis      retained JSON: the cell's GET /kpis body (oee.oee)
@@ -44,7 +44,9 @@ export function applyMessage(line, prefix, topic, text) {
   if (!found) return false;
   const row = line.get(found.cellId) ?? emptyRow(found.cellId);
   if (found.kind === "status") {
-    const word = text.trim();
+    // JSON with `status` and `time`; a cell of an earlier release sends the bare word.
+    let word = text.trim();
+    if (word.startsWith("{")) word = jsonObject(word)?.status ?? null;
     row.online = word === "online" ? true : word === "offline" ? false : null;
   } else {
     const body = jsonObject(text);

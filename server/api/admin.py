@@ -23,12 +23,13 @@ from server.api import audit
 from server.api.access import access_of
 from server.api.analytics import csv_export
 from server.api.declared_query import DeclaredQueryRoute
-from server.api.runtime_settings import SettingsChange, plan_change
+from server.api.runtime_settings import RUNTIME_SETTINGS, SettingsChange, plan_change
 from server.api.schemas import ErrorView, text_body
 from server.api.time_window import Since, Until, time_window
 from server.common.values import Name
 from server.security.tokens import Role, last_admin_refusal
 from server.settings.model import Settings
+from server.settings.runtime import sources_of
 from server.storage.journal import Journal
 
 router = APIRouter(tags=["access"], route_class=DeclaredQueryRoute)
@@ -169,30 +170,50 @@ async def export_audit(
 
 @router.get("/settings")
 async def get_settings(request: Request) -> dict[str, Any]:
-    """The settings in force; the one secret, mqtt_password, is shown as **********."""
-    return request.app.state.settings.model_dump(mode="json")
+    """The settings in force; the one secret, mqtt_password, is shown as **********.
 
-
-@router.patch("/settings", responses={503: audit.STORAGE_REFUSALS[503]})
-async def patch_settings(request: Request, body: SettingsChange) -> dict[str, Any]:
-    """Change settings that apply at once; audited with old and new values.
-
-    Each keeps its type and bounds from the settings model (GET /settings shows the
-    values in force); any other key is refused, as it takes effect only at a restart.
+    Beside the values, `sources` names where each comes from (runtime: changed with
+    PATCH /settings and saved in the data directory, standing over the rest; command
+    line; environment; file: the config file; default), and `runtime_settings` lists
+    the settings PATCH changes at once (any other takes effect only at a restart).
     """
     settings: Settings = request.app.state.settings
+    cell = request.app.state.cell
+    return {
+        **settings.model_dump(mode="json"),
+        "sources": sources_of(settings, cell.runtime_settings),
+        "runtime_settings": list(RUNTIME_SETTINGS),
+    }
+
+
+@router.patch("/settings", responses={**audit.STORAGE_REFUSALS})
+async def patch_settings(request: Request, body: SettingsChange) -> dict[str, Any]:
+    """Change settings that apply at once, and keep them over a restart; audited with
+    old and new values.
+
+    Each keeps its type and bounds from the settings model (GET /settings shows the
+    values in force and where each comes from); a setting that takes effect only at a
+    restart is refused, saying where to set it. The change is on record, then saved in
+    the data directory (runtime-settings.json, written atomically, 0600), then applied:
+    a disk that refuses it leaves it unapplied (507 or 503).
+    """
+    settings: Settings = request.app.state.settings
+    cell = request.app.state.cell
     try:
         changes = plan_change(settings, body)
     except ValidationError as exc:  # a rule across settings
         raise RequestValidationError(
             [{**error, "loc": ("body", *error["loc"])} for error in exc.errors()]
         ) from None
-    # On record before it applies; settings live in memory only, so nothing can fail after.
-    await audit.record_before_change(
-        request, "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items())
-    )
+    detail = "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items())
+    await audit.record_before_change(request, detail)
+    kept = {name: getattr(settings, name) for name in cell.runtime_settings}
+    kept.update({name: new for name, (_, new) in changes.items()})
+    store = cell.stores.runtime_settings
+    await audit.save(request, detail, lambda: store.save(kept))
     for name, (_, new) in changes.items():
         setattr(settings, name, new)
+    cell.runtime_settings |= set(changes)
     if "logging_level" in changes:
         logging.getLogger().setLevel(settings.logging_level)
     return {"changed": {k: {"old": old, "new": new} for k, (old, new) in changes.items()}}

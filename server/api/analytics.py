@@ -38,8 +38,6 @@ router = APIRouter(tags=["analytics"], route_class=DeclaredQueryRoute)
 
 Limit = Annotated[int, Query(ge=1, le=10_000)]
 Offset = Annotated[int, Query(ge=0, le=10_000_000)]
-# A journal row's number (SQLite's INTEGER PRIMARY KEY): the largest a 64-bit integer holds.
-ROW_NUMBER_MAX = 2**63 - 1
 TEXT_MAX_LENGTH = 64
 TEXT_PATTERN = r"^[A-Za-z0-9_.:-]+$"
 ExportTable = Literal["events", "transitions", "operations", "errors", "recoveries"]
@@ -163,9 +161,13 @@ for _path, _table, _name, _doc in TABLE_ROUTES:
     router.add_api_route(_path, table_route(_table, _name, _doc), methods=["GET"], name=_name)
 
 
+# The largest row number SQLite stores: a larger one could only be refused by SQLite.
+SQLITE_INTEGER_MAX = 2**63 - 1
+
+
 @router.get("/errors/{seq}", name="get_error", responses={404: {"model": ErrorView}})
 async def get_error(
-    request: Request, seq: Annotated[int, Path(ge=1, le=ROW_NUMBER_MAX)]
+    request: Request, seq: Annotated[int, Path(ge=1, le=SQLITE_INTEGER_MAX)]
 ) -> dict[str, Any]:
     """One fault by its number (`seq` in GET /errors): what it interrupted (`context`:
     operation, run id, workpiece, waypoint) and, when an exception caused it, the stack

@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
 
-from server.api.analytics import ROW_NUMBER_MAX
+from server.api.analytics import SQLITE_INTEGER_MAX
 from server.api.schemas import ErrorView
 from server.bootstrap.cell import Cell
 from server.storage.journal import TABLES
@@ -66,7 +66,7 @@ async def get_report(
     request: Request,
     report_id: Annotated[
         int,
-        Path(ge=1, le=ROW_NUMBER_MAX, description="the report's id, as GET /reports lists"),
+        Path(ge=1, le=SQLITE_INTEGER_MAX, description="the report's id, as GET /reports lists"),
     ],
     format: Annotated[
         Literal["json", "html"] | None,

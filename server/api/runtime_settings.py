@@ -7,39 +7,33 @@ Infinity or 1e400), and state them in openapi.json. A hand-written copy would
 drift from them: a body of any JSON object promises nothing in openapi.json and
 takes `{"design_cycle_time_s": Infinity}`.
 
-A setting not listed here is refused as an unknown field: it needs a restart.
+Which settings change at runtime is declared in server/settings/runtime.py
+(RUNTIME_SETTINGS). Any other setting of the model is refused with the reason (it
+takes effect only at a restart, and where to set it); a key that names no setting
+is refused as unknown.
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, create_model
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    ValidationError,
+    ValidatorFunctionWrapHandler,
+    create_model,
+    model_validator,
+)
+from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from server.common.values import FiniteNumber, whole_number
 from server.settings.model import Settings
+from server.settings.runtime import RUNTIME_SETTINGS, restart_reason
 
-RUNTIME_SETTINGS = (
-    "error_state_timeout",
-    "auto_recovery_enabled",
-    "error_recovery_attempts",
-    "error_recovery_delay",
-    "calibration_max_error_mm",
-    "design_cycle_time_s",
-    "shift_hours",
-    "processing_timeout",
-    "logging_level",
-    # The quality engineer's: whether parts are judged, and against what (docs/quality.md)
-    "inspection_enabled",
-    "trajectory_precision_limit_mm",
-    "dispensing_flow_tolerance_percent",
-    "dispensing_max_out_of_tolerance_s",
-    "glue_volume_tolerance_percent",
-    "bead_width_tolerance_percent",
-    "bead_max_gap_mm",
-    "bead_max_offset_mm",
-    "order_defect_limit",
-)
+__all__ = ["RUNTIME_SETTINGS", "SettingsChange", "plan_change"]
 
 
 def _strict(kind: Any, constraints: list[Any]) -> Any:
@@ -59,6 +53,37 @@ def _without_defaults(schema: dict[str, Any]) -> None:
         field.pop("default", None)
 
 
+def _worded(error: Any) -> InitErrorDetails:
+    """One error as pydantic said it; an unknown field that is a setting of the model
+    says instead that it takes effect only at a restart, and where to set it."""
+    loc, kind, message = error["loc"], error["type"], error["msg"]
+    name = str(loc[0]) if loc else ""
+    if kind == "extra_forbidden" and name in Settings.model_fields:
+        kind, message = "restart_needed", restart_reason(name)
+    escaped = message.replace("{", "{{").replace("}", "}}")
+    return {"type": PydanticCustomError(kind, escaped), "loc": loc, "input": error["input"]}
+
+
+class _Change(BaseModel):
+    """The base of SettingsChange: strict about its keys, and says why a setting of the
+    model that is not a runtime one is refused."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_without_defaults)
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _say_restart(cls, value: Any, handler: ValidatorFunctionWrapHandler) -> Any:
+        try:
+            return handler(value)
+        except ValidationError as exc:
+            errors = exc.errors()
+            if not any(e["type"] == "extra_forbidden" for e in errors):
+                raise
+            raise ValidationError.from_exception_data(
+                exc.title, [_worded(e) for e in errors]
+            ) from None
+
+
 def _change_model() -> type[BaseModel]:
     fields: dict[str, Any] = {}
     for name in RUNTIME_SETTINGS:
@@ -67,7 +92,7 @@ def _change_model() -> type[BaseModel]:
         fields[name] = (annotation, Field(None, description=declared.description))
     return create_model(
         "SettingsChange",
-        __config__=ConfigDict(extra="forbid", json_schema_extra=_without_defaults),
+        __base__=_Change,
         __doc__="The settings to change at once; each keeps its bounds and type from the "
         "settings model. Any other key is refused: it takes effect only at a restart.",
         **fields,

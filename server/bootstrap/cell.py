@@ -39,6 +39,7 @@ from server.orders.book import OrderBook
 from server.settings.model import Settings
 from server.settings.notifications import WebhookSettings
 from server.settings.recording import RecordingSettings
+from server.settings.runtime import restore_saved
 from server.storage import CellStores
 from server.storage.journal import Journal, records
 from server.storage.permissions import tighten_data_directory
@@ -84,6 +85,8 @@ class Cell:
         self.notifier: Notifier | None = None
         # Production orders (server/orders/): drive the cell through `command`, like a person.
         self.orders: OrderBook | None = None
+        # The settings changed at runtime and in force (saved in the data directory).
+        self.runtime_settings: set[str] = set()
 
     @property
     def devices(self) -> CellDevices:
@@ -123,6 +126,7 @@ class Cell:
         await asyncio.to_thread(tighten_data_directory, settings.data_path, [log_path(settings)])
         self.stores = CellStores.open(settings.data_path)
         restore_taught_layout(settings, self.stores.markers.applied)
+        self.runtime_settings = restore_runtime_settings(settings, self.stores)
         self.journal = Journal(
             settings.journal_file,
             synchronous=settings.journal_synchronous,
@@ -265,6 +269,36 @@ def restore_taught_layout(settings: Settings, taught: list[tuple[float, float]] 
         return
     settings.marker_positions_mm = list(taught)
     log.info("marker layout in force: the one taught and applied (GET /calibration/markers)")
+
+
+def restore_runtime_settings(settings: Settings, stores: CellStores) -> set[str]:
+    """Put the settings changed at runtime and saved (PATCH /settings) back in force.
+
+    Why they stand over the environment and the config file: see
+    server/settings/runtime.py. Each one that does is logged with the value it
+    replaces; a saved file that cannot be read is logged and left alone (the
+    cell starts on its configuration, and the next change rewrites the file).
+    """
+    assert stores.runtime_settings is not None
+    try:
+        saved = stores.runtime_settings.load()
+    except ValueError as exc:
+        log.error("the settings changed at runtime are not put in force: %s", exc)
+        return set()
+    before = settings.model_dump()
+    applied, problems = restore_saved(settings, saved)
+    for problem in problems:
+        log.error("saved runtime setting: %s", problem)
+    for name in applied:
+        log.info(
+            "setting %s=%r: changed at runtime and saved (was %r from the configuration)",
+            name,
+            getattr(settings, name),
+            before[name],
+        )
+    if "logging_level" in applied:  # the handlers were set up from the configured level
+        logging.getLogger().setLevel(settings.logging_level)
+    return set(applied)
 
 
 def record_journal_damage(journal: Journal) -> None:

@@ -21,6 +21,7 @@ from server.common.errors import ConfigurationError
 from server.core.infra.answers_in_flight import AnswersInFlight
 from server.mqtt.commands import CommandDoor
 from server.mqtt.link import MqttLink
+from server.mqtt.sparkplug.node import SparkplugNode
 from server.security.tokens import TokenStore
 from server.settings.model import Settings
 from server.settings.mqtt import MqttSettings
@@ -34,7 +35,8 @@ log = logging.getLogger(__name__)
 
 
 class PlantLinks:
-    """OPC UA and MQTT, each None when its setting (opcua_endpoint, mqtt_url) is unset."""
+    """OPC UA, MQTT and Sparkplug B, each None when its setting (opcua_endpoint, mqtt_url,
+    sparkplug_group) is unset."""
 
     def __init__(
         self,
@@ -48,6 +50,7 @@ class PlantLinks:
         self.cell = cell
         self.opcua = _opcua(cell, tokens, answers)
         self.mqtt = _mqtt(cell, tokens, answers, health, kpis)
+        self.sparkplug = _sparkplug(cell, tokens, answers, health, kpis)
 
     async def start(self) -> None:
         """Serve OPC UA, then link MQTT; the cell is started already.
@@ -67,9 +70,14 @@ class PlantLinks:
                 raise
         if self.mqtt is not None:
             self.mqtt.start()
+        if self.sparkplug is not None:
+            self.sparkplug.start()
 
     async def stop(self) -> None:
-        """MQTT first (its `offline` goes out before the cell stops), then OPC UA."""
+        """Sparkplug, then MQTT (NDEATH and `offline` go out before the cell stops), then
+        OPC UA."""
+        if self.sparkplug is not None:
+            await self.sparkplug.stop()
         if self.mqtt is not None:
             await self.mqtt.stop()
         if self.opcua is not None:
@@ -120,5 +128,33 @@ def _mqtt(
         health=health,
         kpis=kpis,
         commands=door,
+        answers=answers,
+    )
+
+
+def _sparkplug(
+    cell: Cell,
+    tokens: TokenStore,
+    answers: AnswersInFlight,
+    health: Callable[[], dict[str, Any]],
+    kpis: Callable[[], Awaitable[dict[str, Any]]],
+) -> SparkplugNode | None:
+    """The Sparkplug B edge node, when sparkplug_group is set (on mqtt_url's broker)."""
+    from server.opcua.packml import packml_state  # the PackML numbers OPC UA shows
+
+    settings: Settings = cell.settings
+    if settings.sparkplug_group is None or settings.mqtt_url is None:
+        return None
+    door = None
+    if settings.sparkplug_command_token_id is not None:
+        door = CommandDoor(cell, tokens, f"sparkplug:{settings.mqtt_url}", source="sparkplug")
+    return SparkplugNode(
+        settings,
+        cell,
+        packml_state=lambda state: int(packml_state(state)),
+        health=health,
+        kpis=kpis,
+        tokens=tokens,
+        door=door,
         answers=answers,
     )

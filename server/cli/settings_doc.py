@@ -15,6 +15,9 @@ from pathlib import Path
 
 from server.cli import generated_file
 from server.settings.reference import CONFIG_FILE_VARIABLE, SettingFacts, facts
+from server.settings.runtime import RUNTIME_SETTINGS
+
+RUNTIME_LIST = ", ".join(f"`{name}`" for name in RUNTIME_SETTINGS)
 
 DEFAULT_PATH = Path("docs/settings.md")
 
@@ -30,15 +33,27 @@ Every setting of `glue-server`, section by section as declared under
 `server/settings/model.py` joins them into one model). Values come from, highest
 priority first:
 
-1. the command line: `--data-dir` sets `data_path` (`--host` and `--port` are
+1. a change made at run time: `PATCH /settings` (admin; `gluectl settings set`, the
+   dashboard's Settings card) changes the settings listed below at once and saves
+   them in the data directory (`runtime-settings.json`, 0600, written atomically;
+   each change audited), so they stay over a restart and stand over the sources
+   below: the latest deliberate change to this cell wins. The start-up log names
+   each one with the configured value it replaces; a saved value the settings no
+   longer accept is logged and left out. To go back to the configured value, set it
+   again at run time, or stop the server and delete the file;
+2. the command line: `--data-dir` sets `data_path` (`--host` and `--port` are
    not settings: they exist only on the command line);
-2. the environment: the variable in the table, `GLUE_APP_` and the setting's
+3. the environment: the variable in the table, `GLUE_APP_` and the setting's
    name in capitals (`GLUE_APP_SHIFT_HOURS=12`); a list or tuple is written as
    JSON (`GLUE_APP_SAFE_POSITION='[400, 0, 200, 180, 0, 0]'`), a boolean as
    `true`/`false`;
-3. a JSON file named by `{CONFIG_FILE_VARIABLE}`, whose keys are the settings'
+4. a JSON file named by `{CONFIG_FILE_VARIABLE}`, whose keys are the settings'
    names (`{{"shift_hours": 12}}`), e.g. the specification's Appendix A file;
-4. the defaults below.
+5. the defaults below.
+
+`GET /settings` (`gluectl settings get`) shows each value in force and, under
+`sources`, where it comes from: `runtime`, `command line`, `environment`, `file` or
+`default`.
 
 No `.env` file is read. A value the table does not accept stops the start
 (exit 2) with one line naming the variable or key and what it accepts, e.g.
@@ -46,7 +61,9 @@ No `.env` file is read. A value the table does not accept stops the start
 number, ...; shift_hours accepts a number 0.25 .. 744`. A `GLUE_APP_` variable
 that names no setting is logged as a warning naming the closest one, and the
 server starts without it. No setting may be Infinity or NaN. `PATCH /settings`
-(admin) changes a few of them at run time, with the same bounds (`docs/api.md`).
+takes the same bounds (`docs/api.md`); any other setting is refused with the reason
+(it takes effect only at a restart) and the variable to set instead. The settings
+changed at run time: {RUNTIME_LIST}.
 
 In "accepted", `0.25 .. 744` means at least 0.25 and at most 744 (a `>` or `<` marks
 an exclusive bound).

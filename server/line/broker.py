@@ -32,6 +32,7 @@ DEMO_PASSWORDS = {
     "cell": "cell-demo-password",
     "operator": "operator-demo-password",
     "line-view": "line-view-demo-password",
+    "scada": "scada-demo-password",
 }
 ANONYMOUS_STATE_READER = (
     "# The browser's listener: anonymous may read the state only.\ntopic read glue/+/+\n"

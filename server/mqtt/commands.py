@@ -61,8 +61,10 @@ class CommandDoor:
         max_age_s: float = 30.0,
         max_skew_s: float = 5.0,
         clock: Callable[[], float] = time.time,
+        source: str = "mqtt",
     ) -> None:
         self.cell = cell
+        self.source = source  # the transport the audit and the event name (mqtt, sparkplug)
         self.tokens = tokens
         self.address = address  # what the audit records as "from where": the broker
         self.max_age_ms = int(max_age_s * 1000)
@@ -75,11 +77,11 @@ class CommandDoor:
         action = f"MQTT {topic}"
         command = normalize_command(name)
         if command is None:
-            return self._refuse(None, action, 404, f"unknown command {name!r}")
+            return self.refuse(None, action, 404, f"unknown command {name!r}")
         try:
             message = json.loads(raw or b"{}")
         except (ValueError, UnicodeDecodeError):
-            return self._refuse(None, action, 400, "the payload is not JSON")
+            return self.refuse(None, action, 400, "the payload is not JSON")
         checked = verify(
             message,
             topic,
@@ -90,14 +92,24 @@ class CommandDoor:
             max_skew_ms=self.max_skew_ms,
         )
         if isinstance(checked, Refusal):
-            return self._refuse(None, action, checked.status, checked.detail)
-        principal, body = checked.principal, checked.body
+            return self.refuse(None, action, checked.status, checked.detail)
+        return await self.execute(checked.principal, action, command, checked.body)
+
+    async def execute(
+        self, principal: Principal, action: str, command: Command, body: Any
+    ) -> Answer:
+        """Run a command whose sender is known: the role, the body, then the cell.
+
+        The Sparkplug node comes in here too, with the principal of the token it runs
+        commands as (server/mqtt/sparkplug/node.py): the same role check, body model,
+        stop rule and audit as a signed message.
+        """
         needed = spec_of(command).role
         if principal.role < needed:
             detail = (
                 f"this needs the {needed.label} role; {principal.name} has {principal.role.label}"
             )
-            return self._refuse(principal, action, 403, detail)
+            return self.refuse(principal, action, 403, detail)
         payload, errors = payload_of(command, body)
         if errors:  # as HTTP's 422: the detail, and each field with its message
             problem = invalid_request(errors)
@@ -105,7 +117,7 @@ class CommandDoor:
                 _, answer = await self._run(principal, action, command, StopPayload(None))
                 answer["message"] = f"the stop was made without its reason: {answer['message']}"
                 return 422, {"detail": problem, "errors": errors, **answer}
-            status, body = self._refuse(principal, action, 422, problem)
+            status, body = self.refuse(principal, action, 422, problem)
             return status, {**body, "errors": errors}
         return await self._run(principal, action, command, payload)
 
@@ -115,7 +127,7 @@ class CommandDoor:
         note = AuditNote(principal.describe(), self.address, action, audit_label)
         try:
             outcome = await self.cell.command(
-                command, source=f"mqtt:{principal.name}", payload=payload, audit=note
+                command, source=f"{self.source}:{principal.name}", payload=payload, audit=note
             )
         except (EventQueueFull, WorkerStopped, JournalUnavailable) as exc:
             self._audit(principal, action, "refused (503)", str(exc))
@@ -128,7 +140,7 @@ class CommandDoor:
             self._audit(principal, action, label, f"event {outcome.event_id}: {outcome.message}")
         return status, body
 
-    def _refuse(self, principal: Principal | None, action: str, status: int, detail: str) -> Answer:
+    def refuse(self, principal: Principal | None, action: str, status: int, detail: str) -> Answer:
         log.info("MQTT command refused (%d): %s: %s", status, action, detail)
         self._audit(principal, action, f"refused ({status})", detail)
         return status, {"detail": detail}

@@ -15,9 +15,11 @@ Three tasks, none of which the worker or the e-stop ever awaits:
 - the ticker republishes the retained health when it changes and every
   `mqtt_health_interval`, and the KPIs every `mqtt_kpis_interval`.
 
-The broker is told `online` on `status` at each connection, with a last will
-of `offline` it publishes itself if the cell goes silent for 1.5 keep-alives
-(a killed server, a cut cable); a clean stop says `offline` before it leaves.
+The broker is told `online` on `status` at each connection, with its time, and
+a last will of `offline` it publishes itself if the cell goes silent for 1.5
+keep-alives (a killed server, a cut cable); a clean stop says `offline` with its
+time before it leaves (server/mqtt/topics.py: `status_message`). Progress of a
+run that ended while the broker was away is not sent when it is back.
 Commands (server/mqtt/commands.py) each get a task of their own, so an e-stop
 never waits behind a command still being decided.
 """
@@ -48,8 +50,6 @@ from server.core.worker.runs import RunEnded
 from server.mqtt.commands import CommandDoor
 from server.mqtt.outbox import Entry, Outbox
 from server.mqtt.topics import (
-    OFFLINE,
-    ONLINE,
     Topics,
     alert_message,
     encode,
@@ -57,6 +57,7 @@ from server.mqtt.topics import (
     progress_message,
     run_message,
     state_message,
+    status_message,
 )
 from server.settings.mqtt import MqttSettings
 from server.settings.plant import PlantSettings
@@ -128,6 +129,7 @@ class MqttLink:
         self._drained = asyncio.Event()  # set when the outbox was published to the end
         self._held_runs: deque[tuple[int, Entry]] = deque()  # run messages waiting for a seq
         self._handled_seq = 0  # the last bus record the feed put in the outbox
+        self._online_at: float | None = None  # when the present connection was made
 
     # --- life ----------------------------------------------------------------
 
@@ -159,7 +161,10 @@ class MqttLink:
                 task.cancel()
         self._drained.clear()
         self._release_runs(self.cell.bus.last_seq)  # a run that ended last still goes out
-        self.outbox.put(Entry(self.topics.status, OFFLINE, retain=True))
+        offline = status_message(
+            self.topics.cell_id, "offline", time.time(), clean=True, online_since=None
+        )
+        self.outbox.put(Entry(self.topics.status, offline, retain=True))
         if connection is not None:
             if self._connected:
                 with contextlib.suppress(TimeoutError):
@@ -207,8 +212,9 @@ class MqttLink:
                 self._put_health_if_changed()
             elif message.type == "progress":
                 progress = progress_message(cell_id, data)
-                if progress is not None:
-                    self.outbox.put(Entry(self.topics.progress, encode(progress)))
+                if progress is not None and not self._stale(progress["run_id"]):
+                    entry = Entry(self.topics.progress, encode(progress), run_id=progress["run_id"])
+                    self.outbox.put(entry)
             elif message.type == "report":  # a shift's or a day's, retained: the latest
                 report = {"cell_id": cell_id, **data}
                 self.outbox.put(Entry(self.topics.report, encode(report), retain=True))
@@ -217,6 +223,16 @@ class MqttLink:
                 self.outbox.put(Entry(self.topics.alert, encode(alert)))
             self._handled_seq = message.seq
             self._release_runs(message.seq)
+
+    def _current_run_id(self) -> str | None:
+        run = self.cell.view.current_run()
+        return run.get("run_id") if run else None
+
+    def _stale(self, run_id: str | None) -> bool:
+        """Progress of a run that has ended, while the broker is away: it would arrive
+        after the run's end, so it is not queued (when connected it goes as it is, just
+        behind the run's own messages, as the pacing already orders them)."""
+        return not self._connected and run_id is not None and run_id != self._current_run_id()
 
     def _run_ended(self, ended: RunEnded) -> None:
         """In the worker: only queues. The run's message waits until the feed has put the
@@ -307,10 +323,18 @@ class MqttLink:
             password=password,
             identifier=f"glue-cell-{self.plant.cell_id}",
             protocol=aiomqtt.ProtocolVersion.V5,
-            will=aiomqtt.Will(self.topics.status, OFFLINE, qos=1, retain=True),
+            will=aiomqtt.Will(self.topics.status, self._will(), qos=1, retain=True),
             keepalive=settings.mqtt_keepalive,
             tls_context=tls_context,
             timeout=max(10.0, 2.0 * settings.mqtt_keepalive),
+        )
+
+    def _will(self) -> bytes:
+        """`offline` for the broker to publish if the cell falls silent: no time (it is
+        written now, published later); `online_since` names the connection it ends."""
+        self._online_at = time.time()
+        return status_message(
+            self.topics.cell_id, "offline", None, clean=False, online_since=self._online_at
         )
 
     async def _connection(self) -> None:
@@ -322,7 +346,14 @@ class MqttLink:
                     self._up(client, first)
                     first = False
                     backoff = FIRST_BACKOFF_S
-                    await client.publish(self.topics.status, ONLINE, qos=1, retain=True)
+                    online = status_message(
+                        self.topics.cell_id,
+                        "online",
+                        self._online_at,
+                        clean=True,
+                        online_since=None,
+                    )
+                    await client.publish(self.topics.status, online, qos=1, retain=True)
                     if self._commands is not None:
                         await client.subscribe(self.topics.commands, qos=1)
                     async with asyncio.TaskGroup() as group:
@@ -345,6 +376,9 @@ class MqttLink:
             log.info("MQTT: connected to %s:%d", self.host, self.port)
             return
         self._reconnects += 1
+        stale = self.outbox.discard_progress(self._current_run_id())
+        if stale:
+            log.info("MQTT: %d progress messages of runs that have ended are not sent", stale)
         dropped = self.outbox.dropped - self._dropped_at_loss
         log.warning(
             "MQTT: connected to %s:%d again; %d messages waiting are sent now, %d were "

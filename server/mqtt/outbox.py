@@ -9,8 +9,10 @@ dropped, and what the broker holds after a reconnect is always the latest
 state however long it was away. Order is kept across both kinds, so a
 subscriber sees a transition's state and event in the order they happened.
 
-Pure: no I/O, no clock; the link (`link.py`) takes entries out and puts one
-back at the front when its publish failed.
+A run's progress entries name their run, so the link drops those of runs that
+have ended when the broker comes back (`discard_progress`). Pure: no I/O, no
+clock; the link (`link.py`) takes entries out and puts one back at the front
+when its publish failed.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ class Entry:
     topic: str
     payload: bytes
     retain: bool = False
+    run_id: str | None = None  # a run's progress: whose (stale once that run has ended)
 
 
 class Outbox:
@@ -76,6 +79,17 @@ class Outbox:
         if not entry.retain:
             self._stream -= 1
         return entry
+
+    def discard_progress(self, keep_run: str | None) -> int:
+        """Drop the progress waiting of every run but `keep_run` (the one under way, if
+        any); how many. Why: after an outage, a run that has ended is told by its `run`
+        message and the transitions; its waypoints would only replay a past that a
+        subscriber would take for the present. Not counted as dropped: nothing is lost."""
+        stale = [e for e in self._entries if e.run_id is not None and e.run_id != keep_run]
+        for entry in stale:
+            self._entries.remove(entry)
+            self._stream -= 1
+        return len(stale)
 
     async def wait(self) -> None:
         """Until there is something to take."""

@@ -2,9 +2,11 @@
 
 Under `<prefix>/<cell_id>/` (prefix `mqtt_topic_prefix`, default `glue`):
 
-- `status`: retained plain text `online`; the last will and a clean stop say `offline`;
+- `status`: retained, `{"status": "online", "time": ...}` from each connection; a clean
+  stop says `offline` with its time, the last will `offline` with a null time;
 - `state`: retained, the state with its since, stop reason, run and workpiece;
-- `event`: one per transition, in order (`seq` is the bus's number);
+- `event`: one per transition, in order (`seq` is the bus's number), with the
+  WebSocket's names (`old_state`, `new_state`, `timestamp`, `time_in_old_state`);
 - `progress`: a run's progress; `alert`: each warning and each fault;
 - `run`: one per run that ended, with its outcome and its part's verdict and reasons
   (`verdict` null: the part was not inspected);
@@ -27,9 +29,6 @@ from typing import Any
 
 from server.core.worker.runs import RunEnded
 from server.quality.part_verdict import verdict_details
-
-ONLINE = b"online"
-OFFLINE = b"offline"
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,16 +117,24 @@ def state_message(
 
 
 def event_message(cell_id: str, seq: int, data: dict[str, Any]) -> dict[str, Any]:
-    """One transition from a `state_changed` bus record."""
+    """One transition from a `state_changed` bus record, with the WebSocket's names.
+
+    `from`, `to` and `at` are the names this topic had before it took the WebSocket's
+    (`old_state`, `new_state`, `timestamp`); they are still sent, with the same values,
+    until the next release (README, "Changes")."""
     return {
         "cell_id": cell_id,
         "seq": seq,
-        "from": data["old_state"],
-        "to": data["new_state"],
+        "old_state": data["old_state"],
+        "new_state": data["new_state"],
         "event": data["event"],
         "event_id": data["event_id"],
-        "at": data["timestamp"],
+        "timestamp": data["timestamp"],
+        "time_in_old_state": data.get("time_in_old_state"),
         "source": data.get("source"),
+        "from": data["old_state"],
+        "to": data["new_state"],
+        "at": data["timestamp"],
     }
 
 
@@ -136,16 +143,20 @@ def progress_message(cell_id: str, data: dict[str, Any]) -> dict[str, Any] | Non
     (a recovery attempt: its fault, if it fails, comes as an alert)."""
     if "waypoint" not in data and "fraction" not in data:
         return None
-    return {
+    progress = {
         "cell_id": cell_id,
         "run_id": data.get("run_id"),
         "operation": data.get("operation"),
+        "state": data.get("state"),
         "waypoint": data.get("waypoint"),
         "total": data.get("total"),
         "fraction": data.get("fraction"),
         "workpiece_id": data.get("workpiece_id"),
         "step": data.get("step"),
     }
+    if "views" in data:  # a camera calibration counts views, not waypoints
+        progress["views"] = data["views"]
+    return progress
 
 
 def run_message(cell_id: str, ended: RunEnded, at: float) -> dict[str, Any]:
@@ -169,15 +180,35 @@ def run_message(cell_id: str, ended: RunEnded, at: float) -> dict[str, Any]:
 
 
 def alert_message(cell_id: str, kind: str, at: float, data: dict[str, Any]) -> dict[str, Any]:
-    """A warning (`alert` record) or a fault (`error` record), with what to do first."""
+    """A warning (`alert` record) or a fault (`error` record), with what to do first.
+
+    The WebSocket's names (`time`, `event_id`); `at`, this topic's old name of `time`,
+    is still sent until the next release (README, "Changes")."""
     return {
         "cell_id": cell_id,
         "kind": "warning" if kind == "alert" else "fault",
         "code": data.get("code"),
         "message": data.get("message"),
         "component": data.get("component"),
+        "event_id": data.get("event_id"),
         "classification": data.get("classification"),
         "recommended_action": data.get("recommended_action"),
         "state": data.get("state"),
+        "time": data.get("time", at),
         "at": data.get("time", at),
     }
+
+
+def status_message(
+    cell_id: str, status: str, time: float | None, *, clean: bool, online_since: float | None
+) -> bytes:
+    """The retained liveness: `online` when connected, `offline` at a clean stop or as the
+    last will, with the time as the cell's other messages carry it (Unix seconds).
+
+    The will is handed to the broker at connect and published by it later, so it cannot
+    know when the cell fell silent: its `time` is null, `clean` false, and `online_since`
+    says which connection was lost."""
+    message = {"cell_id": cell_id, "status": status, "time": time, "clean": clean}
+    if online_since is not None:
+        message["online_since"] = online_since
+    return encode(message)

@@ -53,9 +53,11 @@ from server.settings.plant import PlantSettings, default_cell_id
 from server.settings.quality import QualitySettings
 from server.settings.recording import RecordingSettings
 from server.settings.robot import RobotSettings
+from server.settings.run_end import RunEndSettings
 from server.settings.safety import SafetySettings
 from server.settings.section import SIMULATED
 from server.settings.simulation import SimulationSettings
+from server.settings.sparkplug import SparkplugSettings
 from server.settings.storage import StorageSettings
 from server.settings.worker import WorkerSettings
 
@@ -113,12 +115,14 @@ class Settings(
     PlantSettings,
     OpcUaSettings,
     MqttSettings,
+    SparkplugSettings,
     WebhookSettings,
     RobotSettings,
     CameraSettings,
     GlueSettings,
     QualitySettings,
     MotionSettings,
+    RunEndSettings,
     CalibrationSettings,
     SimulationSettings,
     BaseSettings,

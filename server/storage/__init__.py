@@ -1,5 +1,6 @@
 """What the cell keeps on disk under the data directory: calibrations, the marker layout
-being taught, the workpiece library and the runs' inspection images."""
+being taught, the workpiece library, the runs' inspection images and the settings
+changed at runtime."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from server.storage.calibration import CalibrationStore
 from server.storage.inspection_images import InspectionImages
 from server.storage.marker_layout import MarkerLayoutStore
 from server.storage.permissions import private_directory
+from server.storage.runtime_settings import RuntimeSettingsStore
 from server.storage.workpieces import WorkpieceLibrary
 
 
@@ -21,6 +23,7 @@ class CellStores:
     workpieces: WorkpieceLibrary
     markers: MarkerLayoutStore
     inspection_images: InspectionImages | None = None
+    runtime_settings: RuntimeSettingsStore | None = None
 
     @classmethod
     def open(cls, data_path: Path) -> CellStores:
@@ -30,4 +33,5 @@ class CellStores:
             WorkpieceLibrary(data_path),
             MarkerLayoutStore(data_path),
             InspectionImages(data_path),
+            RuntimeSettingsStore(data_path),
         )

@@ -4,8 +4,8 @@ What goes in: everything the cell keeps under its data directory (the journal,
 the state snapshot, the calibrations, the workpiece library, tokens.json and
 admin.token, a journal set aside as damaged), except what is rebuilt or is not
 state: the logs (`logs/`), the lock, the journal's `-wal` and `-shm`, and
-temporary files (names starting with a dot). Settings changed with PATCH
-/settings live in memory only, so there are none on disk to copy.
+temporary files (names starting with a dot). The settings changed with PATCH
+/settings are in `runtime-settings.json`, so they come back with a restore.
 
 Why it is consistent while the server runs:
 
@@ -265,6 +265,10 @@ def restore_backup(
     if data_path.exists() and not data_path.is_dir():
         raise BackupError(f"{data_path} is not a directory")
     created = not data_path.exists()
+    if not created:
+        # A live server first: "in use, stop the server" is the refusal that helps; "add
+        # --force" would not (the lock refuses a forced restore too).
+        DataDirectoryLock(data_path, "restore").ensure_free()
     if not created and not force:
         _refuse_unless_empty(data_path)  # before the lock: a refusal leaves no trace
     private_directory(data_path)

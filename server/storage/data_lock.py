@@ -40,16 +40,34 @@ class DataDirectoryLock:
         try:
             fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            held_by = os.pread(descriptor, 200, 0).decode("utf-8", "replace").strip()
+            busy = self._busy(descriptor)
             os.close(descriptor)
-            raise DataDirectoryBusy(
-                f"{self.path.parent} is in use ({held_by or 'by another process'}): "
-                "stop the server first"
-            ) from None
+            raise busy from None
         os.ftruncate(descriptor, 0)
         os.pwrite(descriptor, f"{self.holder} pid {os.getpid()}\n".encode(), 0)
         self._fd = descriptor
         return self
+
+    def ensure_free(self) -> None:
+        """DataDirectoryBusy when another process holds the lock; the file is left as it
+        was (no lock file: nobody holds it), so asking leaves no trace."""
+        try:
+            descriptor = os.open(self.path, os.O_RDONLY)
+        except FileNotFoundError:
+            return
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise self._busy(descriptor) from None
+        finally:
+            os.close(descriptor)  # drops the lock taken, if it was
+
+    def _busy(self, descriptor: int) -> DataDirectoryBusy:
+        held_by = os.pread(descriptor, 200, 0).decode("utf-8", "replace").strip()
+        return DataDirectoryBusy(
+            f"{self.path.parent} is in use ({held_by or 'by another process'}): "
+            "stop the server first"
+        )
 
     def release(self) -> None:
         if self._fd is not None:

@@ -62,6 +62,7 @@ class BackedUp:
     archive: Path
     backup: CompletedProcess[str]
     restore_while_live: CompletedProcess[str]
+    restore_while_live_unforced: CompletedProcess[str]
     second_server: CompletedProcess[str]
     files_while_live: dict[str, bytes]  # the data directory's calibration, library, tokens
     finished_before_backup: set[int]  # run ids the journal had ended before the backup began
@@ -113,6 +114,7 @@ def backed_up(tmp_path_factory: pytest.TempPathFactory) -> Iterator[BackedUp]:
             restore_live = run_module(
                 "server", "restore", str(archive), "--data-dir", str(data), "--force"
             )
+            unforced = run_module("server", "restore", str(archive), "--data-dir", str(data))
             second = run_module("server", "--port", str(free_port()), "--data-dir", str(data))
             files = {
                 p.relative_to(data).as_posix(): p.read_bytes()
@@ -132,6 +134,7 @@ def backed_up(tmp_path_factory: pytest.TempPathFactory) -> Iterator[BackedUp]:
         archive,
         backup,
         restore_live,
+        unforced,
         second,
         files,
         finished,
@@ -191,6 +194,12 @@ def test_restore_and_a_second_server_are_refused_while_the_server_runs(
     assert second.returncode == 2
     assert "cannot start" in second.stderr and "in use" in second.stderr
     assert "Traceback" not in refused.stderr + second.stderr
+    # Without --force too, the first thing said is that a server holds it: forcing
+    # would not help, stopping the server would.
+    unforced = backed_up.restore_while_live_unforced
+    assert unforced.returncode == 1
+    assert "in use" in unforced.stderr and "stop the server first" in unforced.stderr
+    assert "--force" not in unforced.stderr, unforced.stderr
 
 
 def test_restore_into_a_data_directory_in_use_needs_force_and_moves_it_aside(

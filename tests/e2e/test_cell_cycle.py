@@ -21,6 +21,7 @@ import websockets
 from server.drivers.glue_modbus import ModbusGlueDispenser
 from server.drivers.robot_jsonrpc import JsonRpcRobot
 from server.settings.model import Settings
+from tests.conftest import is_waypoint
 from tests.processes import server_process, simulator
 from tests.serving import admin_headers, free_port
 
@@ -125,7 +126,7 @@ async def test_start_drives_a_full_cycle_seen_state_by_state(cell, api, robot_si
     states = [m["new_state"] for m in messages if m["type"] == "state_changed"]
     assert states == ["EXECUTING_TRAJECTORY", "IDLE"]
     assert messages[-1]["event"] == "OPERATION_COMPLETED"
-    progress = [m for m in messages if m["type"] == "progress" and "waypoint" in m]
+    progress = [m for m in messages if is_waypoint(m)]
     assert [m["waypoint"] for m in progress] == list(range(1, len(progress) + 1))
     assert progress[-1]["fraction"] == 1.0
     assert [m["seq"] for m in messages] == list(
@@ -195,7 +196,7 @@ async def test_pause_then_resume_finishes_the_same_run(cell, api, glue_reader) -
         rest = await messages_until(
             ws, lambda m: m["type"] == "state_changed" and m["new_state"] == "IDLE"
         )
-    waypoints = [m["waypoint"] for m in rest if m["type"] == "progress" and "waypoint" in m]
+    waypoints = [m["waypoint"] for m in rest if is_waypoint(m)]
     # Continued from the hold, not restarted: no waypoint before the pause comes again.
     assert min(waypoints) > 3 and waypoints == sorted(set(waypoints))
     total = next(m["total"] for m in rest if m["type"] == "progress" and "total" in m)

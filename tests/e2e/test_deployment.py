@@ -436,3 +436,27 @@ def test_the_unit_runs_hardened_as_its_own_user_and_restarts_within_limits() -> 
     # https shown, off until a certificate is there (a missing file stops the start).
     assert "\n#GLUE_APP_TLS_CERT_FILE=/etc/glue-cell/" in env_file
     assert "\n#GLUE_APP_TLS_KEY_FILE=/etc/glue-cell/" in env_file
+
+
+def test_one_image_is_built_once_and_every_log_is_bounded(compose) -> None:
+    """The server's service builds the image; the simulators run it as built, never
+    pulled nor built again; each container's log is rotated, not left to fill the disk."""
+    services = compose["services"]
+    image = services["server"]["image"]
+    assert "build" in services["server"]
+    for name in SIMULATORS:
+        assert "build" not in services[name], name
+        assert services[name]["image"] == image, name
+        assert services[name]["pull_policy"] == "never", name
+    for name, service in services.items():
+        logging = service["logging"]
+        assert logging["driver"] == "json-file", name
+        assert logging["options"] == {"max-size": "10m", "max-file": "3"}, name
+
+
+def test_the_device_mapping_of_a_real_cell_is_in_the_compose_file() -> None:
+    """A USB camera and a serial dispenser: the lines to uncomment are where they apply."""
+    text = (ROOT / "docker-compose.yml").read_text()
+    server = text.split("\n  server:\n", 1)[1].split("\n  mosquitto:\n", 1)[0]
+    for line in ("# devices:", "#   - /dev/video0:/dev/video0", "#   - /dev/ttyUSB0:/dev/ttyUSB0"):
+        assert line in server, line

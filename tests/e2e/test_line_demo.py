@@ -152,7 +152,7 @@ def test_the_line_starts_and_stops_together(tmp_path: Path) -> None:
                 assert time.monotonic() < deadline, f"no transition of run {run_id}: {events}"
                 time.sleep(0.05)
         (seen,) = [e for e in events if e["event_id"] == run_id]
-        assert (seen["from"], seen["to"]) == ("IDLE", "EXECUTING_TRAJECTORY")
+        assert (seen["old_state"], seen["new_state"]) == ("IDLE", "EXECUTING_TRAJECTORY")
         os.kill(pids["cell-3"], signal.SIGSTOP)  # silent, its socket still open
         try:
             # The others online beside it. Waited for, not read once: with a keepalive of

@@ -16,6 +16,7 @@ import socket
 import ssl
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -59,7 +60,18 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TlsCell]:
     port = free_port()
     env = tls_env(pki) | {"GLUE_APP_SIMULATION_SPEED_FACTOR": "10"}
     with server_process(port, data, env, ca_file=pki.ca_file):
-        yield TlsCell(f"https://127.0.0.1:{port}", port, data, pki)
+        cell = TlsCell(f"https://127.0.0.1:{port}", port, data, pki)
+        # It answers /health while its devices come up (INITIALIZING), which takes longer
+        # on a busy machine: the tests begin at IDLE. A bound, never a measure.
+        trust = ssl.create_default_context(cafile=str(pki.ca_file))
+        with httpx.Client(
+            base_url=cell.url, verify=trust, headers=admin_headers(data), timeout=30
+        ) as http:
+            deadline = time.monotonic() + 120
+            while http.get("/state").json()["state"] != "IDLE":
+                assert time.monotonic() < deadline, "the cell did not come up IDLE"
+                time.sleep(0.05)
+        yield cell
 
 
 def gluectl(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:

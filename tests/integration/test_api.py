@@ -15,7 +15,7 @@ from server.bootstrap.cell import Cell
 from server.core.machine.transitions import Event, State
 from server.core.worker.devices import CellDevices
 from server.settings.model import Settings
-from tests.conftest import START, demo_stores
+from tests.conftest import START, demo_stores, is_waypoint
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, in_process, serve
 
@@ -200,7 +200,7 @@ async def test_ws_sends_a_snapshot_then_every_change_in_sequence(served) -> None
                     break
     seqs = [m["seq"] for m in messages]
     assert seqs == list(range(snapshot["seq"] + 1, snapshot["seq"] + 1 + len(messages)))
-    waypoints = [m["waypoint"] for m in messages if m["type"] == "progress" and "waypoint" in m]
+    waypoints = [m["waypoint"] for m in messages if is_waypoint(m)]
     assert waypoints == list(range(1, 8))
     assert messages[0]["new_state"] == "EXECUTING_TRAJECTORY"
 

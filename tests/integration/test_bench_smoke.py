@@ -180,13 +180,18 @@ def test_reset_probe_measures_every_condition(results_in_tmp: Path) -> None:
     assert written_rows(results_in_tmp, "reset_probe") == rows
 
 
-def test_plant_latency_sees_every_transition_on_mqtt_and_opcua(results_in_tmp: Path) -> None:
+def test_plant_latency_sees_every_transition_on_mqtt_sparkplug_and_opcua(
+    results_in_tmp: Path,
+) -> None:
     """Two cycles of five cells (e-stop, reset, start, e-stop while spraying, reset):
-    5 transitions × 3 MQTT cells × 2 cycles on the broker, 5 × 2 on cell-1's OPC UA
-    subscription; per condition, one device stop and one answer per cycle of each of
-    the three cells compared (cell-1, plain and the control)."""
+    5 transitions × 3 MQTT cells × 2 cycles on the broker, 5 × 2 in cell-1's Sparkplug
+    DDATA and 5 × 2 on cell-1's OPC UA subscription; cell-1's alarm events; per
+    condition, one device stop and one answer per cycle of each of the three cells
+    compared (cell-1, plain and the control)."""
     rows = plant_latency.main(["--cycles", "2"])
-    assert [row["n"] for row in rows] == [30, 10] + [2] * 12
+    counts = [row["n"] for row in rows]
+    assert counts[:3] == [30, 10, 10] and counts[4:] == [2] * 12, counts
+    assert rows[3]["figure"].startswith("alarm") and counts[3] > 0
     for row in rows:
         assert_ordered_latencies(row)
     assert written_rows(results_in_tmp, "plant_latency") == rows
@@ -276,15 +281,17 @@ def test_vision_accuracy_reports_calibration_and_matching(results_in_tmp: Path) 
 
 
 def test_cycle_time_compares_runs_with_and_without_inspection(results_in_tmp: Path) -> None:
-    rows = cycle_time.main(["--runs", "1"])
+    rows = cycle_time.main(["--runs", "1", "--block", "1"])
     assert [row["measure"] for row in rows] == [
-        "cycle, inspection on",
-        "cycle, inspection off",
+        "cycle, neither",
+        "cycle, retract",
+        "cycle, inspection",
+        "cycle, both",
         "inspection itself",
     ]
     for row in rows:
         assert_ordered_latencies(row)
-        assert row["n"] == 1
+    assert [row["n"] for row in rows] == [1, 1, 1, 1, 2]
     assert written_rows(results_in_tmp, "cycle_time") == rows
 
 

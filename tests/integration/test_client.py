@@ -44,7 +44,7 @@ from server.core.infra.bus import REPLAY_HISTORY
 from server.core.machine.transitions import Event
 from server.core.worker.devices import CellDevices
 from server.settings.model import Settings
-from tests.conftest import demo_stores
+from tests.conftest import demo_stores, is_waypoint
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, free_port, serve
 
@@ -422,7 +422,7 @@ async def test_messages_yield_the_snapshot_then_every_message_in_seq_order(
         messages[0]["type"] == "state_changed"
         and messages[0]["new_state"] == "EXECUTING_TRAJECTORY"
     )
-    waypoints = [m["waypoint"] for m in messages if m["type"] == "progress" and "waypoint" in m]
+    waypoints = [m["waypoint"] for m in messages if is_waypoint(m)]
     assert waypoints and waypoints == list(range(1, len(waypoints) + 1))
     assert stream.reconnects == 0
 
@@ -501,7 +501,7 @@ async def test_messages_are_yielded_exactly_once_across_a_drop_during_a_run(
     assert seqs == list(range(snapshot["seq"] + 1, snapshot["seq"] + 1 + len(messages)))
     states = [m["new_state"] for m in messages if m["type"] == "state_changed"]
     assert states == ["EXECUTING_TRAJECTORY", "IDLE"]
-    waypoints = [m["waypoint"] for m in messages if m["type"] == "progress" and "waypoint" in m]
+    waypoints = [m["waypoint"] for m in messages if is_waypoint(m)]
     assert waypoints == list(range(1, len(waypoints) + 1)) and len(waypoints) > 1
     assert sum("while_away" in m for m in messages) == 1
 

@@ -28,6 +28,7 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from clients.client.mqtt_signing import sign_command
+from server.core.operations.safe_position import RETRACT_STEP
 from server.mqtt.link import BUS_TYPES
 from tests.mosquitto import WAIT_S, login_of, mosquitto, subscriber
 from tests.processes import server_process
@@ -61,9 +62,14 @@ async def test_a_run_in_order_and_the_state_for_a_late_subscriber(tmp_path: Path
                 return [e for e in early.on(f"{BASE}/event") if e["from"] != "INITIALIZING"]
 
             events = await early.wait(lambda: (e := run_events()) and len(e) >= 2 and e)
-            assert [(e["from"], e["to"], e["event_id"]) for e in events] == [
+            # The WebSocket's names (old_state, new_state, timestamp), the old ones beside them.
+            assert [(e["old_state"], e["new_state"], e["event_id"]) for e in events] == [
                 (t["old_state"], t["new_state"], t["event_id"]) for t in transitions
             ]
+            assert [(e["timestamp"], e["time_in_old_state"]) for e in events] == [
+                (t["timestamp"], t["time_in_old_state"]) for t in transitions
+            ]
+            assert all((e["from"], e["to"]) == (e["old_state"], e["new_state"]) for e in events)
             assert [e["seq"] for e in events] == sorted(e["seq"] for e in events)
             assert all(e["cell_id"] == CELL for e in events)
             run_id = events[0]["event_id"]
@@ -73,8 +79,10 @@ async def test_a_run_in_order_and_the_state_for_a_late_subscriber(tmp_path: Path
             assert running[0]["workpiece_id"] == "demo"
             progress = early.on(f"{BASE}/progress")
             assert progress and {p["run_id"] for p in progress} == {run_id}
+            assert {p["state"] for p in progress} == {"EXECUTING_TRAJECTORY"}  # as on /ws
             # Each waypoint once, in order (plant_progress_interval 0: none thinned).
-            reached = [p["waypoint"] for p in progress]
+            # each waypoint's own message (the retract, the run's last step, repeats the last)
+            reached = [p["waypoint"] for p in progress if p.get("step") != RETRACT_STEP]
             assert reached == list(range(1, progress[-1]["total"] + 1))
             assert progress[-1]["fraction"] == 1.0
 
@@ -89,7 +97,9 @@ async def test_a_run_in_order_and_the_state_for_a_late_subscriber(tmp_path: Path
                     "stop_reason": None,
                     "run_id": None,
                 }
-                assert (await late.wait(lambda: late.on(f"{BASE}/status"))) == ["online"]
+                status = await late.wait(lambda: late.on(f"{BASE}/status"))
+                assert [(s["cell_id"], s["status"]) for s in status] == [(CELL, "online")]
+                assert isinstance(status[0]["time"], float)  # when it came online
                 health = await late.wait(lambda: late.on(f"{BASE}/health"))
                 assert health[-1]["mqtt"]["connected"] is True
                 assert health[-1]["cell_id"] == CELL  # every topic names its cell; not health
@@ -118,7 +128,14 @@ async def test_a_runs_progress_is_thinned_and_ends_with_its_final_waypoint(
             truth = rig.cell.bus.subscribe(4096, types=["progress"])
             final = await run(rig, "start", SPRAY_DEMO)
             assert final["state"] == "IDLE"
-            await plant.wait(lambda: [e for e in plant.on(f"{BASE}/event") if e["to"] == "IDLE"])
+            # The run's own end (the start-up's INITIALIZING -> IDLE may come late too).
+            await plant.wait(
+                lambda: [
+                    e
+                    for e in plant.on(f"{BASE}/event")
+                    if (e["old_state"], e["new_state"]) == ("EXECUTING_TRAJECTORY", "IDLE")
+                ]
+            )
             produced = []
             while truth.pending:
                 produced.append((await truth.get()).data)
@@ -202,6 +219,45 @@ async def test_what_happened_while_the_broker_was_away(tmp_path: Path, caplog) -
             )
             assert state
             assert any("dropped while it was away" in r.getMessage() for r in caplog.records)
+
+
+async def test_no_progress_of_a_run_that_ended_while_the_broker_was_away(
+    tmp_path: Path,
+) -> None:
+    """Progress waiting in the outbox for a run that has ended is stale: dropped, not sent
+    when the broker is back; the run's end and the transitions still come, in order."""
+    with mosquitto(tmp_path / "broker") as broker:
+        async with (
+            open_rig(
+                tmp_path / "data",
+                **broker.cell_login,
+                cell_id=CELL,
+                plant_progress_interval=0,
+                mqtt_reconnect_max=0.5,
+            ) as rig,
+            subscriber(broker.port, f"{BASE}/#", identifier="plant", persistent=True) as plant,
+        ):
+            await plant.wait(
+                lambda: rig.cell.view.state.value == "IDLE" and plant.on(f"{BASE}/state")
+            )
+            broker.stop()
+            await _wait_http(rig, lambda h: h["mqtt"]["connected"] is False)
+            seen_before = len(plant.messages)
+            final = await run(rig, "start", SPRAY_DEMO)  # the whole run while it is away
+            assert final["state"] == "IDLE"
+            broker.start()
+            runs = await plant.wait(lambda: plant.on(f"{BASE}/run"))
+            run_id = runs[-1]["run_id"]
+            await plant.wait(
+                lambda: [
+                    e for e in plant.on(f"{BASE}/event") if e["old_state"] == "EXECUTING_TRAJECTORY"
+                ]
+            )
+            arrived = plant.messages[seen_before:]
+            topics = [str(m.topic).rsplit("/", 1)[-1] for m in arrived]
+            assert "progress" not in topics, topics
+            assert [t for t in topics if t in ("event", "run")] == ["event", "run", "event"]
+            assert runs[-1]["outcome"] == "completed" and run_id
 
 
 def _stream_topics() -> set[str]:
@@ -320,24 +376,35 @@ async def test_offline_when_stopped_and_when_killed(tmp_path: Path) -> None:
         data = tmp_path / "data"
         data.mkdir()
         async with subscriber(broker.port, f"{BASE}/status") as plant:
-            status = f"{BASE}/status"
+            topic = f"{BASE}/status"
+
+            def said() -> list[str]:
+                return [s["status"] for s in plant.on(topic)]
+
             async with _server_process(free_port(), data, env) as server:
-                await plant.wait(lambda: plant.on(status)[-1:] == ["online"])
+                await plant.wait(lambda: said()[-1:] == ["online"])
                 server.send_signal(signal.SIGTERM)  # a clean stop says offline itself
                 await asyncio.to_thread(server.wait, WAIT_S)
-            await plant.wait(lambda: plant.on(status)[-1:] == ["offline"])
-            count = len(plant.on(status))
+            await plant.wait(lambda: said()[-1:] == ["offline"])
+            online, offline = plant.on(topic)[-2:]
+            # Each with its time, as the cell's other messages; a clean stop says it is one.
+            assert online["time"] < offline["time"] and offline["clean"] is True
+            count = len(plant.on(topic))
 
             port = free_port()
             async with _server_process(port, data, env) as server:
-                await plant.wait(lambda: plant.on(status)[count:] == ["online"])
+                await plant.wait(lambda: said()[count:] == ["online"])
                 token = admin_headers(data)
                 async with httpx.AsyncClient(headers=token) as http:
                     health = (await http.get(f"http://127.0.0.1:{port}/health")).json()
                 assert health["mqtt"]["connected"] is True
                 os.kill(server.pid, signal.SIGKILL)  # no word from it: the broker's will
                 await asyncio.to_thread(server.wait, WAIT_S)
-                await plant.wait(lambda: plant.on(status)[count:] == ["online", "offline"])
+                await plant.wait(lambda: said()[count:] == ["online", "offline"])
+            will = plant.on(topic)[-1]
+            # The will was written at connect: it cannot know when the cell fell silent.
+            assert will["clean"] is False and will["time"] is None
+            assert will["online_since"] == plant.on(topic)[-2]["time"]
 
 
 @contextlib.asynccontextmanager

@@ -22,7 +22,7 @@ from server.bootstrap.cell import Cell
 from server.core.infra.bus import REPLAY_HISTORY
 from server.core.worker.devices import CellDevices
 from server.settings.model import Settings
-from tests.conftest import START, demo_stores
+from tests.conftest import START, demo_stores, is_waypoint
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import admin_headers, serve
 
@@ -110,7 +110,7 @@ async def test_a_resume_replays_what_went_by_then_goes_live(api: Api) -> None:
     assert [m["seq"] for m in replayed] == list(range(seen["seq"] + 1, snapshot["seq"] + 1))
     states = [m["new_state"] for m in replayed if m["type"] == "state_changed"]
     assert states == ["EXECUTING_TRAJECTORY", "IDLE"]
-    waypoints = [m["waypoint"] for m in replayed if m["type"] == "progress" and "waypoint" in m]
+    waypoints = [m["waypoint"] for m in replayed if is_waypoint(m)]
     assert waypoints == [*range(1, 8), *range(100, 105)]
     assert live["seq"] == snapshot["seq"] + 1 and live["waypoint"] == 1000
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import httpx
 
-from tests.processes import server_process
+from tests.processes import FAST_DEVICES, server_process
 from tests.reliability.test_crash_safety import settled_state, wait_until
 from tests.serving import admin_client, free_port
 
@@ -130,7 +130,7 @@ def test_every_audited_action_keeps_its_row_through_a_kill_at_the_answer(tmp_pat
     for trail.cycle in range(ROUNDS * len(ACTIONS)):
         action = ACTIONS[trail.cycle % len(ACTIONS)]
         port = free_port()
-        with server_process(port, data) as server:
+        with server_process(port, data, FAST_DEVICES) as server:
             client = admin_client(port, data)
             if settled_state(client)["state"] == "ERROR":  # after an e-stop
                 assert client.post("/reset").status_code == 202

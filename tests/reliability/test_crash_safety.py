@@ -22,14 +22,19 @@ import httpx
 import pytest
 
 from server.drivers.glue_modbus import ModbusGlueDispenser
-from tests.processes import has_ended, server_process, simulator
+from tests.processes import FAST_DEVICES, has_ended, server_process, simulator
 from tests.serving import admin_client, free_port
 
 KILLS = 6  # bounded for CI; each cycle starts, runs and kills a real server
 SPRAY_DEMO = {"contour_matching": False, "workpiece_id": "demo"}
 
 
-def wait_until(predicate, timeout: float = 30.0, what: str = "condition"):
+# A hang guard, never a measure: a restarted server's cell comes up in seconds alone, and
+# many times slower beside the suite's other workers on the same cores (make test).
+WAIT_S = 120.0
+
+
+def wait_until(predicate, timeout: float = WAIT_S, what: str = "condition"):
     deadline = time.monotonic() + timeout
     while True:
         value = predicate()
@@ -136,7 +141,7 @@ def idle_server(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], Path]]:
     data = tmp_path / "cell"
     data.mkdir()
     port = free_port()
-    with server_process(port, data) as server:
+    with server_process(port, data, FAST_DEVICES) as server:
         client = admin_client(port, data)
         wait_until(lambda: client.get("/state").json()["state"] == "IDLE", what="IDLE")
         yield server, data

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import httpx
 
-from tests.processes import server_process
+from tests.processes import FAST_DEVICES, server_process
 from tests.serving import admin_client, free_port
 
 WAL_FRAME = 24 + 4096  # frame header + one page (the journal's page size)
@@ -47,7 +47,7 @@ def test_a_wal_damaged_after_a_kill_is_reported_and_the_cell_still_works(tmp_pat
     data = tmp_path / "cell"
     data.mkdir()
     port = free_port()
-    with server_process(port, data) as server:
+    with server_process(port, data, FAST_DEVICES) as server:
         client = admin_client(port, data)
         wait_for_state(client, "IDLE")
         for _ in range(6):
@@ -68,7 +68,7 @@ def test_a_wal_damaged_after_a_kill_is_reported_and_the_cell_still_works(tmp_pat
     assert readable < written, "the damage cost no transition: the test proves nothing"
 
     port = free_port()
-    with server_process(port, data) as server:
+    with server_process(port, data, FAST_DEVICES) as server:
         client = admin_client(port, data)
         wait_for_state(client, "IDLE")
         damage = client.get("/health").json()["journal"]["damage"]

@@ -84,6 +84,10 @@ ALLOWED: dict[str, tuple[str, ...]] = {
         CELL, "commands", "common", "core.infra", "core.machine", "core.worker", "quality",
         "security", "settings", "storage.journal",
     ),
+    "mqtt.sparkplug": (
+        CELL, "commands", "common", "core.infra", "core.machine", "core.worker", "mqtt",
+        "security", "settings",
+    ),
     "opcua": (
         CELL, "commands", "common", "core.infra", "core.machine", "security", "settings",
         "storage", "storage.journal", "views",
@@ -92,7 +96,7 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     # the composition root, and what starts it
     "bootstrap": (
         "api", "commands", "common", "core.infra", "core.machine", "core.operations", "core.worker",
-        "drivers", "drivers.sim", "mqtt", "notify", "opcua", "orders", "security",
+        "drivers", "drivers.sim", "mqtt", "mqtt.sparkplug", "notify", "opcua", "orders", "security",
         "settings", "storage", "storage.journal", "views", "vision",
     ),
     "cli": ("bootstrap", "diagnostics", "settings", "storage"),

@@ -26,13 +26,18 @@ def test_only_a_cells_four_topics_under_the_prefix_are_read() -> None:
 
 def test_status_state_stop_reason_and_oee() -> None:
     model = LineModel()
-    model.apply("glue/a/status", b"online")
+    model.apply("glue/a/status", json.dumps({"status": "online", "time": 5.0}).encode())
     model.apply("glue/a/state", state(state="ERROR", stop_reason={"code": "ESTOP", "message": "m"}))
     model.apply("glue/a/kpis", json.dumps({"oee": {"oee": 0.5}}).encode())
     (row,) = model.as_json()["cells"]
     assert row["online"] is True and row["state"] == "ERROR" and row["oee"] == 0.5
     assert row["stop_reason"] == {"code": "ESTOP", "message": "m"} and row["since"] == 5
     model.apply("glue/a/status", b"offline")
+    assert model.cells["a"].online is False
+    will = {"status": "offline", "time": None, "clean": False, "online_since": 5.0}
+    model.apply("glue/a/status", b"online")  # a cell of an earlier release: the bare word
+    assert model.cells["a"].online is True
+    model.apply("glue/a/status", json.dumps(will).encode())
     assert model.cells["a"].online is False
 
 

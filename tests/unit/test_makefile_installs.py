@@ -84,3 +84,15 @@ def test_a_changed_pyproject_reinstalls_every_set_in_use(clone: Path) -> None:
     os.utime(clone / "pyproject.toml", (3_000_000, 3_000_000))
     assert installs(clone, "run") == ["-e ."]
     assert installs(clone, "test") == ["-e .", TEST_EXTRA, BENCH_EXTRA]
+
+
+def test_the_deployment_tools_bring_no_container_engine() -> None:
+    """`make test` validates compose files with Debian's docker-compose, whose recommends
+    are docker.io, containerd and iptables: a container engine and its services on the
+    developer's machine. The install leaves recommends out."""
+    text = (ROOT / "Makefile").read_text()
+    recipe = text[text.index("\ndeploy-tools:") :].split("\n\n", 1)[0]
+    install = recipe[recipe.index("apt-get install") :]
+    assert "--no-install-recommends" in install and "docker-compose" in install
+    for engine in ("docker.io", "containerd", "iptables"):
+        assert engine not in install

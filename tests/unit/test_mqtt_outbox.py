@@ -56,3 +56,19 @@ def test_command_topics_name_one_command() -> None:
     assert topics.command_name("glue/cell-1/command/a/b") is None
     assert topics.command_name("glue/cell-2/command/start") is None
     assert topics.commands == "glue/cell-1/command/+"
+
+
+def test_progress_of_runs_that_ended_is_discarded_the_rest_kept_in_order() -> None:
+    outbox = Outbox(limit=4)
+    outbox.put(Entry("c/progress", b"old-1", run_id="old"))
+    outbox.put(Entry("c/run", b"old ended"))
+    outbox.put(Entry("c/state", b"IDLE", retain=True))
+    outbox.put(Entry("c/progress", b"new-1", run_id="new"))
+    outbox.put(Entry("c/progress", b"old-2", run_id="old"))  # late, after the run ended
+    assert outbox.discard_progress(keep_run="new") == 2
+    assert outbox.dropped == 0  # discarded as stale, not counted as lost
+    # Nothing stale holds a place under the bound: two more stream messages fit.
+    outbox.put(Entry("c/event", b"e1"))
+    outbox.put(Entry("c/event", b"e2"))
+    assert outbox.dropped == 0
+    assert [e.payload for e in drain(outbox)] == [b"old ended", b"IDLE", b"new-1", b"e1", b"e2"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -70,8 +71,16 @@ async def inspect_run(
     targets: list[Target],
     segments: list[PlannedSegment],
     samples: RunSamples,
+    cleared: Callable[[], Awaitable[object]] | None = None,
 ) -> Inspection:
-    """Measure the run from its samples, capture and judge the part (module docstring)."""
+    """Measure the run from its samples, capture and judge the part (module docstring).
+
+    `cleared`: awaited before anything else, until the arm no longer hides the part
+    (the run's retract, server/core/operations/safe_position.py); the inspection's
+    `took_s` counts from then.
+    """
+    if cleared is not None:
+        await cleared()
     started = time.monotonic()
     settings = ctx.settings
     precision = trajectory_precision(samples.poses, segments)

@@ -27,7 +27,7 @@ import asyncio
 import logging
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -36,9 +36,13 @@ import numpy as np
 
 from server.common.errors import OperationError
 from server.core.operations.base import OperationContext, OperationResult, OperationWarning
-from server.core.operations.inspection import inspect_run
+from server.core.operations.inspection import Inspection, inspect_run
 from server.core.operations.motion import at, pausable_move
-from server.core.operations.safe_position import workspace_problem
+from server.core.operations.safe_position import (
+    RETRACT_STEP,
+    retract_and_inspect,
+    workspace_problem,
+)
 from server.core.operations.workpieces import Target, locate_workpieces
 from server.drivers.base import Pose
 from server.quality.model import spray_segments
@@ -288,11 +292,36 @@ async def execute_trajectory(ctx: OperationContext) -> OperationResult:
         "workpieces": [t.workpiece_id for t in targets],
         "waypoints": len(path),
     }
-    if not inspecting:
+
+    def inspect(
+        cleared: Callable[[], Awaitable[object]] | None = None,
+    ) -> Coroutine[Any, Any, Inspection]:
+        return inspect_run(ctx, targets, segments, samples, cleared)
+
+    if ctx.settings.retract_after_run:
+        # The last step, on record like every step: the arm leaves the part for the safe
+        # position; the inspection takes its frame once the arm is out of the way.
+        ctx.report(
+            {
+                "step": RETRACT_STEP,
+                "waypoint": len(path),
+                "total": len(path),
+                "fraction": 1.0,
+                "workpiece_id": path[-1].workpiece if path else None,
+            }
+        )
+        beads = [w.pose[:2] for w in path if w.spray]
+        found = await retract_and_inspect(ctx, beads, inspect if inspecting else None)
+        if not inspecting:
+            return OperationResult(data)
+        assert found is not None
+        inspection = found
+    elif not inspecting:
         return OperationResult(data)
-    # No progress message of its own: the last waypoint's (fraction 1.0) stands until the
-    # run completes, so every progress message a client sees advances the waypoint.
-    inspection = await inspect_run(ctx, targets, segments, samples)
+    else:
+        # No progress message of its own: the last waypoint's (fraction 1.0) stands until
+        # the run completes, so every progress message a client sees advances the waypoint.
+        inspection = await inspect()
     images = ctx.stores.inspection_images
     if inspection.image_jpeg is not None and images is not None:
         try:

@@ -13,7 +13,13 @@ task): the valve feedback follows the command at once; measured flow
 approaches the flow setpoint first-order (time constant 50 ms) while the valve
 is open and is zero while it is closed; pressure approaches the pressure
 setpoint (time constant 100 ms); temperature drifts slowly around 25 °C; flow,
-pressure and temperature carry a little noise. `speed_factor` > 1 makes the
+pressure and temperature carry a little noise. With `speed_source` set (the
+robot simulator's `speed_fraction`, wired where both run in one process) it is a
+speed-following dispenser, as real cells use: the active flow setpoint and the
+flow out of the nozzle are the programmed ones scaled by the robot's speed, so
+the glue per millimetre of bead does not depend on how long the arm waits
+between moves (a run stretched by a busy machine does not over-dispense).
+`speed_factor` > 1 makes the
 dynamics faster, like the cell's `simulation_speed_factor`. `close_commanded_at`
 is the time.time() of the last write of "closed" to the valve command; `valve_closed_at`
 is the time.time() of the last open → closed transition, for latency benchmarks;
@@ -64,6 +70,7 @@ import random
 import signal
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 from pymodbus import FramerType
@@ -147,6 +154,8 @@ class GlueSimulator:
         self._exception_code: int | None = None
         self._valve_stuck = False
         self.dropped_requests = 0
+        # The robot's speed as a fraction of its programmed one (None: a fixed flow).
+        self.speed_source: Callable[[], float] | None = None
 
     # --- lifecycle ---------------------------------------------------------------
 
@@ -377,7 +386,9 @@ class GlueSimulator:
         """Write the model's present values into the input registers."""
         self._advance()
         elapsed = (time.monotonic() - self._started) * self._speed
-        flow = max(0.0, self._flow + self._jitter(0.1)) if self._valve_open else 0.0
+        # Speed-following: setpoint and flow scaled by the robot's speed (module docstring).
+        follow = self.speed_source() if self.speed_source is not None else 1.0
+        flow = max(0.0, (self._flow + self._jitter(0.1)) * follow) if self._valve_open else 0.0
         if self._forced_flow is not None and self._valve_open:
             flow = self._forced_flow
         temperature = AMBIENT_C + 1.5 * math.sin(2 * math.pi * elapsed / 600.0) + self._jitter(0.02)
@@ -385,7 +396,7 @@ class GlueSimulator:
             temperature = self._forced_temperature
         values = {
             regs.VALVE_STATE: int(self._valve_open),
-            regs.FLOW_SETPOINT_ACTIVE: regs.FLOW_SETPOINT_ACTIVE.encode(self._flow_sp),
+            regs.FLOW_SETPOINT_ACTIVE: regs.FLOW_SETPOINT_ACTIVE.encode(self._flow_sp * follow),
             regs.PRESSURE_SETPOINT_ACTIVE: regs.PRESSURE_SETPOINT_ACTIVE.encode(self._pressure_sp),
             regs.FLOW_MEASURED: regs.FLOW_MEASURED.encode(flow, clamp=True),
             regs.PRESSURE_MEASURED: regs.PRESSURE_MEASURED.encode(

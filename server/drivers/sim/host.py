@@ -55,6 +55,10 @@ class SimulatorHost:
                 speed_factor=settings.simulation_speed_factor,
             )
             self._call(self.glue.start())
+        if self.robot is not None and self.glue is not None:
+            # One thread runs both: the dispenser follows the robot's speed, as a real
+            # speed-following dispenser wired to the robot controller does.
+            self.glue.speed_source = self.robot.speed_fraction
 
     def stop(self) -> None:
         for simulator in (self.robot, self.glue):

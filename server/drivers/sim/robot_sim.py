@@ -301,6 +301,12 @@ class RobotSimulator:
         self._settle()
         return self._motion is not None
 
+    def speed_fraction(self) -> float:
+        """The fraction of its commanded speed the tool moves at now: 1.0 during a move
+        (the simulator moves at the commanded speed, in its own time), 0.0 standing still.
+        A speed-following dispenser's speed input (GlueSimulator.speed_source)."""
+        return 1.0 if self.is_moving else 0.0
+
     @property
     def executed_path(self) -> list[PathSegment]:
         """Finished and interrupted segments, oldest first (the move under way is not in it)."""

@@ -16,7 +16,17 @@ test("only a cell's four topics under the prefix are read", () => {
 
 test("status online and the last will's offline", () => {
   const line = new Map();
-  assert.ok(applyMessage(line, "glue", "glue/a/status", "online"));
+  assert.ok(applyMessage(line, "glue", "glue/a/status", JSON.stringify({ cell_id: "a", status: "online", time: 5, clean: true })));
+  assert.equal(line.get("a").online, true);
+  applyMessage(line, "glue", "glue/a/status", JSON.stringify({ cell_id: "a", status: "offline", time: null, clean: false }));
+  assert.equal(line.get("a").online, false);
+  applyMessage(line, "glue", "glue/a/status", "{not json");
+  assert.equal(line.get("a").online, null);
+});
+
+test("a cell of an earlier release: the bare word", () => {
+  const line = new Map();
+  applyMessage(line, "glue", "glue/a/status", "online");
   assert.equal(line.get("a").online, true);
   applyMessage(line, "glue", "glue/a/status", "offline");
   assert.equal(line.get("a").online, false);
