@@ -36,6 +36,7 @@ BENCHMARKS = (
     ("planning", []),
     ("plant_latency", []),
     ("cycle_time", []),
+    ("recording_cost", []),
 )
 
 

@@ -323,18 +323,27 @@ async def trials_in(
 
 
 async def run(
-    trials: int, queue_size: int, ws_clients: int, others: set[int] | None = None
+    trials: int,
+    queue_size: int,
+    ws_clients: int,
+    others: set[int] | None = None,
+    recording: bool = True,
 ) -> list[dict[str, Any]]:
     """The conditions' rows; `others`: the cores of the witness and the crowd, when pinned.
 
     The cell's data (a journal of some 50 MB after a full run) goes with the run.
     """
     with tempfile.TemporaryDirectory(prefix="bench-cell-") as data:
-        return await run_in(Path(data), trials, queue_size, ws_clients, others)
+        return await run_in(Path(data), trials, queue_size, ws_clients, others, recording)
 
 
 async def run_in(
-    data: Path, trials: int, queue_size: int, ws_clients: int, others: set[int] | None
+    data: Path,
+    trials: int,
+    queue_size: int,
+    ws_clients: int,
+    others: set[int] | None,
+    recording: bool = True,
 ) -> list[dict[str, Any]]:
     """`run` with the cell's data in `data`."""
     witness = await asyncio.to_thread(StopWitness, others)
@@ -347,6 +356,7 @@ async def run_in(
         max_broadcast_clients_per_token=ws_clients + 10,  # the crowd shares one token
         emergency_stop_timeout=1.0,
         data_path=data,
+        run_recording=recording,
     )
     cell = Cell(settings)
     port = free_port()
@@ -411,18 +421,29 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         help="the server on one core, the witness and the crowd on the others",
     )
     parser.add_argument("--name", default="estop_latency", help="the result file's name")
+    parser.add_argument(
+        "--no-recording",
+        action="store_true",
+        help="run_recording off: the flight recorder's share of the stop, against a default run",
+    )
     args = parser.parse_args(argv)
     logging.disable(logging.ERROR)  # every e-stop logs a fault; not what is measured
     cores = pinning(args.pin)
     keep_to(0, cores[0] if cores is not None else None)  # before the server starts any thread
     others = cores[1] if cores is not None else None
-    rows = asyncio.run(run(args.trials, args.queue_size, args.ws_clients, others))
+    recording = not args.no_recording
+    rows = asyncio.run(run(args.trials, args.queue_size, args.ws_clients, others, recording))
     pinned: Any = (
         {"server_cores": sorted(cores[0]), "other_cores": sorted(cores[1])}
         if cores
         else "no: the server, the witness and the crowd share every core"
     )
-    extra = {"trials": args.trials, "queue_size": args.queue_size, "pinned": pinned}
+    extra = {
+        "trials": args.trials,
+        "queue_size": args.queue_size,
+        "pinned": pinned,
+        "run_recording": recording,
+    }
     emit(args.name, rows, {**extra, "ws_clients": args.ws_clients})
     return rows
 

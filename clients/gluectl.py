@@ -91,6 +91,10 @@ from clients.client import (
     trust,
 )
 from clients.client.mqtt_commands import MqttCellClient, MqttTarget
+from clients.gluectl_format import key_values as _key_values
+from clients.gluectl_format import value as _value
+from clients.gluectl_format import when as _when
+from clients.gluectl_report import report_table, reports_table
 from clients.gluectl_settings import parse_assignments, settings_rows, settings_table
 from clients.line_model import DEFAULT_PREFIX, LineModel
 from clients.line_table import line_table
@@ -410,27 +414,6 @@ def _command(ctx: typer.Context, json_flag: bool, action: Callable[[Any], Comman
         typer.echo(f"{result.message}{event}")
 
 
-def _when(timestamp: Any, *, short: bool = False) -> str:
-    """Local time; `short` drops the year, for tables that must fit 80 columns."""
-    if not isinstance(timestamp, int | float):
-        return "—"
-    return time.strftime(
-        "%m-%d %H:%M:%S" if short else "%Y-%m-%d %H:%M:%S", time.localtime(timestamp)
-    )
-
-
-def _value(value: Any) -> str:
-    if value is None:
-        return "—"
-    if isinstance(value, bool):
-        return "yes" if value else "no"
-    if isinstance(value, float):
-        return f"{value:.3f}".rstrip("0").rstrip(".") if value == value else "nan"
-    if isinstance(value, dict | list):
-        return json.dumps(value, ensure_ascii=False)
-    return str(value)
-
-
 def _fault(fault: dict[str, Any] | None) -> str:
     if not fault:
         return "—"
@@ -442,15 +425,6 @@ def _progress(progress: dict[str, Any] | None) -> str:
         return ""
     fraction = progress.get("fraction") or 0.0
     return f"waypoint {progress.get('waypoint')}/{progress['total']} ({fraction:.0%})"
-
-
-def _key_values(title: str, rows: list[tuple[str, str]]) -> Table:
-    table = Table(title=title, show_header=False, title_justify="left")
-    table.add_column(style="bold")
-    table.add_column(overflow="fold")
-    for key, value in rows:
-        table.add_row(Text(key), Text(value))
-    return table
 
 
 def state_table(state: dict[str, Any]) -> Table:
@@ -916,6 +890,58 @@ def kpis(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
     """The current shift's KPIs and OEE."""
     options = _options(ctx, json_flag)
     _show(options, _call(options, lambda c: c.kpis()), kpis_table)
+
+
+report_app = typer.Typer(help="Shift and daily reports: parts, OEE, stop reasons, alerts.")
+app.add_typer(report_app, name="report")
+HtmlOption = Annotated[
+    Path | None,
+    typer.Option("--html", help="Write the printable page (with its charts) to this file."),
+]
+IdOption = Annotated[
+    int | None,
+    typer.Option("--id", min=1, help="This report (gluectl report list), not the latest."),
+]
+
+
+def _report(options: Options, period: str, report_id: int | None, html: Path | None) -> None:
+    if report_id is None:
+        latest = _call(options, lambda c: c.reports(period, 1))
+        if not latest:
+            typer.echo(
+                f"gluectl: no {period} report yet: one is made at each {period}'s end", err=True
+            )
+            raise typer.Exit(EXIT_REFUSED)
+        report_id = int(latest[0]["id"])
+    chosen = report_id
+    if html is not None:
+        html.write_text(_call(options, lambda c: c.report_html(chosen)), encoding="utf-8")
+        _stdout().print(f"wrote {html}")
+        return
+    _show(options, _call(options, lambda c: c.report(chosen)), report_table)
+
+
+@report_app.command("shift")
+def report_shift(
+    ctx: typer.Context, id_: IdOption = None, html: HtmlOption = None, json_flag: JsonFlag = False
+) -> None:
+    """The latest shift's report (or --id's): parts, OEE, stop reasons, alerts."""
+    _report(_options(ctx, json_flag), "shift", id_, html)
+
+
+@report_app.command("day")
+def report_day(
+    ctx: typer.Context, id_: IdOption = None, html: HtmlOption = None, json_flag: JsonFlag = False
+) -> None:
+    """The latest production day's report (or --id's)."""
+    _report(_options(ctx, json_flag), "day", id_, html)
+
+
+@report_app.command("list")
+def report_list(ctx: typer.Context, json_flag: JsonFlag = False) -> None:
+    """The reports kept, newest first."""
+    options = _options(ctx, json_flag)
+    _show(options, _call(options, lambda c: c.reports()), reports_table)
 
 
 @app.command()

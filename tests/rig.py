@@ -252,6 +252,9 @@ async def open_rig(
             "reset_probe_timeout": TIMEOUT * 2,  # a probe renders a camera frame too
             "emergency_stop_timeout": 0.5,
             "vision_processing_timeout": VISION_TIMEOUT,
+            # No report at a shift's end in the middle of a test that counts notices and
+            # messages: a test of the reports makes its own (test_shift_reports.py).
+            "shift_reports": False,
         }
         settings = Settings(
             robot_ip="127.0.0.1",

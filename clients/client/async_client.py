@@ -202,6 +202,18 @@ class AsyncCellClient:
         """The current shift's KPIs and OEE."""
         return await self._send(builders.kpis())
 
+    async def reports(self, period: str | None = None, limit: int = 50) -> list[dict[str, Any]]:
+        """The shift and daily reports kept, newest first (`period`: shift or day)."""
+        return await self._send(builders.reports(period, limit))
+
+    async def report(self, report_id: int) -> dict[str, Any]:
+        """One shift or daily report, whole."""
+        return await self._send(builders.report(report_id))
+
+    async def report_html(self, report_id: int) -> str:
+        """One report as a printable HTML page with its charts."""
+        return await self._send(builders.report_html(report_id))
+
     async def health(self) -> dict[str, Any]:
         """Each device's link and the worker's figures (needs no token)."""
         return await self._send(builders.health())

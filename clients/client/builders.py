@@ -208,6 +208,19 @@ def glue_refill() -> Call[dict[str, Any]]:
     return Call("POST", "/glue/refill", _json)
 
 
+def reports(period: str | None = None, limit: int = 50) -> Call[list[dict[str, Any]]]:
+    params: dict[str, Any] = {"limit": limit} | ({"period": period} if period else {})
+    return Call("GET", "/reports", lambda r: r.json()["reports"], params=params)
+
+
+def report(report_id: int) -> Call[dict[str, Any]]:
+    return Call("GET", f"/reports/{int(report_id)}", _json, params={"format": "json"})
+
+
+def report_html(report_id: int) -> Call[str]:
+    return Call("GET", f"/reports/{int(report_id)}", lambda r: r.text, params={"format": "html"})
+
+
 def health() -> Call[dict[str, Any]]:
     # 200 whether the devices are ok or degraded; the body says which.
     return Call("GET", "/health", _json)

@@ -203,6 +203,18 @@ class CellClient:
         """The current shift's KPIs and OEE."""
         return self._send(builders.kpis())
 
+    def reports(self, period: str | None = None, limit: int = 50) -> list[dict[str, Any]]:
+        """The shift and daily reports kept, newest first (`period`: shift or day)."""
+        return self._send(builders.reports(period, limit))
+
+    def report(self, report_id: int) -> dict[str, Any]:
+        """One shift or daily report, whole."""
+        return self._send(builders.report(report_id))
+
+    def report_html(self, report_id: int) -> str:
+        """One report as a printable HTML page with its charts."""
+        return self._send(builders.report_html(report_id))
+
     def health(self) -> dict[str, Any]:
         """Each device's link and the worker's figures (needs no token)."""
         return self._send(builders.health())

@@ -91,6 +91,10 @@ function renderPart(run, image) {
   } else {
     picture.removeAttribute("src");
   }
+  // The run's flight recording, replayed on its own page (run.html).
+  const replay = $("part-replay");
+  replay.hidden = !run;
+  if (run) replay.href = `/hmi/run.html?run=${encodeURIComponent(run.run_id)}`;
   const note = $("part-image-note");
   note.hidden = Boolean(image) || !part.image;
   note.textContent = "no inspection image kept";

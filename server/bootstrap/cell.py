@@ -38,12 +38,15 @@ from server.notify.notifier import Notifier
 from server.orders.book import OrderBook
 from server.settings.model import Settings
 from server.settings.notifications import WebhookSettings
+from server.settings.recording import RecordingSettings
 from server.settings.runtime import restore_saved
 from server.settings.watch import WatchSettings
 from server.storage import CellStores
 from server.storage.journal import Journal, records
 from server.storage.permissions import tighten_data_directory
 from server.views.live import DeviceFeed
+from server.views.recording import FlightRecorder
+from server.views.reports import ShiftReports
 from server.vision.process import IMAGE_PROCESS
 from server.watch.watcher import CellWatch
 
@@ -76,6 +79,10 @@ class Cell:
         self.journal: Journal | None = None
         self._snapshot_file: SnapshotFile | None = None
         self._feed: DeviceFeed | None = None
+        # Each run's device samples, journaled (server/views/recording.py).
+        self.recorder: FlightRecorder | None = None
+        # The report of each shift and production day as it ends (server/views/reports.py).
+        self.reports: ShiftReports | None = None
         # The webhooks (server/notify/): one more bus subscriber, never waited on.
         self.notifier: Notifier | None = None
         # Production orders (server/orders/): drive the cell through `command`, like a person.
@@ -172,7 +179,20 @@ class Cell:
             self.journal,
         )
         self.notifier.start()
+        recording = settings.section(RecordingSettings)
+        self.reports = ShiftReports(
+            self,
+            self.journal,
+            settings.cell_id,
+            lambda: settings.shift_hours,  # changed at run time by PATCH /settings
+            recording.shift_start_hour,
+        )
+        if recording.shift_reports:
+            self.reports.start()
         self._feed = DeviceFeed(devices, self.bus, self.worker.view, settings.device_push_interval)
+        self.recorder = recorder = FlightRecorder(recording, self.journal, self.worker.view)
+        self._feed.listeners.append(recorder.sample)
+        self.worker.view.on_run_ended(lambda ended: recorder.run_ended(ended.run_id))
         self._feed.start()
         self.watch = CellWatch(
             lambda: settings.section(WatchSettings),
@@ -200,10 +220,14 @@ class Cell:
         if self.watch is not None:
             await self.watch.stop()
             self.watch = None
+        if self.recorder is not None:  # what the last run left, before the journal stops
+            self.recorder.flush()
         if self.worker is not None:
             await self.worker.stop()
             await self.worker.devices.safe_halt(self.settings.emergency_stop_timeout)
             await self.worker.devices.close()
+        if self.reports is not None:
+            await self.reports.stop()
         if self.notifier is not None:  # before the journal: what it abandons is on record
             await self.notifier.stop()
             self.notifier = None

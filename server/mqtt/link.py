@@ -64,7 +64,7 @@ from server.settings.plant import PlantSettings
 
 log = logging.getLogger(__name__)
 
-BUS_TYPES = ("state_changed", "progress", "alert", "error")
+BUS_TYPES = ("state_changed", "progress", "alert", "error", "report")
 BUS_BUFFER = 1024  # records between the bus and the outbox: drained at once, so rarely used
 FIRST_BACKOFF_S = 0.1
 STOP_FLUSH_S = 2.0  # at a clean stop, how long `offline` (and what waits) may take to go
@@ -215,6 +215,9 @@ class MqttLink:
                 if progress is not None and not self._stale(progress["run_id"]):
                     entry = Entry(self.topics.progress, encode(progress), run_id=progress["run_id"])
                     self.outbox.put(entry)
+            elif message.type == "report":  # a shift's or a day's, retained: the latest
+                report = {"cell_id": cell_id, **data}
+                self.outbox.put(Entry(self.topics.report, encode(report), retain=True))
             else:  # alert (a warning) or error (a fault)
                 alert = alert_message(cell_id, message.type, message.time, data)
                 self.outbox.put(Entry(self.topics.alert, encode(alert)))

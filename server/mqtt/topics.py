@@ -12,6 +12,8 @@ Under `<prefix>/<cell_id>/` (prefix `mqtt_topic_prefix`, default `glue`):
   (server/quality/part_verdict.py: good, defective or not_inspected, with why; null for
   a run that makes no part);
 - `kpis`, `health`: retained, what GET /kpis and GET /health answer;
+- `report`: retained, the latest shift or daily report (GET /reports/{id}'s JSON, its id
+  as `report_id`);
 - `command/<name>`: commands in (off by default), answered on the v5 response topic.
 
 Why JSON built here and not the bus message as it is: the plant reads a
@@ -68,6 +70,10 @@ class Topics:
     @property
     def kpis(self) -> str:
         return f"{self.base}/kpis"
+
+    @property
+    def report(self) -> str:
+        return f"{self.base}/report"
 
     @property
     def health(self) -> str:

@@ -28,6 +28,7 @@ KIND_OF_BUS_TYPE: dict[str, NoticeKind] = {
     "error": "fault",
     "alert": "alert",
     "state_changed": "state",
+    "report": "report",  # a shift or daily report (server/views/reports.py)
 }
 BUS_TYPES = tuple(KIND_OF_BUS_TYPE)
 STATE_DETAILS = ("old_state", "new_state", "event", "event_id", "source", "time_in_old_state")

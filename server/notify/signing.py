@@ -18,7 +18,7 @@ import hmac
 SIGNATURE_HEADER = "X-Glue-Signature"  # "sha256=<hex>"
 TIMESTAMP_HEADER = "X-Glue-Timestamp"  # Unix seconds, as signed
 DELIVERY_HEADER = "X-Glue-Delivery"  # the notice's id: the same on every attempt
-KIND_HEADER = "X-Glue-Event"  # fault, alert, state, run_completed or part
+KIND_HEADER = "X-Glue-Event"  # fault, alert, state, run_completed, part or report
 
 
 def signature(secret: str, timestamp: int, body: bytes) -> str:

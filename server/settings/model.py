@@ -52,6 +52,7 @@ from server.settings.notifications import WebhookSettings
 from server.settings.opcua import OpcUaSettings
 from server.settings.plant import PlantSettings, default_cell_id
 from server.settings.quality import QualitySettings
+from server.settings.recording import RecordingSettings
 from server.settings.robot import RobotSettings
 from server.settings.run_end import RunEndSettings
 from server.settings.safety import SafetySettings
@@ -110,6 +111,7 @@ class Settings(
     StorageSettings,
     WatchSettings,
     KpiSettings,
+    RecordingSettings,
     BroadcastSettings,
     AccessSettings,
     HttpSettings,

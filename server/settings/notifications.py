@@ -30,8 +30,8 @@ class WebhookSettings(Section):
         json_schema_extra={
             "accepts": 'a JSON list of objects such as {"url": "https://host/hook", '
             '"events": ["fault", "run_completed"], "secret_file": "/run/secrets/hook"} '
-            "(events: fault, alert, state, run_completed, part; default all; a secret of at "
-            "least 16 characters, inline or in a file)",
+            "(events: fault, alert, state, run_completed, part, report; default all; a "
+            "secret of at least 16 characters, inline or in a file)",
             "holds_secrets": True,
         },
     )

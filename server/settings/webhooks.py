@@ -34,8 +34,15 @@ from pydantic import (
 
 from server.security.redaction import shown_url
 
-NoticeKind = Literal["fault", "alert", "state", "run_completed", "part"]
-NOTICE_KINDS: tuple[NoticeKind, ...] = ("fault", "alert", "state", "run_completed", "part")
+NoticeKind = Literal["fault", "alert", "state", "run_completed", "part", "report"]
+NOTICE_KINDS: tuple[NoticeKind, ...] = (
+    "fault",
+    "alert",
+    "state",
+    "run_completed",
+    "part",
+    "report",
+)
 WEBHOOK_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 MIN_SECRET_LENGTH = 16  # characters: a guessable HMAC key signs nothing
 MAX_SECRET_BYTES = 4096
@@ -55,7 +62,7 @@ class WebhookTarget(BaseModel):
     events: list[NoticeKind] = Field(
         default_factory=lambda: list(NOTICE_KINDS),
         min_length=1,
-        description="which notices: fault, alert, state, run_completed, part (default all)",
+        description="which notices: fault, alert, state, run_completed, part, report (default all)",
     )
     secret: SecretStr | None = Field(
         None, description=f"the HMAC-SHA256 key, at least {MIN_SECRET_LENGTH} characters"

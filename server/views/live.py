@@ -29,6 +29,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
 from server.core.infra.bus import Bus, Subscription, SubscriptionClosed
@@ -82,6 +83,9 @@ class DeviceFeed:
         self.interval = interval
         self._task: asyncio.Task[None] | None = None
         self._asking: asyncio.Task[None] | None = None
+        # Told of each message published, with its time (the flight recorder): called on
+        # the feed's task, so a listener must not block.
+        self.listeners: list[Callable[[dict[str, Any], float], None]] = []
 
     def start(self) -> None:
         if self._task is None:
@@ -97,7 +101,14 @@ class DeviceFeed:
 
     def publish(self) -> None:
         """Push one `device` message now."""
-        self.bus.publish_sample("device", device_message(self.devices.health(), time.time()))
+        now = time.time()
+        message = device_message(self.devices.health(), now)
+        self.bus.publish_sample("device", message)
+        for listener in self.listeners:
+            try:
+                listener(message, now)
+            except Exception:  # a listener's bug must not stop the live feed
+                log.exception("a device feed listener failed")
 
     async def _run(self) -> None:
         subscription = self._subscribe()

@@ -30,6 +30,7 @@ from bench import (
     pause_latency,
     planning,
     plant_latency,
+    recording_cost,
     reset_probe,
     rest_throughput,
     scaling,
@@ -300,6 +301,16 @@ def test_cycle_time_compares_runs_with_and_without_inspection(results_in_tmp: Pa
         assert_ordered_latencies(row)
     assert [row["n"] for row in rows] == [1, 1, 1, 1, 2]
     assert written_rows(results_in_tmp, "cycle_time") == rows
+
+
+def test_recording_cost_compares_journal_bytes_with_the_recorder_on_and_off(
+    results_in_tmp: Path,
+) -> None:
+    rows = recording_cost.main(["--runs", "1"])
+    on, off, samples, _ = rows
+    assert on["median"] > off["median"] > 0  # the samples cost bytes; a run costs some anyway
+    assert samples["median"] > 0
+    assert written_rows(results_in_tmp, "recording_cost") == rows
 
 
 def test_bead_inspection_reports_rates_and_times(results_in_tmp: Path) -> None:

@@ -283,3 +283,24 @@ async def test_a_looser_data_directory_is_tightened_at_start_and_said_so(tmp_pat
         assert len(said) == 1 and "journal.db 666 -> 600" in said[0], said
     finally:
         await cell.stop()
+
+
+async def test_retention_prunes_old_recordings_and_reports_too(tmp_path) -> None:
+    journal = Journal(tmp_path / "journal.db", retention_days=1)
+    journal.open()
+    journal.start(asyncio.get_running_loop())
+    old, new = time.time() - 3 * 86_400, time.time()
+
+    def sample(at: float, run_id: str) -> records.Record:
+        return records.run_sample(time=at, run_id=run_id, valve_open=False)
+
+    def report(at: float) -> records.Record:
+        return records.report(
+            time=at, kind="shift", window_start=at - 60, window_end=at, document={}
+        )
+
+    await journal.append([sample(old, "old"), sample(new, "new"), report(old), report(new)])
+    journal.stop()
+    journal.open()  # retention runs at open (and daily)
+    assert [row["run_id"] for row in journal.query("run_samples")] == ["new"]
+    assert [row["time"] for row in journal.query("reports")] == [new]

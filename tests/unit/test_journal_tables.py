@@ -167,6 +167,26 @@ def _one_of_each() -> dict[str, list[records.Record]]:
                 **dict.fromkeys(PART_FIGURES, 0.25),
             )
         ],
+        "run_samples": [
+            records.run_sample(
+                time=1.0,
+                run_id="r-1",
+                x_mm=1.5,
+                y_mm=2.5,
+                z_mm=3.5,
+                pose_at=0.99,
+                speed_mm_s=None,
+                valve_open=True,
+                flow_ml_min=12.0,
+                pressure_psi=40.0,
+                glue_at=0.98,
+            )
+        ],
+        "reports": [
+            records.report(
+                time=2.0, kind="shift", window_start=0.0, window_end=1.0, document={"oee": None}
+            )
+        ],
     }
 
 

@@ -59,7 +59,7 @@ def test_a_webhook_needs_exactly_one_secret_long_enough(tmp_path) -> None:
 def test_webhooks_are_named_by_position_and_names_must_differ() -> None:
     settings = Settings(webhooks=[webhook(), webhook(name="mes", events=["fault", "fault"])])
     assert [(t.name, t.events) for t in settings.webhooks] == [
-        ("webhook-1", ["fault", "alert", "state", "run_completed", "part"]),
+        ("webhook-1", ["fault", "alert", "state", "run_completed", "part", "report"]),
         ("mes", ["fault"]),
     ]
     with pytest.raises(ValidationError, match="two webhooks are named 'a'"):

@@ -138,6 +138,15 @@ class Reader:
             ).fetchone()
         return dict(zip(columns, found, strict=True)) if found else None
 
+    def operation(self, run_id: str) -> dict[str, Any] | None:
+        """The `operations` row of run `run_id`, or None when there is none (pruned, or never)."""
+        columns = column_names("operations")
+        with self._reader() as connection:
+            found = connection.execute(
+                f"SELECT {', '.join(columns)} FROM operations WHERE run_id = ?", (run_id,)
+            ).fetchone()
+        return dict(zip(columns, found, strict=True)) if found else None
+
     def faults_of(self, event_id: str) -> list[dict[str, Any]]:
         """The `errors` rows an event recorded (the fault that took the cell to ERROR)."""
         columns = column_names("errors")

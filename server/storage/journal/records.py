@@ -315,3 +315,14 @@ def order_part(**columns: Any) -> Record:
 def wear(key: str, value: float, at: float) -> Record:
     """A wear counter or maintenance mark (`wear` table), replacing the one of its key."""
     return _row("wear", replace=True, key=key, value=float(value), time=at)
+
+
+def run_sample(**columns: Any) -> Record:
+    """One device sample of a run (the flight recorder), the columns of `run_samples` by
+    name."""
+    return _row("run_samples", **columns)
+
+
+def report(**columns: Any) -> Record:
+    """A shift or daily report as made, the columns of `reports` by name."""
+    return _row("reports", **columns)

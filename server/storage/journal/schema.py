@@ -368,7 +368,7 @@ WEBHOOK_DELIVERIES = Table(
             "TEXT NOT NULL",
             str,
             "the notice",
-            Filtered(values=("fault", "alert", "state", "run_completed", "part")),
+            Filtered(values=("fault", "alert", "state", "run_completed", "part", "report")),
         ),
         Column("event_at", "REAL NOT NULL", float, "when what it tells happened (Unix seconds)"),
         Column(
@@ -461,6 +461,43 @@ ORDER_PARTS = Table(
     indexes=(("order_parts_time", "time"),),
 )
 
+RUN_SAMPLES = Table(
+    "run_samples",
+    "The flight recorder: each run's device samples at the live feed's rate "
+    "(server/views/recording.py).",
+    (
+        _seq(),
+        _time("when the live feed took the sample (Unix seconds)"),
+        Column("run_id", "TEXT NOT NULL", str, "the run the sample belongs to", Filtered()),
+        Column("x_mm", "REAL", float, "the tool point's x in the robot's frame; NULL: no pose yet"),
+        Column("y_mm", "REAL", float, "the tool point's y in the robot's frame"),
+        Column("z_mm", "REAL", float, "the tool point's z in the robot's frame"),
+        Column("pose_at", "REAL", float, "when the robot reported that pose (Unix seconds)"),
+        Column("speed_mm_s", "REAL", float, "tool speed between the last two poses read"),
+        Column("valve_open", "INTEGER NOT NULL", bool, "whether the glue valve was open"),
+        Column("flow_ml_min", "REAL", float, "the flow the dispenser measured"),
+        Column("pressure_psi", "REAL", float, "the pressure the dispenser measured"),
+        Column("glue_at", "REAL", float, "when the dispenser reported them (Unix seconds)"),
+    ),
+    sealed=True,
+    indexes=(("run_samples_time", "time"), ("run_samples_run", "run_id")),
+)
+
+REPORTS = Table(
+    "reports",
+    "Shift and daily reports (server/views/reports.py): one row per report, as made.",
+    (
+        _seq(),
+        _time("when it was made (Unix seconds)"),
+        Column("kind", "TEXT NOT NULL", str, "the report", Filtered(values=("shift", "day"))),
+        Column("window_start", "REAL NOT NULL", float, "the start of the window it covers"),
+        Column("window_end", "REAL NOT NULL", float, "the end of the window (excluded)"),
+        Column("document", "TEXT NOT NULL", dict, "the whole report"),
+    ),
+    sealed=True,
+    indexes=(("reports_time", "time"),),
+)
+
 COMMITS = Table(
     "commits",
     "The commit chain (commit_chain.py): one row per transaction the writer committed.",
@@ -518,6 +555,8 @@ ALL_TABLES: tuple[Table, ...] = (
     INSPECTIONS,
     ORDERS,
     ORDER_PARTS,
+    RUN_SAMPLES,
+    REPORTS,
     COMMITS,
     JOURNAL_META,
     WRITE_CHECK,
