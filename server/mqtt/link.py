@@ -20,6 +20,17 @@ of `offline` it publishes itself if the cell goes silent for 1.5 keep-alives
 (a killed server, a cut cable); a clean stop says `offline` before it leaves.
 Commands (server/mqtt/commands.py) each get a task of their own, so an e-stop
 never waits behind a command still being decided.
+
+The stop has a lane of its own, as over HTTP (server/api/stop_lane.py). The
+commands waiting to be read wait in the client's incoming queue, which the
+listener empties one message per turn of the loop, each command's check and
+answer beside it: a stop behind thousands of them would wait for all of
+them. So the queue is the link's own (`StopFirstQueue`): as the client parses a
+message off the socket, a stop command (the catalogue's `stop` entries) is
+taken out of that line and its task started there and then, first step run
+(server/core/infra/eager.py: `start_task`): its signature, freshness and role
+are checked, exactly as any command's, and the devices' halt frames are written
+before the client parses the next message. Nothing else is read first.
 """
 
 from __future__ import annotations
@@ -37,13 +48,17 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import aiomqtt
+from aiomqtt import Message
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from server.bootstrap.cell import Cell
+from server.commands.catalogue import is_stop
 from server.core.infra.answers_in_flight import AnswersInFlight, after_answers
 from server.core.infra.bus import SubscriptionClosed
+from server.core.infra.eager import start_task
 from server.core.infra.paced_feed import PacedFeed
+from server.core.machine.transitions import normalize_command
 from server.core.worker.runs import RunEnded
 from server.mqtt.commands import CommandDoor
 from server.mqtt.outbox import Entry, Outbox
@@ -89,6 +104,24 @@ def _health_signature(health: dict[str, Any]) -> str:
     mqtt = health.get("mqtt", {})
     key = [health.get("status"), health.get("state"), devices, journal.get("last_error")]
     return json.dumps([*key, mqtt.get("dropped")], sort_keys=True, default=str)
+
+
+class StopFirstQueue(asyncio.Queue[Message]):
+    """The client's incoming queue, with the stop commands taken out as they arrive.
+
+    aiomqtt puts each message here from its socket reader (in the loop's thread, a
+    message at a time, as the client parses it). `divert` is asked first: a message it
+    takes (a stop) never enters the queue, so it waits behind nothing the listener has
+    still to read.
+    """
+
+    def __init__(self, divert: Callable[[Message], bool], maxsize: int = 0) -> None:
+        super().__init__(maxsize)
+        self._divert = divert
+
+    def put_nowait(self, item: Message) -> None:
+        if not self._divert(item):
+            super().put_nowait(item)
 
 
 class MqttLink:
@@ -308,7 +341,32 @@ class MqttLink:
             keepalive=settings.mqtt_keepalive,
             tls_context=tls_context,
             timeout=max(10.0, 2.0 * settings.mqtt_keepalive),
+            queue_type=self._queue_type(),
         )
+
+    def _queue_type(self) -> type[asyncio.Queue[Message]]:
+        """The incoming queue's class for aiomqtt, which makes it with `maxsize` alone."""
+        divert = self._stop_at_once
+
+        class Incoming(StopFirstQueue):
+            def __init__(self, maxsize: int = 0) -> None:
+                super().__init__(divert, maxsize)
+
+        return Incoming
+
+    def _stop_at_once(self, message: Message) -> bool:
+        """A stop command: its task started now, first step run (its check and the halt
+        frames written); True. Anything else: False, for the queue."""
+        if self._commands is None or self._stopping:
+            return False
+        topic = str(message.topic)
+        name = self.topics.command_name(topic)
+        if name is None or not is_stop(normalize_command(name)):
+            return False
+        task = start_task(self._command(message, topic, name))
+        self._in_flight.add(task)
+        task.add_done_callback(self._in_flight.discard)
+        return True
 
     async def _connection(self) -> None:
         backoff = FIRST_BACKOFF_S
@@ -388,7 +446,9 @@ class MqttLink:
             name = self.topics.command_name(topic)
             if name is None:
                 continue
-            if len(self._in_flight) >= MAX_COMMANDS_IN_FLIGHT and name != "estop":
+            if len(self._in_flight) >= MAX_COMMANDS_IN_FLIGHT and not is_stop(
+                normalize_command(name)
+            ):
                 answer = (503, {"accepted": False, "message": "too many MQTT commands at once"})
                 await self._answer(message, answer)
                 continue
