@@ -18,14 +18,17 @@ import threading
 from pathlib import Path
 
 import paho.mqtt.client as paho
+from asyncua import Client, ua
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from clients.client.mqtt_signing import sign_command
 from server.line.broker import DEMO_PASSWORDS
+from server.opcua.address_space import NAMESPACE_URI
 from tests.mosquitto import WAIT_S, mosquitto
 from tests.rig import Rig, open_rig
+from tests.serving import free_port
 
 CELL = "cell-7"
 BASE = f"glue/{CELL}"
@@ -113,3 +116,48 @@ async def test_an_mqtt_stop_behind_a_flood_is_decided_before_the_flood_sent_ahea
             print(f"pauses decided before the stop: {len(before)}, after it: {len(after)}")
             # Every pause was sent before the stop; the stop went ahead of most of them.
             assert len(after) > len(before), (len(before), len(after))
+
+
+BURST = 200  # OPC UA calls on one session, all sent before the stop
+
+
+async def test_an_opcua_stop_behind_a_burst_of_calls_is_decided_before_the_burst(
+    tmp_path: Path,
+) -> None:
+    port = free_port()
+    overrides = {"cell_id": CELL, "opcua_endpoint": f"opc.tcp://127.0.0.1:{port}"}
+    async with open_rig(tmp_path / "data", **overrides) as rig:
+        made = await rig.api.post("/tokens", json={"name": "plc", "role": "operator"})
+        opc = Client(f"opc.tcp://127.0.0.1:{port}", timeout=WAIT_S)
+        opc.set_user("plc")
+        opc.set_password(made.json()["token"])
+        async with opc:
+            ns = await opc.get_namespace_index(NAMESPACE_URI)
+
+            def request(method: str) -> ua.CallMethodRequest:
+                call = ua.CallMethodRequest()
+                call.ObjectId = ua.NodeId.from_string(f"ns={ns};s={CELL}")
+                call.MethodId = ua.NodeId.from_string(f"ns={ns};s={CELL}.{method}")
+                call.InputArguments = []
+                return call
+
+            # One session, every request on its way before the first is answered (asyncua's
+            # client sends each as it is made): BURST Pauses (refused in IDLE), then the stop.
+            calls = [
+                asyncio.ensure_future(opc.uaclient.call([request("Pause")])) for _ in range(BURST)
+            ]
+            calls.append(asyncio.ensure_future(opc.uaclient.call([request("EmergencyStop")])))
+            answers = await asyncio.gather(*calls)
+        assert answers[-1][0].StatusCode.is_good(), answers[-1]
+        await rig.wait_state("ERROR")
+        assert rig.cell.journal is not None
+        await rig.cell.journal.caught_up()
+        ours = [kind for kind, source in _events(tmp_path / "data") if source.startswith("opcua:")]
+        stop_at = ours.index("EMERGENCY_STOP")
+        before, after = ours[:stop_at], ours[stop_at + 1 :]
+        print(f"pauses decided before the stop: {len(before)}, after it: {len(after)}")
+        assert len(before) + len(after) == BURST  # every Pause reached the worker
+        # The session's requests are read in order (its channel is decrypted in order), so
+        # the stop comes after the calls ahead of it are read; but not after they are
+        # decided and answered: it overtakes those still waiting for the worker.
+        assert after, "the stop waited for every call sent before it to be decided"
