@@ -21,16 +21,24 @@ of `offline` it publishes itself if the cell goes silent for 1.5 keep-alives
 Commands (server/mqtt/commands.py) each get a task of their own, so an e-stop
 never waits behind a command still being decided.
 
-The stop has a lane of its own, as over HTTP (server/api/stop_lane.py). The
-commands waiting to be read wait in the client's incoming queue, which the
-listener empties one message per turn of the loop, each command's check and
-answer beside it: a stop behind thousands of them would wait for all of
-them. So the queue is the link's own (`StopFirstQueue`): as the client parses a
-message off the socket, a stop command (the catalogue's `stop` entries) is
-taken out of that line and its task started there and then, first step run
-(server/core/infra/eager.py: `start_task`): its signature, freshness and role
-are checked, exactly as any command's, and the devices' halt frames are written
-before the client parses the next message. Nothing else is read first.
+The stop has a lane of its own, as over HTTP (server/api/stop_lane.py). Commands
+wait in two queues before the link decides them: the broker's, which delivers
+a connection's messages in order and only so many unacknowledged at a time,
+and the client's incoming queue, which the listener empties one message per
+turn of the loop, each command's check and answer beside it. A stop behind
+thousands of commands waited for all of them. So:
+
+- a second connection, the stop lane (client id `glue-cell-<id>-stops`, no
+  will), subscribes to the stop commands' topics alone (the catalogue's `stop`
+  entries): the broker delivers a stop to it whatever waits for the first
+  connection, which leaves those topics to the lane while it is up (and serves
+  them itself while it is not);
+- on both connections the incoming queue is the link's own (`StopFirstQueue`):
+  as the client parses a stop off the socket, it is taken out of the line and
+  its task started there and then, first step run
+  (server/core/infra/eager.py: `start_task`). Its signature, freshness and role
+  are checked exactly as any command's, and the devices' halt frames are
+  written before the client parses the next message.
 """
 
 from __future__ import annotations
@@ -53,7 +61,7 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from server.bootstrap.cell import Cell
-from server.commands.catalogue import is_stop
+from server.commands.catalogue import STOP_COMMANDS, is_stop
 from server.core.infra.answers_in_flight import AnswersInFlight, after_answers
 from server.core.infra.bus import SubscriptionClosed
 from server.core.infra.eager import start_task
@@ -161,6 +169,11 @@ class MqttLink:
         self._drained = asyncio.Event()  # set when the outbox was published to the end
         self._held_runs: deque[tuple[int, Entry]] = deque()  # run messages waiting for a seq
         self._handled_seq = 0  # the last bus record the feed put in the outbox
+        self._lane_topics = frozenset(
+            f"{self.topics.base}/command/{command.value}" for command in STOP_COMMANDS
+        )
+        self._lane_client: aiomqtt.Client | None = None
+        self._lane_up = False  # subscribed to every stop topic
 
     # --- life ----------------------------------------------------------------
 
@@ -175,6 +188,8 @@ class MqttLink:
             asyncio.create_task(self._connection(), name="mqtt-connection"),
             asyncio.create_task(self._ticker(), name="mqtt-ticker"),
         ]
+        if self._commands is not None:
+            self._tasks.append(asyncio.create_task(self._stop_lane(), name="mqtt-stop-lane"))
         log.info(
             "MQTT: publishing to %s:%d under %s/ (commands %s)",
             self.host,
@@ -186,8 +201,8 @@ class MqttLink:
     async def stop(self) -> None:
         """Say `offline` (retained) if the broker is there, then leave cleanly."""
         self._stopping = True
-        feed, connection, ticker = self._tasks or (None, None, None)
-        for task in (feed, ticker, *self._in_flight):
+        feed, connection, ticker, *lane = self._tasks or (None, None, None)
+        for task in (feed, ticker, *lane, *self._in_flight):
             if task is not None:
                 task.cancel()
         self._drained.clear()
@@ -322,7 +337,7 @@ class MqttLink:
 
     # --- the connection ------------------------------------------------------------
 
-    def _client_for(self) -> aiomqtt.Client:
+    def _client_for(self, *, lane: bool = False) -> aiomqtt.Client:
         settings = self.settings
         tls_context = None
         if self.tls:
@@ -335,18 +350,20 @@ class MqttLink:
             self.port,
             username=settings.mqtt_username,
             password=password,
-            identifier=f"glue-cell-{self.plant.cell_id}",
+            identifier=f"glue-cell-{self.plant.cell_id}{'-stops' if lane else ''}",
             protocol=aiomqtt.ProtocolVersion.V5,
-            will=aiomqtt.Will(self.topics.status, OFFLINE, qos=1, retain=True),
+            will=None if lane else aiomqtt.Will(self.topics.status, OFFLINE, qos=1, retain=True),
             keepalive=settings.mqtt_keepalive,
             tls_context=tls_context,
             timeout=max(10.0, 2.0 * settings.mqtt_keepalive),
-            queue_type=self._queue_type(),
+            queue_type=self._queue_type(lane),
         )
 
-    def _queue_type(self) -> type[asyncio.Queue[Message]]:
+    def _queue_type(self, lane: bool) -> type[asyncio.Queue[Message]]:
         """The incoming queue's class for aiomqtt, which makes it with `maxsize` alone."""
-        divert = self._stop_at_once
+
+        def divert(message: Message) -> bool:
+            return self._stop_at_once(message, lane)
 
         class Incoming(StopFirstQueue):
             def __init__(self, maxsize: int = 0) -> None:
@@ -354,16 +371,20 @@ class MqttLink:
 
         return Incoming
 
-    def _stop_at_once(self, message: Message) -> bool:
+    def _stop_at_once(self, message: Message, lane: bool) -> bool:
         """A stop command: its task started now, first step run (its check and the halt
-        frames written); True. Anything else: False, for the queue."""
+        frames written), or left to the stop lane when it is up and has it; True.
+        Anything else: False, for the queue."""
         if self._commands is None or self._stopping:
             return False
         topic = str(message.topic)
         name = self.topics.command_name(topic)
         if name is None or not is_stop(normalize_command(name)):
             return False
-        task = start_task(self._command(message, topic, name))
+        if not lane and self._lane_up and topic in self._lane_topics:
+            return True  # the lane's subscription has it too: served there
+        client = self._lane_client if lane else self._client
+        task = start_task(self._command(message, topic, name, client))
         self._in_flight.add(task)
         task.add_done_callback(self._in_flight.discard)
         return True
@@ -387,6 +408,32 @@ class MqttLink:
                 self._down(str(errors.exceptions[0]))
             except* OSError as errors:  # a TLS or socket failure before MQTT spoke
                 self._down(str(errors.exceptions[0]))
+            if self._stopping:
+                return
+            await asyncio.sleep(backoff * random.uniform(0.8, 1.2))
+            backoff = min(2 * backoff, self.settings.mqtt_reconnect_max)
+
+    async def _stop_lane(self) -> None:
+        """The stop lane's connection: the stop topics alone, each stop served as it is
+        parsed (`_stop_at_once`); its messages never reach the queue, which is read
+        only to notice a lost connection. Reconnects as the first connection does."""
+        backoff = FIRST_BACKOFF_S
+        while True:
+            try:
+                async with self._client_for(lane=True) as client:
+                    self._lane_client = client
+                    backoff = FIRST_BACKOFF_S
+                    for topic in self._lane_topics:
+                        await client.subscribe(topic, qos=1)
+                    self._lane_up = True
+                    async for _ in client.messages:
+                        pass
+            except (aiomqtt.MqttError, OSError) as error:
+                if self._lane_up:
+                    log.warning("MQTT: the stop lane lost %s:%d: %s", self.host, self.port, error)
+            finally:
+                self._lane_up = False
+                self._lane_client = None
             if self._stopping:
                 return
             await asyncio.sleep(backoff * random.uniform(0.8, 1.2))
@@ -450,23 +497,31 @@ class MqttLink:
                 normalize_command(name)
             ):
                 answer = (503, {"accepted": False, "message": "too many MQTT commands at once"})
-                await self._answer(message, answer)
+                await self._answer(message, answer, client)
                 continue
-            task = asyncio.create_task(self._command(message, topic, name), name="mqtt-command")
+            command = self._command(message, topic, name, client)
+            task = asyncio.create_task(command, name="mqtt-command")
             self._in_flight.add(task)
             task.add_done_callback(self._in_flight.discard)
 
-    async def _command(self, message: aiomqtt.Message, topic: str, name: str) -> None:
+    async def _command(
+        self, message: aiomqtt.Message, topic: str, name: str, client: aiomqtt.Client | None
+    ) -> None:
         assert self._commands is not None
         raw = message.payload if isinstance(message.payload, bytes) else b""
         answer = await self._commands.handle(topic, name, raw)
-        await self._answer(message, answer)
+        await self._answer(message, answer, client)
 
-    async def _answer(self, message: aiomqtt.Message, answer: tuple[int, dict[str, Any]]) -> None:
-        """On the request's v5 response topic, with its correlation data; none asked, none sent."""
+    async def _answer(
+        self,
+        message: aiomqtt.Message,
+        answer: tuple[int, dict[str, Any]],
+        client: aiomqtt.Client | None,
+    ) -> None:
+        """On the request's v5 response topic, with its correlation data, by the connection
+        it came on; none asked, none sent."""
         asked = message.properties
         response_topic = getattr(asked, "ResponseTopic", None) if asked else None
-        client = self._client
         if not response_topic or client is None:
             return
         properties = Properties(PacketTypes.PUBLISH)
