@@ -128,7 +128,9 @@ async def test_an_opcua_stop_behind_a_burst_of_calls_is_decided_before_the_burst
     overrides = {"cell_id": CELL, "opcua_endpoint": f"opc.tcp://127.0.0.1:{port}"}
     async with open_rig(tmp_path / "data", **overrides) as rig:
         made = await rig.api.post("/tokens", json={"name": "plc", "role": "operator"})
-        opc = Client(f"opc.tcp://127.0.0.1:{port}", timeout=WAIT_S)
+        # The client probes the server every watchdog_intervall and gives up on a slow
+        # answer: on a busy shared machine that is not the connection lost.
+        opc = Client(f"opc.tcp://127.0.0.1:{port}", timeout=WAIT_S, watchdog_intervall=WAIT_S)
         opc.set_user("plc")
         opc.set_password(made.json()["token"])
         async with opc:
