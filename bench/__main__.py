@@ -21,6 +21,7 @@ BENCHMARKS = (
     ("device_feed", []),
     ("estop_latency", []),
     ("estop_under_attack", []),
+    ("estop_doors", []),
     ("reset_probe", []),
     ("pause_latency", []),
     ("ws_fanout", []),

@@ -6,6 +6,11 @@ on its standard input:
 
 - "server <base_url> <token>": the server to stop, once it is up (connected to
   with one GET /state before "ready" is printed);
+- "arm": clear the simulators' stop stamps and print "armed" (a stop sent by
+  another door follows);
+- "stamps": wait (up to 30 s) until the robot has received `stop` and the
+  dispenser a valve-close write since "arm", and print "stamps <robot_at> <glue_at>"
+  ("stamps none none" if they did not come);
 - "fire": clear the simulators' stop stamps, send POST /estop (on a kept-alive
   connection, as an HMI holds one), and print
   "stopped <seconds> <valve_closed> <sent_at> <answered> <robot_at> <glue_at>":
@@ -63,6 +68,17 @@ async def fire(client: httpx.AsyncClient, robot: RobotSimulator, glue: GlueSimul
     return f"stopped {latency} {not glue.valve_open} {sent} {answered} {robot_at} {glue_at}"
 
 
+async def stamps(robot: RobotSimulator, glue: GlueSimulator) -> str:
+    """The first stop and close since "arm" (`fire` says why the first)."""
+    robot_at = glue_at = None
+    deadline = time.monotonic() + 30.0
+    while not (robot_at and glue_at) and time.monotonic() < deadline:
+        robot_at = robot_at or robot.last_stop_at
+        glue_at = glue_at or glue.close_commanded_at
+        await asyncio.sleep(0.0002)
+    return f"stamps {robot_at} {glue_at}"
+
+
 async def witness(speed_factor: float) -> None:
     settings = Settings()
     async with (
@@ -92,6 +108,12 @@ async def witness(speed_factor: float) -> None:
                     # took 15 ms more, charged to the first stop of every run.
                     (await client.get("/state")).raise_for_status()
                     print("ready", flush=True)
+                elif words[0] == "arm":
+                    robot.last_stop_at = None
+                    glue.close_commanded_at = None
+                    print("armed", flush=True)
+                elif words[0] == "stamps":
+                    print(await stamps(robot, glue), flush=True)
                 elif words[0] == "fire" and client is not None:
                     print(await fire(client, robot, glue), flush=True)
         finally:

@@ -237,6 +237,14 @@ BY_COMMAND: Final = MappingProxyType({spec.command: spec for spec in CATALOGUE})
 # The stop routes on HTTP (POST): begun at the gate, never locked out, never refused
 # over their body (server/api/stop_lane.py).
 STOP_PATHS: Final = tuple(spec.path for spec in CATALOGUE if spec.stop)
+# The stop commands, which every door serves ahead of its own queue: HTTP's stop lane,
+# MQTT's stop topics (server/mqtt/link.py), OPC UA's stop methods (server/opcua/).
+STOP_COMMANDS: Final = frozenset(spec.command for spec in CATALOGUE if spec.stop)
+
+
+def is_stop(command: Command | None) -> bool:
+    """Whether `command` is a stop (None, an unknown command: not one)."""
+    return command in STOP_COMMANDS
 
 
 def spec_of(command: Command) -> CommandSpec:

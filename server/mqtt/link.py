@@ -22,6 +22,25 @@ time before it leaves (server/mqtt/topics.py: `status_message`). Progress of a
 run that ended while the broker was away is not sent when it is back.
 Commands (server/mqtt/commands.py) each get a task of their own, so an e-stop
 never waits behind a command still being decided.
+
+The stop has a lane of its own, as over HTTP (server/api/stop_lane.py). Commands
+wait in two queues before the link decides them: the broker's, which delivers
+a connection's messages in order and only so many unacknowledged at a time,
+and the client's incoming queue, which the listener empties one message per
+turn of the loop, each command's check and answer beside it. A stop behind
+thousands of commands waited for all of them. So:
+
+- a second connection, the stop lane (client id `glue-cell-<id>-stops`, no
+  will), subscribes to the stop commands' topics alone (the catalogue's `stop`
+  entries): the broker delivers a stop to it whatever waits for the first
+  connection, which leaves those topics to the lane while it is up (and serves
+  them itself while it is not);
+- on both connections the incoming queue is the link's own (`StopFirstQueue`):
+  as the client parses a stop off the socket, it is taken out of the line and
+  its task started there and then, first step run
+  (server/core/infra/eager.py: `start_task`). Its signature, freshness and role
+  are checked exactly as any command's, and the devices' halt frames are
+  written before the client parses the next message.
 """
 
 from __future__ import annotations
@@ -39,13 +58,17 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import aiomqtt
+from aiomqtt import Message
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from server.bootstrap.cell import Cell
+from server.commands.catalogue import STOP_COMMANDS, is_stop
 from server.core.infra.answers_in_flight import AnswersInFlight, after_answers
 from server.core.infra.bus import SubscriptionClosed
+from server.core.infra.eager import start_task
 from server.core.infra.paced_feed import PacedFeed
+from server.core.machine.transitions import normalize_command
 from server.core.worker.runs import RunEnded
 from server.mqtt.commands import CommandDoor
 from server.mqtt.outbox import Entry, Outbox
@@ -92,6 +115,24 @@ def _health_signature(health: dict[str, Any]) -> str:
     return json.dumps([*key, mqtt.get("dropped")], sort_keys=True, default=str)
 
 
+class StopFirstQueue(asyncio.Queue[Message]):
+    """The client's incoming queue, with the stop commands taken out as they arrive.
+
+    aiomqtt puts each message here from its socket reader (in the loop's thread, a
+    message at a time, as the client parses it). `divert` is asked first: a message it
+    takes (a stop) never enters the queue, so it waits behind nothing the listener has
+    still to read.
+    """
+
+    def __init__(self, divert: Callable[[Message], bool], maxsize: int = 0) -> None:
+        super().__init__(maxsize)
+        self._divert = divert
+
+    def put_nowait(self, item: Message) -> None:
+        if not self._divert(item):
+            super().put_nowait(item)
+
+
 class MqttLink:
     """Publishes the cell to a broker and, if enabled, takes commands from it."""
 
@@ -130,6 +171,11 @@ class MqttLink:
         self._held_runs: deque[tuple[int, Entry]] = deque()  # run messages waiting for a seq
         self._handled_seq = 0  # the last bus record the feed put in the outbox
         self._online_at: float | None = None  # when the present connection was made
+        self._lane_topics = frozenset(
+            f"{self.topics.base}/command/{command.value}" for command in STOP_COMMANDS
+        )
+        self._lane_client: aiomqtt.Client | None = None
+        self._lane_up = False  # subscribed to every stop topic
 
     # --- life ----------------------------------------------------------------
 
@@ -144,6 +190,8 @@ class MqttLink:
             asyncio.create_task(self._connection(), name="mqtt-connection"),
             asyncio.create_task(self._ticker(), name="mqtt-ticker"),
         ]
+        if self._commands is not None:
+            self._tasks.append(asyncio.create_task(self._stop_lane(), name="mqtt-stop-lane"))
         log.info(
             "MQTT: publishing to %s:%d under %s/ (commands %s)",
             self.host,
@@ -155,8 +203,8 @@ class MqttLink:
     async def stop(self) -> None:
         """Say `offline` (retained) if the broker is there, then leave cleanly."""
         self._stopping = True
-        feed, connection, ticker = self._tasks or (None, None, None)
-        for task in (feed, ticker, *self._in_flight):
+        feed, connection, ticker, *lane = self._tasks or (None, None, None)
+        for task in (feed, ticker, *lane, *self._in_flight):
             if task is not None:
                 task.cancel()
         self._drained.clear()
@@ -308,7 +356,7 @@ class MqttLink:
 
     # --- the connection ------------------------------------------------------------
 
-    def _client_for(self) -> aiomqtt.Client:
+    def _client_for(self, *, lane: bool = False) -> aiomqtt.Client:
         settings = self.settings
         tls_context = None
         if self.tls:
@@ -321,12 +369,15 @@ class MqttLink:
             self.port,
             username=settings.mqtt_username,
             password=password,
-            identifier=f"glue-cell-{self.plant.cell_id}",
+            identifier=f"glue-cell-{self.plant.cell_id}{'-stops' if lane else ''}",
             protocol=aiomqtt.ProtocolVersion.V5,
-            will=aiomqtt.Will(self.topics.status, self._will(), qos=1, retain=True),
+            will=None
+            if lane
+            else aiomqtt.Will(self.topics.status, self._will(), qos=1, retain=True),
             keepalive=settings.mqtt_keepalive,
             tls_context=tls_context,
             timeout=max(10.0, 2.0 * settings.mqtt_keepalive),
+            queue_type=self._queue_type(lane),
         )
 
     def _will(self) -> bytes:
@@ -336,6 +387,36 @@ class MqttLink:
         return status_message(
             self.topics.cell_id, "offline", None, clean=False, online_since=self._online_at
         )
+
+    def _queue_type(self, lane: bool) -> type[asyncio.Queue[Message]]:
+        """The incoming queue's class for aiomqtt, which makes it with `maxsize` alone."""
+
+        def divert(message: Message) -> bool:
+            return self._stop_at_once(message, lane)
+
+        class Incoming(StopFirstQueue):
+            def __init__(self, maxsize: int = 0) -> None:
+                super().__init__(divert, maxsize)
+
+        return Incoming
+
+    def _stop_at_once(self, message: Message, lane: bool) -> bool:
+        """A stop command: its task started now, first step run (its check and the halt
+        frames written), or left to the stop lane when it is up and has it; True.
+        Anything else: False, for the queue."""
+        if self._commands is None or self._stopping:
+            return False
+        topic = str(message.topic)
+        name = self.topics.command_name(topic)
+        if name is None or not is_stop(normalize_command(name)):
+            return False
+        if not lane and self._lane_up and topic in self._lane_topics:
+            return True  # the lane's subscription has it too: served there
+        client = self._lane_client if lane else self._client
+        task = start_task(self._command(message, topic, name, client))
+        self._in_flight.add(task)
+        task.add_done_callback(self._in_flight.discard)
+        return True
 
     async def _connection(self) -> None:
         backoff = FIRST_BACKOFF_S
@@ -363,6 +444,32 @@ class MqttLink:
                 self._down(str(errors.exceptions[0]))
             except* OSError as errors:  # a TLS or socket failure before MQTT spoke
                 self._down(str(errors.exceptions[0]))
+            if self._stopping:
+                return
+            await asyncio.sleep(backoff * random.uniform(0.8, 1.2))
+            backoff = min(2 * backoff, self.settings.mqtt_reconnect_max)
+
+    async def _stop_lane(self) -> None:
+        """The stop lane's connection: the stop topics alone, each stop served as it is
+        parsed (`_stop_at_once`); its messages never reach the queue, which is read
+        only to notice a lost connection. Reconnects as the first connection does."""
+        backoff = FIRST_BACKOFF_S
+        while True:
+            try:
+                async with self._client_for(lane=True) as client:
+                    self._lane_client = client
+                    backoff = FIRST_BACKOFF_S
+                    for topic in self._lane_topics:
+                        await client.subscribe(topic, qos=1)
+                    self._lane_up = True
+                    async for _ in client.messages:
+                        pass
+            except (aiomqtt.MqttError, OSError) as error:
+                if self._lane_up:
+                    log.warning("MQTT: the stop lane lost %s:%d: %s", self.host, self.port, error)
+            finally:
+                self._lane_up = False
+                self._lane_client = None
             if self._stopping:
                 return
             await asyncio.sleep(backoff * random.uniform(0.8, 1.2))
@@ -425,25 +532,35 @@ class MqttLink:
             name = self.topics.command_name(topic)
             if name is None:
                 continue
-            if len(self._in_flight) >= MAX_COMMANDS_IN_FLIGHT and name != "estop":
+            if len(self._in_flight) >= MAX_COMMANDS_IN_FLIGHT and not is_stop(
+                normalize_command(name)
+            ):
                 answer = (503, {"accepted": False, "message": "too many MQTT commands at once"})
-                await self._answer(message, answer)
+                await self._answer(message, answer, client)
                 continue
-            task = asyncio.create_task(self._command(message, topic, name), name="mqtt-command")
+            command = self._command(message, topic, name, client)
+            task = asyncio.create_task(command, name="mqtt-command")
             self._in_flight.add(task)
             task.add_done_callback(self._in_flight.discard)
 
-    async def _command(self, message: aiomqtt.Message, topic: str, name: str) -> None:
+    async def _command(
+        self, message: aiomqtt.Message, topic: str, name: str, client: aiomqtt.Client | None
+    ) -> None:
         assert self._commands is not None
         raw = message.payload if isinstance(message.payload, bytes) else b""
         answer = await self._commands.handle(topic, name, raw)
-        await self._answer(message, answer)
+        await self._answer(message, answer, client)
 
-    async def _answer(self, message: aiomqtt.Message, answer: tuple[int, dict[str, Any]]) -> None:
-        """On the request's v5 response topic, with its correlation data; none asked, none sent."""
+    async def _answer(
+        self,
+        message: aiomqtt.Message,
+        answer: tuple[int, dict[str, Any]],
+        client: aiomqtt.Client | None,
+    ) -> None:
+        """On the request's v5 response topic, with its correlation data, by the connection
+        it came on; none asked, none sent."""
         asked = message.properties
         response_topic = getattr(asked, "ResponseTopic", None) if asked else None
-        client = self._client
         if not response_topic or client is None:
             return
         properties = Properties(PacketTypes.PUBLISH)

@@ -35,6 +35,7 @@ from server.core.machine.transitions import State
 from server.opcua import address_space, server_info, tags
 from server.opcua.address_space import CellNodes, data_value
 from server.opcua.alarms import CellAlarms
+from server.opcua.call_lane import CallLane
 from server.opcua.certificate import application_uri, ensure_certificate
 from server.opcua.identity import TokenUsers
 from server.opcua.methods import CellMethods
@@ -101,6 +102,7 @@ class OpcUaInterface:
         self.server = Server(user_manager=TokenUsers(tokens))  # type: ignore[arg-type]
         self.methods = CellMethods(self.server, cell, tokens)
         self.alarms = CellAlarms(self.server, cell, tokens, answers)
+        self.calls = CallLane(self.server, self.methods.is_stop)
         self.tokens = tokens
         self.nodes: CellNodes | None = None
         self.packml: PackMLFeed | None = None  # the PackML state machines, Status and Admin
@@ -118,6 +120,8 @@ class OpcUaInterface:
         await server.init()
         # A password only where nobody else can read it (server/opcua/protection.py).
         PasswordGuard(server, self.cell, self.tokens).install()
+        # A session's calls side by side, a stop ahead of them (server/opcua/call_lane.py).
+        self.calls.install()
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"glue cell {self.plant.cell_id}")
         await server_info.set_build_info(server)
@@ -182,6 +186,7 @@ class OpcUaInterface:
                 self.cell.worker.decisions.remove(self.packml.decided)
             await self.packml.stop()
         await self.alarms.stop()
+        await self.calls.close()
         if self._feed is not None:
             self._feed.subscription.close()
         await self.server.stop()

@@ -37,7 +37,7 @@ from asyncua.common.callback import ServerItemCallback
 from server.bootstrap.cell import Cell
 from server.commands.answers import Problem, invalid_request, payload_of
 from server.commands.answers import status_of as http_status_of
-from server.commands.catalogue import CATALOGUE
+from server.commands.catalogue import CATALOGUE, is_stop
 from server.common.errors import EventQueueFull, JournalUnavailable, WorkerStopped
 from server.core.machine.events import AuditNote, Outcome
 from server.core.machine.transitions import Command
@@ -188,6 +188,11 @@ class CellMethods:
                 callback=self._callback(method),
                 description=f"PackML {method.packml}: {method.description}",
             )
+
+    def is_stop(self, node_id: ua.NodeId) -> bool:
+        """Whether the method at `node_id` is a stop (EmergencyStop, PackML's Abort)."""
+        method = self.nodes.get(node_id)
+        return method is not None and is_stop(method.command)
 
     def may_call(self, user: object, method: Method) -> bool:
         """Whether `user` holds a token with the role `method` needs (anonymous: never)."""

@@ -24,6 +24,7 @@ from bench import (
     cycle_time,
     device_feed,
     engine_throughput,
+    estop_doors,
     estop_latency,
     estop_under_attack,
     memory,
@@ -171,6 +172,19 @@ def test_estop_under_attack_measures_quiet_and_attacked_stops(results_in_tmp: Pa
     assert attack["slow_connections_made"] >= 20
     assert attack["flood_answers"]["401"] == 20 and attack["flood_answers"]["429"] > 0
     assert document["server_open_fds"]["attacked_max"] > 0
+
+
+def test_estop_doors_measures_every_door_quiet_and_flooded(results_in_tmp: Path) -> None:
+    floods = ["--mqtt-flood", "20", "--opcua-flood", "10", "--http-flood", "10"]
+    rows = estop_doors.main(["--trials", "1", *floods])
+    assert [(row["door"], row["condition"].split(" ")[0]) for row in rows] == [
+        (door, condition)
+        for door in ("http", "mqtt", "opcua")
+        for condition in ("quiet", "flooded")
+    ]
+    for row in rows:
+        assert row["n"] == 1 and row["p50_ms"] > 0
+    assert (results_in_tmp / "estop_doors.json").is_file()
 
 
 def test_reset_probe_measures_every_condition(results_in_tmp: Path) -> None:

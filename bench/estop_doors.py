@@ -1,0 +1,184 @@
+"""The stop through every door, side by side: HTTP, MQTT and OPC UA, quiet and flooded.
+
+A trial sends one e-stop through one door and measures the **device stop**: from
+just before the stop was handed to the door's client to the later of the robot
+receiving `stop` and the dispenser receiving the valve-close write (the
+simulators' own stamps, as `bench.estop_latency` takes them). Flooded, the door
+is sent `--mqtt-flood` / `--opcua-flood` / `--http-flood` pause commands just
+before the stop, on the same connection (MQTT: the same client, so the broker
+delivers the stop after them; OPC UA: the same session, the calls all on their
+way before the first is answered; HTTP: a pool of 64 connections, the stop on
+the HMI's own kept-alive one). The pauses are refused in IDLE and in ERROR, so
+each costs the door and the worker their whole path and changes nothing. After
+each trial the cell is reset to IDLE.
+
+Who runs where: the server (the production app under uvicorn, MQTT commands and
+OPC UA on) in this process's loop; Debian's mosquitto; the robot and glue
+simulators in a process of their own (bench/stop_witness.py); the three doors'
+clients in another (bench/door_client.py). Every door's conditions alternate
+trial by trial, so the machine's moods fall on all of them alike.
+
+Run: `python -m bench.estop_doors` (`--trials 30` per door and condition by
+default). No timing is promised: on a shared machine the figures measure the
+machine as much as the server.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import httpx
+import uvicorn
+
+from bench.estop_latency import StopWitness, to_idle, wait_state
+from bench.report import emit, percentiles_ms
+from server.bootstrap.app import create_app
+from server.bootstrap.cell import Cell
+from server.core.machine.transitions import State
+from server.settings.model import Settings
+from tests.mosquitto import mosquitto
+from tests.processes import ROOT
+from tests.serving import free_port
+
+CELL_ID = "cell-bench"
+DOORS = ("http", "mqtt", "opcua")
+
+
+class DoorClient:
+    """The doors' clients' process (bench/door_client.py)."""
+
+    def __init__(self, http_url: str, mqtt_port: int, opcua_url: str, token: str) -> None:
+        self.process = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "bench.door_client",
+                http_url,
+                str(mqtt_port),
+                opcua_url,
+                CELL_ID,
+            ],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+            env={**os.environ, "GLUE_BENCH_TOKEN": token},
+        )
+        assert self.process.stdout is not None and self.process.stdin is not None
+        self.stdin, self.stdout = self.process.stdin, self.process.stdout
+        line = self.stdout.readline()
+        if line.strip() != "ready":
+            raise RuntimeError(f"the door client did not start: {line!r}")
+
+    def stop(self, door: str, flood: int) -> float:
+        self.stdin.write(f"stop {door} {flood}\n")
+        self.stdin.flush()
+        words = self.stdout.readline().split()
+        if not words or words[0] != "sent":
+            raise RuntimeError(f"the {door} stop failed: {words}")
+        return float(words[1])
+
+    def close(self) -> None:
+        self.stdin.close()
+        self.process.wait(30)
+
+
+async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
+    floods = {"http": args.http_flood, "mqtt": args.mqtt_flood, "opcua": args.opcua_flood}
+    witness = await asyncio.to_thread(StopWitness)
+    with mosquitto(data / "broker") as broker:
+        opcua_port = free_port()
+        settings = Settings(
+            robot_ip="127.0.0.1",
+            robot_port=witness.robot_port,
+            glue_controller_port=f"tcp://127.0.0.1:{witness.glue_port}",
+            emergency_stop_timeout=1.0,
+            data_path=data / "cell",
+            cell_id=CELL_ID,
+            mqtt_commands=True,
+            opcua_endpoint=f"opc.tcp://127.0.0.1:{opcua_port}",
+            event_queue_size=max(1000, 2 * max(floods.values())),
+            **broker.cell_login,
+        )
+        cell = Cell(settings)
+        port = free_port()
+        server = uvicorn.Server(
+            uvicorn.Config(create_app(cell=cell), host="127.0.0.1", port=port, log_level="error")
+        )
+        serving = asyncio.create_task(server.serve())
+        while not server.started:
+            await asyncio.sleep(0.01)
+        assert cell.worker is not None
+        await wait_state(cell.worker, State.IDLE)
+        admin = (settings.data_path / "admin.token").read_text().strip()
+        url = f"http://127.0.0.1:{port}"
+        async with httpx.AsyncClient(
+            base_url=url, headers={"Authorization": f"Bearer {admin}"}
+        ) as http:
+            made = await http.post("/tokens", json={"name": "bench", "role": "operator"})
+            token = made.json()["token"]
+            while not (await http.get("/health")).json()["mqtt"]["connected"]:
+                await asyncio.sleep(0.05)
+        client = await asyncio.to_thread(
+            DoorClient, url, broker.port, f"opc.tcp://127.0.0.1:{opcua_port}", token
+        )
+        samples: dict[tuple[str, str], list[float]] = {}
+        for _ in range(args.trials):
+            for door in DOORS:
+                for condition, flood in (("quiet", 0), ("flooded", floods[door])):
+                    await to_idle(cell.worker)
+                    await asyncio.to_thread(witness.tell, "arm")
+                    sent = await asyncio.to_thread(client.stop, door, flood)
+                    stamps = await asyncio.to_thread(witness.tell, "stamps")
+                    if "None" in stamps:
+                        raise RuntimeError(f"the {door} stop reached no device: {stamps}")
+                    device_stop = max(float(stamps[1]), float(stamps[2])) - sent
+                    samples.setdefault((door, condition), []).append(device_stop)
+        await to_idle(cell.worker)
+        await asyncio.to_thread(client.close)
+        server.should_exit = True
+        await serving
+    await asyncio.to_thread(witness.close)
+    rows = []
+    for door in DOORS:
+        for condition in ("quiet", "flooded"):
+            flood = 0 if condition == "quiet" else floods[door]
+            rows.append(
+                {
+                    "door": door,
+                    "condition": f"{condition} ({flood} pauses ahead)" if flood else condition,
+                    **percentiles_ms(samples[(door, condition)]),
+                    "target_p99_ms": 5.0,
+                }
+            )
+    return rows
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--trials", type=int, default=30, help="stops per door and condition")
+    parser.add_argument("--mqtt-flood", type=int, default=3000, help="MQTT commands ahead")
+    parser.add_argument("--opcua-flood", type=int, default=300, help="OPC UA calls ahead")
+    parser.add_argument("--http-flood", type=int, default=1000, help="HTTP requests ahead")
+    parser.add_argument("--name", default="estop_doors", help="the result file's name")
+    args = parser.parse_args(argv)
+    logging.disable(logging.ERROR)  # every e-stop logs a fault; not what is measured
+    with tempfile.TemporaryDirectory(prefix="bench-doors-") as data:
+        rows = asyncio.run(run(args, Path(data)))
+    floods = {"mqtt": args.mqtt_flood, "opcua": args.opcua_flood, "http": args.http_flood}
+    emit(args.name, rows, {"trials": args.trials, "floods": floods})
+    return rows
+
+
+if __name__ == "__main__":
+    main()

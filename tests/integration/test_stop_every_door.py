@@ -1,0 +1,165 @@
+"""The stop through every door: an e-stop sent behind a flood of that door's own commands
+is decided ahead of the flood's commands that were sent before it.
+
+Each door has a queue of its own in front of the worker's: MQTT's is the client's
+incoming queue (the broker delivers in order, the link reads one message at a
+time), OPC UA's the session's calls, served in order. The stop must not wait in
+it. Seen in the journal: the EMERGENCY_STOP's row comes before the rows of flood
+commands the client sent before the stop. Nothing here is timed; the order of
+the journal's rows is the measure.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sqlite3
+import threading
+from pathlib import Path
+
+import paho.mqtt.client as paho
+from asyncua import Client, ua
+from paho.mqtt.enums import CallbackAPIVersion
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+
+from clients.client.mqtt_signing import sign_command
+from server.line.broker import DEMO_PASSWORDS
+from server.opcua.address_space import NAMESPACE_URI
+from tests.mosquitto import WAIT_S, mosquitto
+from tests.rig import Rig, open_rig
+from tests.serving import free_port
+
+CELL = "cell-7"
+BASE = f"glue/{CELL}"
+FLOOD = 600  # under mosquitto's default max_queued_messages (1000) for one client
+
+
+def _publish_flood_then_stop(port: int, token: str) -> None:
+    """FLOOD signed `pause` commands, each asking for its answer, then one `estop`, on one
+    connection, in this order (MQTT keeps a client's order), each acknowledged (QoS 1);
+    returns once every one of them is answered."""
+    client = paho.Client(CallbackAPIVersion.VERSION2, protocol=paho.MQTTv5)
+    client.username_pw_set("operator", DEMO_PASSWORDS["operator"])
+    client.max_inflight_messages_set(0)  # no limit: the whole flood is on its way at once
+    client.max_queued_messages_set(0)
+    answered = threading.Semaphore(0)
+    client.on_message = lambda *_: answered.release()
+    client.connect("127.0.0.1", port)
+    client.loop_start()
+    try:
+        reply_to = f"{BASE}/response/flood"
+        client.subscribe(reply_to, qos=1)  # before the commands: the broker keeps order
+        properties = Properties(PacketTypes.PUBLISH)
+        properties.ResponseTopic = reply_to
+        infos = []
+        for _ in range(FLOOD):
+            topic = f"{BASE}/command/pause"
+            payload = json.dumps(sign_command(token, topic, None)).encode()
+            infos.append(client.publish(topic, payload, qos=1, properties=properties))
+        topic = f"{BASE}/command/estop"
+        payload = json.dumps(sign_command(token, topic, {"reason": "behind the flood"})).encode()
+        infos.append(client.publish(topic, payload, qos=1, properties=properties))
+        for info in infos:
+            info.wait_for_publish(WAIT_S)
+        for _ in infos:  # each read and answered by the cell: none still on its way
+            assert answered.acquire(timeout=WAIT_S), "a command was never answered"
+    finally:
+        client.loop_stop()
+        client.disconnect()
+
+
+async def _link_up(rig: Rig) -> None:
+    async with asyncio.timeout(WAIT_S):
+        while not (await rig.api.get("/health")).json()["mqtt"]["connected"]:
+            await asyncio.sleep(0.05)
+
+
+def _events(data: Path) -> list[tuple[str, str]]:
+    """Every event the worker decided, in the order it decided them: (type, source)."""
+    with sqlite3.connect(data / "journal.db") as db:
+        return list(db.execute("SELECT type, source FROM events ORDER BY rowid"))
+
+
+async def test_an_mqtt_stop_behind_a_flood_is_decided_before_the_flood_sent_ahead_of_it(
+    tmp_path: Path,
+) -> None:
+    with mosquitto(tmp_path / "broker") as broker:
+        async with open_rig(
+            tmp_path / "data", **broker.cell_login, cell_id=CELL, mqtt_commands=True
+        ) as rig:
+            await _link_up(rig)
+            made = await rig.api.post("/tokens", json={"name": "mes", "role": "operator"})
+            token = made.json()["token"]
+            done = threading.Event()
+
+            def publish() -> None:
+                try:
+                    _publish_flood_then_stop(broker.port, token)
+                finally:
+                    done.set()
+
+            thread = threading.Thread(target=publish, daemon=True)
+            thread.start()
+            await rig.wait_state("ERROR")
+            # Every command answered: each pause refused by the worker (IDLE, then ERROR:
+            # 409) or at the door (503, too many at once).
+            async with asyncio.timeout(WAIT_S):
+                while not done.is_set():
+                    await asyncio.sleep(0.05)
+            assert rig.cell.journal is not None
+            await rig.cell.journal.caught_up()
+            mqtt = [kind for kind, source in _events(tmp_path / "data") if source == "mqtt:mes"]
+            assert "EMERGENCY_STOP" in mqtt, mqtt
+            stop_at = mqtt.index("EMERGENCY_STOP")
+            before, after = mqtt[:stop_at], mqtt[stop_at + 1 :]
+            print(f"pauses decided before the stop: {len(before)}, after it: {len(after)}")
+            # Every pause was sent before the stop; the stop went ahead of most of them.
+            assert len(after) > len(before), (len(before), len(after))
+
+
+BURST = 200  # OPC UA calls on one session, all sent before the stop
+
+
+async def test_an_opcua_stop_behind_a_burst_of_calls_is_decided_before_the_burst(
+    tmp_path: Path,
+) -> None:
+    port = free_port()
+    overrides = {"cell_id": CELL, "opcua_endpoint": f"opc.tcp://127.0.0.1:{port}"}
+    async with open_rig(tmp_path / "data", **overrides) as rig:
+        made = await rig.api.post("/tokens", json={"name": "plc", "role": "operator"})
+        # The client probes the server every watchdog_intervall and gives up on a slow
+        # answer: on a busy shared machine that is not the connection lost.
+        opc = Client(f"opc.tcp://127.0.0.1:{port}", timeout=WAIT_S, watchdog_intervall=WAIT_S)
+        opc.set_user("plc")
+        opc.set_password(made.json()["token"])
+        async with opc:
+            ns = await opc.get_namespace_index(NAMESPACE_URI)
+
+            def request(method: str) -> ua.CallMethodRequest:
+                call = ua.CallMethodRequest()
+                call.ObjectId = ua.NodeId.from_string(f"ns={ns};s={CELL}")
+                call.MethodId = ua.NodeId.from_string(f"ns={ns};s={CELL}.{method}")
+                call.InputArguments = []
+                return call
+
+            # One session, every request on its way before the first is answered (asyncua's
+            # client sends each as it is made): BURST Pauses (refused in IDLE), then the stop.
+            calls = [
+                asyncio.ensure_future(opc.uaclient.call([request("Pause")])) for _ in range(BURST)
+            ]
+            calls.append(asyncio.ensure_future(opc.uaclient.call([request("EmergencyStop")])))
+            answers = await asyncio.gather(*calls)
+        assert answers[-1][0].StatusCode.is_good(), answers[-1]
+        await rig.wait_state("ERROR")
+        assert rig.cell.journal is not None
+        await rig.cell.journal.caught_up()
+        ours = [kind for kind, source in _events(tmp_path / "data") if source.startswith("opcua:")]
+        stop_at = ours.index("EMERGENCY_STOP")
+        before, after = ours[:stop_at], ours[stop_at + 1 :]
+        print(f"pauses decided before the stop: {len(before)}, after it: {len(after)}")
+        assert len(before) + len(after) == BURST  # every Pause reached the worker
+        # The session's requests are read in order (its channel is decrypted in order), so
+        # the stop comes after the calls ahead of it are read; but not after they are
+        # decided and answered: it overtakes those still waiting for the worker.
+        assert after, "the stop waited for every call sent before it to be decided"
