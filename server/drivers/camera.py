@@ -50,6 +50,7 @@ from server.drivers.sim.camera_scene import (
     Scene,
     Workpiece,
     default_chessboard_poses,
+    release_chessboard_state,
     render_chessboard_view,
     render_table,
 )
@@ -482,7 +483,7 @@ class SimulatedCamera(_CameraBase):
             if source is not None:  # the in-process simulators' glue, gathered on a thread
                 shifts = list(self._part_shifts)
                 scene.bead = await asyncio.to_thread(source, self._bead_since, shifts)
-            draw, args = render_table, (scene, model, rng)
+            draw, args = _table_view, (scene, model, rng)
         else:
             board, pose = self.chessboard, self.chessboard_poses[self._next_view]
             if advance:
@@ -492,6 +493,14 @@ class SimulatedCamera(_CameraBase):
             draw, args = _chessboard_view, (model, board, pose, rng, *light)
         shape = (model.height, model.width, 3)
         return await IMAGE_PROCESS.call(draw, *args, frame_out=(shape, np.uint8))
+
+
+def _table_view(scene: Scene, model: CameraModel, rng: np.random.Generator) -> np.ndarray:
+    """`render_table`, then what only chessboard views needed is let go (the image process
+    keeps no calibration board's state while the camera looks at the table)."""
+    frame = render_table(scene, model, rng)
+    release_chessboard_state()
+    return frame
 
 
 def _chessboard_view(
