@@ -19,12 +19,11 @@ from typing import TYPE_CHECKING, Any
 from server.bootstrap.cell import Cell
 from server.common.errors import ConfigurationError
 from server.core.infra.answers_in_flight import AnswersInFlight
-from server.mqtt.commands import CommandDoor
-from server.mqtt.link import MqttLink
 from server.security.tokens import TokenStore
 from server.settings.model import Settings
 
 if TYPE_CHECKING:
+    from server.mqtt.link import MqttLink
     from server.opcua.interface import OpcUaInterface
 
 log = logging.getLogger(__name__)
@@ -93,6 +92,10 @@ def _mqtt(
     settings: Settings = cell.settings
     if settings.mqtt_url is None:
         return None
+    # aiomqtt and paho are loaded only when asked for, as asyncua is for OPC UA.
+    from server.mqtt.commands import CommandDoor
+    from server.mqtt.link import MqttLink
+
     door = None
     if settings.mqtt_commands:
         door = CommandDoor(

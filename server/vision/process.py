@@ -19,8 +19,11 @@ exceptions) is pickled, so it must be small and picklable.
 One child does the work, one call after another, for the whole server
 process: the cell starts it as it starts (`warm_up`; its imports take a second
 or so, once), and a child that died is replaced on the next call. It is
-started with `spawn`, which imports the parent's main module again: a script
-of your own that runs a cell needs the `if __name__ == "__main__":` guard.
+started with `spawn`, but without the parent's main module: `spawn` would
+import it again in the child (for `glue-server`, its script, and through it the
+whole server: the web framework, the protocol stacks, the settings, some 30 MB
+and a second of the start-up's CPU) for nothing, as the child runs only the
+module-level functions it is handed, each imported by its own module's name.
 
 A call cancelled by its caller (an e-stop ending the operation) cannot stop
 the child's work: the caller goes on at once, and the call's shared block is
@@ -38,6 +41,7 @@ import ctypes.util
 import gc
 import multiprocessing
 import multiprocessing.connection
+import multiprocessing.context
 import os
 import pickle
 import signal
@@ -45,7 +49,7 @@ import threading
 from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
-from multiprocessing import shared_memory
+from multiprocessing import popen_spawn_posix, shared_memory, spawn
 from typing import Any, TypeVar
 
 import numpy as np
@@ -104,6 +108,39 @@ class _Block:
     def release(self) -> None:
         self.into.release()
         self.out.release()
+
+
+_PREPARATION = spawn.get_preparation_data
+_launching = threading.Lock()
+
+
+def _preparation_without_main(name: str) -> dict[str, Any]:
+    data = _PREPARATION(name)
+    data.pop("init_main_from_name", None)
+    data.pop("init_main_from_path", None)
+    return data
+
+
+class _PopenWithoutMain(popen_spawn_posix.Popen):
+    """`spawn`'s launch, with the main module left out of what the child prepares."""
+
+    def _launch(self, process_obj: Any) -> None:
+        with _launching:  # multiprocessing reads the preparation from its module: briefly ours
+            spawn.get_preparation_data = _preparation_without_main
+            try:
+                super()._launch(process_obj)  # type: ignore[misc]  # not in the stubs
+            finally:
+                spawn.get_preparation_data = _PREPARATION
+
+
+class _ProcessWithoutMain(multiprocessing.context.SpawnProcess):
+    @staticmethod
+    def _Popen(process_obj: Any) -> _PopenWithoutMain:
+        return _PopenWithoutMain(process_obj)
+
+
+class _SpawnWithoutMain(multiprocessing.context.SpawnContext):
+    Process = _ProcessWithoutMain
 
 
 class ImageProcess:
@@ -198,7 +235,7 @@ class ImageProcess:
             if self._pool is None:
                 self._pool = concurrent.futures.ProcessPoolExecutor(
                     max_workers=1,
-                    mp_context=multiprocessing.get_context("spawn"),
+                    mp_context=_SpawnWithoutMain(),
                     initializer=_child_starts,
                 )
             pool = self._pool
