@@ -75,9 +75,7 @@ def cell_processes(server_pid: int) -> list[psutil.Process]:
     return [server, *server.children(recursive=True)]
 
 
-def measure_point(
-    point: str, server_pid: int, others: dict[str, int]
-) -> list[dict[str, Any]]:
+def measure_point(point: str, server_pid: int, others: dict[str, int]) -> list[dict[str, Any]]:
     """One row per process of the cell, one per process outside it, and the cell's total."""
     rows = []
     for process in cell_processes(server_pid):

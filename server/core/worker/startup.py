@@ -113,7 +113,9 @@ class Activities:
             finally:
                 took[name] = time.perf_counter() - connecting
 
-        results = await asyncio.gather(*(connect(name) for name in timeouts), return_exceptions=True)
+        results = await asyncio.gather(
+            *(connect(name) for name in timeouts), return_exceptions=True
+        )
         log.info(  # each on its own: the slowest sets when the cell can be ready
             "start-up: devices connected in %s",
             ", ".join(f"{name} {took[name]:.3f} s" for name in timeouts if name in took),
