@@ -9,12 +9,13 @@ stop takes a fraction of one (tests/integration/test_first_stop.py).
 `prepare_routes` matches one request that fits no route against the app's own
 router at start-up, which walks, and so prepares, every route.
 
-It goes to the router's routes, not through the app: no middleware sees it, so
-there is no audit row, no metric and no answer on any socket. One route at a
-time, yielding to the event loop between them: the app's start-up runs it beside
-the cell's (`server/bootstrap/app.py`), whose devices connect meanwhile, and the
-sixty routes' preparation (a few hundred milliseconds) holds the loop for one
-route's at most. The port opens once every route is prepared, as before.
+It goes to the router's entries, not through the app: no middleware sees it, so
+there is no audit row, no metric and no answer on any socket. One entry at a
+time (a route, or a router the app includes with its routes), yielding to the
+event loop between them: the app's start-up runs it beside the cell's
+(`server/bootstrap/app.py`), whose devices connect meanwhile, and the
+preparation of every route (a few hundred milliseconds) holds the loop for one
+entry's share at most. The port opens once every route is prepared.
 """
 
 from __future__ import annotations
