@@ -422,8 +422,8 @@ class SimulatedCamera(_CameraBase):
         Why not wait for that frame: it is the simulator's own set-up (a second or two of
         per-pixel maps), not the camera's link, and nothing needs a frame before a person
         commands an operation. Waited for here, it was most of a start-up's time to IDLE.
-        The first capture waits for it (bounded by SIM_WARM_UP_S, outside its own timeout),
-        then draws from warm caches.
+        The first capture waits for it (`warmed_up`, outside its own timeout), then draws
+        from warm caches.
         """
         self._open = True
         started = time.monotonic()
@@ -450,10 +450,7 @@ class SimulatedCamera(_CameraBase):
         """One BGR frame (uint8, 1080×1920×3) of the table or of the next chessboard pose."""
         if not self._open:
             raise DeviceDisconnected(DEVICE, "simulated camera is not open: connect first")
-        first, self._first_frame = self._first_frame, None
-        if first is not None:  # the render caches being built since connect
-            with contextlib.suppress(Exception):  # a frame it could not draw, this one says so
-                await asyncio.wait_for(asyncio.shield(first), SIM_WARM_UP_S)
+        await self.warmed_up()
         started = time.monotonic()
         try:
             async with asyncio.timeout(self.timeout):
@@ -468,6 +465,18 @@ class SimulatedCamera(_CameraBase):
             raise DeviceTimeout(DEVICE, message) from None
         self._frame_ok(started)
         return frame
+
+    async def warmed_up(self) -> None:
+        """Wait (at most SIM_WARM_UP_S) for the first frame drawn since connect: its render
+        caches, so that a capture timed by its caller is timed on its own frame.
+
+        Callers that bound a capture by a timeout of their own (an operation's frame, the
+        reset's probe) wait for this first, outside it. Never raises: a first frame that
+        could not be drawn is the next capture's to report."""
+        first, self._first_frame = self._first_frame, None
+        if first is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(asyncio.shield(first), SIM_WARM_UP_S)
 
     async def close(self) -> None:
         """Close; never raises."""
