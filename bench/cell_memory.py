@@ -117,7 +117,10 @@ def wait_state(api: httpx.Client, wanted: str, timeout: float = RUN_TIMEOUT_S) -
         time.sleep(0.05)
 
 
-def one_run(api: httpx.Client) -> None:
+def one_run(api: httpx.Client) -> str | None:
+    """One spray run to its end: None, or the code of the fault that stopped it (the cell
+    is then reset, as a person would, and the next run goes on: on a machine shared with
+    other work a frame can miss its timeout)."""
     answer = api.post("/start")
     answer.raise_for_status()
     run_id = answer.json()["run_id"]
@@ -125,9 +128,13 @@ def one_run(api: httpx.Client) -> None:
     while True:
         state = api.get("/state").json()
         if state["state"] == "IDLE" and (state.get("operation") or {}).get("run_id") != run_id:
-            return
-        if state["state"] == "ERROR" or time.monotonic() > deadline:
-            raise RuntimeError(f"run {run_id} ended in {state['state']}: {state}")
+            return None
+        if state["state"] == "ERROR":
+            api.post("/reset").raise_for_status()
+            wait_state(api, "IDLE")
+            return str((state.get("stop_reason") or {}).get("code"))
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"run {run_id} did not end: {state}")
         time.sleep(0.05)
 
 
@@ -162,12 +169,14 @@ def measure(layout: str, runs: int) -> list[dict[str, Any]]:
         api = stack.enter_context(admin(port, data / "data"))
         wait_state(api, "IDLE")
         rows = measure_point("started", server.pid, others)
+        faults: list[str] = []
         for index in range(runs):
-            one_run(api)
-            if index == 0:
+            if (fault := one_run(api)) is not None:
+                faults.append(fault)
+            if index == 0 and runs > 1:
                 rows += measure_point("after 1 run", server.pid, others)
-        rows += measure_point(f"after {runs} runs", server.pid, others)
-    return [{"layout": layout} | row for row in rows]
+        rows += measure_point(f"after {runs} run{'s' * (runs != 1)}", server.pid, others)
+    return [{"layout": layout} | row | {"runs_stopped": len(faults)} for row in rows]
 
 
 def totals(rows: list[dict[str, Any]]) -> dict[str, float]:

@@ -17,8 +17,10 @@ go. A call's frame goes in that way and, when the call gives a frame back
 exceptions) is pickled, so it must be small and picklable.
 
 One child does the work, one call after another, for the whole server
-process: the cell starts it as it starts (`warm_up`; its imports take a second
-or so, once), and a child that died is replaced on the next call. It is
+process: a cell with the simulated camera starts it as it starts (`warm_up`;
+its imports take a second or so, once: the camera draws its frames there), one
+with a real camera on its first call (a calibration, a run), and a child that
+died is replaced on the next call. It is
 started with `spawn`, but without the parent's main module: `spawn` would
 import it again in the child (for `glue-server`, its script, and through it the
 whole server: the web framework, the protocol stacks, the settings, some 30 MB
