@@ -121,7 +121,11 @@ def one_run(api: httpx.Client) -> str | None:
     """One spray run to its end: None, or the code of the fault that stopped it (the cell
     is then reset, as a person would, and the next run goes on: on a machine shared with
     other work a frame can miss its timeout)."""
-    answer = api.post("/start")
+    deadline = time.monotonic() + RUN_TIMEOUT_S
+    while (answer := api.post("/start")).status_code == 409:  # the home move still under way
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the start is refused: {answer.json()}")
+        time.sleep(0.2)
     answer.raise_for_status()
     run_id = answer.json()["run_id"]
     deadline = time.monotonic() + RUN_TIMEOUT_S
@@ -129,9 +133,10 @@ def one_run(api: httpx.Client) -> str | None:
         state = api.get("/state").json()
         if state["state"] == "IDLE" and (state.get("operation") or {}).get("run_id") != run_id:
             return None
-        if state["state"] == "ERROR":
+        if state["state"] == "ERROR":  # reset, and the robot sent home, as a person would
             api.post("/reset").raise_for_status()
             wait_state(api, "IDLE")
+            api.post("/home").raise_for_status()
             return str((state.get("stop_reason") or {}).get("code"))
         if time.monotonic() > deadline:
             raise RuntimeError(f"run {run_id} did not end: {state}")
