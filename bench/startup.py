@@ -113,7 +113,7 @@ def phases(log: str, started: float) -> dict[str, float]:
     return found
 
 
-def one_start(data: Path) -> dict[str, float]:
+def one_start(data: Path, settings: dict[str, str] | None = None) -> dict[str, float]:
     """Start the server on `data` until IDLE, stop it; its phases."""
     log_file = data / "logs" / "glue_cell.log"
     log_file.unlink(missing_ok=True)
@@ -123,7 +123,7 @@ def one_start(data: Path) -> dict[str, float]:
         argv,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
-        env=with_bytecode(environment()),
+        env=with_bytecode(environment(settings)),
         cwd=ROOT,
     )
     try:
@@ -144,14 +144,16 @@ def one_start(data: Path) -> dict[str, float]:
             process.wait(5)
 
 
-def run(rows: int, starts: int) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+def run(
+    rows: int, starts: int, settings: dict[str, str] | None = None
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     directory = Path(tempfile.mkdtemp(prefix="bench-startup-"))
     try:
         data = directory / "data"
         data.mkdir()
         commissioned(data)
         commits = with_journal_of(data, rows)
-        samples = [one_start(data) for _ in range(starts)]
+        samples = [one_start(data, settings) for _ in range(starts)]
     finally:
         shutil.rmtree(directory, ignore_errors=True)
     names = list(dict.fromkeys(name for sample in samples for name in sample))
@@ -177,9 +179,19 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     )
     parser.add_argument("--rows", type=int, default=1_000_000, help="rows in the journal")
     parser.add_argument("--starts", type=int, default=5, help="starts measured")
+    parser.add_argument(
+        "--setting",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="an environment variable for the measured starts, e.g. "
+        "GLUE_APP_VISION_PROCESSING_TIMEOUT=30 on a busy machine",
+    )
     args = parser.parse_args(argv)
     logging.disable(logging.ERROR)
-    rows, extra = run(args.rows, args.starts)
+    settings = dict(item.split("=", 1) for item in args.setting)
+    rows, extra = run(args.rows, args.starts, settings)
+    extra["settings"] = settings
     with contextlib.suppress(OSError):
         extra["load_average"] = os.getloadavg()
     emit("startup", rows, {"target_idle_s": 1.5, **extra})
