@@ -70,11 +70,11 @@ def with_bytecode(env: dict[str, str]) -> dict[str, str]:
     return {name: value for name, value in env.items() if name != "PYTHONDONTWRITEBYTECODE"}
 
 
-def commissioned(data: Path) -> None:
+def commissioned(data: Path, settings: dict[str, str] | None = None) -> None:
     """A data directory as a simulated cell leaves it after its first start."""
     port = free_port()
-    bytecode = {"PYTHONDONTWRITEBYTECODE": ""}  # server_process keeps the caller's: not set
-    with server_process(port, data, bytecode, timeout=600), admin(port, data) as api:
+    env = {**(settings or {}), "PYTHONDONTWRITEBYTECODE": ""}  # not set: bytecode written
+    with server_process(port, data, env, timeout=600), admin(port, data) as api:
         wait_state(api, "IDLE", timeout=600)
 
 
@@ -151,7 +151,7 @@ def run(
     try:
         data = directory / "data"
         data.mkdir()
-        commissioned(data)
+        commissioned(data, settings)
         commits = with_journal_of(data, rows)
         samples = [one_start(data, settings) for _ in range(starts)]
     finally:
