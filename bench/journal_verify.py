@@ -2,7 +2,8 @@
 
 The journal is built through the real commit chain (`commit_chain.py`), three
 rows per commit as a command writes them (its event, its transition, its audit
-row), then checked the way `Journal.open` does: PRAGMA quick_check (SQLite's
+row), runs started and completed in turn so it ends in IDLE (bench/startup.py
+starts a server on it), then checked the way `Journal.open` does: PRAGMA quick_check (SQLite's
 own check, there before the chain), then `verify` over the newest WINDOW
 commits (what start-up digests again), and, for comparison, over every commit
 (what `python -m server.storage.journal.check <journal.db>` does on demand).
@@ -25,6 +26,8 @@ from server.storage.journal.later_columns import add_commit_seq
 from server.storage.journal.verify import WINDOW, verify
 
 PER_TRANSACTION = 1_000  # commits written per SQLite transaction while building
+RUN_STARTED = ("START_REQUESTED", "IDLE", "EXECUTING_TRAJECTORY")  # event, from, to
+RUN_COMPLETED = ("OPERATION_COMPLETED", "EXECUTING_TRAJECTORY", "IDLE")
 
 
 def build(path: Path, rows: int) -> int:
@@ -35,24 +38,23 @@ def build(path: Path, rows: int) -> int:
     connection.executescript(SCHEMA)
     add_commit_seq(connection)
     chain = CommitChain(GENESIS, LastCommitFile(path))
-    commits = rows // 3
-    at = time.time()
+    commits = rows // 3 // 2 * 2  # even: the last commit is a run completed, back in IDLE
+    at = time.time() - 60  # the past, within any retention
     for start in range(0, commits, PER_TRANSACTION):
         with connection:
             for i in range(start, min(commits, start + PER_TRANSACTION)):
                 event_id = f"event-{i:08d}"
+                event, old, new = RUN_STARTED if i % 2 == 0 else RUN_COMPLETED
                 head = chain.write(
                     connection,
                     [
-                        records.event(
-                            event_id, at, "START_REQUESTED", "api", {}, "accepted", "", "IDLE"
-                        ),
+                        records.event(event_id, at, event, "api", {}, "accepted", "", old),
                         records.transition(
                             {
                                 "timestamp": at,
-                                "old_state": "IDLE",
-                                "new_state": "EXECUTING_TRAJECTORY",
-                                "event": "START_REQUESTED",
+                                "old_state": old,
+                                "new_state": new,
+                                "event": event,
                                 "event_id": event_id,
                                 "time_in_old_state": 12.5,
                             }

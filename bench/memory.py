@@ -18,6 +18,12 @@ until durable), not over HTTP: the HTTP layer holds nothing between requests.
 - after --operations (default 10k) operations run to completion
   (start → OPERATION_COMPLETED → IDLE).
 Target: growth under 10 MB.
+
+`--cell` measures instead the whole cell as `python -m server` runs it, each
+process apart (server, image process, resource tracker), after start-up and
+after `--runs` spray runs, with the simulators in the server's process and
+again apart from it (bench/cell_memory.py). Targets: the cell's unique memory
+after the runs at most 250 MB simulated, 150 MB with the devices elsewhere.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from typing import Any
 
 import psutil
 
+from bench import cell_memory
 from bench.engine_throughput import DEMO_PART, START_DEMO, NullDevice, event_sequence, submit_all
 from bench.report import emit
 from server.bootstrap.cell import Cell
@@ -131,10 +138,35 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     )
     parser.add_argument("--events", type=int, default=1_000_000)
     parser.add_argument("--operations", type=int, default=10_000)
+    parser.add_argument(
+        "--cell", action="store_true", help="every process of python -m server, after --runs runs"
+    )
+    parser.add_argument("--runs", type=int, default=100, help="spray runs, with --cell")
+    parser.add_argument(
+        "--layouts", default="sim,devices", help="with --cell: sim, devices or both"
+    )
     args = parser.parse_args(argv)
     logging.disable(logging.ERROR)
+    if args.cell:
+        return cell_main(args.runs, args.layouts.split(","))
     rows = asyncio.run(measure(args.events, args.operations))
     emit("memory", rows, {"target_growth_mb": 10})
+    return rows
+
+
+def cell_main(runs: int, layouts: list[str]) -> list[dict[str, Any]]:
+    rows = [row for layout in layouts for row in cell_memory.measure(layout, runs)]
+    totals = cell_memory.totals(rows)
+    emit(
+        "memory_cell",
+        rows,
+        {
+            "runs": runs,
+            "unique_total_mb": totals,
+            "target_unique_mb": {"sim": 250, "devices": 150},
+            **cell_memory.environment_note(),
+        },
+    )
     return rows
 
 

@@ -9,21 +9,29 @@ stop takes a fraction of one (tests/integration/test_first_stop.py).
 `prepare_routes` matches one request that fits no route against the app's own
 router at start-up, which walks, and so prepares, every route.
 
-It goes to the router, not through the app: no middleware sees it, so there
-is no audit row, no metric and no answer on any socket.
+It goes to the router's entries, not through the app: no middleware sees it, so
+there is no audit row, no metric and no answer on any socket. One entry at a
+time (a route, or a router the app includes with its routes), yielding to the
+event loop between them: the app's start-up runs it beside the cell's
+(`server/bootstrap/app.py`), whose devices connect meanwhile, and the
+preparation of every route (a few hundred milliseconds) holds the loop for one
+entry's share at most. The port opens once every route is prepared.
 """
 
 from __future__ import annotations
 
+import asyncio
+
 from fastapi import FastAPI
-from starlette.exceptions import HTTPException
-from starlette.types import Message, Scope
+from starlette.routing import Match
+from starlette.types import Scope
 
 NO_ROUTE = "/-/prepare-routes"  # a path no route of the app matches
 
 
 async def prepare_routes(app: FastAPI) -> None:
-    """Match a request for NO_ROUTE against every route of `app` (module docstring)."""
+    """Match a request for NO_ROUTE against every route of `app`, one after another
+    (module docstring)."""
     scope: Scope = {
         "type": "http",
         "asgi": {"version": "3.0"},
@@ -40,14 +48,8 @@ async def prepare_routes(app: FastAPI) -> None:
         "app": app,
     }
 
-    async def receive() -> Message:
-        return {"type": "http.request", "body": b"", "more_body": False}
-
-    async def send(message: Message) -> None:
-        """Nothing is answered: the request came from no one."""
-
-    try:
-        await app.router(scope, receive, send)
-    except HTTPException as not_found:  # inside an app, the router raises its 404
-        if not_found.status_code != 404:
-            raise
+    for route in app.router.routes:
+        match, _ = route.matches(scope)  # prepares the route, as the router's walk does
+        if match is not Match.NONE:
+            raise RuntimeError(f"{NO_ROUTE} was matched by {route!r}: pick another path")
+        await asyncio.sleep(0)

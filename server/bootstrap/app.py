@@ -9,6 +9,7 @@ routes and maps the core's typed errors to HTTP answers.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -89,11 +90,18 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        await cell.start()
-        gate.tokens.ensure_admin()
-        app.state.metrics.attach(cell)
-        await plant.start()
-        await prepare_routes(app)  # not on the first stop pressed
+        # The routes are prepared (not on the first stop pressed) beside the cell's start,
+        # each between two of its steps: both are done before the port opens.
+        preparing = asyncio.create_task(prepare_routes(app), name="route-preparation")
+        try:
+            await cell.start()
+            gate.tokens.ensure_admin()
+            app.state.metrics.attach(cell)
+            await plant.start()
+            await preparing
+        except BaseException:
+            preparing.cancel()
+            raise
         try:
             yield
         finally:

@@ -114,41 +114,38 @@ class Cell:
         return self.worker is not None
 
     async def start(self) -> None:
-        devices = self._devices
-        if devices is None:
-            factory = self._device_factory
-            if factory is None:
-                from server.bootstrap.devices import build_devices
+        """Bring the cell up: devices, data directory, journal, state, worker, subscribers.
 
-                factory = build_devices
-            devices, self._release = await factory(self.settings)
+        The devices are built (the simulators started, each client made) while the
+        journal is opened and checked: neither needs the other, and each is mostly a
+        thread's wait (SQLite, the simulators' start), so in turn they added up to a
+        third of a start-up's time. The taught marker layout is put in force only once
+        the devices are built: the simulated table is printed from the configured one.
+        """
         settings = self.settings
-        IMAGE_PROCESS.warm_up()  # its imports now, not in the first calibration's time
-        for note in settings.compatibility_notes():
-            log.warning("setting ignored: %s", note)
-        # The data directory for the cell's user only, however the server was started.
-        await asyncio.to_thread(tighten_data_directory, settings.data_path, [log_path(settings)])
-        self.stores = CellStores.open(settings.data_path)
+        if settings.camera_simulated:
+            # The simulated camera draws in the image process: started first, its imports
+            # and the first frame overlap the rest of the start. With a real camera it starts
+            # on the first image work (a calibration, a run): nothing needs it before.
+            IMAGE_PROCESS.warm_up()
+        building: asyncio.Task[tuple[CellDevices, Callable[[], Awaitable[None]] | None]]
+        building = asyncio.create_task(self._build_devices(), name="device-build")
+        try:
+            previous, snapshot_file = await self._open_records()
+        except BaseException:
+            await self._abandon(building)
+            raise
+        try:
+            devices, self._release = await building
+        except BaseException:  # no devices, no cell: the records' threads end with the start
+            if self.journal is not None:
+                await asyncio.to_thread(self.journal.stop)
+            if snapshot_file is not None:
+                await asyncio.to_thread(snapshot_file.stop)
+            raise
+        assert self.stores is not None and self.journal is not None
         restore_taught_layout(settings, self.stores.markers.applied)
         self.runtime_settings = restore_runtime_settings(settings, self.stores)
-        self.journal = Journal(
-            settings.journal_file,
-            synchronous=settings.journal_synchronous,
-            retention_days=settings.analytics_retention_days,
-        )
-        await asyncio.to_thread(self.journal.open)
-        self.journal.start(asyncio.get_running_loop())
-        record_journal_damage(self.journal)
-        snapshot_file = None
-        previous = None
-        if settings.state_persistence:
-            snapshot_file = SnapshotFile(
-                settings.data_file(settings.persistence_file, "state.json"),
-                settings.persistence_interval,
-            )
-            journal, load = self.journal, snapshot_file.load  # reads: off the loop
-            previous = await asyncio.to_thread(lambda: last_state(journal, load()))
-            snapshot_file.start()
         self._snapshot_file = snapshot_file
         interruption = await asyncio.to_thread(find_interruption, self.journal, previous)
         if interruption:
@@ -209,6 +206,60 @@ class Cell:
         self.orders = book = OrderBook(self, self.journal, next_part=next_part)
         self.worker.orders = book  # a start while an order is active makes a part of it
         await self.orders.start()
+
+    async def _build_devices(
+        self,
+    ) -> tuple[CellDevices, Callable[[], Awaitable[None]] | None]:
+        """The devices given, or built by the factory (with what releases them)."""
+        if self._devices is not None:
+            return self._devices, None
+        factory = self._device_factory
+        if factory is None:
+            from server.bootstrap.devices import build_devices
+
+            factory = build_devices
+        return await factory(self.settings)
+
+    async def _abandon(
+        self, building: asyncio.Task[tuple[CellDevices, Callable[[], Awaitable[None]] | None]]
+    ) -> None:
+        """The start failed: what was built for the devices is released, not left running."""
+        try:
+            _, release = await building
+        except Exception:
+            return
+        if release is not None:
+            await release()
+
+    async def _open_records(self) -> tuple[dict[str, Any] | None, SnapshotFile | None]:
+        """The data directory, the stores, the journal (checked) and the state snapshot: the
+        state the last run left, and the snapshot file (started)."""
+        settings = self.settings
+        for note in settings.compatibility_notes():
+            log.warning("setting ignored: %s", note)
+        # The data directory for the cell's user only, however the server was started.
+        await asyncio.to_thread(tighten_data_directory, settings.data_path, [log_path(settings)])
+        self.stores = CellStores.open(settings.data_path)
+        self.journal = Journal(
+            settings.journal_file,
+            synchronous=settings.journal_synchronous,
+            retention_days=settings.analytics_retention_days,
+        )
+        checking = time.perf_counter()
+        await asyncio.to_thread(self.journal.open)
+        log.info("start-up: journal opened and checked in %.3f s", time.perf_counter() - checking)
+        self.journal.start(asyncio.get_running_loop())
+        record_journal_damage(self.journal)
+        if not settings.state_persistence:
+            return None, None
+        snapshot_file = SnapshotFile(
+            settings.data_file(settings.persistence_file, "state.json"),
+            settings.persistence_interval,
+        )
+        journal, load = self.journal, snapshot_file.load  # reads: off the loop
+        previous = await asyncio.to_thread(lambda: last_state(journal, load()))
+        snapshot_file.start()
+        return previous, snapshot_file
 
     async def stop(self) -> None:
         if self.orders is not None:

@@ -19,9 +19,6 @@ from typing import TYPE_CHECKING, Any
 from server.bootstrap.cell import Cell
 from server.common.errors import ConfigurationError
 from server.core.infra.answers_in_flight import AnswersInFlight
-from server.mqtt.commands import CommandDoor
-from server.mqtt.link import MqttLink
-from server.mqtt.sparkplug.node import SparkplugNode
 from server.security.tokens import TokenStore
 from server.settings.model import Settings
 from server.settings.mqtt import MqttSettings
@@ -29,6 +26,8 @@ from server.settings.opcua import OpcUaSettings
 from server.settings.plant import PlantSettings
 
 if TYPE_CHECKING:
+    from server.mqtt.link import MqttLink
+    from server.mqtt.sparkplug.node import SparkplugNode
     from server.opcua.interface import OpcUaInterface
 
 log = logging.getLogger(__name__)
@@ -112,6 +111,10 @@ def _mqtt(
     settings: Settings = cell.settings
     if settings.mqtt_url is None:
         return None
+    # aiomqtt and paho are loaded only when asked for, as asyncua is for OPC UA.
+    from server.mqtt.commands import CommandDoor
+    from server.mqtt.link import MqttLink
+
     door = None
     if settings.mqtt_commands:
         door = CommandDoor(
@@ -140,6 +143,8 @@ def _sparkplug(
     kpis: Callable[[], Awaitable[dict[str, Any]]],
 ) -> SparkplugNode | None:
     """The Sparkplug B edge node, when sparkplug_group is set (on mqtt_url's broker)."""
+    from server.mqtt.commands import CommandDoor  # aiomqtt is loaded only when asked for
+    from server.mqtt.sparkplug.node import SparkplugNode
     from server.opcua.packml import packml_state  # the PackML numbers OPC UA shows
 
     settings: Settings = cell.settings

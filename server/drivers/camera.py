@@ -26,8 +26,10 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import logging
 import math
+import os
 import queue
 import threading
 import time
@@ -51,6 +53,7 @@ from server.drivers.sim.camera_scene import (
     Scene,
     Workpiece,
     default_chessboard_poses,
+    release_chessboard_state,
     render_chessboard_view,
     render_table,
 )
@@ -61,8 +64,9 @@ logger = logging.getLogger(__name__)
 DEVICE = "camera"
 T = TypeVar("T")
 
-# The simulator builds its per-pixel maps (~2 s) on the first frame; connect() allows this
-# much for that one-off warm-up so a short capture timeout does not fail the connection.
+# The simulator builds its per-pixel maps and its table (~2 s) for the first frame, in the
+# image process, which itself takes a second to start: connect() and the first capture allow
+# this much for that one-off warm-up, so a short capture timeout does not fail either.
 SIM_WARM_UP_S = 30.0
 
 
@@ -325,6 +329,7 @@ class SimulatedCamera(_CameraBase):
         self._bead_since = -math.inf
         self._part_shifts: list[Shift] = []
         self._mounted_model = self.model
+        self._first_frame: asyncio.Future[np.ndarray] | None = None  # drawn since connect
         self.health.details.update(
             simulated=True, resolution=f"{self.model.width}x{self.model.height}", mode=self._mode
         )
@@ -413,14 +418,24 @@ class SimulatedCamera(_CameraBase):
     # --- Camera protocol -----------------------------------------------------------------
 
     async def connect(self) -> None:
-        """Open and deliver a first frame (also builds the render caches, see SIM_WARM_UP_S)."""
+        """Open: the image process that draws the frames answers; the first frame is drawn
+        after, in the background (the render caches, see SIM_WARM_UP_S).
+
+        Why not wait for that frame: it is the simulator's own set-up (a second or two of
+        per-pixel maps), not the camera's link, and nothing needs a frame before a person
+        commands an operation. Waited for here, it was most of a start-up's time to IDLE.
+        The first capture waits for it (`warmed_up`, outside its own timeout), then draws
+        from warm caches.
+        """
         self._open = True
         started = time.monotonic()
         try:
             async with asyncio.timeout(self.timeout):
                 await self._wait_out_faults()
             async with asyncio.timeout(max(self.timeout, SIM_WARM_UP_S)):
-                await self._render(advance=False)
+                await IMAGE_PROCESS.call(os.getpid)  # queued ahead of the first frame
+            self._first_frame = asyncio.ensure_future(self._render(advance=False))
+            self._first_frame.add_done_callback(_drawn_or_not)
         except TimeoutError:
             self._open = False
             message = f"simulated camera did not open within {self.timeout:g} s (stall injected)"
@@ -437,6 +452,7 @@ class SimulatedCamera(_CameraBase):
         """One BGR frame (uint8, 1080×1920×3) of the table or of the next chessboard pose."""
         if not self._open:
             raise DeviceDisconnected(DEVICE, "simulated camera is not open: connect first")
+        await self.warmed_up()
         started = time.monotonic()
         try:
             async with asyncio.timeout(self.timeout):
@@ -452,10 +468,25 @@ class SimulatedCamera(_CameraBase):
         self._frame_ok(started)
         return frame
 
+    async def warmed_up(self) -> None:
+        """Wait (at most SIM_WARM_UP_S) for the first frame drawn since connect: its render
+        caches, so that a capture timed by its caller is timed on its own frame.
+
+        Callers that bound a capture by a timeout of their own (an operation's frame, the
+        reset's probe) wait for this first, outside it. Never raises: a first frame that
+        could not be drawn is the next capture's to report."""
+        first, self._first_frame = self._first_frame, None
+        if first is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(asyncio.shield(first), SIM_WARM_UP_S)
+
     async def close(self) -> None:
         """Close; never raises."""
         self._open = False
         self.health.connected = False
+        first, self._first_frame = self._first_frame, None
+        if first is not None:
+            first.cancel()  # the image process finishes drawing it; nobody waits for it
 
     # --- internals -------------------------------------------------------------------------
 
@@ -484,7 +515,7 @@ class SimulatedCamera(_CameraBase):
             if source is not None:  # the in-process simulators' glue, gathered on a thread
                 shifts = list(self._part_shifts)
                 scene.bead = await asyncio.to_thread(source, self._bead_since, shifts)
-            draw, args = render_table, (scene, model, rng)
+            draw, args = _table_view, (scene, model, rng)
         else:
             board, pose = self.chessboard, self.chessboard_poses[self._next_view]
             if advance:
@@ -494,6 +525,21 @@ class SimulatedCamera(_CameraBase):
             draw, args = _chessboard_view, (model, board, pose, rng, *light)
         shape = (model.height, model.width, 3)
         return await IMAGE_PROCESS.call(draw, *args, frame_out=(shape, np.uint8))
+
+
+def _drawn_or_not(first: asyncio.Future[np.ndarray]) -> None:
+    """The first frame's outcome is read, so a failure nobody awaited is not logged as lost
+    (the next capture draws again and reports its own)."""
+    if not first.cancelled():
+        first.exception()
+
+
+def _table_view(scene: Scene, model: CameraModel, rng: np.random.Generator) -> np.ndarray:
+    """`render_table`, then what only chessboard views needed is let go (the image process
+    keeps no calibration board's state while the camera looks at the table)."""
+    frame = render_table(scene, model, rng)
+    release_chessboard_state()
+    return frame
 
 
 def _chessboard_view(

@@ -17,10 +17,15 @@ go. A call's frame goes in that way and, when the call gives a frame back
 exceptions) is pickled, so it must be small and picklable.
 
 One child does the work, one call after another, for the whole server
-process: the cell starts it as it starts (`warm_up`; its imports take a second
-or so, once), and a child that died is replaced on the next call. It is
-started with `spawn`, which imports the parent's main module again: a script
-of your own that runs a cell needs the `if __name__ == "__main__":` guard.
+process: a cell with the simulated camera starts it as it starts (`warm_up`;
+its imports take a second or so, once: the camera draws its frames there), one
+with a real camera on its first call (a calibration, a run), and a child that
+died is replaced on the next call. It is
+started with `spawn`, but without the parent's main module: `spawn` would
+import it again in the child (for `glue-server`, its script, and through it the
+whole server: the web framework, the protocol stacks, the settings, some 30 MB
+and a second of the start-up's CPU) for nothing, as the child runs only the
+module-level functions it is handed, each imported by its own module's name.
 
 A call cancelled by its caller (an e-stop ending the operation) cannot stop
 the child's work: the caller goes on at once, and the call's shared block is
@@ -33,9 +38,12 @@ import asyncio
 import atexit
 import concurrent.futures
 import contextlib
+import ctypes
+import ctypes.util
 import gc
 import multiprocessing
 import multiprocessing.connection
+import multiprocessing.context
 import os
 import pickle
 import signal
@@ -43,7 +51,7 @@ import threading
 from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
-from multiprocessing import shared_memory
+from multiprocessing import popen_spawn_posix, shared_memory, spawn
 from typing import Any, TypeVar
 
 import numpy as np
@@ -102,6 +110,39 @@ class _Block:
     def release(self) -> None:
         self.into.release()
         self.out.release()
+
+
+_PREPARATION = spawn.get_preparation_data
+_launching = threading.Lock()
+
+
+def _preparation_without_main(name: str) -> dict[str, Any]:
+    data = _PREPARATION(name)
+    data.pop("init_main_from_name", None)
+    data.pop("init_main_from_path", None)
+    return data
+
+
+class _PopenWithoutMain(popen_spawn_posix.Popen):
+    """`spawn`'s launch, with the main module left out of what the child prepares."""
+
+    def _launch(self, process_obj: Any) -> None:
+        with _launching:  # multiprocessing reads the preparation from its module: briefly ours
+            spawn.get_preparation_data = _preparation_without_main
+            try:
+                super()._launch(process_obj)  # type: ignore[misc]  # not in the stubs
+            finally:
+                spawn.get_preparation_data = _PREPARATION
+
+
+class _ProcessWithoutMain(multiprocessing.context.SpawnProcess):
+    @staticmethod
+    def _Popen(process_obj: Any) -> _PopenWithoutMain:
+        return _PopenWithoutMain(process_obj)
+
+
+class _SpawnWithoutMain(multiprocessing.context.SpawnContext):
+    Process = _ProcessWithoutMain
 
 
 class ImageProcess:
@@ -203,7 +244,7 @@ class ImageProcess:
             if self._pool is None:
                 self._pool = concurrent.futures.ProcessPoolExecutor(
                     max_workers=1,
-                    mp_context=multiprocessing.get_context("spawn"),
+                    mp_context=_SpawnWithoutMain(),
                     initializer=_child_starts,
                 )
             pool = self._pool
@@ -246,15 +287,34 @@ def _retrieve(task: asyncio.Future[Any]) -> None:
 _attached: dict[str, shared_memory.SharedMemory] = {}  # oldest first
 ATTACHED_AT_MOST = 16  # two per call under way; more only once blocks grew
 
+M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter number
+MMAP_THRESHOLD = 1 << 20
+
+
+def _large_blocks_given_back() -> None:
+    """Frames and images (1 MiB and more) mapped apart, so freeing one gives it back.
+
+    glibc raises its mmap threshold each time such a block is freed, up to 32 MiB;
+    past that, every frame the child draws or reads comes from the heap, and the heap
+    keeps what they leave: with the threshold raised the child held about 200 MB
+    more than it used. Fixed, it never rises (server/common/runtime.py does the same
+    for the server). Elsewhere than glibc nothing is done.
+    """
+    name = ctypes.util.find_library("c")
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(name).mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+
 
 def _child_starts() -> None:
-    """Ctrl-C is the server's to handle; the child works at NICE, and ends with the server.
+    """Ctrl-C is the server's to handle; the child works at NICE, gives freed frames back
+    to the kernel, and ends with the server.
 
     Why the watch: the child holds both ends of its call queue, so a server killed
     outright (SIGKILL, out of memory) would leave it waiting for work forever, with its
     shared memory kept. The parent's sentinel becomes ready when the server is gone.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _large_blocks_given_back()
     with contextlib.suppress(OSError):
         os.nice(NICE)
     parent = multiprocessing.parent_process()

@@ -36,6 +36,7 @@ from bench import (
     rest_throughput,
     scaling,
     self_watch,
+    startup,
     vision,
     vision_accuracy,
     ws_fanout,
@@ -336,3 +337,31 @@ def test_bead_inspection_reports_rates_and_times(results_in_tmp: Path) -> None:
     assert 0 < summary["inspection_p50_ms"] <= summary["inspection_p95_ms"]
     assert 0 <= summary["false_alarm_rate_percent"] <= 100
     assert written_rows(results_in_tmp, "bead_inspection") == rows
+
+
+def test_cell_memory_lists_every_process_of_both_layouts(results_in_tmp: Path) -> None:
+    rows = memory.main(["--cell", "--runs", "1", "--layouts", "sim,devices"])
+    for layout in ("sim", "devices"):
+        mine = [row for row in rows if row["layout"] == layout]
+        totals = [row["point"] for row in mine if row["process"] == "cell total"]
+        assert totals == ["started", "after 1 run"]
+        assert {"server", "image process", "cell total"} <= {row["process"] for row in mine}
+        for row in mine:
+            assert 0 < row["unique_mb"] <= row["pss_mb"] <= row["rss_mb"]
+    apart = {row["process"] for row in rows if row["layout"] == "devices"}
+    assert {"robot simulator (not counted)", "glue simulator (not counted)"} <= apart
+    saved = json.loads((results_in_tmp / "memory_cell.json").read_text())
+    assert set(saved["unique_total_mb"]) == {"sim", "devices"}
+
+
+def test_startup_reads_every_phase_of_each_start(results_in_tmp: Path) -> None:
+    rows = startup.main(["--rows", "300", "--starts", "2"])
+    phases = {row["phase"]: row for row in rows}
+    assert set(phases) == {
+        "main", "app built", "journal check", "robot", "glue", "camera", "port open", "idle"
+    }  # fmt: skip
+    for row in rows:
+        assert row["n"] == 2 and 0 <= row["min_s"] <= row["median_s"] <= row["max_s"]
+    assert phases["main"]["median_s"] < phases["idle"]["median_s"]
+    saved = json.loads((results_in_tmp / "startup.json").read_text())
+    assert saved["rows"] == 300 and len(saved["starts"]) == 2

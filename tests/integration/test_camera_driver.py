@@ -159,3 +159,30 @@ async def test_real_camera_id_from_settings_string_means_an_index() -> None:
     camera = OpenCVCamera("98", timeout=5.0)
     with pytest.raises(DeviceDisconnected, match="camera 98"):
         await camera.connect()
+
+
+async def test_the_simulated_camera_connects_before_its_first_frame_is_drawn() -> None:
+    """Its first frame (the render caches, a second or two) is drawn after connect, in the
+    background; the first capture waits for it, then gives its own frame."""
+    camera = SimulatedCamera(timeout=5)
+    drawing = camera._render
+    go_on = asyncio.Event()
+    drawn: list[bool] = []
+
+    async def held(*, advance: bool) -> np.ndarray:
+        await go_on.wait()
+        frame = await drawing(advance=advance)
+        drawn.append(advance)
+        return frame
+
+    camera._render = held  # type: ignore[method-assign]
+    try:
+        await asyncio.wait_for(camera.connect(), 60)  # a bound, not a figure
+        assert camera.health.connected
+        assert drawn == [], "connect waited for a frame"
+        go_on.set()
+        frame = await camera.capture()
+        assert frame.shape == (camera.model.height, camera.model.width, 3)
+        assert drawn == [False, True], "the first frame, then the capture's own"
+    finally:
+        await camera.close()

@@ -9,12 +9,15 @@ counting the routes FastAPI prepares while the first stop is on its way: none.
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
 import fastapi.routing
 import httpx
 import pytest
 
+from server.api.route_warmup import prepare_routes
+from server.bootstrap.app import create_app
 from server.bootstrap.cell import Cell
 from server.core.worker.devices import CellDevices
 from server.settings.model import Settings
@@ -43,3 +46,26 @@ async def test_the_first_stop_after_a_start_prepares_no_route(
         # Nothing of the start-up's own request is on record: no audit row for it.
         audit = await client.get("/audit", headers=admin_headers(fast_settings.data_path))
         assert "/-/prepare-routes" not in audit.text
+
+
+async def test_routes_are_prepared_one_at_a_time_between_other_work(
+    fast_settings: Settings,
+) -> None:
+    """The preparation runs beside the cell's start (its devices connecting): it lets the
+    event loop go between two of the router's entries, never holding it for all of them."""
+    cell = Cell(fast_settings, devices=CellDevices(FakeRobot(50), FakeGlue(), FakeCamera()))
+    app = create_app(fast_settings, cell=cell)
+    turns = 0
+    preparing = True
+
+    async def other_work() -> None:
+        nonlocal turns
+        while preparing:
+            turns += 1
+            await asyncio.sleep(0)
+
+    beside = asyncio.create_task(other_work())
+    await prepare_routes(app)
+    preparing = False
+    await beside
+    assert turns >= len(app.router.routes) - 1

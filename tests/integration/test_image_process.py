@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import os
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,7 +15,7 @@ import pytest
 
 from server.common.errors import OperationError
 from server.vision.process import ImageProcess, ImageProcessFailed
-from tests.processes import has_ended
+from tests.processes import ROOT, environment, has_ended
 
 
 # What the child runs: module-level, as the image process requires.
@@ -52,6 +54,32 @@ def dies() -> None:
 
 def wrong_shape(frame: np.ndarray) -> np.ndarray:
     return frame[:10]
+
+
+def unique_mb() -> float:
+    """This process's unique memory (Private_Clean + Private_Dirty), in MB."""
+    fields = {}
+    for line in Path("/proc/self/smaps_rollup").read_text().splitlines():
+        name, _, value = line.partition(":")
+        fields[name] = value
+    return sum(int(fields[name].split()[0]) for name in ("Private_Clean", "Private_Dirty")) / 1024
+
+
+def kept_after_frames() -> float:
+    """MB the child still holds after drawing and dropping two large frames.
+
+    The first, freed, would raise glibc's default mmap threshold above the second's
+    size, so the second would come from the heap, and stay there once freed."""
+    before = unique_mb()
+    for size_mb in (24, 20):
+        frame = np.ones(size_mb * 2**20, np.uint8)  # written: its pages are really there
+        del frame
+    return unique_mb() - before
+
+
+def main_module_file() -> str | None:
+    """Where the child's main module came from: None when it ran none of the parent's."""
+    return getattr(sys.modules["__main__"], "__file__", None)
 
 
 @pytest.fixture
@@ -138,3 +166,36 @@ async def test_closing_ends_a_child_stuck_in_a_call(images: ImageProcess) -> Non
     assert has_ended(child)
     again, _ = await images.call(whose, frame=frame(12))  # a later call starts afresh
     assert again != child
+
+
+async def test_the_child_gives_freed_frames_back(images: ImageProcess) -> None:
+    kept = await images.call(kept_after_frames)
+    assert kept < 5, f"the child kept {kept:.1f} MB of frames it had freed"
+
+
+SCRIPT = """
+import asyncio
+from server.vision.process import IMAGE_PROCESS
+from tests.integration.test_image_process import main_module_file
+
+if __name__ == "__main__":
+    print(asyncio.run(IMAGE_PROCESS.call(main_module_file)))
+    IMAGE_PROCESS.close()
+"""
+
+
+def test_the_child_runs_none_of_the_parents_main_module(tmp_path: Path) -> None:
+    """A script of its own (glue-server's, one that runs a cell) is not run again in the
+    child: it would import the whole server there for nothing."""
+    script = tmp_path / "runs_a_cell.py"
+    script.write_text(SCRIPT)
+    done = subprocess.run(
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        env=environment(),
+        cwd=ROOT,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "None"

@@ -23,9 +23,18 @@ from server.vision.process import IMAGE_PROCESS
 MIN_WIDTH, MIN_HEIGHT = 1920, 1080
 
 
+async def warmed_up(camera: object) -> None:
+    """A camera still drawing its first frame since it connected (the simulated one builds
+    its render caches then) is waited for, so the timeout that follows is its frame's own."""
+    warming = getattr(camera, "warmed_up", None)
+    if warming is not None:
+        await warming()
+
+
 async def capture(ctx: OperationContext, purpose: str) -> np.ndarray:
     """One frame within vision_processing_timeout, at least 1920×1080."""
     timeout = ctx.settings.vision_processing_timeout
+    await warmed_up(ctx.camera)
     try:
         async with asyncio.timeout(timeout):  # not wait_for: see safe_position.py
             frame = await ctx.camera.capture()

@@ -106,6 +106,9 @@ class CellDevices:
                 await self.camera.capture()
             return None
 
+        if (warming := getattr(self.camera, "warmed_up", None)) is not None:
+            await warming()  # the simulated camera's first frame: outside the probe's timer
+
         async def probe(name: str) -> str | None:
             try:
                 return await within(ask(name), timeout)  # the timer only if it waits

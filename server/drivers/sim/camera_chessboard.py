@@ -259,6 +259,7 @@ def render_chessboard_view(
 
 
 def clear_chessboard_cache() -> None:
-    """Drop cached views (~2 MB each)."""
+    """Drop cached views (~2 MB each) and the board's texture."""
     with _view_lock:
         _view_cache.clear()
+    _board_texture.cache_clear()

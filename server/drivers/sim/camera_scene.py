@@ -18,8 +18,11 @@ against it earns its accuracy claims honestly:
    (`camera_degradations.py`).
 
 Steps 1-3 only change when the scene changes, so they are cached: a warm frame costs the
-noise only (~30 ms). The table with its markers and parts is cached on its own, so a bead that
-grows from frame to frame costs a copy, its own drawing and the remap, never the parts.
+noise only (~30 ms). The table with its markers is cached on its own (~45 MB); the parts are
+drawn onto a copy of it whenever the frame itself must be drawn again (~12 ms a part), so a
+bead that grows from frame to frame costs a copy, the parts, its own drawing and the remap.
+Each cache holds one entry, the table the camera looks at now: the image process keeps no
+second table it is not looking at.
 Nothing here does I/O; `server.drivers.camera.SimulatedCamera` wraps it.
 """
 
@@ -91,6 +94,7 @@ __all__ = [
     "marker_corners_mm",
     "polygon_area_centroid",
     "polygon_coverage",
+    "release_chessboard_state",
     "render_chessboard_view",
     "render_table",
     "workpiece_outline_pixels",
@@ -395,17 +399,30 @@ class _RenderCache:
             self._items.clear()
 
 
-_optics_cache = _RenderCache(2)
-_background_cache = _RenderCache(2)  # ~50 MB each: table image with markers
-_table_cache = _RenderCache(2)  # ~50 MB each: the background with the workpieces on it
-_frame_cache = _RenderCache(3)  # ~25 MB each: remapped, lit frame before noise
+# One of each: the camera looks at one table at a time, and each is rebuilt only when what it
+# depends on changes (the camera moved, the markers, the parts, the bead). A second entry was
+# only ever hit by tests switching back and forth, and cost the image process its size again.
+_optics_cache = _RenderCache(1)  # ~12 MB: the remap tables
+_background_cache = _RenderCache(1)  # ~45 MB: table image with markers
+_frame_cache = _RenderCache(1)  # ~24 MB: remapped, lit frame before noise
 
 
 def clear_render_caches() -> None:
-    """Drop every cached map and image (frees ~200 MB after heavy use)."""
-    for cache in (_optics_cache, _background_cache, _table_cache, _frame_cache):
+    """Drop every cached map and image (frees ~80 MB after heavy use)."""
+    for cache in (_optics_cache, _background_cache, _frame_cache):
         cache.clear()
+    release_chessboard_state()
+
+
+def release_chessboard_state() -> None:
+    """Drop what only chessboard views need: their cached views (~2 MB each), the board's
+    texture and every pixel's undistorted ray (~32 MB per camera model).
+
+    Called once the camera looks at the table again: the table's optics keep what they
+    built from the rays, and a later camera calibration computes them again (once per
+    model, a second or so)."""
     clear_chessboard_cache()
+    normalised_pixel_grid.cache_clear()
 
 
 def _optics(model: CameraModel) -> _TableOptics:
@@ -510,22 +527,14 @@ def _build_frame(scene: Scene, model: CameraModel) -> NDArray[np.float32]:
         (model, scene._background_key()), lambda: _build_background(scene, optics)
     )
     table = background
-    if scene.workpieces:
-
-        def with_parts() -> NDArray[np.uint8]:
-            parts = background.copy()
-            for piece in scene.workpieces:
-                _composite(
-                    parts, optics.grid, [piece.outline_table_mm()], piece.colour_bgr,
-                    optics.blur_sigma,
-                )  # fmt: skip
-            return parts
-
-        table = _table_cache.get_or_build(
-            (model, scene._background_key(), tuple(scene.workpieces)), with_parts
-        )
+    if scene.workpieces or scene.bead:
+        table = background.copy()  # the cached background stays as it is
+        for piece in scene.workpieces:
+            _composite(
+                table, optics.grid, [piece.outline_table_mm()], piece.colour_bgr,
+                optics.blur_sigma,
+            )  # fmt: skip
     if scene.bead:
-        table = table.copy()
         _composite_bead(table, optics, scene.bead)
     frame = cv2.remap(
         table, optics.map_x, optics.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE

@@ -1,0 +1,37 @@
+"""A server with a feature off does not load what only that feature uses.
+
+OPC UA (asyncua), MQTT (aiomqtt, paho) and TLS's certificate checks
+(cryptography) cost the server memory and start-up time for nothing when
+their settings are unset, which is the default; each is imported where the
+feature is built (`server/bootstrap/plant.py`, `server/bootstrap/tls.py`).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from tests.processes import ROOT, environment
+
+ONLY_WHEN_ASKED_FOR = ("asyncua", "aiomqtt", "paho", "cryptography")
+
+PROBE = """
+import sys
+import server.__main__
+from server.bootstrap.app import create_app
+print(" ".join(sorted({name.split(".")[0] for name in sys.modules})))
+"""
+
+
+def test_the_server_loads_no_plant_link_nor_tls_library_it_was_not_asked_for() -> None:
+    done = subprocess.run(
+        [sys.executable, "-c", PROBE],
+        capture_output=True,
+        text=True,
+        env=environment(),
+        cwd=ROOT,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    loaded = set(done.stdout.split())
+    assert not loaded & set(ONLY_WHEN_ASKED_FOR), sorted(loaded & set(ONLY_WHEN_ASKED_FOR))
