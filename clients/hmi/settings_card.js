@@ -46,6 +46,13 @@ function inputFor(name, value) {
     input = element("input");
     input.type = "checkbox";
     input.checked = value;
+  } else if (value !== null && typeof value === "object") {
+    // A list or a structure (the maintenance items): shown, changed with gluectl or the API.
+    input = element("input");
+    input.type = "text";
+    input.readOnly = true;
+    input.value = JSON.stringify(value);
+    input.title = "change it with gluectl settings set or PATCH /settings";
   } else if (name === "logging_level") {
     input = element("select");
     for (const level of ["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"]) {
@@ -89,6 +96,7 @@ function edited() {
   const change = {};
   for (const input of document.querySelectorAll("#settings-list .setting-input")) {
     const name = input.dataset.setting;
+    if (input.readOnly) continue;
     let value;
     if (input.type === "checkbox") value = input.checked;
     else if (input.tagName === "SELECT") value = input.value;

@@ -87,6 +87,9 @@ from server.drivers.jsonlines import (
 logger = logging.getLogger(__name__)
 
 FAULT_KINDS = ("drop", "stall", "fail_next")
+# How long after a move ends as planned the tool still counts as moving for a
+# speed-following dispenser: the run's next segment is commanded within it.
+BLEND_S = 0.15
 
 
 def motion_duration(start: Sequence[float], target: Sequence[float], speed: float) -> float:
@@ -223,6 +226,7 @@ class RobotSimulator:
         self.speed_factor = float(speed_factor)
         self._pose = Pose.from_sequence(home)
         self._motion: _Motion | None = None
+        self._ended_mono: float | None = None
         self._path: list[PathSegment] = []
         self._server: asyncio.Server | None = None
         self._clients: dict[asyncio.StreamWriter, asyncio.Task[None] | None] = {}
@@ -308,9 +312,14 @@ class RobotSimulator:
 
     def speed_fraction(self) -> float:
         """The fraction of its commanded speed the tool moves at now: 1.0 during a move
-        (the simulator moves at the commanded speed, in its own time), 0.0 standing still.
-        A speed-following dispenser's speed input (GlueSimulator.speed_source)."""
-        return 1.0 if self.is_moving else 0.0
+        (the simulator moves at the commanded speed, in its own time) and for BLEND_S
+        after one ends as planned (a program's next segment follows without a stop, as a
+        controller blends waypoints), 0.0 standing still or halted. A speed-following
+        dispenser's speed input (GlueSimulator.speed_source)."""
+        if self.is_moving:
+            return 1.0
+        blended = self._ended_mono is not None and time.monotonic() - self._ended_mono < BLEND_S
+        return 1.0 if blended else 0.0
 
     @property
     def executed_path(self) -> list[PathSegment]:
@@ -420,6 +429,8 @@ class RobotSimulator:
 
     def _finish(self, motion: _Motion, end: Pose, interrupted: bool, t_end: float) -> None:
         self._motion = None
+        # when it ended as planned (monotonic), for the blend; None after a halt
+        self._ended_mono = None if interrupted else motion.started_mono + motion.duration
         self._pose = end
         self._path.append(
             PathSegment(
