@@ -216,6 +216,7 @@ class NullJournal:
     backlog = 0
     last_error = None
     damage: tuple[Any, ...] = ()
+    path = Path("/nonexistent/journal.db")  # no file: the wear counters start from zero
 
     def append(self, records: list[Any], *, durable: bool = True) -> None:
         return None
