@@ -255,6 +255,9 @@ async def open_rig(
             # No report at a shift's end in the middle of a test that counts notices and
             # messages: a test of the reports makes its own (test_shift_reports.py).
             "shift_reports": False,
+            # This test process holds many cells and tests: its memory is not one cell's, so
+            # the memory limit is not watched unless a test sets it (test_self_watch.py).
+            "memory_limit": None,
         }
         settings = Settings(
             robot_ip="127.0.0.1",

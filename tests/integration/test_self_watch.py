@@ -107,7 +107,13 @@ async def test_a_configuration_change_raises_an_alert_naming_who_and_what(rig: R
     assert "Bearer" not in alert["message"]
 
 
-async def test_health_and_metrics_show_the_cells_own_figures(rig: Rig) -> None:
+async def test_health_and_metrics_show_the_cells_own_figures(tmp_path) -> None:
+    # The specification's limit, which the rig leaves unwatched (tests/rig.py)
+    async with open_rig(tmp_path, **FAST_WATCH, memory_limit="512MB") as rig:
+        await _figures_shown(rig)
+
+
+async def _figures_shown(rig: Rig) -> None:
     system = (await rig.api.get("/health")).json()["system"]
     assert system["server"]["resident_bytes"] > system["server"]["unique_bytes"] > 0
     assert system["server"]["threads"] >= 1 and system["server"]["open_files"] >= 3
