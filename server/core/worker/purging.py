@@ -55,7 +55,7 @@ def start_purge(
     activities.purge(_purge(robot, glue, target, settings, care, stops, stops(), post_fault))
 
 
-PURGE_SETTLE_S = 0.5  # from the arm's arrival to the valve's opening
+PURGE_SETTLE_S = 1.5  # from the arm's arrival to the valve's opening
 
 
 async def _purge(

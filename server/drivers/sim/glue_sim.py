@@ -91,7 +91,7 @@ AMBIENT_C = 25.0
 # A valve opened after the arm has stood still this long gives the fixed flow until it
 # closes, as a speed-following controller does with no motion to follow (a purge, which
 # lets the arm settle first: server/core/worker/purging.py); a run opens it on its way.
-FIXED_FLOW_AFTER_S = 0.25
+FIXED_FLOW_AFTER_S = 1.0
 _HOLDING_FCS = {3, 6, 16}
 _INPUT_FCS = {4}
 _CONTROL_LINE_LIMIT = 64 * 1024
