@@ -354,6 +354,9 @@ async def run_in(
         event_queue_size=queue_size,
         max_broadcast_clients=ws_clients + 10,
         max_broadcast_clients_per_token=ws_clients + 10,  # the crowd shares one token
+        # the crowd's connections all come from 127.0.0.1
+        http_max_connections=ws_clients + 100,
+        http_max_connections_per_address=ws_clients + 100,
         emergency_stop_timeout=1.0,
         data_path=data,
         run_recording=recording,

@@ -336,6 +336,9 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     env = {
         "GLUE_APP_MAX_BROADCAST_CLIENTS": allowed,
         "GLUE_APP_MAX_BROADCAST_CLIENTS_PER_TOKEN": allowed,
+        # every client connects from 127.0.0.1: the per-address bound would refuse most
+        "GLUE_APP_HTTP_MAX_CONNECTIONS": str(max(counts) + 100),
+        "GLUE_APP_HTTP_MAX_CONNECTIONS_PER_ADDRESS": str(max(counts) + 100),
     }
     with (
         tempfile.TemporaryDirectory(prefix="bench-ws-") as tmp,

@@ -183,6 +183,7 @@ class Cell:
             settings.cell_id,
             lambda: settings.shift_hours,  # changed at run time by PATCH /settings
             recording.shift_start_hour,
+            care=self.worker.care.state,
         )
         if recording.shift_reports:
             self.reports.start()

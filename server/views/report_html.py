@@ -158,17 +158,25 @@ def _alert_rows(alerts: dict[str, Any]) -> str:
     return f"<table>{head}{rows}</table>"
 
 
+def _maintenance(care: dict[str, Any]) -> str:
+    """The maintenance due when the report was made, in words."""
+    due = [
+        f"{_e(i['name'])}: {_e(i['status'])} ({_e(i['reason'])})" for i in care.get("items_due", [])
+    ]
+    for what in ("pot_life", "glue_level"):
+        status = care.get(what, "off")
+        if status not in ("off", "ok"):
+            due.append(f"{what.replace('_', ' ')}: {_e(status)}")
+    return "; ".join(due) if due else '<span class="muted">nothing due</span>'
+
+
 def report_page(report: dict[str, Any]) -> str:
     """The whole printable page of `report` (GET /reports/{id}'s JSON)."""
     window = report["window"]
     parts = report["parts"]
     oee = report.get("oee") or {}
     title = f"{report['period'].capitalize()} report · {report['cell_id']}"
-    maintenance = (
-        _e(report["maintenance"])
-        if report.get("maintenance") is not None
-        else f'<span class="muted">{_e(report.get("maintenance_note", "none"))}</span>'
-    )
+    maintenance = _maintenance(report.get("maintenance") or {})
     figures = "".join(
         f'<div class="figure"><b>{value}</b>{_e(label)}</div>'
         for label, value in (

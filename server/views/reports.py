@@ -4,8 +4,8 @@ A report is built from the same rows and the same arithmetic as GET /kpis
 (`kpi_query.kpis_of`), so its figures agree with the dashboard's for the same
 window, plus what a shift leader reads first: parts good and defective, hour by
 hour; OEE and its factors; the stop reasons that cost the most time; the alerts
-(warnings) raised. `maintenance` is null: the cell keeps no maintenance
-schedule yet, and the report says so rather than show nothing due.
+(warnings) raised; and the maintenance due when it was made (the care meter's
+items that are due or overdue, pot life and glue level, server/core/worker/care.py).
 
 `ShiftReports` makes one at the end of every shift and of every production day
 (`shift_start_hour`, `shift_hours`), stores it in the journal's `reports` table
@@ -28,7 +28,7 @@ import logging
 import math
 import time
 from collections import defaultdict
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -43,10 +43,6 @@ log = logging.getLogger(__name__)
 
 DAY_S = 86_400.0
 TOP_STOPS = 5
-MAINTENANCE_NOTE = (
-    "this cell keeps no maintenance schedule: no item can be due (wear counters and a "
-    "maintenance schedule are not built yet)"
-)
 
 
 @dataclass(frozen=True, slots=True)
@@ -154,10 +150,30 @@ def parts_by_hour(operations: Iterable[Mapping[str, Any]], window: Window) -> li
     return slots
 
 
+def maintenance_due(care: Mapping[str, Any]) -> dict[str, Any]:
+    """What of the care meter's state (GET /maintenance) a report carries: the items due
+    or overdue, and pot life and glue level when they are watched."""
+    return {
+        "items_due": [
+            {k: item[k] for k in ("name", "status", "percent", "reason")}
+            for item in care.get("items", [])
+            if item["status"] != "ok"
+        ],
+        "pot_life": care.get("pot_life", {}).get("status", "off"),
+        "glue_level": care.get("glue_level", {}).get("status", "off"),
+    }
+
+
 async def build_report(
-    cell: RunningCell, window: Window, kind: str, cell_id: str, now: float | None = None
+    cell: RunningCell,
+    window: Window,
+    kind: str,
+    cell_id: str,
+    now: float | None = None,
+    care: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """The report of `window` (`kind`: its period, `shift` or `day`), from the journal."""
+    """The report of `window` (`kind`: its period, `shift` or `day`), from the journal;
+    `care` is the care meter's state when it is made (GET /maintenance's answer)."""
     journal = cell.journal
     assert journal is not None, "the cell is not started"
     kpis = await kpis_of(cell, window.start, window.end)
@@ -222,8 +238,7 @@ async def build_report(
         "mttr_s": kpis.get("mttr_s"),
         "stop_reasons": found["stops"],
         "alerts": found["alerts"],
-        "maintenance": None,
-        "maintenance_note": MAINTENANCE_NOTE,
+        "maintenance": maintenance_due(care or {}),
     }
 
 
@@ -251,8 +266,16 @@ class ShiftReports:
         cell_id: str,
         shift_hours: Callable[[], float],
         start_hour: float,
+        care: Callable[[], Mapping[str, Any]] | None = None,
+        clock: Callable[[], float] = time.time,
+        sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
     ) -> None:
+        """`care` gives the care meter's state for a report's maintenance; `clock` and
+        `sleep` are the wall clock and the wait between looks (a test gives its own)."""
         self.cell = cell
+        self.care = care
+        self.clock = clock
+        self.sleep = sleep
         self.journal = journal
         self.cell_id = cell_id
         self.shift_hours = shift_hours
@@ -275,7 +298,14 @@ class ShiftReports:
     async def make(self, window: Window, kind: str) -> dict[str, Any]:
         """Build the report of `window`, journal it (durably) and publish it; the report
         with its id."""
-        document = await build_report(self.cell, window, kind, self.cell_id)
+        document = await build_report(
+            self.cell,
+            window,
+            kind,
+            self.cell_id,
+            now=self.clock(),
+            care=self.care() if self.care is not None else None,
+        )
         record = records.report(
             time=document["generated_at"],
             kind=kind,
@@ -309,12 +339,12 @@ class ShiftReports:
             await self._catch_up()
         except Exception:  # a report is bookkeeping: it never stops the cell
             log.exception("the missed shift report could not be made")
-        shift = self.shift_at(time.time())
+        shift = self.shift_at(self.clock())
         while True:
             # A minute at most between looks: a clock set forward (NTP after a cold start),
             # or shift_hours changed at run time (PATCH /settings), is seen within a minute.
-            await asyncio.sleep(min(60.0, max(0.0, shift.end - time.time())))
-            now = time.time()
+            await self.sleep(min(60.0, max(0.0, shift.end - self.clock())))
+            now = self.clock()
             if now >= shift.end:
                 try:
                     await self.make(Window(shift.start, shift.end), "shift")
@@ -326,7 +356,7 @@ class ShiftReports:
 
     async def _catch_up(self) -> None:
         """The last shift's report, when the server was down at its end."""
-        now = time.time()
+        now = self.clock()
         current = self.shift_at(now)
         last = self.shift_at(current.start - 1e-3)
         if await asyncio.to_thread(self._find, "shift", last.end) is None:

@@ -1,6 +1,6 @@
 """Shift reports on the simulated cell: a run and an e-stop in a window of the real journal
-make a report stored in the journal, served as JSON and as a printable page, and sent to a
-webhook and on MQTT (`report`, retained)."""
+make a report (with the maintenance then due) stored in the journal, served as JSON and as
+a printable page, and sent to a webhook and on MQTT (`report`, retained)."""
 
 from __future__ import annotations
 
@@ -30,6 +30,7 @@ async def test_a_shift_report_counts_the_parts_and_the_stops_and_goes_everywhere
                 **RECEIVER_ON_THIS_HOST,
                 **broker.cell_login,
                 cell_id=CELL,
+                maintenance_items=[{"name": "wipe nozzle", "every_parts": 1}],
             ) as rig,
         ):
             start = time.time()
@@ -58,11 +59,14 @@ async def test_a_shift_report_counts_the_parts_and_the_stops_and_goes_everywhere
             stop = report["stop_reasons"][0]
             assert stop["code"] == "EMERGENCY_STOP" and stop["count"] == 1
             assert 0.3 <= stop["seconds"] <= end - start
-            assert report["maintenance"] is None and report["maintenance_note"]
+            # the one part used up the item's interval: the report names it due
+            due = report["maintenance"]["items_due"]
+            assert [(i["name"], i["status"]) for i in due] == [("wipe nozzle", "due")], due
 
             page = await rig.api.get(f"/reports/{made['id']}", params={"format": "html"})
             assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
             assert page.text.count("<svg") >= 3 and "EMERGENCY_STOP" in page.text
+            assert "wipe nozzle: due" in page.text
             assert (await rig.api.get("/reports/9999")).status_code == 404
 
             # gluectl report shift: the latest shift's, as a table, as JSON, as the page.
@@ -70,6 +74,7 @@ async def test_a_shift_report_counts_the_parts_and_the_stops_and_goes_everywhere
             table = await gluectl_process(*cli, "report", "shift")
             assert table.code == 0, table.stderr
             assert "EMERGENCY_STOP" in table.stdout and "parts good" in table.stdout
+            assert "wipe nozzle due" in table.stdout
             as_json = await gluectl_process(*cli, "--json", "report", "shift")
             assert as_json.json() == report  # type: ignore[comparison-overlap]
             printable = tmp_path / "shift.html"

@@ -110,9 +110,12 @@ def test_the_printable_page_escapes_the_journal_s_text(evil: str) -> None:
             {"code": evil, "component": "robot", "message": evil, "count": 1, "seconds": 12.0}
         ],
         "alerts": {"count": 1, "by_code": [{"code": "A", "component": evil, "count": 1}]},
-        "maintenance": None,
-        "maintenance_note": "none kept",
+        "maintenance": {
+            "items_due": [{"name": evil, "status": "due", "percent": 101.0, "reason": evil}],
+            "pot_life": "near",
+            "glue_level": "off",
+        },
     }
     page = report_page(report)
     assert evil not in page
-    assert page.count("<svg") >= 4 and "57.6 %" in page and "none kept" in page
+    assert page.count("<svg") >= 4 and "57.6 %" in page and "pot life: near" in page

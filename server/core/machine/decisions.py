@@ -52,6 +52,10 @@ class DecisionListeners:
         if listener in self._listeners:
             self._listeners.remove(listener)
 
+    def __bool__(self) -> bool:
+        """Whether anyone listens: the worker builds no note for nobody."""
+        return bool(self._listeners)
+
     def tell(self, note: DecisionNote) -> None:
         """Give `note` to every listener; one that raises is logged and skipped."""
         for listener in tuple(self._listeners):

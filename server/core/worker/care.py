@@ -85,12 +85,15 @@ class CareMeter:
         self._raised: set[str] = set()  # conditions warned of, until they end
         self._timer: Timer | None = None
         self._persisted_at = 0.0
+        self._written: dict[str, float] = {}  # each key's value as the journal has it
 
     # --- lifecycle -------------------------------------------------------------
 
     def load(self, path: Path) -> None:
         """The totals and marks as the journal last kept them."""
-        self.values.update(wear_table.read(path))
+        kept = wear_table.read(path)
+        self.values.update(kept)
+        self._written = dict(kept)
 
     def start(self) -> None:
         self._persisted_at = self.clock.monotonic()
@@ -102,7 +105,7 @@ class CareMeter:
             self._timer.cancel()
             self._timer = None
         self.read_drivers()
-        self.persist()
+        self.persist(every_key=True)
 
     def _schedule(self) -> None:
         self._timer = self.clock.call_later(self._settings().care_check_interval, self._tick)
@@ -114,7 +117,7 @@ class CareMeter:
                 self.clock.monotonic() - self._persisted_at
                 >= self._settings().wear_persist_interval
             ):
-                self.persist()
+                self.persist(every_key=True)
         except Exception:  # a check must never stop the checks
             log.exception("the wear and maintenance check failed")
         finally:
@@ -156,10 +159,16 @@ class CareMeter:
         self.check()
         self.persist()
 
-    def persist(self) -> None:
-        """Every total and mark to the journal, not awaited (durable=False)."""
+    def persist(self, *, every_key: bool = False) -> None:
+        """The totals and marks to the journal, not awaited (durable=False): a row per
+        key, only the keys changed since they were last written (a run's end writes the
+        few it changed), or `every_key` (the periodic write and the last one at stop,
+        which also make good a write the journal could not take)."""
         self._persisted_at = self.clock.monotonic()
-        self.journal.append(wear_table.records(self.values, self.clock.time()), durable=False)
+        changed = {k: v for k, v in self.values.items() if every_key or self._written.get(k) != v}
+        if changed:
+            self.journal.append(wear_table.records(changed, self.clock.time()), durable=False)
+            self._written.update(changed)
 
     # --- what people do --------------------------------------------------------
 

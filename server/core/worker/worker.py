@@ -303,6 +303,8 @@ class Worker:
 
     def _tell(self, state: State, event: Event, verdict: decide.Verdict) -> None:
         """The verdict to the decision listeners, before any of its actions."""
+        if not self.decisions:
+            return
         now = self.clock.time()
         if isinstance(verdict, decide.Refusal):
             self.decisions.tell(DecisionNote(state, event, "refused", None, now))
