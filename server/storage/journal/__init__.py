@@ -31,11 +31,11 @@ from pathlib import Path
 
 from server.storage.journal import records
 from server.storage.journal.commit_chain import GENESIS, CommitChain, LastCommitFile
+from server.storage.journal.declaration import Column, Filter, Table
 from server.storage.journal.inspection import inspect
 from server.storage.journal.later_columns import add_commit_seq
 from server.storage.journal.reader import Cursor, Reader
 from server.storage.journal.records import Record
-from server.storage.journal.declaration import Column, Filter, Table
 from server.storage.journal.schema import FILTERS, PART_FIGURES, SCHEMA, TABLES, filter_columns
 from server.storage.journal.verify import Damage
 from server.storage.journal.writer import WriteFailure, Writer, note_chain_start, prune
