@@ -34,6 +34,8 @@ from clients.client import (
     Unreachable,
     WaitTimeout,
 )
+from clients.gluectl.exit_codes import exit_code
+from clients.gluectl.watch import WatchView, message_line
 from server.bootstrap.cell import Cell
 from server.core.machine.transitions import Event
 from server.core.worker.devices import CellDevices
@@ -315,7 +317,7 @@ async def test_watch_piped_prints_one_line_per_message(cli: Cli) -> None:
 
 def test_the_live_view_shows_progress_timeline_and_resyncs() -> None:
     """The view as the server feeds it (shapes as on /ws), rendered off-terminal."""
-    view = gluectl.WatchView("http://cell")
+    view = WatchView("http://cell")
     boot = {"timestamp": 1.0, "old_state": "INITIALIZING", "new_state": "IDLE"}
     view.update(
         {"type": "snapshot", "seq": 3, "state": "IDLE", "operation": None, "history": [boot]}
@@ -381,7 +383,7 @@ def test_the_live_view_shows_progress_timeline_and_resyncs() -> None:
     assert "reconnected: 2 message(s) replayed, none missed" in shown and "state IDLE" in shown
     assert shown.count("OPERATION_COMPLETED") == 1 and "INITIALIZING" not in shown
     assert [row.get("event") for row in view.timeline] == ["OPERATION_COMPLETED"]
-    assert "(resumed, 2 replayed, missed 0)" in gluectl.message_line(resumed)
+    assert "(resumed, 2 replayed, missed 0)" in message_line(resumed)
 
 
 # --- exit codes and help -------------------------------------------------------------------
@@ -402,7 +404,7 @@ def test_every_client_error_has_its_documented_exit_code() -> None:
         (ServerError("x", status_code=500), 1),
         (CellError("x"), 1),
     ]
-    assert [gluectl.exit_code(error) for error, _ in cases] == [code for _, code in cases]
+    assert [exit_code(error) for error, _ in cases] == [code for _, code in cases]
 
 
 async def test_help_documents_the_exit_codes() -> None:

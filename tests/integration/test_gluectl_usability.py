@@ -14,13 +14,15 @@ from typing import Any
 import pytest
 from rich.console import Console
 
-from clients import gluectl
+from clients.gluectl.cli import app
+from clients.gluectl.exit_codes import EXIT_REFUSED, EXIT_USAGE
+from clients.gluectl.watch import WatchView
 
 # `cli` is the fixture: a real server on loopback and gluectl pointed at it.
 from tests.integration.test_gluectl import Cli, cli, gluectl_process  # noqa: F401
 
 
-def _screen(view: gluectl.WatchView) -> str:
+def _screen(view: WatchView) -> str:
     console = Console(record=True, width=120, force_terminal=False)
     console.print(view.render())
     return console.export_text()
@@ -28,7 +30,7 @@ def _screen(view: gluectl.WatchView) -> str:
 
 async def test_watch_clears_the_fault_line_once_the_cell_is_reset(cli: Cli) -> None:  # noqa: F811
     """The live view, fed by the server's own /ws: fault, then reset, then no fault line."""
-    view = gluectl.WatchView(cli.url)
+    view = WatchView(cli.url)
     async with cli.client.messages() as stream:
         messages = aiter(stream)
 
@@ -62,7 +64,7 @@ async def test_watch_clears_the_fault_line_once_the_cell_is_reset(cli: Cli) -> N
 )
 async def test_usage_errors_with_json_are_one_json_document(args: tuple[str, ...]) -> None:
     ran = await gluectl_process(*args)
-    assert ran.code == gluectl.EXIT_USAGE, ran
+    assert ran.code == EXIT_USAGE, ran
     document = json.loads(ran.stdout)  # the whole of stdout, one document
     assert document["error"] == "UsageError" and document["message"], document
     assert "Usage:" not in ran.stdout + ran.stderr
@@ -70,7 +72,7 @@ async def test_usage_errors_with_json_are_one_json_document(args: tuple[str, ...
 
 async def test_a_server_error_with_json_is_one_json_document(cli: Cli) -> None:  # noqa: F811
     ran = await cli("--json", "resume")
-    assert ran.code == gluectl.EXIT_REFUSED
+    assert ran.code == EXIT_REFUSED
     assert json.loads(ran.stdout)["error"] == "Refused"
 
 
@@ -89,13 +91,13 @@ def _commands() -> list[tuple[str, ...]]:
                 found += walk(command, (*path, name))
         return found
 
-    return walk(typer.main.get_command(gluectl.app), ())
+    return walk(typer.main.get_command(app), ())
 
 
 def _is_group(command: tuple[str, ...]) -> bool:
     import typer.main
 
-    found: Any = typer.main.get_command(gluectl.app)
+    found: Any = typer.main.get_command(app)
     for name in command:
         found = found.commands[name]
     return hasattr(found, "commands")

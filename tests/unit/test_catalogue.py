@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 import typer
 
-from clients import gluectl
 from clients.client import COMMANDS as CLIENT_COMMANDS
+from clients.gluectl.cli import app as gluectl_app
 from server.commands.catalogue import (
     BY_COMMAND,
     CATALOGUE,
@@ -72,7 +72,7 @@ def test_the_facade_has_each_method_the_catalogue_names() -> None:
 
 
 def test_gluectl_and_the_python_client_offer_every_command() -> None:
-    cli = typer.main.get_command(gluectl.app)
+    cli = typer.main.get_command(gluectl_app)
     offered = set(cli.commands)  # type: ignore[attr-defined]
     assert set(NAMES) <= offered, sorted(set(NAMES) - offered)
     assert list(CLIENT_COMMANDS) == NAMES  # the same commands, in the catalogue's order

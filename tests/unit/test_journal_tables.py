@@ -1,6 +1,6 @@
 """Each journal table's declaration is what a fresh journal holds, and what the rest reads.
 
-schema.py declares every table once (columns with their SQL and Python types, time
+tables.py declares every table once (columns with their SQL and Python types, time
 column, filters, sealing); the SQL that creates the file, the filters, the CSV
 headers, the record builders and the order report are derived from it. These
 tests open a real journal file and hold the declarations to the schema SQLite
@@ -21,16 +21,16 @@ from server.orders.model import Part
 from server.orders.report import COLUMNS as REPORT_COLUMNS
 from server.quality.csv_columns import INSPECTION_COLUMNS
 from server.storage.journal import Journal, records
+from server.storage.journal.declaration import Table
 from server.storage.journal.schema import (
-    ALL_TABLES,
     COMMIT_SEQ,
     FILTERS,
     LATER_COLUMNS,
     PART_FIGURES,
     SEALED,
     TABLES,
-    Table,
 )
+from server.storage.journal.tables import ALL_TABLES
 
 # The Python types a column's SQL type may be read back as.
 PY_OF_SQL = {"TEXT": {str, dict, list}, "REAL": {float}, "INTEGER": {int, bool}}

@@ -1,8 +1,8 @@
 """The journal: every event, transition, operation and error, in SQLite, durably.
 
-- `schema`: each table declared once (its columns with SQL and Python types and
-  meanings, its time column, its filters); the SQL, the filters and the rest
-  are derived from it;
+- `tables`: each table declared once (its columns with SQL and Python types and
+  meanings, its time column, its filters), in the terms of `declaration`;
+  `schema` derives the SQL, the filters and the rest from them;
 - `records`: one function per kind of row, each returning a `Record` built
   from the table's declaration;
 - `writer`: the writer thread (group commit; a future per append, resolved once
@@ -31,20 +31,12 @@ from pathlib import Path
 
 from server.storage.journal import records
 from server.storage.journal.commit_chain import GENESIS, CommitChain, LastCommitFile
+from server.storage.journal.declaration import Column, Filter, Table
 from server.storage.journal.inspection import inspect
 from server.storage.journal.later_columns import add_commit_seq
 from server.storage.journal.reader import Cursor, Reader
 from server.storage.journal.records import Record
-from server.storage.journal.schema import (
-    FILTERS,
-    PART_FIGURES,
-    SCHEMA,
-    TABLES,
-    Column,
-    Filter,
-    Table,
-    filter_columns,
-)
+from server.storage.journal.schema import FILTERS, PART_FIGURES, SCHEMA, TABLES, filter_columns
 from server.storage.journal.verify import Damage
 from server.storage.journal.writer import WriteFailure, Writer, note_chain_start, prune
 from server.storage.permissions import private_file

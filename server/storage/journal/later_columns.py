@@ -1,6 +1,6 @@
 """Older journals brought up to the declared schema: the columns added since they were written.
 
-Kept apart from `schema.py`, which declares the tables: these read a journal file's own
+Kept apart from `tables.py`, which declares the tables: these read a journal file's own
 columns (PRAGMA table_info) and add or stand in for what it lacks.
 """
 

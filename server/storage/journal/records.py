@@ -2,7 +2,7 @@
 
 Each builds its row by column name through `_row` (or `_update`), which takes the
 columns, their order and how each is stored (JSON text, 0 or 1) from the table's
-declaration in `schema.py`, and refuses a name the table does not declare.
+declaration in `tables.py`, and refuses a name the table does not declare.
 
 Callers build records where things happen (the worker, the audit observer) and
 hand lists of them to `Journal.append`, which writes each list in one
@@ -17,7 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from server.storage.journal.schema import COMMIT_SEQ, INTERNAL, TABLES, Column
+from server.storage.journal.declaration import Column
+from server.storage.journal.schema import COMMIT_SEQ, INTERNAL, TABLES
 
 
 @dataclass(frozen=True, slots=True)
@@ -42,7 +43,7 @@ class Record:
 
 
 def _row(table: str, *, replace: bool = False, **values: Any) -> Record:
-    """A row of `table` (schema.py): `values` by column name, in the order given, JSON and
+    """A row of `table` (tables.py): `values` by column name, in the order given, JSON and
     flag columns encoded as the declaration says; the columns not given take their SQL
     default. Sealed when the table is."""
     statement = _statement(table, tuple(values), replace)

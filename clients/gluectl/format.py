@@ -1,4 +1,5 @@
-"""gluectl's text forms: a time, a value, a key/value table (shared by its modules)."""
+"""gluectl's text forms: a time, a value, a fault, a run's progress, a key/value table
+(shared by its modules)."""
 
 from __future__ import annotations
 
@@ -38,3 +39,18 @@ def key_values(title: str, rows: list[tuple[str, str]]) -> Table:
     for key, value in rows:
         table.add_row(Text(key), Text(value))
     return table
+
+
+def fault_line(fault: dict[str, Any] | None) -> str:
+    """A fault (or stop reason) on one line: code, message, what to do."""
+    if not fault:
+        return "—"
+    return f"{fault.get('code')}: {fault.get('message')} ({fault.get('recommended_action', '')})"
+
+
+def progress_line(progress: dict[str, Any] | None) -> str:
+    """A run's progress on one line, empty before the first waypoint's total is known."""
+    if not progress or not progress.get("total"):
+        return ""
+    fraction = progress.get("fraction") or 0.0
+    return f"waypoint {progress.get('waypoint')}/{progress['total']} ({fraction:.0%})"

@@ -1,16 +1,19 @@
-"""What `gluectl settings get|set` shows and sends: the table of settings with where each
-value comes from, and NAME=VALUE words turned into a PATCH /settings body.
-
-Kept apart from gluectl.py, which holds the commands themselves, so each stays short.
+"""gluectl's `settings` group: `get` shows the table of settings with where each value
+comes from; `set` turns NAME=VALUE words into a PATCH /settings body.
 """
 
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Annotated, Any
 
+import typer
 from rich.table import Table
 from rich.text import Text
+
+from clients.gluectl.calls import call, options_for, print_json, show
+from clients.gluectl.format import value as _value
+from clients.gluectl.options import JsonFlag
 
 META_KEYS = ("sources", "runtime_settings")
 
@@ -61,3 +64,49 @@ def parse_assignments(words: list[str]) -> dict[str, Any]:
         except ValueError:
             body[name.strip()] = text
     return body
+
+
+settings_app = typer.Typer(help="The settings in force, and the runtime ones changed (admin).")
+
+
+@settings_app.command("get")
+def settings_get(
+    ctx: typer.Context,
+    names: Annotated[
+        list[str] | None, typer.Argument(help="Settings to show (all if none).")
+    ] = None,
+    json_flag: JsonFlag = False,
+) -> None:
+    """Each setting's value, where it comes from, and whether a change applies at once."""
+    options = options_for(ctx, json_flag)
+    data = call(options, lambda c: c.settings())
+    try:
+        rows = settings_rows(data, names or None)
+    except KeyError as missing:
+        raise typer.BadParameter(
+            f"{missing.args[0]} names no setting", param_hint="NAMES"
+        ) from None
+    show(options, rows, settings_table)
+
+
+@settings_app.command("set")
+def settings_set(
+    ctx: typer.Context,
+    assignments: Annotated[list[str], typer.Argument(help="NAME=VALUE, e.g. shift_hours=10.")],
+    json_flag: JsonFlag = False,
+) -> None:
+    """Change runtime settings at once; they are saved and stay over a restart."""
+    options = options_for(ctx, json_flag)
+    try:
+        body = parse_assignments(assignments)
+    except ValueError as error:
+        raise typer.BadParameter(str(error), param_hint="NAME=VALUE") from None
+    answer = call(options, lambda c: c.change_settings(**body))
+    if options.json:
+        print_json(answer)
+        return
+    changed = answer.get("changed") or {}
+    for name, change in changed.items():
+        typer.echo(f"{name}: {_value(change['old'])} -> {_value(change['new'])} (saved)")
+    if not changed:
+        typer.echo("nothing changed: each value was in force already")
