@@ -89,7 +89,7 @@ def test_a_changed_pyproject_reinstalls_every_set_in_use(clone: Path) -> None:
 def recipe(target: str) -> str:
     """The Makefile's recipe of `target`: its rule line to the next blank line."""
     text = (ROOT / "Makefile").read_text()
-    return text[text.index(f"\n{target}:") :].split("\n\n", 1)[0]
+    return text[text.index(f"\n{target}:") + 1 :].split("\n\n", 1)[0]
 
 
 def test_the_deployment_tools_bring_no_container_engine() -> None:
@@ -191,9 +191,7 @@ def test_the_installer_starts_no_service_and_leaves_none_enabled(tmp_path: Path)
         "mosquitto start refused: 101",
     ]
     units, etc = Path(env["APT_QUIET_UNIT_DIR"]), Path(env["APT_QUIET_ETC"])
-    assert sorted(p.name for p in (units / "multi-user.target.wants").iterdir()) == [
-        "ssh.service"
-    ]
+    assert sorted(p.name for p in (units / "multi-user.target.wants").iterdir()) == ["ssh.service"]
     assert sorted(p.name for p in (etc / "rc2.d").iterdir()) == ["K01mosquitto", "S01ssh"]
     assert not Path(env["APT_QUIET_POLICY_RC_D"]).exists()  # none before, none after
     assert "mosquitto.service disabled" in answer.stdout
@@ -212,4 +210,6 @@ def test_the_installer_puts_back_the_policy_it_found_even_when_apt_fails(
     assert policy.read_text() == "#!/bin/sh\n# the administrator's policy\nexit 0\n"
     assert policy.stat().st_mode & 0o777 == 0o750
     assert "mosquitto start refused: 101" in (tmp_path / "log").read_text()
-    assert not (Path(env["APT_QUIET_UNIT_DIR"]) / "multi-user.target.wants" / "mosquitto.service").exists()
+    assert not (
+        Path(env["APT_QUIET_UNIT_DIR"]) / "multi-user.target.wants" / "mosquitto.service"
+    ).exists()
