@@ -20,6 +20,9 @@ BENCH_STAMP := $(VENV)/.installed-bench
 HOST ?= 127.0.0.1
 PORT ?= 8000
 DATA ?= data
+# Debian packages the suite drives as programs, installed so that no system service is
+# started or enabled by them (tools/apt-install-quiet says how).
+APT_INSTALL := sh tools/apt-install-quiet
 
 LOADED_LIMIT ?= 30m
 SOAK ?= 30m
@@ -94,27 +97,25 @@ browser:
 	@test -x /usr/bin/chromium || { \
 		echo "installing Debian's chromium for the browser tests"; \
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
-		$$SUDO apt-get update -qq && \
-		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium; }
+		$$SUDO $(APT_INSTALL) chromium; }
 
 # The dashboard's geometry module is unit-tested with node's own test runner (no npm).
 node:
 	@command -v node >/dev/null || { \
 		echo "installing Debian's nodejs for the dashboard's unit tests"; \
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
-		$$SUDO apt-get update -qq && \
-		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq nodejs; }
+		$$SUDO $(APT_INSTALL) nodejs; }
 
 # The deployment tests validate docker-compose.yml with Debian's docker-compose (its
 # `config` needs no engine) and the systemd unit with systemd-analyze. Without its
 # recommends, docker-compose brings no container engine (docker.io, containerd,
-# iptables) and so no service of theirs; systemd is only installed where it is missing.
+# iptables); systemd is only installed where it is missing, and like every install here
+# through $(APT_INSTALL), so none of its units is left enabled.
 deploy-tools:
 	@command -v docker-compose >/dev/null && command -v systemd-analyze >/dev/null || { \
 		echo "installing Debian's docker-compose (no engine) and systemd-analyze for the deployment tests"; \
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
-		$$SUDO apt-get update -qq && \
-		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends \
+		$$SUDO $(APT_INSTALL) --no-install-recommends \
 			docker-compose systemd; }
 
 # The plant-interface tests and the line demo run Debian's MQTT broker as a process.
@@ -122,8 +123,7 @@ mosquitto:
 	@{ command -v mosquitto || test -x /usr/sbin/mosquitto; } >/dev/null && command -v mosquitto_sub >/dev/null || { \
 		echo "installing Debian's mosquitto for the MQTT tests"; \
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
-		$$SUDO apt-get update -qq && \
-		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq mosquitto mosquitto-clients; }
+		$$SUDO $(APT_INSTALL) mosquitto mosquitto-clients; }
 
 # The metrics test pipes a real scrape through promtool's `check metrics`: Debian ships
 # promtool in its prometheus package.
@@ -131,8 +131,7 @@ promtool:
 	@command -v promtool >/dev/null || { \
 		echo "installing Debian's prometheus (promtool) for the metrics test"; \
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
-		$$SUDO apt-get update -qq && \
-		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends prometheus; }
+		$$SUDO $(APT_INSTALL) --no-install-recommends prometheus; }
 
 # ruff, then mypy over server/ and clients/ (configured in pyproject.toml: [tool.mypy]).
 lint: $(TEST_STAMP)

@@ -91,6 +91,17 @@ async function pollState() {
     if (!view.socket && !view.stopped) openView();
   }
   clearSetupMessage();
+  if (state.state === "ERROR" && state.stop_reason) sayStopped(state.stop_reason.message);
+}
+
+/** Stopped: why, and what to do next in words, on this page too (this page has no
+ * Reset: the dashboard's state card is where a stop is reset). */
+function sayStopped(reason) {
+  const next = cell.may.has("reset")
+    ? "Reset it on the Dashboard once the cell is clear."
+    : "Call maintenance to reset: needs the maintenance role.";
+  const text = `Stopped: ${reason}. ${next}`;
+  if ($("setup-message").textContent !== text || $("setup-message").hidden) say("error", text, "ERROR");
 }
 
 function showState(state, detail) {

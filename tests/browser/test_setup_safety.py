@@ -175,3 +175,7 @@ async def test_an_operator_on_the_set_up_page_can_stop_but_not_move_the_arm(
     await expect(page.locator("#estop")).to_be_enabled()
     await page.click("#estop")
     await expect(page.locator("#setup-state")).to_have_text("ERROR")
+    # Why it stopped and whom to call, in words on this page (it has no Reset).
+    message = page.locator("#setup-message")
+    await expect(message).to_contain_text("Stopped: emergency stop by line 3")
+    await expect(message).to_contain_text("Call maintenance to reset: needs the maintenance role")
