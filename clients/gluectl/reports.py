@@ -38,9 +38,19 @@ def report_table(report: dict[str, Any]) -> Table:
             for s in report.get("stop_reasons") or []
         ),
         ("alerts", _value((report.get("alerts") or {}).get("count"))),
-        ("maintenance", _value(report.get("maintenance") or report.get("maintenance_note"))),
+        ("maintenance due", _maintenance(report.get("maintenance") or {})),
     ]
     return _key_values(title, rows)
+
+
+def _maintenance(care: dict[str, Any]) -> str:
+    due = [f"{i['name']} {i['status']}" for i in care.get("items_due", [])]
+    due += [
+        f"{what.replace('_', ' ')} {care[what]}"
+        for what in ("pot_life", "glue_level")
+        if care.get(what, "off") not in ("off", "ok")
+    ]
+    return ", ".join(due) or "nothing"
 
 
 def reports_table(reports: list[dict[str, Any]]) -> Table:
