@@ -4,6 +4,11 @@ Why: a cell whose operations creep towards processing_timeout, whose
 calibration error creeps towards its limit, or that sits in ERROR unattended
 is about to cost production; each is logged, journaled as a warning (not
 counted in the KPI error rate) and pushed on /ws as an `alert`.
+
+A warning whose cause the cell sees go away (a maintenance item done, a refill, the
+memory back under its limit) is said to be over with `cleared`: an `alert_cleared`
+bus message naming its code, so what keeps warnings as state (OPC UA's alarm
+conditions, PackML's Admin.Warning) lets it go.
 """
 
 from __future__ import annotations
@@ -66,6 +71,23 @@ class Alerts:
             },
         )
         self.recorder.warning(code, message, component, current_event_id.get() or "", state)
+
+    def cleared(self, code: str, message: str, component: str) -> None:
+        """A warning's cause has gone: logged, and pushed as `alert_cleared` naming the code.
+
+        Not journaled: the warning's row stays the record of what happened; what ended
+        it (a maintenance item done, a refill) has its own audit row.
+        """
+        log.info("warning %s from %s cleared: %s", code, component, message)
+        self.bus.publish(
+            "alert_cleared",
+            {
+                "code": code,
+                "message": message,
+                "component": component,
+                "state": self.ctx.state.value,
+            },
+        )
 
     def halt_incomplete(self, errors: Iterable[str]) -> None:
         """A safe halt a device did not confirm: pushed on /ws (the halt logged it)."""
