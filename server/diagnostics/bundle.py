@@ -38,8 +38,7 @@ from typing import Any
 from server.common.build import package_version, source_revision
 from server.core.worker.care_rules import state_of
 from server.settings.model import Settings
-from server.storage.journal import TABLES
-from server.storage.journal import wear
+from server.storage.journal import TABLES, wear
 from server.storage.journal.check import check
 
 FAULTS_KEPT = 50

@@ -10,19 +10,21 @@ subscribed to either sees it: `uasubscribe -t event` subscribes to the Server.
 Every condition has a node, `<cell_id>.Alarms.<CODE>` in the cell's namespace (its
 ConditionId, typed TripAlarmType or OffNormalAlarmType), made the first time its code
 is raised, with the type's variables (ActiveState/Id, AckedState/Id, Retain, Severity,
-Message...) kept as its latest event says (server/opcua/condition_nodes.py). A client acknowledges or confirms it with the standard methods,
-AcknowledgeableConditionType's Acknowledge (i=9111) and Confirm (i=9113), called on the
-ConditionId with the notice's EventId and a comment. Who may: Acknowledge the operator
-role and above (whoever runs the cell has seen the alarm), Confirm the maintenance role
-and above (the cause is dealt with, the role that resets the cell); anonymous never.
-Each call is audited in the journal like the cell's commands, accepted or refused, with
-the session's principal; an accepted one is on disk before the condition changes and the
-answer goes. ConditionRefresh (i=3875) sends the retained conditions between a
-RefreshStartEvent and a RefreshEndEvent, as alarm clients ask after (re)connecting.
+Message...) kept as its latest event says (server/opcua/condition_nodes.py). A client
+acknowledges or confirms it with the standard methods, AcknowledgeableConditionType's
+Acknowledge (i=9111) and Confirm (i=9113), called on the ConditionId with the notice's
+EventId and a comment. Who may: Acknowledge the operator role and above (whoever runs
+the cell has seen the alarm), Confirm the maintenance role and above (the cause is dealt
+with, the role that resets the cell); anonymous never. Each call is audited in the
+journal like the cell's commands, accepted or refused, with the session's principal; an
+accepted one is on disk before the condition changes and the answer goes.
+ConditionRefresh (i=3875) sends the retained conditions between a RefreshStartEvent and
+a RefreshEndEvent, as alarm clients ask after (re)connecting.
 
 The follower is a bus subscriber of its own (bounded buffer, never waited on), taking
-`error`, `alert`, `alert_cleared` (a warning's cause gone) and `state_changed`, each once the commands being answered have gone
-(server/core/infra/answers_in_flight.py), as the tags do.
+`error`, `alert`, `alert_cleared` (a warning's cause gone) and `state_changed`, each
+once the commands being answered have gone (server/core/infra/answers_in_flight.py), as
+the tags do.
 """
 
 from __future__ import annotations
