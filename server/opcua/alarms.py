@@ -163,8 +163,8 @@ class CellAlarms:
         self._subscription = self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED)
 
     async def start(self) -> None:
-        """Raise what the cell holds now (a fault it started in, a damaged journal), then
-        follow the bus."""
+        """Raise what the cell holds now (a fault it started in, a damaged journal, the
+        standing warnings), then follow the bus."""
         snapshot = self.cell.view.snapshot()
         reason = snapshot.get("stop_reason")
         now = time.time()
@@ -184,6 +184,13 @@ class CellAlarms:
             }
             for notice in self.book.on_message("alert", data, self.cell.bus.last_seq, now):
                 await self._emit(notice)
+        # The standing warnings raised before this follower subscribed (the cell starts
+        # first: its first care check may have found an item due by now).
+        worker = self.cell.worker
+        for data in list(worker.alerts.standing.values()) if worker is not None else ():
+            if data["code"] not in self.book.conditions:
+                for notice in self.book.on_message("alert", data, self.cell.bus.last_seq, now):
+                    await self._emit(notice)
         self._task = asyncio.create_task(self._follow(), name="opcua-alarms")
 
     async def stop(self) -> None:

@@ -56,8 +56,11 @@ CHART_POINTS = 200  # parts kept on the charts (the baseline needs far fewer)
 
 
 class Warn(Protocol):
-    def __call__(self, code: str, message: str, component: str, *, severity: str = ...) -> None:
-        """Raise a warning (or, with severity "alert", an alert) on every channel."""
+    def __call__(
+        self, code: str, message: str, component: str, *, severity: str = ..., standing: bool = ...
+    ) -> None:
+        """Raise a warning (or, with severity "alert", an alert) on every channel; a
+        `standing` one holds until it is cleared."""
 
 
 class Cleared(Protocol):
@@ -223,6 +226,7 @@ class CellWatch:
                     "server in a pause and report it (glue-server diagnose)",
                     "system",
                     severity="alert",
+                    standing=self._cleared is not None,
                 )
             else:
                 self._memory_raised.add("MEMORY_HIGH")
@@ -231,6 +235,7 @@ class CellWatch:
                     f"the server uses {used}, over {settings.memory_warning_percent:g} %: "
                     "watch it; restart the server in a pause if it keeps rising",
                     "system",
+                    standing=self._cleared is not None,
                 )
         self._memory_level = level
         self._clear_memory(level, f"the server uses {memory / MB:.0f} MB now")
@@ -264,6 +269,7 @@ class CellWatch:
                 "journal cannot write and commands are refused (delete old backups or logs, "
                 "or lower analytics_retention_days)",
                 "storage",
+                standing=self._cleared is not None,
             )
 
     def _judge_links(self, settings: WatchSettings) -> None:

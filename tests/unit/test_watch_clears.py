@@ -18,7 +18,16 @@ class Said:
     def __init__(self) -> None:
         self.said: list[tuple[str, str]] = []
 
-    def warn(self, code: str, message: str, component: str, *, severity: str = "warning") -> None:
+    def warn(
+        self,
+        code: str,
+        message: str,
+        component: str,
+        *,
+        severity: str = "warning",
+        standing: bool = False,
+    ) -> None:
+        assert standing  # each of these is cleared later
         self.said.append(("raised", code))
 
     def cleared(self, code: str, message: str, component: str) -> None:

@@ -236,12 +236,12 @@ class CareMeter:
                 f"maintenance {state['status']}: {state['name']} ({state['reason']}); "
                 f"when done, POST /maintenance/{state['name']}/done"
             )
-            self.alerts.warn(code, message, "maintenance")
+            self.alerts.warn(code, message, "maintenance", standing=True)
 
     def _warn_once(self, code: str, message: str, component: str) -> None:
         if code not in self._raised:
             self._raised[code] = code
-            self.alerts.warn(code, message, component)
+            self.alerts.warn(code, message, component, standing=True)
 
     def _clear_ended(self, holding: set[str]) -> None:
         """Forget the warnings whose condition no longer holds; a code none still holds
