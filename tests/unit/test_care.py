@@ -114,7 +114,7 @@ async def said_on_the_bus(subscription: Any) -> list[tuple[str, str]]:
     said = []
     for _ in range(5):  # delivery is spread over turns of the loop
         await asyncio.sleep(0)
-    while subscription.pending():
+    while subscription.pending:
         message = await subscription.get()
         said.append((message.type, message.data["code"]))
     return said
@@ -125,7 +125,7 @@ async def test_a_care_warning_is_cleared_when_its_cause_goes(make_worker, fast_s
     bus (`alert_cleared`), once no item still holds its code."""
     clock = FakeClock()
     items = (
-        MaintenanceItem(name="clean nozzle", every_parts=2),
+        MaintenanceItem(name="clean nozzle", every_parts=3),
         MaintenanceItem(name="check hose", every_parts=3),
     )
     settings = fast_settings.model_copy(
