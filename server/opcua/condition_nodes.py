@@ -68,8 +68,11 @@ class ConditionNodes:
         source: ua.NodeId,
         description: str,
     ) -> ConditionNode:
-        """The condition's node under `folder`, referenced by `source` (HasCondition)."""
+        """The condition's node under `folder`, referenced by `source` (HasCondition);
+        `node_id` a string node id, below which its children's ids are made."""
         server = self.server
+        base = node_id.Identifier
+        assert isinstance(base, str), node_id
         made = await instantiate(
             server.get_node(folder),
             server.get_node(_node(type_id)),
@@ -82,7 +85,7 @@ class ConditionNodes:
         made += await instantiate(
             condition,
             server.get_node(TWO_STATE),
-            nodeid=ua.NodeId(f"{node_id.Identifier}.ConfirmedState", node_id.NamespaceIndex),
+            nodeid=ua.NodeId.from_string(f"ns={node_id.NamespaceIndex};s={base}.ConfirmedState"),
             bname=ua.QualifiedName("ConfirmedState", 0),
             instantiate_optional=False,
         )
@@ -99,7 +102,7 @@ class ConditionNodes:
         reference.TargetNodeClass = ua.NodeClass.Object
         await server.iserver.isession.add_references([reference])
         entry = ConditionNode(node_id)
-        prefix = f"{node_id.Identifier}."
+        prefix = f"{base}."
         for node in made:
             if not isinstance(node.nodeid.Identifier, str) or node.nodeid == node_id:
                 continue
