@@ -82,7 +82,15 @@ from server.core.worker.view import CellView
 log = logging.getLogger(__name__)
 router = APIRouter()
 
-MESSAGE_TYPES = ("state_changed", "progress", "error", "alert", "report", "device")
+MESSAGE_TYPES = (
+    "state_changed",
+    "progress",
+    "error",
+    "alert",
+    "alert_cleared",
+    "report",
+    "device",
+)
 SEND_TIMEOUT = 5.0
 ENCODED_CACHE = 64  # recent messages kept encoded; a client further behind re-encodes
 MAX_SEQ_DIGITS = 18  # after_seq: any seq a server reaches, and still a 64-bit integer

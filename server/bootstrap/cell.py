@@ -198,6 +198,7 @@ class Cell:
             devices.health,
             self.worker.alerts.warn,
             self.journal,
+            cleared=self.worker.alerts.cleared,
         )
         self.worker.view.on_run_ended(self.watch.on_run_ended)
         await self.watch.start()

@@ -43,10 +43,11 @@ from server.security.tokens import Role
 
 @dataclass(frozen=True)
 class OpcuaMethod:
-    """A command's OPC UA method: its browse name, the PackML command, its Description."""
+    """A command's OPC UA method: its browse name, the PackML command it stands for (None:
+    the cell's own, PackML has none), its Description."""
 
     name: str
-    packml: str
+    packml: str | None
     description: str
 
 
@@ -230,6 +231,11 @@ CATALOGUE: Final = (
         "against the workspace first), then the valve open for purge_seconds at\n"
         "purge_flow_ml_min into the purge cup. Restarts the pot life. Answered once it\n"
         "has begun, like home; the e-stop or a fault stops it with the valve closed.",
+        opcua=OpcuaMethod(
+            "Purge",
+            None,  # no PackML command purges; it is a maintenance task of the cell's own
+            "purge the glue line at purge_position (IDLE, stays IDLE); restarts the pot life",
+        ),
     ),
 )
 

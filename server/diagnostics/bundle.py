@@ -12,6 +12,9 @@ most). Either way it holds:
     health.json          the live /health (devices, worker, journal, links), or why not
     faults.json          the newest faults, each with its context and stack
     transitions.json     the newest state changes
+    maintenance.json     the wear counters and each maintenance item (due, overdue), the
+                         pot life and the glue level, as GET /maintenance answers, judged
+                         from the journal's wear table (as of its last write)
     journal-check.txt    the journal's own check (as `python -m server.storage.journal.check`)
     logs/<name>.tail     the end of the log file, already redacted as it was written
 
@@ -33,8 +36,9 @@ from pathlib import Path
 from typing import Any
 
 from server.common.build import package_version, source_revision
+from server.core.worker.care_rules import state_of
 from server.settings.model import Settings
-from server.storage.journal import TABLES
+from server.storage.journal import TABLES, wear
 from server.storage.journal.check import check
 
 FAULTS_KEPT = 50
@@ -66,6 +70,7 @@ def collect(settings: Settings, health: Mapping[str, Any] | None, made_by: str) 
     if journal.is_file():
         files["faults.json"] = _json(_newest(journal, "errors", FAULTS_KEPT))
         files["transitions.json"] = _json(_newest(journal, "transitions", TRANSITIONS_KEPT))
+        files["maintenance.json"] = _json(_maintenance(journal, settings, now))
         files["journal-check.txt"] = ("\n".join(check(journal)) + "\n").encode()
     else:
         files["journal-check.txt"] = f"no journal at {journal}\n".encode()
@@ -103,6 +108,17 @@ def _newest(journal: Path, table: str, count: int) -> list[dict[str, Any]]:
     finally:
         connection.close()
     return [declared.decode(dict(zip(declared.column_names, row, strict=True))) for row in rows]
+
+
+def _maintenance(journal: Path, settings: Settings, now: float) -> dict[str, Any]:
+    """What GET /maintenance answers, from the wear totals the journal last kept (a running
+    cell writes them every wear_persist_interval, at each run's end and at a clean stop),
+    judged with the settings in force by the care meter's own rules."""
+    try:
+        values, written = wear.read(journal), wear.written_at(journal)
+    except sqlite3.DatabaseError as exc:  # the journal check says more
+        return {"unreadable": str(exc)}
+    return {**state_of(values, settings, now), "as_of": written}
 
 
 def _tail(path: Path, size: int) -> bytes:

@@ -9,19 +9,22 @@ subscribed to either sees it: `uasubscribe -t event` subscribes to the Server.
 
 Every condition has a node, `<cell_id>.Alarms.<CODE>` in the cell's namespace (its
 ConditionId, typed TripAlarmType or OffNormalAlarmType), made the first time its code
-is raised. A client acknowledges or confirms it with the standard methods,
-AcknowledgeableConditionType's Acknowledge (i=9111) and Confirm (i=9113), called on the
-ConditionId with the notice's EventId and a comment. Who may: Acknowledge the operator
-role and above (whoever runs the cell has seen the alarm), Confirm the maintenance role
-and above (the cause is dealt with, the role that resets the cell); anonymous never.
-Each call is audited in the journal like the cell's commands, accepted or refused, with
-the session's principal; an accepted one is on disk before the condition changes and the
-answer goes. ConditionRefresh (i=3875) sends the retained conditions between a
-RefreshStartEvent and a RefreshEndEvent, as alarm clients ask after (re)connecting.
+is raised, with the type's variables (ActiveState/Id, AckedState/Id, Retain, Severity,
+Message...) kept as its latest event says (server/opcua/condition_nodes.py). A client
+acknowledges or confirms it with the standard methods, AcknowledgeableConditionType's
+Acknowledge (i=9111) and Confirm (i=9113), called on the ConditionId with the notice's
+EventId and a comment. Who may: Acknowledge the operator role and above (whoever runs
+the cell has seen the alarm), Confirm the maintenance role and above (the cause is dealt
+with, the role that resets the cell); anonymous never. Each call is audited in the
+journal like the cell's commands, accepted or refused, with the session's principal; an
+accepted one is on disk before the condition changes and the answer goes.
+ConditionRefresh (i=3875) sends the retained conditions between a RefreshStartEvent and
+a RefreshEndEvent, as alarm clients ask after (re)connecting.
 
 The follower is a bus subscriber of its own (bounded buffer, never waited on), taking
-`error`, `alert` and `state_changed`, each once the commands being answered have gone
-(server/core/infra/answers_in_flight.py), as the tags do.
+`error`, `alert`, `alert_cleared` (a warning's cause gone) and `state_changed`, each
+once the commands being answered have gone (server/core/infra/answers_in_flight.py), as
+the tags do.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from server.bootstrap.cell import Cell
 from server.core.infra.answers_in_flight import AnswersInFlight, after_answers
 from server.core.infra.bus import BusMessage, Subscription, SubscriptionClosed
 from server.opcua.address_space import node_id_of
+from server.opcua.condition_nodes import ConditionNodes
 from server.opcua.conditions import Condition, ConditionBook, ConditionClass, Notice, Refused
 from server.opcua.identity import ANONYMOUS, caller
 from server.opcua.methods import peer_of
@@ -57,7 +61,7 @@ def _node(number: int) -> ua.NodeId:
 
 
 BUS_BUFFER = 1024
-FOLLOWED: Final = ("error", "alert", "state_changed")
+FOLLOWED: Final = ("error", "alert", "alert_cleared", "state_changed")
 ACKNOWLEDGE: Final = _node(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge)
 CONFIRM: Final = _node(ua.ObjectIds.AcknowledgeableConditionType_Confirm)
 REFRESH: Final = _node(ua.ObjectIds.ConditionType_ConditionRefresh)
@@ -128,6 +132,9 @@ class CellAlarms:
         self._cell_id = ""
         self._namespace = 0
         self._folder: ua.NodeId | None = None
+        self.condition_nodes = ConditionNodes(
+            server, {"Acknowledge": self._acknowledge, "Confirm": self._confirm}
+        )
 
     async def install(self, cell: Node, cell_id: str, namespace: int) -> None:
         """The cell and the Server as event notifiers, the Alarms folder, the methods."""
@@ -156,8 +163,8 @@ class CellAlarms:
         self._subscription = self.cell.bus.subscribe(BUS_BUFFER, FOLLOWED)
 
     async def start(self) -> None:
-        """Raise what the cell holds now (a fault it started in, a damaged journal), then
-        follow the bus."""
+        """Raise what the cell holds now (a fault it started in, a damaged journal, the
+        standing warnings), then follow the bus."""
         snapshot = self.cell.view.snapshot()
         reason = snapshot.get("stop_reason")
         now = time.time()
@@ -177,6 +184,13 @@ class CellAlarms:
             }
             for notice in self.book.on_message("alert", data, self.cell.bus.last_seq, now):
                 await self._emit(notice)
+        # The standing warnings raised before this follower subscribed (the cell starts
+        # first: its first care check may have found an item due by now).
+        worker = self.cell.worker
+        for data in list(worker.alerts.standing.values()) if worker is not None else ():
+            if data["code"] not in self.book.conditions:
+                for notice in self.book.on_message("alert", data, self.cell.bus.last_seq, now):
+                    await self._emit(notice)
         self._task = asyncio.create_task(self._follow(), name="opcua-alarms")
 
     async def stop(self) -> None:
@@ -223,26 +237,14 @@ class CellAlarms:
             return known
         assert self._folder is not None and self._cell_node is not None
         node_id = node_id_of(self._namespace, f"{self._cell_id}.Alarms.{condition.code}")
-        item = ua.AddNodesItem()
-        item.RequestedNewNodeId = node_id
-        item.BrowseName = ua.QualifiedName(condition.code, self._namespace)
-        item.NodeClass = ua.NodeClass.Object
-        item.ParentNodeId = self._folder
-        item.ReferenceTypeId = _node(ua.ObjectIds.HasComponent)
-        item.TypeDefinition = _node(TYPES[condition.kind])
-        attributes = ua.ObjectAttributes()
-        attributes.DisplayName = ua.LocalizedText(condition.code)
-        attributes.Description = ua.LocalizedText(f"the cell's {condition.kind} {condition.code}")
-        item.NodeAttributes = attributes
-        (result,) = await self.server.iserver.isession.add_nodes([item])
-        result.StatusCode.check()
-        reference = ua.AddReferencesItem()
-        reference.SourceNodeId = self._cell_node
-        reference.ReferenceTypeId = _node(ua.ObjectIds.HasCondition)
-        reference.IsForward = True
-        reference.TargetNodeId = node_id
-        reference.TargetNodeClass = ua.NodeClass.Object
-        await self.server.iserver.isession.add_references([reference])
+        await self.condition_nodes.make(
+            condition.code,
+            node_id,
+            TYPES[condition.kind],
+            self._folder,
+            self._cell_node,
+            f"the cell's {condition.kind} {condition.code}",
+        )
         self._nodes[condition.code] = node_id
         self._codes[node_id] = condition.code
         return node_id
@@ -251,6 +253,8 @@ class CellAlarms:
         """The condition as it is now, on the cell and on the Server."""
         condition = notice.condition
         event = await self._event(condition)
+        # The node's variables first: a client reading them after the event sees the same.
+        await self.condition_nodes.write(condition.code, event, condition.changed_at)
         service = self.server.iserver.isession.subscription_service
         assert self._cell_node is not None
         for emitter in (self._cell_node, SERVER):

@@ -9,10 +9,13 @@ condition raised again, with the new message, waiting for a new acknowledgement)
   reason is cleared, which only a reset back to IDLE does; the first fault since the
   last clear is the first-out (OPC UA's FirstInGroupFlag), as the cell's stop reason is.
 - A warning (an `alert` bus message) is active while it is still true as far as the
-  cell can tell: one raised by a run (a calibration degrading, a slow operation)
-  until a later run in the same state completes without raising it again; one raised
-  in ERROR (the cell held in ERROR too long) until the cell leaves ERROR; one found at
-  start (the journal found damaged) for as long as the server runs, as /health shows it.
+  cell can tell: one whose cause the cell sees go away, until the cell says so with an
+  `alert_cleared` message naming its code (the care meter's: a maintenance item done, a
+  refill, glue dispensed again; the self-watch's: memory or free space back under their
+  thresholds); one raised by a run (a calibration degrading, a slow operation) until a
+  later run in the same state completes without raising it again; one raised in ERROR
+  (the cell held in ERROR too long) until the cell leaves ERROR; one found at start (the
+  journal found damaged) for as long as the server runs, as /health shows it.
 
 Acknowledge and Confirm follow OPC 10000-9: a raise is unacknowledged (AckedState
 false) with nothing to confirm (ConfirmedState true); Acknowledge makes it acked and
@@ -121,14 +124,24 @@ class ConditionBook:
     # --- what the cell says -----------------------------------------------------------
 
     def on_message(self, kind: str, data: Mapping[str, Any], seq: int, at: float) -> list[Notice]:
-        """The notices a bus message (`error`, `alert` or `state_changed`) causes."""
+        """The notices a bus message (`error`, `alert`, `alert_cleared` or `state_changed`)
+        causes."""
         if kind == "error":
             return [self._raise("fault", data, seq, at)]
         if kind == "alert":
             return [self._raise("warning", data, seq, at)]
+        if kind == "alert_cleared":
+            return self._clear_warning(str(data.get("code") or ""), at)
         if kind == "state_changed":
             return self._on_transition(data, seq, at)
         return []
+
+    def _clear_warning(self, code: str, at: float) -> list[Notice]:
+        """The cell says a warning's cause has gone: that warning, if active, clears."""
+        condition = self.conditions.get(code)
+        if condition is None or condition.kind != "warning" or not condition.active:
+            return []
+        return [self._notice(replace(condition, active=False, changed_at=at), "cleared")]
 
     def _raise(self, kind: Kind, data: Mapping[str, Any], seq: int, at: float) -> Notice:
         code = str(data.get("code") or "UNKNOWN")

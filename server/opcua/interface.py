@@ -50,7 +50,7 @@ from server.views.kpi_query import kpis_of
 log = logging.getLogger(__name__)
 
 BUS_BUFFER = 1024  # messages the follower may lag behind before it is dropped and catches up
-FOLLOWED = ("state_changed", "progress", "error", "alert")
+FOLLOWED = ("state_changed", "progress", "error", "alert", "alert_cleared")
 
 
 def endpoint_address(endpoint: str) -> tuple[str, int]:
@@ -234,6 +234,9 @@ class OpcUaInterface:
             await self._write_snapshot(message.data["snapshot"], None, message.time)
         elif message.type == "alert":  # a warning: Admin.Warning
             self.packml.warned(message.data)
+            await self.packml.write_admin(self._snapshot, self._counts, message.time)
+        elif message.type == "alert_cleared":  # its cause gone: out of Admin.Warning
+            self.packml.warning_cleared(message.data)
             await self.packml.write_admin(self._snapshot, self._counts, message.time)
         elif message.type == "progress":
             # The run's steps in the state they belong to (the state_changed snapshot

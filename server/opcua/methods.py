@@ -52,10 +52,11 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Method:
-    """One OPC UA method: its PackML name, the command it sends and the role it needs."""
+    """One OPC UA method: its PackML name (None: the cell's own, as Purge), the command it
+    sends and the role it needs."""
 
     name: str
-    packml: str
+    packml: str | None
     command: Command | None  # None: a PackML method the OPC UA layer carries out itself
     role: Role
     description: str
@@ -186,7 +187,11 @@ class CellMethods:
                 inputs,
                 outputs,
                 callback=self._callback(method),
-                description=f"PackML {method.packml}: {method.description}",
+                description=(
+                    f"PackML {method.packml}: {method.description}"
+                    if method.packml is not None
+                    else method.description
+                ),
             )
 
     def is_stop(self, node_id: ua.NodeId) -> bool:

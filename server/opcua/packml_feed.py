@@ -143,6 +143,12 @@ class PackMLFeed:
         """A warning of the cell (an `alert` message): the newest first in Admin.Warning."""
         self.warnings.appendleft(dict(record, time=record.get("time") or self.clock()))
 
+    def warning_cleared(self, record: Mapping[str, Any]) -> None:
+        """A warning's cause has gone (an `alert_cleared` message): out of Admin.Warning."""
+        kept = [w for w in self.warnings if w.get("code") != record.get("code")]
+        self.warnings.clear()
+        self.warnings.extend(kept)
+
     async def stop(self) -> None:
         for task in list(self._tasks):
             task.cancel()

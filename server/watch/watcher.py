@@ -6,7 +6,9 @@ data directory's free space and each device's round trip; each ended operation c
 in the error rate, and each inspected part goes on the quality control charts
 (server/quality/trends.py). A condition worth a warning is raised through the cell's
 `Alerts.warn` (the log, the journal's errors table as a warning, the WebSocket `alert`,
-MQTT, OPC UA alarm events, webhooks), once as it starts (rules.py: `Latch`). Nothing here
+MQTT, OPC UA alarm events, webhooks), once as it starts (rules.py: `Latch`); the memory
+and free-space warnings are cleared (`Alerts.cleared`) once their figure is back under
+its threshold, so OPC UA's alarm condition goes inactive. Nothing here
 acts on the cell: the memory limit is watched, never enforced (the cell runs on), and
 no reading can fail the cell.
 
@@ -54,8 +56,16 @@ CHART_POINTS = 200  # parts kept on the charts (the baseline needs far fewer)
 
 
 class Warn(Protocol):
-    def __call__(self, code: str, message: str, component: str, *, severity: str = ...) -> None:
-        """Raise a warning (or, with severity "alert", an alert) on every channel."""
+    def __call__(
+        self, code: str, message: str, component: str, *, severity: str = ..., standing: bool = ...
+    ) -> None:
+        """Raise a warning (or, with severity "alert", an alert) on every channel; a
+        `standing` one holds until it is cleared."""
+
+
+class Cleared(Protocol):
+    def __call__(self, code: str, message: str, component: str) -> None:
+        """Say a warning's cause has gone (an `alert_cleared` on every channel that keeps it)."""
 
 
 @dataclass
@@ -84,8 +94,10 @@ class CellWatch:
         warn: Warn,
         journal: Journal | None = None,
         image_pids: Callable[[], list[int]] = IMAGE_PROCESS.pids,
+        cleared: Cleared | None = None,
     ) -> None:
         self._settings = settings
+        self._cleared = cleared
         self.data_path = data_path
         self._device_health = device_health
         self._warn = warn
@@ -96,6 +108,7 @@ class CellWatch:
         self.latest: Sample | None = None
         self._cpu_before: tuple[float, float] | None = None
         self._memory_level = "ok"
+        self._memory_raised: set[str] = set()  # MEMORY_HIGH, MEMORY_LIMIT_REACHED until cleared
         self._disk = Latch()
         self.links: dict[str, RttTrend] = {}
         self.errors = ErrorRate(first.error_rate_window_operations, first.error_rate_alert_per_100)
@@ -190,9 +203,14 @@ class CellWatch:
             return None
         return round(max(0.0, 100.0 * (used - before[1]) / (now - before[0])), 1)
 
+    def _clear(self, code: str, message: str, component: str) -> None:
+        if self._cleared is not None:
+            self._cleared(code, message, component)
+
     def _judge_memory(self, memory: int | None, settings: WatchSettings) -> str:
         if memory is None or settings.memory_limit is None:
             self._memory_level = "ok"
+            self._clear_memory("ok", "memory_limit is not watched")
             return "ok"
         limit = byte_size(settings.memory_limit)
         level = memory_level(memory, limit, settings.memory_warning_percent)
@@ -200,6 +218,7 @@ class CellWatch:
         if rank[level] > rank[self._memory_level]:
             used = f"{memory / MB:.0f} MB of memory_limit {settings.memory_limit}"
             if level == "alert":
+                self._memory_raised.add("MEMORY_LIMIT_REACHED")
                 self._warn(
                     "MEMORY_LIMIT_REACHED",
                     f"the server uses {used}: it runs on, "
@@ -207,19 +226,41 @@ class CellWatch:
                     "server in a pause and report it (glue-server diagnose)",
                     "system",
                     severity="alert",
+                    standing=self._cleared is not None,
                 )
             else:
+                self._memory_raised.add("MEMORY_HIGH")
                 self._warn(
                     "MEMORY_HIGH",
                     f"the server uses {used}, over {settings.memory_warning_percent:g} %: "
                     "watch it; restart the server in a pause if it keeps rising",
                     "system",
+                    standing=self._cleared is not None,
                 )
         self._memory_level = level
+        self._clear_memory(level, f"the server uses {memory / MB:.0f} MB now")
         return level
+
+    def _clear_memory(self, level: str, now: str) -> None:
+        """The memory warnings whose threshold the server is back under, cleared."""
+        ended = set()
+        if level != "alert":
+            ended.add("MEMORY_LIMIT_REACHED")
+        if level == "ok":
+            ended.add("MEMORY_HIGH")
+        for code in sorted(ended & self._memory_raised):
+            self._memory_raised.discard(code)
+            self._clear(code, f"{now}: back under the threshold", "system")
 
     def _judge_disk(self, free: int | None, settings: WatchSettings) -> None:
         threshold = byte_size(settings.free_space_warning)
+        if free is not None and self._disk.on and free >= threshold:
+            self._clear(
+                "DISK_SPACE_LOW",
+                f"{free / MB:.0f} MB free on the disk of the data directory again "
+                f"(free_space_warning {settings.free_space_warning})",
+                "storage",
+            )
         if free is not None and self._disk.rises(free < threshold):
             self._warn(
                 "DISK_SPACE_LOW",
@@ -228,6 +269,7 @@ class CellWatch:
                 "journal cannot write and commands are refused (delete old backups or logs, "
                 "or lower analytics_retention_days)",
                 "storage",
+                standing=self._cleared is not None,
             )
 
     def _judge_links(self, settings: WatchSettings) -> None:

@@ -13,6 +13,7 @@ import sys
 import tarfile
 from pathlib import Path
 
+from tests.integration.test_maintenance import seed
 from tests.rig import open_rig
 
 
@@ -64,12 +65,16 @@ async def test_a_served_cell_gives_its_bundle_to_maintenance_only(tmp_path) -> N
     assert transitions[0]["new_state"] == "ERROR"
     assert files["journal-check.txt"].startswith(b"ok: commits up to ")
     assert json.loads(files["settings.json"])["robot_ip"] == "127.0.0.1"
+    maintenance = json.loads(files["maintenance.json"])
+    assert maintenance["counters"]["valve_cycles"] > 0  # the run sprayed before the stop
+    assert {i["name"] for i in maintenance["items"]} == {"clean nozzle", "service valve"}
     everything = b"".join(files.values())
     for token in tokens_of(tmp_path, *made.values()):
         assert token.encode() not in everything
 
 
 async def test_the_command_line_bundle_needs_no_server(tmp_path) -> None:
+    seed(tmp_path, {"parts": 250.0, "glue_ml": 120.0})  # the nozzle's cleaning overdue
     async with open_rig(tmp_path) as rig:
         await rig.start_spraying()
         assert (await rig.api.post("/estop")).status_code == 202
@@ -84,6 +89,14 @@ async def test_the_command_line_bundle_needs_no_server(tmp_path) -> None:
     assert "not_asked" in json.loads(files["health.json"])
     assert json.loads(files["faults.json"])[0]["code"] == "EMERGENCY_STOP"
     assert files["journal-check.txt"].startswith(b"ok: ")
+    # The maintenance state as GET /maintenance gave it, from the journal alone.
+    maintenance = json.loads(files["maintenance.json"])
+    assert maintenance["counters"]["parts"] == 250
+    assert maintenance["counters"]["glue_ml"] >= 120.0  # and what the run dispensed, if any
+    nozzle = next(i for i in maintenance["items"] if i["name"] == "clean nozzle")
+    assert nozzle["status"] == "overdue" and nozzle["percent"] == 125.0, nozzle
+    assert {"pot_life", "glue_level"} <= set(maintenance)
+    assert "maintenance.json" in files["README.txt"].decode()
     everything = b"".join(files.values())
     for token in tokens_of(tmp_path):
         assert token.encode() not in everything

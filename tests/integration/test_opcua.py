@@ -298,3 +298,55 @@ def test_an_endpoint_in_use_stops_the_start_with_one_line(tmp_path: Path) -> Non
     assert ran.returncode == 2, output
     assert f"cannot start: the OPC UA endpoint {endpoint(taken)} cannot be served" in output
     assert "Traceback" not in output
+
+
+async def test_purge_is_a_method_for_the_maintenance_role(tmp_path: Path) -> None:
+    """Purge over OPC UA: the catalogue's command, its role, refusal and audit row as
+    POST /purge has them."""
+    port = free_port()
+    overrides = {"cell_id": CELL, "opcua_endpoint": endpoint(port), "purge_seconds": 0.2}
+    async with open_rig(tmp_path, **overrides) as rig:
+        operator = await make_token(rig, "operator")
+        maintenance = await make_token(rig, "maintenance")
+        async with client(port, operator) as running:
+            ns = await running.get_namespace_index(NAMESPACE_URI)
+            method = running.get_node(f"ns={ns};s={CELL}.Purge")
+            assert (await method.read_browse_name()).Name == "Purge"
+            executable = await method.read_attribute(ua.AttributeIds.UserExecutable)
+            assert executable.Value.Value is False  # this session may not
+            refused = await call(running, "Purge")
+            assert refused.StatusCode.value == ua.StatusCodes.BadUserAccessDenied
+            assert "needs the maintenance role" in refused.OutputArguments[2].Value
+        assert not any(is_open for _, is_open in rig.glue.valve_log)  # nothing flowed
+        async with client(port, maintenance) as fixing:
+            ns = await fixing.get_namespace_index(NAMESPACE_URI)
+            method = fixing.get_node(f"ns={ns};s={CELL}.Purge")
+            executable = await method.read_attribute(ua.AttributeIds.UserExecutable)
+            assert executable.Value.Value is True
+            accepted = await call(fixing, "Purge")
+            assert accepted.StatusCode.is_good(), accepted.OutputArguments[2].Value
+            assert accepted.OutputArguments[0].Value is True
+            assert accepted.OutputArguments[1].Value == "IDLE"
+
+            async def purged() -> bool:
+                counters = (await rig.api.get("/maintenance")).json()["counters"]
+                return bool(counters["purges"] == 1)
+
+            await until(purged)
+            assert rig.glue.valve_open is False
+            # Outside IDLE the cell refuses it: BadInvalidState with HTTP's 409 message.
+            assert (await rig.api.post("/estop", json={"reason": "test"})).status_code == 202
+            await rig.wait_state("ERROR")
+            busy = await call(fixing, "Purge")
+            assert busy.StatusCode.value == ua.StatusCodes.BadInvalidState
+            assert busy.OutputArguments[2].Value == (await rig.api.post("/purge")).json()["message"]
+        audit = (await rig.api.get("/audit", params={"limit": 100})).json()["audit"]
+        rows = [(r["principal"], r["action"], r["outcome"]) for r in audit]
+        assert any(
+            p.startswith("plc-operator") and a == "OPC UA Purge" and o.startswith("refused")
+            for p, a, o in rows
+        ), rows
+        assert any(
+            p.startswith("plc-maintenance") and a == "OPC UA Purge" and o == "accepted"
+            for p, a, o in rows
+        ), rows

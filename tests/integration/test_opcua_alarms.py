@@ -12,6 +12,7 @@ from typing import Any
 from asyncua import Client, ua
 
 from server.opcua.address_space import NAMESPACE_URI
+from tests.integration.test_maintenance import seed
 from tests.integration.test_opcua import CELL, client, endpoint, make_token
 from tests.processes import environment
 from tests.rig import SPRAY_DEMO, WAIT_S, Rig, open_rig, run
@@ -77,6 +78,57 @@ async def confirm(opc: Client, event: Any, comment: str) -> ua.StatusCode:
         event.NodeId,
         ua.Variant(event.EventId, ua.VariantType.ByteString),
         ua.Variant(ua.LocalizedText(comment), ua.VariantType.LocalizedText),
+    )
+
+
+# The condition's variables a client browses and reads (OPC 10000-9's mandatory ones and
+# ConfirmedState), each with its data type.
+CHILDREN: dict[str, int] = {
+    "EnabledState": ua.ObjectIds.LocalizedText,
+    "EnabledState/Id": ua.ObjectIds.Boolean,
+    "ActiveState": ua.ObjectIds.LocalizedText,
+    "ActiveState/Id": ua.ObjectIds.Boolean,
+    "AckedState": ua.ObjectIds.LocalizedText,
+    "AckedState/Id": ua.ObjectIds.Boolean,
+    "ConfirmedState": ua.ObjectIds.LocalizedText,
+    "ConfirmedState/Id": ua.ObjectIds.Boolean,
+    "Retain": ua.ObjectIds.Boolean,
+    "Severity": ua.ObjectIds.UInt16,
+    "LastSeverity": ua.ObjectIds.UInt16,
+    "Message": ua.ObjectIds.LocalizedText,
+    "Time": ua.ObjectIds.UtcTime,
+    "SourceName": ua.ObjectIds.String,
+    "Quality": ua.ObjectIds.StatusCode,
+    "Comment": ua.ObjectIds.LocalizedText,
+}
+
+
+async def read_condition(opc: Client, condition: ua.NodeId) -> dict[str, Any]:
+    """Each of CHILDREN's values, found by browse path under the condition's node; its
+    data type and its string node id checked on the way."""
+    node = opc.get_node(condition)
+    values: dict[str, Any] = {}
+    for path, data_type in CHILDREN.items():
+        child = await node.get_child([f"0:{name}" for name in path.split("/")])
+        assert child.nodeid.NodeIdType == ua.NodeIdType.String, (path, child.nodeid)
+        assert child.nodeid.Identifier == f"{condition.Identifier}.{path.replace('/', '.')}"
+        assert await child.read_data_type() == ua.NodeId(data_type), path
+        values[path] = await child.read_value()
+    return values
+
+
+def _same_as(values: dict[str, Any], event: Any) -> None:
+    """The node's variables say what the event said."""
+    for path in CHILDREN:
+        assert values[path] == event.__dict__[path], (path, values[path], event.__dict__[path])
+
+
+async def _refresh(opc: Client, events: Events) -> ua.StatusCode:
+    return await _call(
+        opc,
+        ua.ObjectIds.ConditionType_ConditionRefresh,
+        ua.NodeId(ua.ObjectIds.ConditionType),
+        ua.Variant(events.subscription_id, ua.VariantType.UInt32),
     )
 
 
@@ -239,3 +291,71 @@ async def test_uasubscribe_shows_the_alarms(tmp_path: Path) -> None:
             await tool.wait()
         assert b"Severity:1000" in line, line
         assert b"EventType:NodeId(Identifier=10751, NamespaceIndex=0" in line, line  # TripAlarmType
+
+
+async def test_a_condition_node_holds_the_standard_variables_in_step_with_its_events(
+    tmp_path: Path,
+) -> None:
+    port = free_port()
+    async with open_rig(tmp_path, cell_id=CELL, opcua_endpoint=endpoint(port)) as rig:
+        operator = await make_token(rig, "operator")
+        async with client(port, operator) as opc:
+            events = await _subscribe(opc, opc.nodes.server)
+            assert (await rig.api.post("/estop", json={"reason": "door open"})).status_code == 202
+            raised = await events.next_of("EMERGENCY_STOP", Retain=True)
+            values = await read_condition(opc, raised.NodeId)
+            _same_as(values, raised)
+            assert values["ActiveState/Id"] is True and values["AckedState/Id"] is False
+            assert values["ActiveState"].Text == "Active"
+            assert values["EnabledState/Id"] is True and values["Retain"] is True
+            assert values["Severity"] == values["LastSeverity"] == 1000
+            assert "door open" in values["Message"].Text
+            assert values["Quality"].is_good()
+            # The condition's type says what it is, and its node is the event's ConditionId.
+            node = opc.get_node(raised.NodeId)
+            type_definition = await node.read_type_definition()
+            assert type_definition == ua.NodeId(ua.ObjectIds.TripAlarmType)
+
+            assert (await acknowledge(opc, raised, "seen")).is_good()
+            acked = await events.next_of("EMERGENCY_STOP", **{"AckedState/Id": True})
+            values = await read_condition(opc, raised.NodeId)
+            _same_as(values, acked)
+            assert values["AckedState"].Text == "Acknowledged"
+            assert values["ConfirmedState/Id"] is False and values["Comment"].Text == "seen"
+
+            assert (await rig.reset()).status_code == 202
+            await rig.wait_state("IDLE")
+            cleared = await events.next_of("EMERGENCY_STOP", **{"ActiveState/Id": False})
+            values = await read_condition(opc, raised.NodeId)
+            _same_as(values, cleared)
+            assert values["ActiveState"].Text == "Inactive" and values["Retain"] is False
+
+
+async def test_a_maintenance_warning_clears_when_the_item_is_done(tmp_path: Path) -> None:
+    """200 parts make the nozzle's cleaning due: an OffNormalAlarm on the cell; the item
+    marked done (POST /maintenance/{item}/done) clears it over OPC UA."""
+    seed(tmp_path, {"parts": 200.0})
+    port = free_port()
+    overrides = {"cell_id": CELL, "opcua_endpoint": endpoint(port), "care_check_interval": 0.2}
+    async with open_rig(tmp_path, **overrides) as rig:
+        operator = await make_token(rig, "operator")
+        async with client(port, operator) as opc:
+            events = await _subscribe(opc, opc.nodes.server)
+            assert (await _refresh(opc, events)).is_good()  # raised before we subscribed?
+            due = await events.next_of("MAINTENANCE_DUE", **{"ActiveState/Id": True})
+            assert due.EventType == ua.NodeId(ua.ObjectIds.OffNormalAlarmType)
+            assert "clean nozzle" in due.Message.Text and due.Retain is True
+            assert (await read_condition(opc, due.NodeId))["ActiveState/Id"] is True
+
+            done = await rig.api.post("/maintenance/clean nozzle/done")
+            assert done.status_code == 200, done.text
+            cleared = await events.next_of("MAINTENANCE_DUE", **{"ActiveState/Id": False})
+            assert cleared.Retain is True  # nobody acknowledged it yet
+            values = await read_condition(opc, due.NodeId)
+            _same_as(values, cleared)
+            assert (await acknowledge(opc, cleared, "nozzle cleaned")).is_good()
+            gone = await events.next_of("MAINTENANCE_DUE", **{"AckedState/Id": True})
+            assert gone.Retain is False
+            assert (await read_condition(opc, due.NodeId))["Retain"] is False
+            items = (await rig.api.get("/maintenance")).json()["items"]
+            assert next(i for i in items if i["name"] == "clean nozzle")["status"] == "ok"

@@ -178,3 +178,28 @@ def test_severity_follows_the_classification(code: str, classification: str, sev
     kind = "alert" if classification == "warning" else "error"
     notice = only(book().on_message(kind, fault(code, classification=classification), 1, 1.0))
     assert notice.condition.severity == severity
+
+
+def test_a_care_warning_clears_when_the_cell_says_its_cause_has_gone() -> None:
+    """`alert_cleared` (a maintenance item done, a refill, a purge): the warning of that
+    code goes inactive; retained until acknowledged, as every cleared alarm."""
+    alarms = book()
+    due = only(alarms.on_message("alert", warning("MAINTENANCE_DUE", "IDLE"), 1, 1.0))
+    assert due.condition.active
+    # A clear of a code never raised, or of a fault's code, changes nothing.
+    assert alarms.on_message("alert_cleared", {"code": "GLUE_LEVEL_LOW"}, 2, 2.0) == []
+    only(alarms.on_message("error", fault("ALARM", "glue"), 3, 3.0))
+    assert alarms.on_message("alert_cleared", {"code": "ALARM"}, 4, 4.0) == []
+    assert alarms.conditions["ALARM"].active
+    cleared = only(alarms.on_message("alert_cleared", {"code": "MAINTENANCE_DUE"}, 5, 5.0))
+    assert cleared.why == "cleared"
+    assert not cleared.condition.active and cleared.condition.changed_at == 5.0
+    assert cleared.condition.retain  # nobody acknowledged it yet
+    # Cleared once: a second clear sends nothing.
+    assert alarms.on_message("alert_cleared", {"code": "MAINTENANCE_DUE"}, 6, 6.0) == []
+    # Acknowledged after the clear: no longer retained.
+    acked = alarms.acknowledge("MAINTENANCE_DUE", cleared.condition.event_id, "", "op", 7.0)
+    assert isinstance(acked, Notice) and not acked.condition.retain
+    # Raised again later: active again, waiting for a new acknowledgement.
+    again = only(alarms.on_message("alert", warning("MAINTENANCE_DUE", "IDLE"), 8, 8.0))
+    assert again.condition.active and not again.condition.acked

@@ -107,3 +107,58 @@ async def test_a_stop_during_the_purges_move_keeps_the_valve_closed(
     await asyncio.sleep(0.05)  # anything the purge had left to send
     assert [opened for _, opened in glue.valve_log if opened] == []
     assert glue.valve_open is False
+
+
+async def said_on_the_bus(subscription: Any) -> list[tuple[str, str]]:
+    """The warnings raised and cleared so far, from the bus, in order."""
+    said = []
+    for _ in range(5):  # delivery is spread over turns of the loop
+        await asyncio.sleep(0)
+    while subscription.pending:
+        message = await subscription.get()
+        said.append((message.type, message.data["code"]))
+    return said
+
+
+async def test_a_care_warning_is_cleared_when_its_cause_goes(make_worker, fast_settings) -> None:
+    """An item done, a refill, glue flowing again: each warning it ended is cleared on the
+    bus (`alert_cleared`), once no item still holds its code."""
+    clock = FakeClock()
+    items = (
+        MaintenanceItem(name="clean nozzle", every_parts=3),
+        MaintenanceItem(name="check hose", every_parts=3),
+    )
+    settings = fast_settings.model_copy(
+        update={
+            "maintenance_items": items,
+            "glue_reservoir_ml": 100.0,
+            "glue_low_level_percent": 20.0,
+            "pot_life_minutes": 10.0,
+        }
+    )
+    glue = FakeGlue()
+    worker = await make_worker(settings, glue=glue, clock=clock)
+    care = worker.care
+    bus = worker.bus.subscribe(100, ["alert", "alert_cleared"])
+    care.run_ended(ended(3))  # both items due: one code
+    wear.add(glue.health.details, wear.GLUE_ML, 90.0)  # glue flowed: the reservoir low
+    care.check()
+    assert await said_on_the_bus(bus) == [
+        ("alert", "MAINTENANCE_DUE"),
+        ("alert", "MAINTENANCE_DUE"),
+        ("alert", "GLUE_LEVEL_LOW"),
+    ]
+    care.done("clean nozzle")  # the hose is still due: the code stays raised
+    assert await said_on_the_bus(bus) == []
+    care.done("check hose")
+    assert await said_on_the_bus(bus) == [("alert_cleared", "MAINTENANCE_DUE")]
+    care.refill()
+    assert await said_on_the_bus(bus) == [("alert_cleared", "GLUE_LEVEL_LOW")]
+    await clock.advance(9 * 60)
+    care.check()
+    assert await said_on_the_bus(bus) == [("alert", "POT_LIFE_NEAR")]
+    wear.add(glue.health.details, wear.VALVE_CYCLES, 1)  # a purge or a run dispensed
+    care.check()
+    assert await said_on_the_bus(bus) == [("alert_cleared", "POT_LIFE_NEAR")]
+    care.check()
+    assert await said_on_the_bus(bus) == []

@@ -49,7 +49,8 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     "drivers": ("common", "drivers.sim", "vision"),
     "drivers.sim": ("drivers", "settings", "vision"),
     # the diagnostic bundle, read from the data directory
-    "diagnostics": ("common", "settings", "storage.journal"),
+    # (and the care meter's pure rules, to judge the maintenance state as the cell does)
+    "diagnostics": ("common", "core.worker.care_rules", "settings", "storage.journal"),
     # the command catalogue: each command declared once, above the machine's vocabulary
     "commands": ("common", "core.machine", "security", "storage"),
     # measuring a run

@@ -4,12 +4,21 @@ Why: a cell whose operations creep towards processing_timeout, whose
 calibration error creeps towards its limit, or that sits in ERROR unattended
 is about to cost production; each is logged, journaled as a warning (not
 counted in the KPI error rate) and pushed on /ws as an `alert`.
+
+A warning whose cause the cell sees go away (a maintenance item done, a refill, the
+memory back under its limit) is said to be over with `cleared`: an `alert_cleared`
+bus message naming its code, so what keeps warnings as state (OPC UA's alarm
+conditions, PackML's Admin.Warning) lets it go. Such a warning is raised `standing`:
+it is kept in `standing` until cleared, so a subscriber that starts after it was raised
+(the OPC UA alarms start after the cell, whose first care check may already have found
+an item due) raises it from there.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Iterable
+from typing import Any
 
 from server.common.event_id import current_event_id
 from server.core.infra.bus import Bus
@@ -42,30 +51,60 @@ class Alerts:
         self.recorder = recorder
         self.clock = clock
         self._error_timer: Timer | None = None
+        # The standing warnings raised and not cleared yet, by code: their bus message's
+        # data, with the time each was raised.
+        self.standing: dict[str, dict[str, Any]] = {}
 
-    def warn(self, code: str, message: str, component: str, *, severity: str = "warning") -> None:
+    def warn(
+        self,
+        code: str,
+        message: str,
+        component: str,
+        *,
+        severity: str = "warning",
+        standing: bool = False,
+    ) -> None:
         """A warning-class condition: logged, journaled, pushed on /ws; the cell runs on.
 
         `severity` is "warning", or "alert" for one that needs someone now (the memory
         limit reached, the error rate risen, the configuration changed): the same
         channels, said in the message's `severity` and at the log's ERROR level. Either
         is journaled as a warning: neither is a fault, nor counts in the KPIs' error rate.
+        `standing`: the warning holds until `cleared` says otherwise (kept in `standing`).
         """
         level = logging.ERROR if severity == "alert" else logging.WARNING
         log.log(level, "%s %s from %s: %s", severity, code, component, message)
         state = self.ctx.state.value
+        data = {
+            "code": code,
+            "message": message,
+            "component": component,
+            "classification": "warning",
+            "severity": severity,
+            "state": state,
+        }
+        self.bus.publish("alert", data)
+        if standing:
+            self.standing[code] = {**data, "time": self.clock.time()}
+        self.recorder.warning(code, message, component, current_event_id.get() or "", state)
+
+    def cleared(self, code: str, message: str, component: str) -> None:
+        """A warning's cause has gone: logged, and pushed as `alert_cleared` naming the code.
+
+        Not journaled: the warning's row stays the record of what happened; what ended
+        it (a maintenance item done, a refill) has its own audit row.
+        """
+        log.info("warning %s from %s cleared: %s", code, component, message)
+        self.standing.pop(code, None)
         self.bus.publish(
-            "alert",
+            "alert_cleared",
             {
                 "code": code,
                 "message": message,
                 "component": component,
-                "classification": "warning",
-                "severity": severity,
-                "state": state,
+                "state": self.ctx.state.value,
             },
         )
-        self.recorder.warning(code, message, component, current_event_id.get() or "", state)
 
     def halt_incomplete(self, errors: Iterable[str]) -> None:
         """A safe halt a device did not confirm: pushed on /ws (the halt logged it)."""

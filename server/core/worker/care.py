@@ -21,7 +21,12 @@ From the totals it judges, at each check:
 
 Each warning is raised once as its condition begins, through `Alerts.warn`:
 logged, journaled as a warning, and on the bus as an `alert` (the WebSocket,
-MQTT, OPC UA alarm events and webhooks all take it from there).
+MQTT, OPC UA alarm events and webhooks all take it from there). Each check also
+finds the warnings whose condition no longer holds (an item done or its interval
+changed, glue dispensed again, a refill) and says so through `Alerts.cleared`, an
+`alert_cleared` naming the code once no item still holds it (MAINTENANCE_DUE is one
+code for every item due), so OPC UA's alarm condition goes inactive. The judging
+itself is pure (care_rules.py), shared with the diagnostic bundle.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from server.core.infra.clock import Clock, Timer
+from server.core.worker import care_rules as rules
 from server.core.worker.alerts import Alerts
 from server.core.worker.devices import CellDevices
 from server.core.worker.runs import RunEnded
@@ -52,12 +58,10 @@ FROM_DRIVERS = {
     "camera_frames": ("camera", wear.FRAMES),
 }
 COUNTERS = (*FROM_DRIVERS, "parts", "purges")
-LAST_DISPENSE = "mark:last_dispense_at"
-REFILLED_AT_ML = "mark:refilled_at_glue_ml"
-
-
-def _done_key(item: str, counter: str) -> str:
-    return f"done:{item}:{counter}"
+assert COUNTERS == rules.COUNTERS, "care_rules.COUNTERS names the same totals"
+LAST_DISPENSE = rules.LAST_DISPENSE
+REFILLED_AT_ML = rules.REFILLED_AT_ML
+_done_key = rules.done_key
 
 
 class UnknownItem(LookupError):
@@ -82,7 +86,7 @@ class CareMeter:
         self.clock = clock
         self.values: dict[str, float] = {name: 0.0 for name in COUNTERS}
         self._seen: dict[str, float] = {}  # the drivers' counters at the last read
-        self._raised: set[str] = set()  # conditions warned of, until they end
+        self._raised: dict[str, str] = {}  # each condition warned of, until it ends: its code
         self._timer: Timer | None = None
         self._persisted_at = 0.0
         self._written: dict[str, float] = {}  # each key's value as the journal has it
@@ -140,9 +144,8 @@ class CareMeter:
             self.note_dispense()
 
     def note_dispense(self) -> None:
-        """Glue just flowed: the pot life starts again."""
+        """Glue just flowed: the pot life starts again (its warnings clear at the check)."""
         self.values[LAST_DISPENSE] = self.clock.time()
-        self._raised -= {"POT_LIFE_NEAR", "POT_LIFE_EXCEEDED"}  # the warnings' codes
 
     def run_ended(self, ended: RunEnded) -> None:
         """A run's parts counted and everything written (a run listener)."""
@@ -179,7 +182,7 @@ class CareMeter:
         for counter in item.intervals():
             self.values[_done_key(item.name, counter)] = self.values.get(counter, 0.0)
         self.values[f"done_at:{item.name}"] = self.clock.time()
-        self._raised -= {f"due:{item.name}", f"overdue:{item.name}"}
+        self.check()  # its warnings clear
         self.persist()
         return self._item_state(item)
 
@@ -187,7 +190,7 @@ class CareMeter:
         """The reservoir was filled: the level is full from the glue dispensed now."""
         self.read_drivers()
         self.values[REFILLED_AT_ML] = self.values.get("glue_ml", 0.0)
-        self._raised.discard("GLUE_LEVEL_LOW")
+        self.check()  # the low-level warning clears
         self.persist()
         return self.glue_level()
 
@@ -200,92 +203,71 @@ class CareMeter:
     # --- judging ---------------------------------------------------------------
 
     def check(self) -> None:
-        """Read the drivers, then raise each warning whose condition has just begun."""
+        """Read the drivers, raise each warning whose condition has just begun, and clear
+        each whose condition has ended."""
         self.read_drivers()
+        holding: set[str] = set()
         for item in self._settings().maintenance_items:
             state = self._item_state(item)
+            due, overdue = f"due:{item.name}", f"overdue:{item.name}"
             if state["status"] == "overdue":
                 code = "MAINTENANCE_OVERDUE"
-                self._raise_once(f"overdue:{item.name}", code, state)
+                self._raise_once(overdue, code, state)
+                holding.add(overdue)
+                if due in self._raised:  # still due, as it was
+                    holding.add(due)
             elif state["status"] == "due":
                 code = "MAINTENANCE_DUE"
-                self._raise_once(f"due:{item.name}", code, state)
+                self._raise_once(due, code, state)
+                holding.add(due)
         pot = self.pot_life()
         if pot["status"] == "expired":
             code = "POT_LIFE_EXCEEDED"
             self._warn_once(code, pot["message"], "glue")
+            holding.add(code)
+            if "POT_LIFE_NEAR" in self._raised:
+                holding.add("POT_LIFE_NEAR")
         elif pot["status"] == "near":
             code = "POT_LIFE_NEAR"
             self._warn_once(code, pot["message"], "glue")
+            holding.add(code)
         level = self.glue_level()
         if level["status"] == "low":
             code = "GLUE_LEVEL_LOW"
             self._warn_once(code, level["message"], "glue")
+            holding.add(code)
+        self._clear_ended(holding)
 
     def _raise_once(self, key: str, code: str, state: dict[str, Any]) -> None:
         if key not in self._raised:
-            self._raised.add(key)
+            self._raised[key] = code
             message = (
                 f"maintenance {state['status']}: {state['name']} ({state['reason']}); "
                 f"when done, POST /maintenance/{state['name']}/done"
             )
-            self.alerts.warn(code, message, "maintenance")
+            self.alerts.warn(code, message, "maintenance", standing=True)
 
     def _warn_once(self, code: str, message: str, component: str) -> None:
         if code not in self._raised:
-            self._raised.add(code)
-            self.alerts.warn(code, message, component)
+            self._raised[code] = code
+            self.alerts.warn(code, message, component, standing=True)
+
+    def _clear_ended(self, holding: set[str]) -> None:
+        """Forget the warnings whose condition no longer holds; a code none still holds
+        is cleared on every channel."""
+        ended = {key: code for key, code in self._raised.items() if key not in holding}
+        for key in ended:
+            del self._raised[key]
+        for code in sorted(set(ended.values()) - set(self._raised.values())):
+            keys = sorted(key for key, of in ended.items() if of == code)
+            self.alerts.cleared(code, _why_over(code, keys), _component_of(code))
 
     def _item_state(self, item: MaintenanceItem) -> dict[str, Any]:
-        settings = self._settings()
-        worst, reason = 0.0, ""
-        intervals = item.intervals()
-        for counter, every in intervals.items():
-            used = self.values.get(counter, 0.0) - self.values.get(
-                _done_key(item.name, counter), 0.0
-            )
-            share = used / every * 100.0
-            if share >= worst:
-                worst, reason = share, f"{counter} {used:g} of {every:g}"
-        status = "ok"
-        if worst >= settings.maintenance_overdue_percent:
-            status = "overdue"
-        elif worst >= 100.0:
-            status = "due"
-        return {
-            "name": item.name,
-            "status": status,
-            "percent": round(worst, 1),
-            "reason": reason,
-            "intervals": intervals,
-            "done_at": self.values.get(f"done_at:{item.name}"),
-        }
+        return rules.item_state(item, self.values, self._settings())
 
     def pot_life(self) -> dict[str, Any]:
         """The open time since the last dispense against the adhesive's pot life."""
-        settings = self._settings()
-        last = self.values.get(LAST_DISPENSE)
-        if settings.pot_life_minutes is None or last is None:
-            return {"status": "off" if settings.pot_life_minutes is None else "ok", "open_s": None}
-        limit = settings.pot_life_minutes * 60.0
-        open_s = max(0.0, self.clock.time() - last)
-        share = open_s / limit * 100.0
-        status = "ok"
-        if share >= 100.0:
-            status = "expired"
-        elif share >= settings.pot_life_warning_percent:
-            status = "near"
-        message = (
-            f"the glue in the line has been open {open_s / 60:.1f} min of its "
-            f"{settings.pot_life_minutes:g} min pot life: purge the line"
-            + (" before the next start (starts are refused until then)" if share >= 100 else "")
-        )
-        return {
-            "status": status,
-            "open_s": round(open_s, 1),
-            "percent": round(share, 1),
-            "message": message,
-        }
+        return rules.pot_life(self.values, self._settings(), self.clock.time())
 
     def start_problem(self) -> str | None:
         """Why a start must wait for a purge (pot life past), or None."""
@@ -294,33 +276,23 @@ class CareMeter:
 
     def glue_level(self) -> dict[str, Any]:
         """The reservoir's estimated level from the glue dispensed since the last refill."""
-        settings = self._settings()
-        if settings.glue_reservoir_ml is None:
-            return {"status": "off", "level_ml": None}
-        used = self.values.get("glue_ml", 0.0) - self.values.get(REFILLED_AT_ML, 0.0)
-        level = max(0.0, settings.glue_reservoir_ml - used)
-        percent = level / settings.glue_reservoir_ml * 100.0
-        status = "low" if percent <= settings.glue_low_level_percent else "ok"
-        message = (
-            f"the glue reservoir is at about {level:.0f} ml ({percent:.0f} %) by the glue "
-            "dispensed since its last refill: refill it, then POST /glue/refill"
-        )
-        return {
-            "status": status,
-            "level_ml": round(level, 1),
-            "percent": round(percent, 1),
-            "message": message,
-        }
+        return rules.glue_level(self.values, self._settings())
 
     def state(self) -> dict[str, Any]:
         """What GET /maintenance shows."""
         self.read_drivers()
-        counters = {name: round(self.values.get(name, 0.0), 3) for name in COUNTERS}
-        counters["valve_open_hours"] = round(counters.pop("valve_open_s") / 3600.0, 4)
-        counters["motion_hours"] = round(counters.pop("motion_s") / 3600.0, 4)
-        return {
-            "counters": counters,
-            "items": [self._item_state(item) for item in self._settings().maintenance_items],
-            "pot_life": self.pot_life(),
-            "glue_level": self.glue_level(),
-        }
+        return rules.state_of(self.values, self._settings(), self.clock.time())
+
+
+def _component_of(code: str) -> str:
+    return "maintenance" if code.startswith("MAINTENANCE_") else "glue"
+
+
+def _why_over(code: str, keys: list[str]) -> str:
+    """What a cleared warning's message says ended it."""
+    if code.startswith("MAINTENANCE_"):
+        items = ", ".join(key.split(":", 1)[1] for key in keys)
+        return f"maintenance no longer {code.removeprefix('MAINTENANCE_').lower()}: {items}"
+    if code.startswith("POT_LIFE_"):
+        return "glue dispensed since (a run or a purge): the pot life starts again"
+    return "the glue reservoir is above glue_low_level_percent again (refilled)"

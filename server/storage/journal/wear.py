@@ -33,3 +33,17 @@ def read(path: Path) -> dict[str, float]:
     finally:
         connection.close()
     return {str(key): float(value) for key, value in rows}
+
+
+def written_at(path: Path) -> float | None:
+    """When the totals were last written (Unix seconds); None for a journal without any."""
+    if not path.exists():
+        return None
+    connection = sqlite3.connect(path, timeout=30)
+    try:
+        (latest,) = connection.execute("SELECT MAX(time) FROM wear").fetchone()
+    except sqlite3.OperationalError:  # a journal opened before the table was declared
+        return None
+    finally:
+        connection.close()
+    return float(latest) if latest is not None else None
