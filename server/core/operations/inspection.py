@@ -20,7 +20,11 @@ import numpy as np
 
 from server.common.errors import OperationError
 from server.core.operations.base import OperationContext, OperationWarning
-from server.core.operations.camera_frames import capture_undistorted, require_robot_calibration
+from server.core.operations.camera_frames import (
+    capture_undistorted,
+    draw_ahead,
+    require_robot_calibration,
+)
 from server.core.operations.workpieces import Target
 from server.quality.dispensing import dispensing_consistency
 from server.quality.model import PlannedSegment, RunSamples
@@ -85,14 +89,20 @@ async def inspect_run(
     only the frame and its analysis follow the clearance.
     """
     settings = ctx.settings
-    precision = trajectory_precision(samples.poses, segments)
-    dispensing = dispensing_consistency(
-        samples.flows, samples.windows, segments, settings.dispensing_flow_tolerance_percent
-    )
-    entries = await asyncio.to_thread(ctx.stores.workpieces.list)
-    library = {w.id: np.asarray(w.outline_mm, dtype=np.float64) for w in entries}
-    if cleared is not None:
-        await cleared()
+    # The bead is laid: a simulated camera draws the part while the arm clears it.
+    ahead = asyncio.ensure_future(draw_ahead(ctx.camera)) if cleared is not None else None
+    try:
+        precision = trajectory_precision(samples.poses, segments)
+        dispensing = dispensing_consistency(
+            samples.flows, samples.windows, segments, settings.dispensing_flow_tolerance_percent
+        )
+        entries = await asyncio.to_thread(ctx.stores.workpieces.list)
+        library = {w.id: np.asarray(w.outline_mm, dtype=np.float64) for w in entries}
+        if cleared is not None:
+            await cleared()
+    finally:
+        if ahead is not None:
+            ahead.cancel()  # a drawing begun goes on in the image process, ahead of the frame
     started = time.monotonic()
     try:
         calibration = require_robot_calibration(ctx, "inspection")
