@@ -511,8 +511,9 @@ class SimulatedCamera(_CameraBase):
         may look (the inspection, while the arm clears the part) calls this, so the
         simulator's drawing is not counted in the frame's wait. The frame still shows
         the table as it is at its capture: a table changed since is drawn again."""
-        if not self._open or self._mode != "table" or self._fault or self._first_frame:
-            return  # nothing to draw ahead, or the first frame is drawing the caches
+        drawing_first = self._first_frame is not None  # the first frame builds the caches
+        if not self._open or self._mode != "table" or self._fault is not None or drawing_first:
+            return
         with contextlib.suppress(Exception):  # the capture draws, and reports, its own
             await IMAGE_PROCESS.call(draw_table_ahead, await self._table_scene(), self.model)
 
