@@ -9,7 +9,8 @@ row and its first run is left out, so every run measured begins where the
 previous run of its own mode left the arm (at the safe position after a
 retract, over the last bead without one: the run's first step then travels to
 the safe position). The blocks go round the modes in turn, so all see the same
-machine.
+machine. Before each run a fresh part is laid where the last one was (what an
+order does between its parts), so each frame shows one part's bead.
 
 - `cycle`: START accepted → the cell back in IDLE, for each mode;
 - `inspection`: what the inspection itself took (from its frame on: re-locating
@@ -57,6 +58,9 @@ async def one_cycle(
 ) -> tuple[float, dict[str, Any] | None]:
     """One run from START to IDLE: its duration and its inspection record (None: none);
     its steps go to `clock` under `mode` (None: not measured)."""
+    present_next_part = getattr(cell.devices.camera, "present_next_part", None)
+    if present_next_part is not None:
+        present_next_part()  # each run sprays a fresh part, as an order's runs do
     clock.begin_run()
     started = time.perf_counter()
     outcome = await worker.request(Event.START_REQUESTED, source="bench", payload=SPRAY_FOUND_PART)

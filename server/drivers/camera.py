@@ -392,8 +392,10 @@ class SimulatedCamera(_CameraBase):
 
     def present_next_part(self) -> None:
         """The next part of a production order: the parts on the table replaced by fresh
-        ones at the same poses (what a person or a conveyor does at a real cell)."""
+        ones at the same poses (what a person or a conveyor does at a real cell), with no
+        glue on them: the bead dispensed so far went with the old ones."""
         self.scene.present_next_part()
+        self.clear_bead()
 
     # --- fault injection (tests) ---------------------------------------------------------
 
