@@ -8,7 +8,8 @@ runs its own code unchanged and the benchmark reads a timeline of each run's end
   (`inspection_clearance_mm`), when the inspection may take its frame;
 - `retract: after clearance`: clearance → the arm at the safe position (what the
   inspection can overlap);
-- `frame: bead gathered` / `frame: drawn`: the simulated camera's frame, its bead from
+- `frame: bead gathered` / `frame: drawn`: the simulated camera's inspection frame (not
+  the run's first frame, which finds the part), its bead from
   the simulators' records (a thread of the server) and its drawing (the image process);
   `frame: whole capture` is the camera's capture from request to frame;
 - `frame: undistorted`: the frame undistorted (the image process);
@@ -62,6 +63,7 @@ class StepClock:
         self._camera = camera
         self._images = images
         self._undo: list[Callable[[], None]] = []
+        self._inspecting = False  # within the inspection's capture
 
     # --- a run ------------------------------------------------------------------------
 
@@ -94,6 +96,8 @@ class StepClock:
         self._marks.setdefault(name, time.perf_counter())
 
     def _add(self, step: str, seconds: float) -> None:
+        if step.startswith("frame") and not self._inspecting:
+            return  # the run's first frame (finding the part) is not the inspection's
         self._steps[step].append(seconds)
 
     # --- the wrapping -------------------------------------------------------------------
@@ -171,8 +175,12 @@ class StepClock:
     def _timed_capture(self, original: Any) -> Any:
         async def wrapped(ctx: Any, purpose: str) -> Any:
             started = time.perf_counter()
-            frame = await original(ctx, purpose)
-            self._add("frame: whole capture", time.perf_counter() - started)
+            self._inspecting = purpose == "inspection"
+            try:
+                frame = await original(ctx, purpose)
+                self._add("frame: whole capture", time.perf_counter() - started)
+            finally:
+                self._inspecting = False
             return frame
 
         return wrapped
