@@ -31,6 +31,7 @@ from collections.abc import Callable
 from typing import Any
 
 import server.core.operations.camera_frames as camera_frames
+import server.core.operations.inspection as inspection
 import server.core.operations.safe_position as safe_position
 import server.core.operations.trajectory as trajectory
 from server.drivers.camera import SimulatedCamera
@@ -107,6 +108,7 @@ class StepClock:
         self._patch(trajectory, "inspect_run", self._inspect_run)
         self._patch(safe_position, "move_to_safe_position", self._timed_move)
         self._patch(camera_frames, "capture", self._timed_capture)
+        self._patch(inspection, "capture_undistorted", self._inspection_frame)
         self._patch_instance(IMAGE_PROCESS, "call", self._timed_image_call)
         if self._images is not None:
             self._patch_instance(self._images, "save", self._timed_save)
@@ -175,13 +177,19 @@ class StepClock:
     def _timed_capture(self, original: Any) -> Any:
         async def wrapped(ctx: Any, purpose: str) -> Any:
             started = time.perf_counter()
-            self._inspecting = purpose == "inspection"
+            frame = await original(ctx, purpose)
+            self._add("frame: whole capture", time.perf_counter() - started)
+            return frame
+
+        return wrapped
+
+    def _inspection_frame(self, original: Any) -> Any:
+        async def wrapped(ctx: Any, purpose: str) -> Any:
+            self._inspecting = True
             try:
-                frame = await original(ctx, purpose)
-                self._add("frame: whole capture", time.perf_counter() - started)
+                return await original(ctx, purpose)
             finally:
                 self._inspecting = False
-            return frame
 
         return wrapped
 
