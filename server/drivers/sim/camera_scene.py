@@ -577,10 +577,10 @@ def draw_table_ahead(scene: Scene, model: CameraModel = DEFAULT_CAMERA_MODEL) ->
     _clean_frame(scene.snapshot(), model)
 
 
-def _clean_frame(snapshot: Scene, model: CameraModel) -> NDArray[np.float32]:
+def _clean_frame(snapshot: Scene, model: CameraModel) -> Any:
     """The lit, noiseless frame of a snapshot, from the cache or built into it."""
     bead = snapshot.bead.key if snapshot.bead else None
     light = (float(snapshot.vignetting), float(snapshot.light_gradient))
-    key = (model, snapshot._background_key(), tuple(snapshot.workpieces), bead, light)
-    key += (snapshot.degradations,)
+    pieces, degradations = tuple(snapshot.workpieces), snapshot.degradations
+    key = (model, snapshot._background_key(), pieces, bead, light, degradations)
     return _frame_cache.get_or_build(key, lambda: _build_frame(snapshot, model))
