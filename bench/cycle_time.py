@@ -9,11 +9,14 @@ row and its first run is left out, so every run measured begins where the
 previous run of its own mode left the arm (at the safe position after a
 retract, over the last bead without one: the run's first step then travels to
 the safe position). The blocks go round the modes in turn, so all see the same
-machine.
+machine. Before each run a fresh part is laid where the last one was (what an
+order does between its parts), so each frame shows one part's bead.
 
 - `cycle`: START accepted → the cell back in IDLE, for each mode;
 - `inspection`: what the inspection itself took (from its frame on: re-locating
-  the part, the bead along every segment, the annotated JPEG), from its record.
+  the part, the bead along every segment, the annotated JPEG), from its record;
+- `step: ...`: the p50 of each step of a run's end, in the modes that inspect
+  (bench/cycle_steps.py says what each step is), to show where the time goes.
 
 `both / neither` is what a verdict and an arm out of the way cost the plant per
 part: the retract replaces the next run's first travel, and the inspection takes
@@ -34,6 +37,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench.cycle_steps import STEP_ORDER, StepClock
 from bench.report import emit, percentiles_ms
 from server.bootstrap.cell import Cell
 from server.core.machine.events import StartPayload
@@ -49,14 +53,23 @@ async def wait_state(worker: Worker, *states: State) -> None:
         await asyncio.sleep(0.002)
 
 
-async def one_cycle(cell: Cell, worker: Worker) -> tuple[float, dict[str, Any] | None]:
-    """One run from START to IDLE: its duration and its inspection record (None: none)."""
+async def one_cycle(
+    cell: Cell, worker: Worker, clock: StepClock, mode: str | None
+) -> tuple[float, dict[str, Any] | None]:
+    """One run from START to IDLE: its duration and its inspection record (None: none);
+    its steps go to `clock` under `mode` (None: not measured)."""
+    present_next_part = getattr(cell.devices.camera, "present_next_part", None)
+    if present_next_part is not None:
+        present_next_part()  # each run sprays a fresh part, as an order's runs do
+    clock.begin_run()
     started = time.perf_counter()
     outcome = await worker.request(Event.START_REQUESTED, source="bench", payload=SPRAY_FOUND_PART)
     assert outcome.accepted, outcome.message
     await wait_state(worker, State.EXECUTING_TRAJECTORY, State.ERROR)
     await wait_state(worker, State.IDLE, State.ERROR)
-    elapsed = time.perf_counter() - started
+    idle_at = time.perf_counter()
+    elapsed = idle_at - started
+    clock.end_run(idle_at, mode)
     assert worker.ctx.state is State.IDLE, f"the run ended in {worker.ctx.state}"
     journal = cell.journal
     assert journal is not None and outcome.run_id is not None
@@ -84,19 +97,9 @@ async def run(runs: int, block: int) -> tuple[list[dict[str, Any]], dict[str, An
         worker = cell.worker
         assert worker is not None
         await wait_state(worker, State.IDLE)
-        while min(len(c) for c in cycles.values()) < runs:
-            for mode, (inspecting, retracting) in MODES.items():
-                cell.settings.inspection_enabled = inspecting
-                cell.settings.retract_after_run = retracting
-                for index in range(block + 1):
-                    elapsed, record = await one_cycle(cell, worker)
-                    assert (record is not None) == inspecting, "inspected when off, or not on"
-                    if index == 0:
-                        continue  # began where another mode left the arm
-                    cycles[mode].append(elapsed)
-                    if record is not None:
-                        inspection_s.append(float(record["took_s"]))
-                        verdicts[record["verdict"]] = verdicts.get(record["verdict"], 0) + 1
+        clock = StepClock(cell.devices.camera, cell.stores.inspection_images)
+        with clock:
+            await measure(cell, worker, clock, runs, block, cycles, inspection_s, verdicts)
     finally:
         await cell.stop()
         shutil.rmtree(data, ignore_errors=True)  # a journal and images per run: not worth keeping
@@ -104,6 +107,11 @@ async def run(runs: int, block: int) -> tuple[list[dict[str, Any]], dict[str, An
         {"measure": f"cycle, {mode}", **percentiles_ms(samples)} for mode, samples in cycles.items()
     ]
     rows.append({"measure": "inspection itself", **percentiles_ms(inspection_s)})
+    for mode in ("inspection", "both"):
+        steps = clock.samples[mode]
+        for step in STEP_ORDER:
+            if steps.get(step):
+                rows.append({"measure": f"step ({mode}): {step}", **percentiles_ms(steps[step])})
     neither = statistics.median(cycles["neither"])
     ratio = {
         f"{mode} / neither": round(statistics.median(samples) / neither, 4)
@@ -111,6 +119,33 @@ async def run(runs: int, block: int) -> tuple[list[dict[str, Any]], dict[str, An
         if mode != "neither"
     }
     return rows, {"verdicts": verdicts, "p50_ratios": ratio}
+
+
+async def measure(
+    cell: Cell,
+    worker: Worker,
+    clock: StepClock,
+    runs: int,
+    block: int,
+    cycles: dict[str, list[float]],
+    inspection_s: list[float],
+    verdicts: dict[str, int],
+) -> None:
+    """Blocks of runs, the modes in turn, until each mode has `runs` measured."""
+    while min(len(c) for c in cycles.values()) < runs:
+        for mode, (inspecting, retracting) in MODES.items():
+            cell.settings.inspection_enabled = inspecting
+            cell.settings.retract_after_run = retracting
+            for index in range(block + 1):
+                measured = mode if index > 0 else None  # the first began where another left
+                elapsed, record = await one_cycle(cell, worker, clock, measured)
+                assert (record is not None) == inspecting, "inspected when off, or not on"
+                if measured is None:
+                    continue
+                cycles[mode].append(elapsed)
+                if record is not None:
+                    inspection_s.append(float(record["took_s"]))
+                    verdicts[record["verdict"]] = verdicts.get(record["verdict"], 0) + 1
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:

@@ -53,6 +53,7 @@ from server.drivers.sim.camera_scene import (
     Scene,
     Workpiece,
     default_chessboard_poses,
+    draw_table_ahead,
     release_chessboard_state,
     render_chessboard_view,
     render_table,
@@ -391,8 +392,10 @@ class SimulatedCamera(_CameraBase):
 
     def present_next_part(self) -> None:
         """The next part of a production order: the parts on the table replaced by fresh
-        ones at the same poses (what a person or a conveyor does at a real cell)."""
+        ones at the same poses (what a person or a conveyor does at a real cell), with no
+        glue on them: the bead dispensed so far went with the old ones."""
         self.scene.present_next_part()
+        self.clear_bead()
 
     # --- fault injection (tests) ---------------------------------------------------------
 
@@ -500,6 +503,31 @@ class SimulatedCamera(_CameraBase):
                 self._frame_failed("CAPTURE_FAILED", message, connected=None)
             raise DeviceError(DEVICE, message)
 
+    async def draw_ahead(self) -> None:
+        """Draw the table as it stands now, delivering nothing: the next capture of an
+        unchanged table only adds the sensor's noise. Never raises.
+
+        A real camera streams, so a frame asked for arrives within its frame period;
+        this one draws each frame when asked (a remap of the whole table, more with a
+        bead that changed). An operation that knows what the camera will see before it
+        may look (the inspection, while the arm clears the part) calls this, so the
+        simulator's drawing is not counted in the frame's wait. The frame still shows
+        the table as it is at its capture: a table changed since is drawn again."""
+        drawing_first = self._first_frame is not None  # the first frame builds the caches
+        if not self._open or self._mode != "table" or self._fault is not None or drawing_first:
+            return
+        with contextlib.suppress(Exception):  # the capture draws, and reports, its own
+            await IMAGE_PROCESS.call(draw_table_ahead, await self._table_scene(), self.model)
+
+    async def _table_scene(self) -> Scene:
+        """The table as it is now, with the bead dispensed on it."""
+        scene = self.scene.snapshot()
+        source = self.bead_source
+        if source is not None:  # the in-process simulators' glue, gathered on a thread
+            shifts = list(self._part_shifts)
+            scene.bead = await asyncio.to_thread(source, self._bead_since, shifts)
+        return scene
+
     async def _render(self, *, advance: bool) -> np.ndarray:
         """The next frame, rendered in the image process (`server.vision.process`): the
         simulator's work is a device's own, and would otherwise hold the server's
@@ -510,12 +538,7 @@ class SimulatedCamera(_CameraBase):
         draw: Callable[..., np.ndarray]
         args: tuple[Any, ...]
         if self._mode == "table":
-            scene = self.scene.snapshot()
-            source = self.bead_source
-            if source is not None:  # the in-process simulators' glue, gathered on a thread
-                shifts = list(self._part_shifts)
-                scene.bead = await asyncio.to_thread(source, self._bead_since, shifts)
-            draw, args = _table_view, (scene, model, rng)
+            draw, args = _table_view, (await self._table_scene(), model, rng)
         else:
             board, pose = self.chessboard, self.chessboard_poses[self._next_view]
             if advance:

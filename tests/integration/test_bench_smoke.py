@@ -305,7 +305,7 @@ def test_vision_accuracy_reports_calibration_and_matching(results_in_tmp: Path) 
 
 def test_cycle_time_compares_runs_with_and_without_inspection(results_in_tmp: Path) -> None:
     rows = cycle_time.main(["--runs", "1", "--block", "1"])
-    assert [row["measure"] for row in rows] == [
+    assert [row["measure"] for row in rows[:5]] == [
         "cycle, neither",
         "cycle, retract",
         "cycle, inspection",
@@ -314,7 +314,13 @@ def test_cycle_time_compares_runs_with_and_without_inspection(results_in_tmp: Pa
     ]
     for row in rows:
         assert_ordered_latencies(row)
-    assert [row["n"] for row in rows] == [1, 1, 1, 1, 2]
+    assert [row["n"] for row in rows[:5]] == [1, 1, 1, 1, 2]
+    steps = {row["measure"] for row in rows[5:]}
+    for step in ("frame: whole capture", "analysis", "inspection: after clearance"):
+        assert f"step (inspection): {step}" in steps
+        assert f"step (both): {step}" in steps
+    for step in ("retract: to clearance", "retract: after clearance"):
+        assert f"step (both): {step}" in steps
     assert written_rows(results_in_tmp, "cycle_time") == rows
 
 

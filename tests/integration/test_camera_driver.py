@@ -48,6 +48,26 @@ async def test_placed_workpiece_appears_where_the_model_says() -> None:
     await camera.close()
 
 
+async def test_a_table_drawn_ahead_gives_the_frame_a_capture_gives_without() -> None:
+    # Drawn ahead, only the caches change: the capture after it is the very frame (its
+    # noise too) of a camera that did not draw ahead, and a table changed since shows.
+    ahead, plain = SimulatedCamera(seed=7), SimulatedCamera(seed=7)
+    for camera in (ahead, plain):
+        await camera.connect()
+        await camera.warmed_up()
+    await ahead.draw_ahead()
+    assert np.array_equal(await ahead.capture(), await plain.capture())
+    await ahead.draw_ahead()
+    for camera in (ahead, plain):
+        piece = camera.place_workpiece("hexagon", 640.0, 0.0, 10.0)
+    frame = await ahead.capture()
+    assert np.array_equal(frame, await plain.capture())
+    u, v = np.rint(ahead.model.table_to_pixel(piece.centroid_table_mm())).astype(int)
+    assert frame[v, u].mean() > 150  # the part placed after the drawing ahead
+    for camera in (ahead, plain):
+        await camera.close()
+
+
 async def test_chessboard_mode_shows_a_new_pose_per_capture_and_cycles() -> None:
     camera = SimulatedCamera()
     await camera.connect()

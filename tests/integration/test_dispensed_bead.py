@@ -73,6 +73,18 @@ async def test_a_run_leaves_a_bead_where_the_valve_was_open(tmp_path) -> None:
         assert np.median(glue_seen(rig.camera, cleared, sprayed)) < 20
 
 
+async def test_the_next_part_of_an_order_comes_without_the_glue_of_the_last(tmp_path) -> None:
+    async with open_rig(tmp_path) as rig:
+        rig.camera.bead_source = dispensed_by(rig.robot, rig.glue)
+        snapshot = await run(rig, "start", SPRAY_DEMO)
+        assert snapshot["state"] == "IDLE", snapshot
+        sprayed, _ = sprayed_points(rig)
+        assert np.median(glue_seen(rig.camera, await rig.camera.capture(), sprayed)) > 80
+        rig.camera.present_next_part()  # what an order does between its parts
+        fresh = await rig.camera.capture()
+        assert np.median(glue_seen(rig.camera, fresh, sprayed)) < 20
+
+
 async def test_a_part_shifted_while_spraying_carries_the_glue_already_on_it(tmp_path) -> None:
     async with open_rig(tmp_path) as rig:
         rig.camera.bead_source = dispensed_by(rig.robot, rig.glue)

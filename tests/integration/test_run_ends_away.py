@@ -41,6 +41,35 @@ async def test_a_run_ends_with_the_arm_at_the_safe_position(tmp_path) -> None:
         assert clear_of(position, beads, settings.inspection_clearance_mm), position
 
 
+async def test_the_camera_draws_the_part_while_the_arm_still_hides_it(tmp_path) -> None:
+    # The simulated camera draws what it will show as the retract begins, so the frame
+    # taken at the clearance waits for no drawing; the frame itself is still taken clear.
+    async with open_rig(tmp_path / "data") as rig:
+        clearance = rig.cell.settings.inspection_clearance_mm
+        order: list[tuple[str, Any]] = []
+        capture, draw_ahead = rig.camera.capture, rig.camera.draw_ahead
+
+        async def watched_capture() -> np.ndarray:
+            order.append(("capture", rig.robot.position))
+            return await capture()
+
+        async def watched_draw_ahead() -> None:
+            order.append(("draw ahead", rig.robot.position))
+            await draw_ahead()
+
+        rig.camera.capture = watched_capture  # type: ignore[method-assign]
+        rig.camera.draw_ahead = watched_draw_ahead  # type: ignore[method-assign]
+        snapshot = await run(rig, "start", SPRAY_DEMO)
+        assert snapshot["state"] == "IDLE", snapshot
+        trajectory = (await rig.api.get("/trajectory")).json()
+        beads = [w["pose"][:2] for w in trajectory["planned_path"] if w["spray"]]
+        kinds = [kind for kind, _ in order]
+        assert kinds[-2:] == ["draw ahead", "capture"], kinds
+        (_, drawn_at), (_, taken_at) = order[-2:]
+        assert not clear_of(drawn_at, beads, clearance), drawn_at  # the arm over the part
+        assert clear_of(taken_at, beads, clearance), taken_at
+
+
 async def test_with_retract_after_run_off_the_arm_stays_over_the_part(tmp_path) -> None:
     async with open_rig(tmp_path / "data", retract_after_run=False) as rig:
         snapshot = await run(rig, "start", SPRAY_DEMO)

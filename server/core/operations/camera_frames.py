@@ -31,6 +31,15 @@ async def warmed_up(camera: object) -> None:
         await warming()
 
 
+async def draw_ahead(camera: object) -> None:
+    """A camera that draws its frames (the simulated one) draws what it sees now, so a
+    capture soon after waits only for the frame, not for the drawing; other cameras
+    stream and need nothing. Never raises."""
+    drawing = getattr(camera, "draw_ahead", None)
+    if drawing is not None:
+        await drawing()
+
+
 async def capture(ctx: OperationContext, purpose: str) -> np.ndarray:
     """One frame within vision_processing_timeout, at least 1920×1080."""
     timeout = ctx.settings.vision_processing_timeout

@@ -20,7 +20,11 @@ import numpy as np
 
 from server.common.errors import OperationError
 from server.core.operations.base import OperationContext, OperationWarning
-from server.core.operations.camera_frames import capture_undistorted, require_robot_calibration
+from server.core.operations.camera_frames import (
+    capture_undistorted,
+    draw_ahead,
+    require_robot_calibration,
+)
 from server.core.operations.workpieces import Target
 from server.quality.dispensing import dispensing_consistency
 from server.quality.model import PlannedSegment, RunSamples
@@ -78,18 +82,28 @@ async def inspect_run(
 ) -> Inspection:
     """Measure the run from its samples, capture and judge the part (module docstring).
 
-    `cleared`: awaited before anything else, until the arm no longer hides the part
-    (the run's retract, server/core/operations/safe_position.py); the inspection's
-    `took_s` counts from then.
+    `cleared`: awaited before the frame is taken, until the arm no longer hides the
+    part (the run's retract, server/core/operations/safe_position.py); the inspection's
+    `took_s` counts from then. What needs no frame (the path's precision, the glue's
+    consistency, the library's outlines) is worked out while the arm still moves, so
+    only the frame and its analysis follow the clearance.
     """
-    if cleared is not None:
-        await cleared()
-    started = time.monotonic()
     settings = ctx.settings
-    precision = trajectory_precision(samples.poses, segments)
-    dispensing = dispensing_consistency(
-        samples.flows, samples.windows, segments, settings.dispensing_flow_tolerance_percent
-    )
+    # The bead is laid: a simulated camera draws the part while the arm clears it.
+    ahead = asyncio.ensure_future(draw_ahead(ctx.camera)) if cleared is not None else None
+    try:
+        precision = trajectory_precision(samples.poses, segments)
+        dispensing = dispensing_consistency(
+            samples.flows, samples.windows, segments, settings.dispensing_flow_tolerance_percent
+        )
+        entries = await asyncio.to_thread(ctx.stores.workpieces.list)
+        library = {w.id: np.asarray(w.outline_mm, dtype=np.float64) for w in entries}
+        if cleared is not None:
+            await cleared()
+    finally:
+        if ahead is not None:
+            ahead.cancel()  # a drawing begun goes on in the image process, ahead of the frame
+    started = time.monotonic()
     try:
         calibration = require_robot_calibration(ctx, "inspection")
         frame = await capture_undistorted(ctx, "inspection")
@@ -97,8 +111,6 @@ async def inspect_run(
         # The part is sprayed: the run completes, judged on what was measured, and the
         # part counts as defective because nobody has looked at its bead.
         return _unseen(ctx, precision, dispensing, samples, started, str(exc))
-    entries = await asyncio.to_thread(ctx.stores.workpieces.list)
-    library = {w.id: np.asarray(w.outline_mm, dtype=np.float64) for w in entries}
     tolerances = BeadTolerances.from_settings(settings)
 
     positions = list(settings.marker_positions_mm)

@@ -89,6 +89,7 @@ __all__ = [
     "chessboard_corner_pixels",
     "clear_render_caches",
     "default_chessboard_poses",
+    "draw_table_ahead",
     "marker_centre_pixels",
     "marker_corner_pixels",
     "marker_corners_mm",
@@ -557,16 +558,7 @@ def render_table(
     degradations, if any, are applied (their lens and light parts cached with the frame).
     """
     snapshot = scene.snapshot()
-    key = (
-        model,
-        snapshot._background_key(),
-        tuple(snapshot.workpieces),
-        snapshot.bead.key if snapshot.bead else None,
-        float(snapshot.vignetting),
-        float(snapshot.light_gradient),
-        snapshot.degradations,
-    )
-    clean = _frame_cache.get_or_build(key, lambda: _build_frame(snapshot, model))
+    clean = _clean_frame(snapshot, model)
     if snapshot.defocus_px > 0:
         clean = cv2.GaussianBlur(clean, (0, 0), float(snapshot.defocus_px))
     if snapshot.exposure != 1.0:
@@ -577,3 +569,18 @@ def render_table(
         sigma = degradations.noise_sigma
     frame = expose(clean, sigma, rng or np.random.default_rng(snapshot.seed))
     return degradations.apply_to_image(frame) if degradations is not None else frame
+
+
+def draw_table_ahead(scene: Scene, model: CameraModel = DEFAULT_CAMERA_MODEL) -> None:
+    """Build the noiseless frame of `scene` into the cache and deliver nothing: a
+    `render_table` of the same scene then only adds the sensor's noise."""
+    _clean_frame(scene.snapshot(), model)
+
+
+def _clean_frame(snapshot: Scene, model: CameraModel) -> Any:
+    """The lit, noiseless frame of a snapshot, from the cache or built into it."""
+    bead = snapshot.bead.key if snapshot.bead else None
+    light = (float(snapshot.vignetting), float(snapshot.light_gradient))
+    pieces, degradations = tuple(snapshot.workpieces), snapshot.degradations
+    key = (model, snapshot._background_key(), pieces, bead, light, degradations)
+    return _frame_cache.get_or_build(key, lambda: _build_frame(snapshot, model))
