@@ -84,7 +84,6 @@ from server.__main__ import uvicorn_options
 from server.bootstrap.app import create_app
 from server.bootstrap.cell import Cell
 from server.common.errors import EventQueueFull
-from server.common.runtime import freeze_once_started, tune_garbage_collection
 from server.core.machine.events import StartPayload
 from server.core.machine.transitions import Event, State
 from server.core.worker import stop as stop_service
@@ -363,10 +362,8 @@ async def run_in(
     )
     cell = Cell(settings)
     port = free_port()
-    app = create_app(cell=cell)
+    app = create_app(cell=cell, tune_process=True)  # as python -m server does
     stages = StopStages(app, cell)
-    tune_garbage_collection()  # as python -m server does
-    freeze_once_started(app)
     server = uvicorn.Server(
         uvicorn.Config(
             stages,

@@ -43,7 +43,7 @@ from bench import cell_memory
 from bench.engine_throughput import DEMO_PART, START_DEMO, NullDevice, event_sequence, submit_all
 from bench.report import emit
 from server.bootstrap.cell import Cell
-from server.common.runtime import tune_garbage_collection
+from server.bootstrap.latency import tune_garbage_collection
 from server.core.infra.bus import SubscriptionClosed
 from server.core.machine.transitions import Event, State
 from server.core.worker.devices import CellDevices

@@ -18,13 +18,7 @@ from server.cli import backup as backup_cli
 from server.cli import diagnose as diagnose_cli
 from server.common.build import package_version
 from server.common.errors import ConfigurationError
-from server.common.runtime import (
-    close_on_shutdown,
-    freeze_once_started,
-    limit_malloc_arenas,
-    raise_open_file_limit,
-    tune_garbage_collection,
-)
+from server.common.runtime import close_on_shutdown, limit_malloc_arenas, raise_open_file_limit
 from server.settings.load import SettingsRefused, load_settings, unknown_variables
 from server.settings.model import Settings
 from server.storage.data_lock import DataDirectoryBusy, DataDirectoryLock
@@ -96,7 +90,8 @@ def main(argv: list[str] | None = None) -> None:
         log.warning("%s", clear)
     try:
         tls.check_files(settings)  # before the cell starts: one line, not uvicorn's traceback
-        app = create_app(settings)
+        # This process is the server's: the collector tuned (server/bootstrap/latency.py).
+        app = create_app(settings, tune_process=True)
         if settings.opcua_endpoint is not None:  # a port in use: one line now, not a traceback
             from server.opcua.interface import check_endpoint_free
 
@@ -106,8 +101,6 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(2) from None
     files = raise_open_file_limit()
     logging.getLogger(__name__).info("open-file limit %d", files)
-    tune_garbage_collection()
-    freeze_once_started(app)  # and again once the cell, OPC UA and MQTT have started
     close_on_shutdown(app, IMAGE_PROCESS.close)  # the image process ends with the app
     uvicorn.run(
         app,

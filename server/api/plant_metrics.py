@@ -10,8 +10,9 @@
   each notice's final outcome counted (delivered, refused, failed, dropped, abandoned:
   every one but `delivered` is a delivery failure), and the notices queued.
 
-The links are reached through the app's state (`mqtt`, `opcua`) and the cell's
-notifier, each None when it is not configured, so a link that is off has no series.
+The links are reached through the app's state (`mqtt`, `opcua`, `webhooks`: the
+composition root's, server/bootstrap/app.py), each None when it is not configured,
+so a link that is off has no series.
 The transports sit beside this layer, not below it: they are read through the small
 protocols here, never imported.
 """
@@ -19,20 +20,28 @@ protocols here, never imported.
 from __future__ import annotations
 
 import platform
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import Any, Protocol
 
 from fastapi import FastAPI
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily
 from prometheus_client.registry import Collector
 
-from server.bootstrap.cell import Cell
 from server.common.build import package_version, source_revision
 
 # A webhook's final outcomes (server/notify/deliverer.py: `Counters`), each a series.
 WEBHOOK_OUTCOMES = ("delivered", "refused", "failed", "dropped", "abandoned")
 
 Family = GaugeMetricFamily | CounterMetricFamily | InfoMetricFamily
+
+
+class DeliveryFigures(Protocol):
+    def status(self) -> dict[str, Any]: ...
+
+
+class WebhookFigures(Protocol):
+    @property
+    def deliverers(self) -> Sequence[DeliveryFigures]: ...
 
 
 class MqttFigures(Protocol):
@@ -78,8 +87,7 @@ class PlantCollector(Collector):
             )
             sessions.add_metric([], opcua.session_count())
             yield sessions
-        cell: Cell = self.app.state.cell
-        notifier = cell.notifier
+        notifier: WebhookFigures | None = getattr(self.app.state, "webhooks", None)
         if notifier is not None and notifier.deliverers:
             yield from webhook_families([d.status() for d in notifier.deliverers])
 

@@ -13,7 +13,6 @@ from fastapi import APIRouter, Request
 
 from server.api.analytics import table_route
 from server.api.declared_query import DeclaredQueryRoute
-from server.bootstrap.cell import Cell
 
 router = APIRouter(tags=["webhooks"], route_class=DeclaredQueryRoute)
 
@@ -24,10 +23,11 @@ async def get_webhooks(request: Request) -> dict[str, Any]:
     from), with its queue (queued, queue_size, in_flight) and its counters (delivered,
     refused, failed, dropped, abandoned, the last outcome); `missed`: bus records the
     notifier lost by falling behind."""
-    cell: Cell = request.app.state.cell
-    if cell.notifier is None:
+    notifier = getattr(request.app.state, "webhooks", None)  # server/bootstrap/plant.py
+    if notifier is None:
         return {"webhooks": [], "missed": 0}
-    return cell.notifier.status()
+    status: dict[str, Any] = notifier.status()
+    return status
 
 
 router.add_api_route(

@@ -1,15 +1,15 @@
 """The composition root: the cell, the plant interfaces and the HTTP app, built together.
 
 `create_app` builds everything a server runs (the `Cell`, the OPC UA and MQTT
-links of `plant.py`, the routes and middlewares around them); FastAPI's
-lifespan then only starts what it was given, in order, and stops it in reverse.
+links and the webhooks of `plant.py`, the routes and middlewares around them,
+the latency machinery of `latency.py`); FastAPI's lifespan then only starts
+what it was given, in order, and stops it in reverse.
 Everything the cell does is decided by the worker; this module only wires the
 routes and maps the core's typed errors to HTTP answers.
 """
 
 from __future__ import annotations
 
-import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -50,11 +50,11 @@ from server.api.audit_repeats import AuditRepeats
 from server.api.dashboard import mount_dashboard
 from server.api.limits import BodySizeLimit
 from server.api.observe import ResponseObservers
-from server.api.route_warmup import prepare_routes
 from server.api.schemas import RETRY_AFTER_S
 from server.api.stop_lane import StopLane, is_stop
+from server.bootstrap import latency
 from server.bootstrap.cell import Cell
-from server.bootstrap.plant import PlantLinks
+from server.bootstrap.plant import PlantLinks, stop_cell, webhooks_of
 from server.commands import answers
 from server.common.errors import (
     ChangeNotSaved,
@@ -71,11 +71,17 @@ from server.views.kpi_query import kpis_of
 log = logging.getLogger(__name__)
 
 
-def create_app(settings: Settings | None = None, *, cell: Cell | None = None) -> FastAPI:
+def create_app(
+    settings: Settings | None = None, *, cell: Cell | None = None, tune_process: bool = False
+) -> FastAPI:
     """Build the cell (unless given), its plant interfaces and the HTTP app around them;
-    all of it starts when the server starts serving."""
+    all of it starts when the server starts serving.
+
+    `tune_process`: the process is the server's own (`python -m server`, a benchmark
+    measuring it so), and takes the garbage collector's settings of `latency.py`."""
     settings = settings or (cell.settings if cell else Settings())
     cell = cell or Cell(settings)
+    notifier = webhooks_of(cell)  # the webhooks
     gate = access.Access(settings.section(AccessSettings), settings.data_path)
     # The commands being answered: the plant's interfaces hold their work until none is.
     in_flight = AnswersInFlight()
@@ -90,17 +96,19 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        # The routes are prepared (not on the first stop pressed) beside the cell's start,
-        # each between two of its steps: both are done before the port opens.
-        preparing = asyncio.create_task(prepare_routes(app), name="route-preparation")
         try:
             await cell.start()
-            gate.tokens.ensure_admin()
-            app.state.metrics.attach(cell)
-            await plant.start()
-            await preparing
         except BaseException:
-            preparing.cancel()
+            await notifier.stop()  # its subscription, never started
+            raise
+        assert cell.journal is not None
+        notifier.start(cell.view, cell.journal)
+        gate.tokens.ensure_admin()
+        app.state.metrics.attach(cell)
+        try:
+            await plant.start()
+        except BaseException:
+            await stop_cell(cell, notifier)
             raise
         try:
             yield
@@ -109,7 +117,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
             await app.state.metrics.detach()
             await app.state.camera_preview.close()
             app.state.audit_repeats.close()  # the counts folded so far, before the journal closes
-            await cell.stop()
+            await stop_cell(cell, notifier)
 
     app = FastAPI(
         title="Glue cell control server",
@@ -127,6 +135,7 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     app.state.settings = settings
     app.state.mqtt = plant.mqtt  # the MQTT link (mqtt_url set), for /health and /metrics
     app.state.opcua = plant.opcua  # the OPC UA server (opcua_endpoint set), for /metrics
+    app.state.webhooks = notifier  # for GET /webhooks and /metrics
     app.state.ws_hub = ws.WebSocketHub(
         settings.max_broadcast_clients,
         settings.ws_client_buffer,
@@ -197,6 +206,8 @@ def create_app(settings: Settings | None = None, *, cell: Cell | None = None) ->
     _install_error_handlers(app)
     # The document says what the app really does: its 422 body and the gate's roles.
     openapi_doc.install(app)
+    # Every route prepared before the port opens; the collector tuned when asked.
+    latency.install(app, tune_process=tune_process)
     return app
 
 

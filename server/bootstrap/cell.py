@@ -1,7 +1,8 @@
 """The cell as one object: devices, bus, worker, and the simulators when asked for.
 
-This is the composition root of the core. The HTTP app and the in-process
-façade both wrap a `Cell`, so they share one code path to the machine.
+The composition root (`server/bootstrap/app.py: create_app`) builds it beside the
+plant interfaces and the webhooks, which subscribe to its bus. The HTTP app and
+the in-process façade both wrap a `Cell`, so they share one code path to the machine.
 """
 
 from __future__ import annotations
@@ -34,10 +35,8 @@ from server.core.worker.stop import EmergencyStops
 from server.core.worker.view import CellView
 from server.core.worker.worker import Worker
 from server.drivers.base import DeviceFault
-from server.notify.notifier import Notifier
 from server.orders.book import OrderBook
 from server.settings.model import Settings
-from server.settings.notifications import WebhookSettings
 from server.settings.recording import RecordingSettings
 from server.settings.runtime import restore_saved
 from server.settings.watch import WatchSettings
@@ -83,8 +82,6 @@ class Cell:
         self.recorder: FlightRecorder | None = None
         # The report of each shift and production day as it ends (server/views/reports.py).
         self.reports: ShiftReports | None = None
-        # The webhooks (server/notify/): one more bus subscriber, never waited on.
-        self.notifier: Notifier | None = None
         # Production orders (server/orders/): drive the cell through `command`, like a person.
         self.orders: OrderBook | None = None
         # The cell watching itself (server/watch/): resources, links, error rate, trends.
@@ -168,14 +165,6 @@ class Cell:
             interruption=interruption,
         )
         await self.worker.start()
-        self.notifier = Notifier(
-            settings.section(WebhookSettings),
-            settings.cell_id,
-            self.bus,
-            self.worker.view,
-            self.journal,
-        )
-        self.notifier.start()
         recording = settings.section(RecordingSettings)
         self.reports = ShiftReports(
             self,
@@ -264,6 +253,16 @@ class Cell:
         return previous, snapshot_file
 
     async def stop(self) -> None:
+        """Take the cell down: what runs (`stop_running`), then its records (`close_records`).
+
+        A subscriber that journals what it abandons (the webhooks) is stopped between
+        the two by whoever started it (`server/bootstrap/plant.py: stop_cell`)."""
+        await self.stop_running()
+        await self.close_records()
+
+    async def stop_running(self) -> None:
+        """Orders, feed, watch, the worker (devices halted and closed), reports; the
+        journal stays open."""
         if self.orders is not None:
             await self.orders.stop()
             self.orders = None
@@ -281,9 +280,9 @@ class Cell:
             await self.worker.devices.close()
         if self.reports is not None:
             await self.reports.stop()
-        if self.notifier is not None:  # before the journal: what it abandons is on record
-            await self.notifier.stop()
-            self.notifier = None
+
+    async def close_records(self) -> None:
+        """The journal, the state snapshot, and what was built for the devices."""
         if self.journal is not None:
             await asyncio.to_thread(self.journal.stop)
         if self._snapshot_file is not None:

@@ -1,12 +1,13 @@
-"""The plant interfaces the composition root builds: OPC UA and MQTT, when configured.
+"""The plant interfaces the composition root builds: OPC UA, MQTT and the webhooks.
 
-Each is a bus subscriber and a command source on the cell's own command path
-(DESIGN.md, principle 10). They are built with the HTTP app
-(`server/bootstrap/app.py: create_app`), from the app's token store and its
-answers in flight, and the app's lifespan starts them once the cell is up and
-stops them before it goes down: OPC UA first, then MQTT, stopped in the
-reverse order. Webhooks are the cell's own subscriber (`Cell.start`): they are
-stopped between the worker and the journal, so what they abandon is on record.
+OPC UA and MQTT (when configured) are each a bus subscriber and a command source
+on the cell's own command path (DESIGN.md, principle 10). They are built with the
+HTTP app (`server/bootstrap/app.py: create_app`), from the app's token store and
+its answers in flight, and the app's lifespan starts them once the cell is up and
+stops them before it goes down: OPC UA first, then MQTT, stopped in the reverse
+order. The webhooks (`webhooks_of`) only listen: started as soon as the cell is,
+and stopped between the cell's work and its journal (`stop_cell`), so what they
+abandon is on record.
 """
 
 from __future__ import annotations
@@ -19,9 +20,11 @@ from typing import TYPE_CHECKING, Any
 from server.bootstrap.cell import Cell
 from server.common.errors import ConfigurationError
 from server.core.infra.answers_in_flight import AnswersInFlight
+from server.notify.notifier import Notifier
 from server.security.tokens import TokenStore
 from server.settings.model import Settings
 from server.settings.mqtt import MqttSettings
+from server.settings.notifications import WebhookSettings
 from server.settings.opcua import OpcUaSettings
 from server.settings.plant import PlantSettings
 
@@ -46,7 +49,6 @@ class PlantLinks:
         health: Callable[[], dict[str, Any]],
         kpis: Callable[[], Awaitable[dict[str, Any]]],
     ) -> None:
-        self.cell = cell
         self.opcua = _opcua(cell, tokens, answers)
         self.mqtt = _mqtt(cell, tokens, answers, health, kpis)
         self.sparkplug = _sparkplug(cell, tokens, answers, health, kpis)
@@ -54,8 +56,9 @@ class PlantLinks:
     async def start(self) -> None:
         """Serve OPC UA, then link MQTT; the cell is started already.
 
-        A failure to serve OPC UA stops the cell again and is logged as one line:
-        the server does not start without an interface it was configured to offer.
+        A failure to serve OPC UA is logged as one line and raised, and the caller
+        stops the cell again (`stop_cell`): the server does not start without an
+        interface it was configured to offer.
         """
         if self.opcua is not None:
             try:
@@ -65,7 +68,6 @@ class PlantLinks:
                     log.critical("cannot start: %s", exc)
                 with contextlib.suppress(Exception):
                     await self.opcua.stop()
-                await self.cell.stop()
                 raise
         if self.mqtt is not None:
             self.mqtt.start()
@@ -81,6 +83,28 @@ class PlantLinks:
             await self.mqtt.stop()
         if self.opcua is not None:
             await self.opcua.stop()
+
+
+def webhooks_of(cell: Cell) -> Notifier:
+    """The webhooks (server/notify/): one more bus subscriber, never waited on.
+
+    Built before the cell starts, from its settings' `WebhookSettings` and its bus;
+    with no webhook configured it subscribes to nothing and starts no task. Start it
+    with the started cell's view and journal (`Notifier.start`), stop it with
+    `stop_cell`."""
+    settings = cell.settings
+    return Notifier(settings.section(WebhookSettings), settings.cell_id, cell.bus)
+
+
+async def stop_cell(cell: Cell, webhooks: Notifier) -> None:
+    """The cell's work, then the webhooks, then the cell's records.
+
+    The order matters: the worker's last records still reach the webhooks, and
+    what the webhooks abandon (queued or in flight) is journaled before the
+    journal closes."""
+    await cell.stop_running()
+    await webhooks.stop()
+    await cell.close_records()
 
 
 def _opcua(cell: Cell, tokens: TokenStore, answers: AnswersInFlight) -> OpcUaInterface | None:

@@ -1,21 +1,9 @@
 """Process settings for a server that must answer fast, applied by `python -m server`.
 
-- Garbage collection: everything alive once the app is built (modules, routes,
-  schemas, the vision and protocol libraries) is frozen out of the collector,
-  and collections run less often (generation 0 every 10 000 net allocations
-  instead of 700; older generations 50 and 100 times rarer instead of 10).
-  Collections of the heap 1000 WebSocket connections make are the longest
-  pauses the fan-out meets: with Python's default thresholds its p99 is more
-  than twice as long (bench/ws_fanout.py). Nearly all garbage is freed by reference
-  counting the moment it is dropped; only reference cycles wait for the
-  collector, and bench/memory.py shows memory still levels off.
-- The same again once the app has started: what its start-up built (the
-  cell, the journal, the OPC UA server's address space of some hundred
-  thousand objects) is made after the first freeze, so the first collection
-  of the older generations after start-up would walk all of it: with OPC UA
-  on about 150 ms, falling on whatever comes first, such as the first stop
-  pressed (bench/plant_latency.py). `freeze_once_started` collects and
-  freezes when start-up completes, before the first request is served.
+- Garbage collection: its thresholds and the freezes `python -m server`
+  applies are the e-stop's latency machinery (server/bootstrap/latency.py);
+  here, a collection deferred while a stop's frames are written
+  (`collection_deferred`).
 - Open files: the soft limit is raised to the hard limit, because every
   WebSocket client is a socket and the usual soft limit (1024) is below what
   max_broadcast_clients allows.
@@ -134,9 +122,6 @@ def background_held() -> Iterator[None]:
                 os.sched_setscheduler(native_id, os.SCHED_OTHER, param)
 
 
-GC_THRESHOLDS = (10_000, 50, 100)
-
-
 @contextlib.contextmanager
 def collection_deferred() -> Iterator[None]:
     """No garbage collection starts inside the block; one that falls due runs after it.
@@ -157,13 +142,6 @@ def collection_deferred() -> Iterator[None]:
         gc.enable()
 
 
-def tune_garbage_collection() -> None:
-    """Collect once, exempt every surviving object from later collections, collect rarely."""
-    gc.collect()
-    gc.freeze()
-    gc.set_threshold(*GC_THRESHOLDS)
-
-
 def close_on_shutdown(app: Starlette, close: Callable[[], None]) -> None:
     """`close` run with the app's shutdown (`python -m server` ends the image process so).
 
@@ -180,20 +158,5 @@ def close_on_shutdown(app: Starlette, close: Callable[[], None]) -> None:
                 yield state
         finally:
             close()
-
-    app.router.lifespan_context = lifespan
-
-
-def freeze_once_started(app: Starlette) -> None:
-    """Collect and freeze again when the app's start-up completes (module docstring).
-
-    It wraps the app's lifespan rather than the app, so requests pay nothing for it."""
-    started = app.router.lifespan_context
-
-    @contextlib.asynccontextmanager
-    async def lifespan(app: Any) -> AsyncIterator[Any]:
-        async with started(app) as state:
-            tune_garbage_collection()
-            yield state
 
     app.router.lifespan_context = lifespan

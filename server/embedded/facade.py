@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from server.bootstrap.cell import Cell
+from server.bootstrap.plant import stop_cell, webhooks_of
 from server.core.machine.events import Payload, StartPayload, StopPayload
 from server.core.machine.transitions import Command, State, normalize_command
 from server.core.operations import Operation, OperationContext, OperationResult
@@ -64,6 +65,8 @@ class EmbeddedCell:
         operations: dict[str, Operation] | None = None,
     ) -> None:
         self.cell = Cell(settings or Settings(), devices=devices, operations=operations)
+        # The webhooks configured, as the server delivers them (server/bootstrap/plant.py).
+        self._webhooks = webhooks_of(self.cell)
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(
             target=self._loop.run_forever, name="glue-cell", daemon=True
@@ -74,7 +77,7 @@ class EmbeddedCell:
     def open(self, ready_timeout: float = 30.0) -> EmbeddedCell:
         """Start the cell and wait until it has left INITIALIZING."""
         self._thread.start()
-        self._call(self.cell.start())
+        self._call(self._start())
         deadline = time.monotonic() + ready_timeout
         while self.get_current_state() is State.INITIALIZING and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -83,10 +86,20 @@ class EmbeddedCell:
     def close(self) -> None:
         """Halt the devices, stop the cell and its loop."""
         if self._thread.is_alive():
-            self._call(self.cell.stop())
+            self._call(stop_cell(self.cell, self._webhooks))
             self._loop.call_soon_threadsafe(self._loop.stop)
             self._thread.join(timeout=10)
         self._loop.close()
+
+    async def _start(self) -> None:
+        """The cell, then its webhooks (as the server's lifespan starts them)."""
+        try:
+            await self.cell.start()
+        except BaseException:
+            await self._webhooks.stop()
+            raise
+        assert self.cell.journal is not None
+        self._webhooks.start(self.cell.view, self.cell.journal)
 
     def __enter__(self) -> EmbeddedCell:
         return self.open()

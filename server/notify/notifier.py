@@ -41,19 +41,35 @@ SUBSCRIPTION_BUFFER = 1024  # bus records; each is handled in microseconds
 
 
 class Notifier:
-    """Feeds every configured webhook; `start` after the worker, `stop` before the journal."""
+    """Feeds every configured webhook.
 
-    def __init__(
-        self,
-        settings: WebhookSettings,
-        cell_id: str,
-        bus: Bus,
-        view: CellView,
-        journal: Journal,
-    ) -> None:
+    Built by the composition root (`server/bootstrap/plant.py: webhooks_of`) with the
+    cell's bus, before the cell starts: with a webhook configured it subscribes then,
+    so it hears every record the worker publishes from its first (the start-up's own
+    change into IDLE included), however long the rest of the cell's start takes.
+    `start` once the cell has started (its view and journal exist), `stop` before the
+    journal closes, so what the deliverers abandon is on record.
+    """
+
+    def __init__(self, settings: WebhookSettings, cell_id: str, bus: Bus) -> None:
         self.settings = settings
         self.cell_id = cell_id
         self._bus = bus
+        self._view: CellView | None = None
+        self._client: httpx.AsyncClient | None = None
+        self.deliverers: list[Deliverer] = []
+        self._held: deque[tuple[int, Notice]] = deque()  # run notices waiting for a bus seq
+        self._handled_seq = 0
+        # No webhook: no subscription, no task, no cost.
+        self._subscription: Subscription | None = self._subscribe() if settings.webhooks else None
+        self._task: asyncio.Task[None] | None = None
+        self.missed = 0  # bus records lost to a slow-consumer close
+
+    def start(self, view: CellView, journal: Journal) -> None:
+        """Start each webhook's delivery and the feeding; the cell is started already."""
+        if self._subscription is None:
+            return
+        settings = self.settings
         self._view = view
         self._client = httpx.AsyncClient(
             timeout=httpx.Timeout(settings.webhook_timeout),
@@ -65,27 +81,18 @@ class Notifier:
             ),
         )
         self.deliverers = [
-            Deliverer(t, settings, cell_id, self._client, journal) for t in settings.webhooks
+            Deliverer(t, settings, self.cell_id, self._client, journal) for t in settings.webhooks
         ]
-        self._held: deque[tuple[int, Notice]] = deque()  # run notices waiting for a bus seq
-        self._handled_seq = 0
-        self._subscription: Subscription | None = None
-        self._task: asyncio.Task[None] | None = None
-        self.missed = 0  # bus records lost to a slow-consumer close
-
-    def start(self) -> None:
-        if not self.deliverers:
-            return  # no webhook: no subscription, no task, no cost
         for deliverer in self.deliverers:
             deliverer.start()
-        self._subscription = self._subscribe()
         self._task = asyncio.create_task(self._consume(), name="webhook-notifier")
         if any({"run_completed", "part"} & set(d.target.events) for d in self.deliverers):
-            self._view.on_run_ended(self._run_ended)
+            view.on_run_ended(self._run_ended)
         names = ", ".join(f"{d.name} ({d.target.shown_url})" for d in self.deliverers)
         log.info("webhooks: %s", names)
 
     async def stop(self) -> None:
+        """Stop feeding; each webhook journals what it abandons (the journal is still open)."""
         if self._task is not None:
             self._task.cancel()
             await asyncio.gather(self._task, return_exceptions=True)
@@ -95,7 +102,9 @@ class Notifier:
         self._release(self._bus.last_seq)
         for deliverer in self.deliverers:
             await deliverer.stop()
-        await self._client.aclose()
+        if self._client is not None:
+            await self._client.aclose()
+            self._client = None
 
     def status(self) -> dict[str, Any]:
         """GET /webhooks: each webhook redacted, with its queue and counters."""
@@ -132,7 +141,7 @@ class Notifier:
     def _handle(self, message: BusMessage) -> None:
         self._release(message.seq - 1)  # a run that ended before this record
         try:
-            notice = notices.from_bus(message, lambda: self._view.state.value)
+            notice = notices.from_bus(message, self._state)
         except (KeyError, TypeError, ValueError) as exc:  # a record of an unexpected shape
             log.error(
                 "webhooks: cannot make a notice of %s #%d: %s", message.type, message.seq, exc
@@ -142,6 +151,11 @@ class Notifier:
             self._fan_out(notice)
         self._handled_seq = message.seq
         self._release(message.seq)
+
+    def _state(self) -> str:
+        """The cell's state now, for a notice's head (fed only once started)."""
+        assert self._view is not None
+        return self._view.state.value
 
     def _run_ended(self, ended: RunEnded) -> None:
         """In the worker: only appends (see the module docstring for the order)."""

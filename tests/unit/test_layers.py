@@ -98,7 +98,10 @@ ALLOWED: dict[str, tuple[str, ...]] = {
         CELL, "commands", "common", "core.infra", "core.machine", "security", "settings",
         "storage", "storage.journal", "views",
     ),
-    "embedded": (CELL, "core.machine", "core.operations", "core.worker", "settings"),
+    # the façade starts the cell with its webhooks as the server does (bootstrap.plant)
+    "embedded": (
+        CELL, "bootstrap.plant", "core.machine", "core.operations", "core.worker", "settings",
+    ),
     # the composition root, and what starts it
     "bootstrap": (
         "api", "commands", "common", "core.infra", "core.machine", "core.operations", "core.worker",

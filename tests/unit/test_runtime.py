@@ -1,4 +1,5 @@
-"""The process settings `python -m server` applies (server/common/runtime.py)."""
+"""The process settings `python -m server` applies (server/common/runtime.py,
+server/bootstrap/latency.py)."""
 
 from __future__ import annotations
 
@@ -15,15 +16,13 @@ from pathlib import Path
 import pytest
 from starlette.applications import Starlette
 
+from server.bootstrap.latency import GC_THRESHOLDS, freeze_once_started, tune_garbage_collection
 from server.common.runtime import (
-    GC_THRESHOLDS,
     background_held,
     background_thread,
     collection_deferred,
-    freeze_once_started,
     limit_malloc_arenas,
     raise_open_file_limit,
-    tune_garbage_collection,
 )
 from server.core.worker.devices import CellDevices
 from server.core.worker.snapshot import SnapshotFile
