@@ -95,13 +95,17 @@ new MutationObserver((records) => {
 """
 
 
+Seen = tuple[float, str, str, float]  # a state message: arrival, cell, state, its time
+Made = tuple[str, str, float, float]  # a transition: cell, state, its time, first arrival
+
+
 @dataclass
 class Traffic:
     """What the subscriber received: per cell, messages and bytes; the state messages."""
 
     messages: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     octets: dict[str, int] = field(default_factory=lambda: defaultdict(int))
-    states: list[tuple[float, str, str, float]] = field(default_factory=list)
+    states: list[Seen] = field(default_factory=list)
     counting: bool = False
 
 
@@ -138,19 +142,17 @@ async def subscriber(broker: BrokerPorts, traffic: Traffic) -> AsyncIterator[Non
             await task
 
 
-def transitions(states: list[tuple[float, str, str, float]], since: float) -> list[tuple[str, str, float, float]]:
+def transitions(states: list[Seen], since: float) -> list[Made]:
     """(cell, state, its time, first arrival) of each transition made after `since`:
     a retained state is sent again (a reconnect, a run's details) with the same time."""
-    seen: dict[tuple[str, float], tuple[str, str, float, float]] = {}
+    seen: dict[tuple[str, float], Made] = {}
     for arrived, cell_id, state, at in states:
         if at >= since and (cell_id, at) not in seen:
             seen[(cell_id, at)] = (cell_id, state, at, arrived)
     return sorted(seen.values(), key=lambda found: found[2])
 
 
-def screen_lags(
-    made: list[tuple[str, str, float, float]], shown: list[tuple[float, str, str]]
-) -> tuple[list[float], int]:
+def screen_lags(made: list[Made], shown: list[tuple[float, str, str]]) -> tuple[list[float], int]:
     """For each transition, the first later change of that cell's card to that state:
     (the lags in seconds, how many transitions the screen never showed; a state left
     before the page drew it is one of them)."""
@@ -227,9 +229,12 @@ def line_view(broker: BrokerPorts, logs: Path) -> Iterator[str]:
 
 def commission_template(data: Path) -> Path:
     """A data directory commissioned once (a cell started on it until IDLE, then stopped)."""
-    template = Cell("template", free_port(), data / "template", cell_environment(
-        {"GLUE_APP_SIMULATION_SPEED_FACTOR": SPEED_FACTOR}
-    ))
+    template = Cell(
+        "template",
+        free_port(),
+        data / "template",
+        cell_environment({"GLUE_APP_SIMULATION_SPEED_FACTOR": SPEED_FACTOR}),
+    )
 
     async def idle() -> None:
         async with httpx.AsyncClient(timeout=30) as client:
@@ -360,7 +365,9 @@ async def run(
                             await asyncio.sleep(args.stop_every)
                         traffic.counting = False
                         window = time.monotonic() - window_start
-                        cpu = {n: (cpu_seconds(p) - cpu_before[n]) / window for n, p in pids.items()}
+                        cpu = {
+                            n: (cpu_seconds(p) - cpu_before[n]) / window for n, p in pids.items()
+                        }
                         notes["broker_cpu"] = round(
                             (cpu_seconds(broker_process.pid) - broker_cpu) / window, 4
                         )
