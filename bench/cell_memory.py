@@ -121,6 +121,13 @@ def wait_state(api: httpx.Client, wanted: str, timeout: float = RUN_TIMEOUT_S) -
         time.sleep(0.05)
 
 
+def require_commissioned(data: Path) -> None:
+    """RuntimeError if the cell started without its demo part: every start
+    would then be refused as "the workpiece library is empty" (its commissioning failed)."""
+    if not any((data / "workpieces").glob("*.json")):
+        raise RuntimeError("the simulated cell did not commission itself (a frame late?)")
+
+
 def one_run(api: httpx.Client) -> str | None:
     """One spray run to its end: None, or the code of the fault that stopped it (the cell
     is then reset, as a person would, and the next run goes on: on a machine shared with
@@ -180,6 +187,7 @@ def measure(layout: str, runs: int) -> list[dict[str, Any]]:
         server = stack.enter_context(server_process(port, data / "data", env, timeout=300))
         api = stack.enter_context(admin(port, data / "data"))
         wait_state(api, "IDLE")
+        require_commissioned(data / "data")
         rows = measure_point("started", server.pid, others)
         faults: list[str] = []
         for index in range(runs):

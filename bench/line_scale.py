@@ -115,14 +115,17 @@ async def subscriber(broker: BrokerPorts, traffic: Traffic) -> AsyncIterator[Non
     ready = asyncio.Event()
 
     async def listen() -> None:
-        login = {"username": "line-view", "password": DEMO_PASSWORDS["line-view"]}
-        async with aiomqtt.Client(broker.host, broker.mqtt, **login) as client:
+        password = DEMO_PASSWORDS["line-view"]
+        async with aiomqtt.Client(
+            broker.host, broker.mqtt, username="line-view", password=password
+        ) as client:
             await client.subscribe("glue/+/+", qos=0)
             ready.set()
             async for message in client.messages:
                 arrived = time.time()
                 topic = message.topic.value
-                payload = bytes(message.payload)  # type: ignore[arg-type]
+                payload = message.payload
+                assert isinstance(payload, bytes)
                 _, cell_id, kind = topic.split("/")
                 if traffic.counting:
                     traffic.messages[cell_id] += 1
@@ -393,7 +396,7 @@ async def run(
             if cell.witness is not None:
                 await asyncio.to_thread(cell.witness.close)
     made = [t for t in transitions(traffic.states, began) if t[2] <= began + window]
-    to_screen, missed = screen_lags(made, [tuple(item) for item in shown])  # type: ignore[misc]
+    to_screen, missed = screen_lags(made, [(float(at), str(c), str(t)) for at, c, t in shown])
     notes["transitions"] = len(made)
     notes["transitions_not_seen_on_screen"] = missed
     notes["window_s"] = round(window, 1)
