@@ -69,6 +69,13 @@ from server.line.broker import DEMO_PASSWORDS, BrokerPorts, start_broker
 CHROMIUM = "/usr/bin/chromium"
 LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]
 SPEED_FACTOR = "3.0"  # the cells' simulated moves, as bench.plant_latency (and its witness)
+# A frame's bound, not a figure (as bench.cell_memory): twenty cells' lowest-priority image
+# processes starting at once on two cores wait long for their first frame.
+CAMERA_TIMEOUT_S = "30"
+CELL_SETTINGS = {
+    "GLUE_APP_SIMULATION_SPEED_FACTOR": SPEED_FACTOR,
+    "GLUE_APP_VISION_PROCESSING_TIMEOUT": CAMERA_TIMEOUT_S,
+}
 READY_S = 900.0  # twenty cells starting on two cores: a hang guard, not a figure
 SETTLE_S = 120.0
 ORDER_QUANTITY = 10_000  # more parts than any window makes
@@ -236,12 +243,14 @@ def commission_template(data: Path) -> Path:
         "template",
         free_port(),
         data / "template",
-        cell_environment({"GLUE_APP_SIMULATION_SPEED_FACTOR": SPEED_FACTOR}),
+        cell_environment(CELL_SETTINGS),
     )
 
     async def idle() -> None:
         async with httpx.AsyncClient(timeout=30) as client:
-            await wait_idle(client, template, READY_S)
+            await wait_ready(client, template)
+        if not any((template.data / "workpieces").glob("*.json")):
+            raise RuntimeError("the template cell did not commission itself (data/template.log)")
 
     with running([template], data):
         asyncio.run(idle())
@@ -257,7 +266,7 @@ def make_cells(
         name = f"cell-{n:02d}"
         extra = {
             "GLUE_APP_CELL_ID": name,
-            "GLUE_APP_SIMULATION_SPEED_FACTOR": SPEED_FACTOR,
+            **CELL_SETTINGS,
             "GLUE_APP_MQTT_URL": broker.mqtt_url,
             "GLUE_APP_MQTT_USERNAME": "cell",
             "GLUE_APP_MQTT_PASSWORD": DEMO_PASSWORDS["cell"],
@@ -270,6 +279,24 @@ def make_cells(
         shutil.copytree(template, data / name)
         cells.append(Cell(name, free_port(), data / name, cell_environment(extra), witness=witness))
     return cells
+
+
+async def wait_ready(client: httpx.AsyncClient, cell: Cell) -> None:
+    """Until the cell is IDLE; RuntimeError with its stop reason if it went to ERROR."""
+    deadline = time.monotonic() + READY_S
+    while True:
+        assert cell.process is not None and cell.process.poll() is None, f"{cell.name} exited"
+        with contextlib.suppress(httpx.HTTPError):
+            answer = await client.get(f"{cell.url}/state", headers=auth(cell))
+            if answer.status_code == 200:
+                state = answer.json()
+                if state["state"] == "IDLE":
+                    return
+                if state["state"] == "ERROR":
+                    raise RuntimeError(f"{cell.name} is in ERROR: {state.get('stop_reason')}")
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{cell.name} did not reach IDLE")
+        await asyncio.sleep(0.2)
 
 
 async def stop_and_reset(client: httpx.AsyncClient, cell: Cell) -> float:
@@ -330,7 +357,7 @@ async def run(
         with running(cells, data), line_view(broker, data) as view_url:
             async with httpx.AsyncClient(timeout=30) as client, subscriber(broker, traffic):
                 for cell in cells:
-                    await wait_idle(client, cell, READY_S)
+                    await wait_ready(client, cell)
                 notes["all_idle_after_s"] = round(time.monotonic() - started_up, 1)
                 for cell in witnessed:
                     said = await asyncio.to_thread(
