@@ -145,7 +145,13 @@ def one_run(api: httpx.Client) -> str | None:
         if state["state"] == "IDLE" and (state.get("operation") or {}).get("run_id") != run_id:
             return None
         if state["state"] == "ERROR":  # reset, and the robot sent home, as a person would
-            api.post("/reset").raise_for_status()
+            # A reset is refused (409) while the fault's own stop is still being made: asked
+            # again, as a person presses Reset again.
+            while (reset := api.post("/reset")).status_code == 409:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"the reset is refused: {reset.json()}")
+                time.sleep(0.2)
+            reset.raise_for_status()
             wait_state(api, "IDLE")
             api.post("/home").raise_for_status()
             return str((state.get("stop_reason") or {}).get("code"))
