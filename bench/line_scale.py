@@ -78,6 +78,9 @@ CELL_SETTINGS = {
 }
 READY_S = 900.0  # twenty cells starting on two cores: a hang guard, not a figure
 SETTLE_S = 120.0
+# A request's bound, a hang guard: on two cores shared by twenty cells a reset's answer
+# (after its probe of the devices) took more than 30 s.
+CLIENT_TIMEOUT_S = 120.0
 ORDER_QUANTITY = 10_000  # more parts than any window makes
 
 # Installed in the line view's page before its scripts run: every change of a card's
@@ -247,7 +250,7 @@ def commission_template(data: Path) -> Path:
     )
 
     async def idle() -> None:
-        async with httpx.AsyncClient(timeout=30) as client:
+        async with httpx.AsyncClient(timeout=CLIENT_TIMEOUT_S) as client:
             await wait_ready(client, template)
         if not any((template.data / "workpieces").glob("*.json")):
             raise RuntimeError("the template cell did not commission itself (data/template.log)")
@@ -355,7 +358,10 @@ async def run(
         idle = cells[args.witnessed + args.busy :]
         started_up = time.monotonic()
         with running(cells, data), line_view(broker, data) as view_url:
-            async with httpx.AsyncClient(timeout=30) as client, subscriber(broker, traffic):
+            async with (
+                httpx.AsyncClient(timeout=CLIENT_TIMEOUT_S) as client,
+                subscriber(broker, traffic),
+            ):
                 for cell in cells:
                     await wait_ready(client, cell)
                 notes["all_idle_after_s"] = round(time.monotonic() - started_up, 1)
