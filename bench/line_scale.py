@@ -376,7 +376,7 @@ async def run(
                         executable_path=CHROMIUM, args=LAUNCH_ARGS
                     )
                     try:
-                        page = await browser.new_page()
+                        page = await browser.new_page(bypass_csp=True)  # for the observer
                         await page.add_init_script(OBSERVER)
                         await page.goto(view_url)
                         await every_card_shown(page, len(cells))
