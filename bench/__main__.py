@@ -38,6 +38,7 @@ BENCHMARKS = (
     ("startup", []),
     ("planning", []),
     ("plant_latency", []),
+    ("line_scale", []),
     ("cycle_time", []),
     ("recording_cost", []),
 )

@@ -121,6 +121,13 @@ def wait_state(api: httpx.Client, wanted: str, timeout: float = RUN_TIMEOUT_S) -
         time.sleep(0.05)
 
 
+def require_commissioned(data: Path) -> None:
+    """RuntimeError if the cell started without its demo part: every start
+    would then be refused as "the workpiece library is empty" (its commissioning failed)."""
+    if not any((data / "workpieces").glob("*.json")):
+        raise RuntimeError("the simulated cell did not commission itself (a frame late?)")
+
+
 def one_run(api: httpx.Client) -> str | None:
     """One spray run to its end: None, or the code of the fault that stopped it (the cell
     is then reset, as a person would, and the next run goes on: on a machine shared with
@@ -138,7 +145,13 @@ def one_run(api: httpx.Client) -> str | None:
         if state["state"] == "IDLE" and (state.get("operation") or {}).get("run_id") != run_id:
             return None
         if state["state"] == "ERROR":  # reset, and the robot sent home, as a person would
-            api.post("/reset").raise_for_status()
+            # A reset is refused (409) while the fault's own stop is still being made: asked
+            # again, as a person presses Reset again.
+            while (reset := api.post("/reset")).status_code == 409:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"the reset is refused: {reset.json()}")
+                time.sleep(0.2)
+            reset.raise_for_status()
             wait_state(api, "IDLE")
             api.post("/home").raise_for_status()
             return str((state.get("stop_reason") or {}).get("code"))
@@ -180,6 +193,7 @@ def measure(layout: str, runs: int) -> list[dict[str, Any]]:
         server = stack.enter_context(server_process(port, data / "data", env, timeout=300))
         api = stack.enter_context(admin(port, data / "data"))
         wait_state(api, "IDLE")
+        require_commissioned(data / "data")
         rows = measure_point("started", server.pid, others)
         faults: list[str] = []
         for index in range(runs):
