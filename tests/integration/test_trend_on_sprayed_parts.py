@@ -22,9 +22,8 @@ from websockets.asyncio.client import connect
 from tests.rig import SPRAY_DEMO, WAIT_S, open_rig
 
 STEADY_PARTS = 10  # trend_min_parts (8) good parts and two more
-PARTS = 24
+PARTS = 30  # the clog reaches 20 % at the last; the test ends at the first bad part
 CLOG_PER_PART = 0.01  # the nozzle passes 1 % less glue with each part once it clogs
-GLUE_DRIFT = "QUALITY_DRIFT_GLUE_VOLUME_PERCENT"
 
 
 def passing(index: int) -> float:
@@ -77,11 +76,8 @@ async def test_a_nozzle_clogging_over_sprayed_parts_is_warned_of_before_a_defect
                     document = json.loads(rows[0]["document"])
                     verdicts.append(document["verdict"])
                     glue.append(document["dispensing"]["glue_ratio_percent"])
-                async with asyncio.timeout(WAIT_S):
-                    while not any(d["code"] == GLUE_DRIFT for d in drifts):
-                        await asyncio.sleep(0.05)
-            except TimeoutError:
-                raise AssertionError(f"no glue drift: {drifts}, {verdicts}, {glue}") from None
+                    if document["verdict"] != "good":
+                        break
             finally:
                 listening.cancel()
     told = f"verdicts {verdicts}, glue % {glue}, drifts {[d['message'] for d in drifts]}"
@@ -89,10 +85,11 @@ async def test_a_nozzle_clogging_over_sprayed_parts_is_warned_of_before_a_defect
     # the clog does make a bad part: judged defective, or stopped by the glue supervision
     bad = [i for i, verdict in enumerate(verdicts) if verdict != "good"]
     assert bad, told
-    first_drift = min(
-        next(i for i, run in enumerate(runs) if f"part of run {run})" in d["message"])
+    assert drifts, told
+    warned = [
+        (next(i for i, run in enumerate(runs) if f"part of run {run})" in d["message"]), d)
         for d in drifts
-    )
+    ]
+    first_drift, drift = min(warned, key=lambda pair: pair[0])
     assert first_drift < bad[0], told
-    glue_drift = next(d for d in drifts if d["code"] == GLUE_DRIFT)
-    assert "glue volume is drifting down" in glue_drift["message"], told
+    assert "drifting down" in drift["message"] and "nozzle" in drift["message"], told
