@@ -25,9 +25,9 @@ four times the setpoint meanwhile); a valve opened with the arm at rest (a purge
 gives the fixed flow until the arm moves (a purge, all along; a run resumed after
 a pause, until the arm sets off again, then the flow follows it). Flows are ml per
 minute of wall time, the clock the server reads and integrates them on, and
-`dispensed_ml` is their integral on it. `speed_factor` > 1 makes the dynamics faster (the flow's and the
-pressure's time constants, a late valve, the temperature's drift), like the cell's
-`simulation_speed_factor`. `close_commanded_at`
+`dispensed_ml` is their integral on it. `speed_factor` > 1 makes the dynamics
+faster (the flow's and the pressure's time constants, a late valve, the
+temperature's drift), like the cell's `simulation_speed_factor`. `close_commanded_at`
 is the time.time() of the last write of "closed" to the valve command; `valve_closed_at`
 is the time.time() of the last open → closed transition, for latency benchmarks;
 `valve_log` lists every change as (time.time(), open), so a test can tell
