@@ -227,6 +227,7 @@ async def open_rig(
     port: int | None = None,
     camera_stalled: bool = False,
     robot_speed_factor: float = 4,
+    glue_speed_factor: float = 1,
     wait_idle: bool = True,
     **overrides: Any,
 ) -> AsyncIterator[Rig]:
@@ -241,10 +242,15 @@ async def open_rig(
     test calls `rig.camera.clear_faults()`; the rig then does not wait for IDLE. Only for
     a data directory commissioned already: commissioning needs the camera.
     `robot_speed_factor`: the robot simulator's (4: fast tests; 1: moves take the time the
-    plan says, as a real arm's, for what measures the run against its plan). `wait_idle`
+    plan says, as a real arm's, for what measures the run against its plan).
+    `glue_speed_factor`: the glue simulator's (1: its dynamics at their own pace; the
+    robot's factor: both as the served simulated cell runs them). `wait_idle`
     False: yield as soon as the server answers (a restart after an interruption comes
     up in ERROR)."""
-    async with RobotSimulator(speed_factor=robot_speed_factor) as robot, GlueSimulator() as glue:
+    async with (
+        RobotSimulator(speed_factor=robot_speed_factor) as robot,
+        GlueSimulator(speed_factor=glue_speed_factor) as glue,
+    ):
         defaults: dict[str, Any] = {
             "robot_communication_timeout": TIMEOUT,
             "glue_system_timeout": TIMEOUT,

@@ -268,6 +268,9 @@ async def test_a_cycle_then_stop_mid_run_then_reset(dashboard: Dashboard, browse
     await expect(page.locator("#progress")).to_have_attribute("aria-valuenow", "100")
     await expect(page.locator("#progress-note")).to_have_text("last run completed")
     await expect(page.locator("#progress-workpiece")).to_have_text("demo")
+    # Paused and resumed, the part got the glue of its path once: the Last part card says good.
+    await expect(page.locator("#part-verdict")).to_have_text("good")
+    await expect(page.locator("#part-reasons li")).to_have_count(0)
     await expect_enabled(page, {"start", "calibrate-robot", "calibrate-camera", "create-workpiece"})
     await shot(page, "04-run-completed")
 

@@ -25,9 +25,8 @@ async def test_the_order_card_starts_holds_resumes_and_closes(
     dashboard: Dashboard,  # noqa: F811 - the fixture imported above
     browser: Browser,
 ) -> None:
-    # The card, not the parts' verdicts (tests/integration/test_orders.py has those): the
-    # rig's arm runs four times faster than its plan, which an inspection rightly finds
-    # short of glue, so parts are not inspected here: they count toward the quantity.
+    # The card, not the parts' verdicts (tests/integration/test_orders.py has those): parts
+    # are not inspected here, so they count toward the quantity as "not inspected".
     patched = await dashboard.rig.api.patch("/settings", json={"inspection_enabled": False})
     assert patched.status_code == 200, patched.text
     page, problems = await open_page(browser, dashboard, PANEL)

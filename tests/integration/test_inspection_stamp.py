@@ -1,7 +1,8 @@
 """The inspection image's stamp says the part's verdict, through the real run: a part
-judged defective on its glue volume (the rig's arm runs four times faster than its
-plan, so the path gets a quarter of its glue) is stamped DEFECTIVE, in red, on the
-image GET /runs/{run_id}/inspection.jpg serves, whatever its bead's own findings."""
+judged defective on its glue volume (a partly clogged nozzle gives 60 % of the flow, under
+the dispenser's own flow alarm as the test sets it, so the run completes) is stamped
+DEFECTIVE, in red, on the image GET /runs/{run_id}/inspection.jpg serves, whatever its
+bead's own findings."""
 
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ from tests.rig import open_rig, run
 
 
 async def test_a_part_defective_on_glue_volume_is_stamped_defective(tmp_path: Path) -> None:
-    async with open_rig(tmp_path / "data") as rig:
+    async with open_rig(tmp_path / "data", glue_flow_deviation_pct=50) as rig:
+        rig.glue.clog_nozzle(0.6)
         snapshot = await run(rig, "start", {"workpiece_id": "demo"})
         assert snapshot["state"] == "IDLE", snapshot["error"]
         operations = await rig.api.get("/operations", params={"kind": "trajectory", "limit": 1})

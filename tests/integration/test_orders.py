@@ -2,9 +2,8 @@
 
 An order runs its parts by itself from one POST /orders, each on a fresh part the
 simulated camera presents; every stop holds it and only the operator resumes it.
-Each part is inspected (server/quality/), so the robot runs at the speed its plan says
-(`robot_speed_factor=1`): a part sprayed faster than planned gets less glue than its
-path needs, and is rightly defective.
+Each part is inspected (server/quality/), with the robot at the speed its plan says
+(`robot_speed_factor=1`), so each run takes the time a real arm's would.
 """
 
 from __future__ import annotations

@@ -16,12 +16,18 @@ setpoint (time constant 100 ms); temperature drifts slowly around 25 °C; flow,
 pressure and temperature carry a little noise. With `speed_source` set (the
 robot simulator's `speed_fraction`, wired where both run in one process) it is a
 speed-following dispenser, as real cells use: the active flow setpoint and the
-flow out of the nozzle are the programmed ones scaled by the robot's speed, so
-the glue per millimetre of bead does not depend on how long the arm waits
-between moves (a run stretched by a busy machine does not over-dispense); a valve
-opened with the arm at rest (a purge) gives the fixed flow until it closes.
-`speed_factor` > 1 makes the
-dynamics faster, like the cell's `simulation_speed_factor`. `close_commanded_at`
+flow out of the nozzle are the programmed ones scaled by the robot's actual speed
+over its commanded one, so the glue per millimetre of bead does not depend on how
+long the arm waits between moves (a run stretched by a busy machine does not
+over-dispense) nor on how fast the simulated arm is made to move (a robot
+simulator at speed_factor 4 draws a bead in a quarter of the time, and the flow is
+four times the setpoint meanwhile); a valve opened with the arm at rest (a purge)
+gives the fixed flow until the arm moves (a purge, all along; a run resumed after
+a pause, until the arm sets off again, then the flow follows it). Flows are ml per
+minute of wall time, the clock the server reads and integrates them on, and
+`dispensed_ml` is their integral on it. `speed_factor` > 1 makes the dynamics
+faster (the flow's and the pressure's time constants, a late valve, the
+temperature's drift), like the cell's `simulation_speed_factor`. `close_commanded_at`
 is the time.time() of the last write of "closed" to the valve command; `valve_closed_at`
 is the time.time() of the last open → closed transition, for latency benchmarks;
 `valve_log` lists every change as (time.time(), open), so a test can tell
@@ -88,9 +94,10 @@ logger = logging.getLogger(__name__)
 
 PRESSURE_TIME_CONSTANT_S = 0.1
 AMBIENT_C = 25.0
-# A valve opened after the arm has stood still this long gives the fixed flow until it
-# closes, as a speed-following controller does with no motion to follow (a purge, which
-# lets the arm settle first: server/core/worker/purging.py); a run opens it on its way.
+# A valve opened after the arm has stood still this long gives the fixed flow until the
+# arm moves, as a speed-following controller does with no motion to follow (a purge, which
+# lets the arm settle first: server/core/worker/purging.py); a run opens it on its way,
+# or, resumed after a pause, just before the arm sets off again.
 FIXED_FLOW_AFTER_S = 1.0
 _HOLDING_FCS = {3, 6, 16}
 _INPUT_FCS = {4}
@@ -374,9 +381,11 @@ class GlueSimulator:
         """Move the first-order flow and pressure models to now."""
         self._settle_valve()
         now = time.monotonic()
-        dt = (now - self._last_update) * self._speed
+        wall = now - self._last_update
+        dt = wall * self._speed
         self._last_update = now
-        self.dispensed_ml += self._flow * self._follow() / 60.0 * dt
+        # On the clock the flow is read on (module docstring): ml per minute of wall time.
+        self.dispensed_ml += self._flow * self._follow() / 60.0 * wall
         if self._valve_open:
             target = self._flow_sp * self._clog
             self._flow += (target - self._flow) * (1 - math.exp(-dt / FLOW_TIME_CONSTANT_S))
@@ -395,12 +404,14 @@ class GlueSimulator:
 
     def _follow(self) -> float:
         """The speed-following factor (module docstring): the robot's speed fraction, or
-        1.0, the fixed flow, for a valve opened with the arm at rest (a purge)."""
+        1.0, the fixed flow, for a valve opened with the arm at rest (a purge) until the
+        arm moves: once there is motion to follow, the flow follows it to the close."""
         if self.speed_source is None:
             return 1.0
         follow = self.speed_source()
         if follow > 0.0:
             self._last_motion = time.monotonic()
+            self._fixed_flow = False
         return 1.0 if self._fixed_flow else follow
 
     def _refresh(self, registers: list[int]) -> None:

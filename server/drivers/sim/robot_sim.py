@@ -311,15 +311,17 @@ class RobotSimulator:
         return self._motion is not None
 
     def speed_fraction(self) -> float:
-        """The fraction of its commanded speed the tool moves at now: 1.0 during a move
-        (the simulator moves at the commanded speed, in its own time) and for BLEND_S
-        after one ends as planned (a program's next segment follows without a stop, as a
-        controller blends waypoints), 0.0 standing still or halted. A speed-following
-        dispenser's speed input (GlueSimulator.speed_source)."""
+        """The tool's actual speed now over its commanded one, on the wall clock:
+        `speed_factor` during a move (the simulator moves at the commanded speed times
+        speed_factor) and for BLEND_S after one ends as planned (a program's next segment
+        follows without a stop, as a controller blends waypoints), 0.0 standing still or
+        halted. A speed-following dispenser's speed input (GlueSimulator.speed_source):
+        an arm made to move faster than commanded gets the glue its bead needs, not a
+        fraction of it."""
         if self.is_moving:
-            return 1.0
+            return self.speed_factor
         blended = self._ended_mono is not None and time.monotonic() - self._ended_mono < BLEND_S
-        return 1.0 if blended else 0.0
+        return self.speed_factor if blended else 0.0
 
     @property
     def executed_path(self) -> list[PathSegment]:
