@@ -88,7 +88,7 @@ def serve_bare(body_file: Path, port: int, data_dir: Path) -> None:
     import server.__main__ as entry
 
     body = json.loads(body_file.read_text(encoding="utf-8"))
-    entry.create_app = lambda settings: bare_app(body)  # type: ignore[assignment]
+    entry.create_app = lambda settings, **_: bare_app(body)  # type: ignore[assignment]
     entry.main(["--port", str(port), "--data-dir", str(data_dir)])
 
 

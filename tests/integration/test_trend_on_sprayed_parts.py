@@ -34,9 +34,7 @@ def passing(index: int) -> float:
 async def test_a_nozzle_clogging_over_sprayed_parts_is_warned_of_before_a_defect(
     tmp_path,
 ) -> None:
-    # The arm at its real speed: the dispenser's flow is per minute, so a path drawn four
-    # times faster (the rig's default) lays a quarter of the glue its plan needs.
-    async with open_rig(tmp_path, robot_speed_factor=1) as rig:
+    async with open_rig(tmp_path) as rig:
         url = str(rig.api.base_url).replace("http", "ws", 1) + "/ws?types=alert"
         headers = {"Authorization": rig.api.headers["authorization"]}
         runs: list[str] = []

@@ -128,9 +128,10 @@ def test_only_an_accepted_decision_changes_state_and_only_along_a_row(state, dra
         return
     row = TRANSITIONS[state][event]
     assert verdict.decision.transition == row
-    assert verdict.decision.actions == step(state, event, facts.guards).actions or (
-        event is Event.RESET_REQUESTED  # decided on the probe's findings
-    )
+    # A reset is decided on its probe's findings, not on the guards drawn (which may
+    # hold a fault the probe no longer found: stepping on them would refuse).
+    if event is not Event.RESET_REQUESTED:
+        assert verdict.decision.actions == step(state, event, facts.guards).actions
 
 
 @settings(max_examples=250)
