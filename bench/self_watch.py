@@ -25,7 +25,7 @@ from server.vision.process import IMAGE_PROCESS
 from server.watch.watcher import CellWatch
 
 
-def _quiet(code: str, message: str, component: str, *, severity: str = "warning") -> None:
+def _quiet(code: str, message: str, component: str, **how: Any) -> None:
     """Warnings are not the figure here."""
 
 
