@@ -130,7 +130,8 @@ def one_start(data: Path, settings: dict[str, str] | None = None) -> dict[str, f
         deadline = time.monotonic() + START_TIMEOUT_S
         while True:
             text = log_file.read_text() if log_file.exists() else ""
-            if MARKS["idle"].search(text):
+            # Both lines: the cell can reach IDLE a moment before uvicorn logs its port.
+            if MARKS["idle"].search(text) and MARKS["port open"].search(text):
                 return phases(text, started)
             if process.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"the server did not reach IDLE: {text[-2000:]}")

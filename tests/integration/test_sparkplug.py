@@ -62,7 +62,11 @@ async def test_a_host_discovers_the_cell_reads_it_and_sees_it_leave(tmp_path: Pa
     with mosquitto(tmp_path / "broker") as broker:
         async with sparkplug_host(broker.port, GROUP) as host:
             async with open_rig(
-                tmp_path / "data", **broker.cell_login, cell_id=CELL, sparkplug_group=GROUP
+                tmp_path / "data",
+                **broker.cell_login,
+                cell_id=CELL,
+                sparkplug_group=GROUP,
+                mqtt_kpis_interval=1,
             ) as rig:
                 # Discovery: NBIRTH (bdSeq, rebirth control, seq 0), then DBIRTH.
                 await host.wait(lambda: host.of("DBIRTH"))
@@ -81,6 +85,10 @@ async def test_a_host_discovers_the_cell_reads_it_and_sees_it_leave(tmp_path: Pa
                 assert values["Stop Reason/Code"] is None and values["Run/Id"] is None
                 for device in ("Robot", "Glue", "Camera"):
                     assert values[f"Devices/{device}/Connected"] is True
+                # The births can go out before the first KPI reading (OEE null then); the
+                # reading follows within mqtt_kpis_interval, as DDATA.
+                await host.wait(lambda: host.device_values()["OEE/Availability"] is not None)
+                values = host.device_values()
                 kpis = (await rig.api.get("/kpis")).json()
                 assert values["Counts/Good"] == kpis["quality"]["parts_good"]
                 assert values["OEE/Availability"] == kpis["oee"]["availability"]
