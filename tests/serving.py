@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import random
 import socket
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -31,10 +32,31 @@ def admin_client(port: int, data_path: Path) -> httpx.Client:
     )
 
 
+def _ephemeral_range() -> tuple[int, int]:
+    try:
+        low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(low), int(high)
+    except (OSError, ValueError):
+        return 32768, 60999  # Linux's default
+
+
 def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+    """A loopback port free now, chosen below the kernel's ephemeral range.
+
+    A port the kernel hands out for bind(0) is also one it hands out as the local end
+    of any outgoing connection: while a test starts a server on it (a subprocess that
+    commissions its cell first), another test's client can take it. Below the range,
+    only another test choosing the same port at random can."""
+    low, _ = _ephemeral_range()
+    floor = 10000 if low > 12000 else 1024
+    while True:
+        port = random.randrange(floor, low - 16)  # room for a few numbered after it
+        with socket.socket() as probe:
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
 
 
 @contextlib.asynccontextmanager

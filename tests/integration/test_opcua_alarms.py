@@ -214,8 +214,12 @@ async def test_an_estop_and_a_device_fault_are_alarms_acknowledged_and_cleared(
             )
             assert refreshed.is_good(), refreshed
             assert (await on_server.next_of("ALARM", before)).EventId == ended.EventId
-            # Only what is retained: the e-stop, acknowledged and cleared, is not sent.
-            assert [e.ConditionName for e in on_server.seen[count:]] == ["ALARM"]
+            # Only what is retained: the e-stop, acknowledged and cleared, is not sent. (On
+            # a busy machine a halt can outlast the rig's 0.5 s emergency_stop_timeout: its
+            # HALT_INCOMPLETE is retained too, and truly so.)
+            refreshed_names = [e.ConditionName for e in on_server.seen[count:]]
+            assert "ALARM" in refreshed_names and "EMERGENCY_STOP" not in refreshed_names
+            assert set(refreshed_names) <= {"ALARM", "HALT_INCOMPLETE"}, refreshed_names
             assert (await acknowledge(opc, ended, "nozzle cleaned")).is_good()
             gone = await on_server.next_of("ALARM", **{"AckedState/Id": True})
             assert gone.Retain is False
