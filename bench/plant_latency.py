@@ -345,6 +345,20 @@ async def wait_spraying(client: httpx.AsyncClient, cell: Cell) -> None:
         await asyncio.sleep(0.02)
 
 
+async def alone(client: httpx.AsyncClient, cell: Cell, count: int) -> None:
+    """`count` times, `cell` alone while the others stay idle: a stop after a reset,
+    then a run started and stopped on its spray path, then a reset. Its stops are
+    not kept: the stop figures compare cells under the same load, in `cycles`."""
+    for _ in range(count):
+        await stop(client, cell, "alone")
+        await reset_all(client, [cell])
+        answer = await client.post(f"{cell.url}/start", json=SPRAY_DEMO, headers=auth(cell))
+        assert answer.status_code == 202, answer.text
+        await wait_spraying(client, cell)
+        await stop(client, cell, "alone")
+        await reset_all(client, [cell])
+
+
 async def cycles(client: httpx.AsyncClient, cells: list[Cell], count: int) -> None:
     """`count` times: a stop of every cell after a reset, then one while every cell
     sprays; each stop is answered before the next is sent, the order alternating."""
@@ -363,8 +377,10 @@ async def cycles(client: httpx.AsyncClient, cells: list[Cell], count: int) -> No
         await reset_all(client, cells)
 
 
-def lags(received: list[tuple[float, dict[str, Any]]], stamp: str, since: float) -> list[float]:
-    """Arrival minus the transition's own time, once per transition made after `since`.
+def lags(
+    received: list[tuple[float, dict[str, Any]]], stamp: str, since: float, until: float
+) -> list[float]:
+    """Arrival minus the transition's own time, once per transition made in [since, until).
 
     CellState also changes within a state (a device's health, a waypoint), and a
     subscription starts with the current value: only the first sight of a
@@ -375,7 +391,7 @@ def lags(received: list[tuple[float, dict[str, Any]]], stamp: str, since: float)
     for arrived, document in received:
         at = document.get(stamp)
         key = (document.get("cell_id"), float(at)) if at is not None else None
-        if key is None or key[1] < since or key in seen:
+        if key is None or not since <= key[1] < until or key in seen:
             continue
         seen.add(key)
         found.append(arrived - key[1])
@@ -430,6 +446,10 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
                     started = time.time()
                     await cycles(client, cells, cycles_count)
                     await asyncio.sleep(2.0)  # the last transitions reach the plant
+                    line_ended = time.time()
+                    await alone(client, cells[0], cycles_count)
+                    await asyncio.sleep(2.0)
+                    alone_ended = time.time()
                     stop.set()
                     mqtt, opcua, alarms, sparkplug, granted = await asyncio.to_thread(
                         receiving.recv
@@ -456,23 +476,33 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
             for cell, label in compared:
                 samples = getattr(cell, of).get(condition, [])
                 stops.append({"figure": f"{what}, {condition}, {label}", **percentiles_ms(samples)})
+    phases = (
+        ("every cell at once", started, line_ended),
+        ("cell-1 alone", line_ended, alone_ended),
+    )
+    seen = []
+    for phase, since, until in phases:
+        alarm_lags = [arrived - at for arrived, at in alarms if since <= at < until]
+        seen += [
+            {
+                "figure": f"transition → MQTT subscriber, {phase}",
+                **percentiles_ms(lags(mqtt, "timestamp", since, until)),
+            },
+            {
+                "figure": f"transition → Sparkplug B DDATA, {phase}",
+                **percentiles_ms(lags(sparkplug, "since", since, until)),
+            },
+            {
+                "figure": f"transition → OPC UA data change ({granted:g} ms), {phase}",
+                **percentiles_ms(lags(opcua, "since", since, until)),
+            },
+            {
+                "figure": f"alarm → OPC UA event ({granted:g} ms), {phase}",
+                **percentiles_ms(alarm_lags),
+            },
+        ]
     return [
-        {
-            "figure": "transition → MQTT subscriber (3 cells, 1 broker)",
-            **percentiles_ms(lags(mqtt, "timestamp", started)),
-        },
-        {
-            "figure": "transition → Sparkplug B DDATA (cell-1)",
-            **percentiles_ms(lags(sparkplug, "since", started)),
-        },
-        {
-            "figure": f"transition → OPC UA data change (publishing {granted:g} ms)",
-            **percentiles_ms(lags(opcua, "since", started)),
-        },
-        {
-            "figure": f"alarm raised or cleared → OPC UA event (publishing {granted:g} ms)",
-            **percentiles_ms([arrived - at for arrived, at in alarms if at >= started]),
-        },
+        *seen,
         *stops,
     ]
 

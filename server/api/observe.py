@@ -41,6 +41,7 @@ class ResponseObservers:
         status = 500  # if the app fails before it starts a response
         answers = self.answers if scope["method"] not in READS else None
         answering = answers is not None
+        ticket = answers.begin() if answers is not None else 0
 
         async def noting_status(message: Message) -> None:
             nonlocal status, answering
@@ -50,15 +51,13 @@ class ResponseObservers:
             ended = message["type"] == "http.response.body" and not message.get("more_body")
             if ended and answering and answers is not None:
                 answering = False
-                answers.end()  # the answer is on the wire: the plant may hear of it now
+                answers.end(ticket)  # the answer is on the wire: the plant may hear of it now
 
-        if answers is not None:
-            answers.begin()
         try:
             await self.app(scope, receive, noting_status)
         finally:
             if answering and answers is not None:
-                answers.end()
+                answers.end(ticket)
             seconds = time.perf_counter() - started
             for observe in self.observers:
                 observe(scope, status, seconds)

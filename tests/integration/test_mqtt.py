@@ -429,13 +429,13 @@ async def test_the_stop_is_answered_before_the_link_publishes_it(
     log: list[str] = []
     begin, end, put_state = AnswersInFlight.begin, AnswersInFlight.end, MqttLink._put_state
 
-    def noting_begin(self: AnswersInFlight) -> None:
+    def noting_begin(self: AnswersInFlight) -> int:
         log.append("answer begins")
-        begin(self)
+        return begin(self)
 
-    def noting_end(self: AnswersInFlight) -> None:
+    def noting_end(self: AnswersInFlight, ticket: int) -> None:
         log.append("answer ends")
-        end(self)
+        end(self, ticket)
 
     def noting_put(self: MqttLink, changed: dict | None = None) -> None:
         if changed is not None and changed["snapshot"]["state"] == "ERROR":
