@@ -458,3 +458,34 @@ async def test_the_stop_is_answered_before_the_link_publishes_it(
     # The stop's answer began and ended (its last byte handed to the socket) before
     # the link turned the transition into messages.
     assert log[:3] == ["answer begins", "answer ends", "ERROR published"], log
+
+
+async def test_a_transitions_messages_do_not_wait_for_each_others_acknowledgement(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """A stop's run, state and event go out together, each still acknowledged (QoS 1):
+    one at a time, the event waited two broker round trips for the two before it."""
+    log: list[tuple[str, str]] = []
+    publish = aiomqtt.Client.publish
+
+    async def noting_publish(self: aiomqtt.Client, topic: str, *args, **kwargs) -> None:
+        log.append(("sent", topic))
+        await publish(self, topic, *args, **kwargs)
+        log.append(("acknowledged", topic))
+
+    monkeypatch.setattr(aiomqtt.Client, "publish", noting_publish)
+    with mosquitto(tmp_path / "broker") as broker:
+        async with (
+            open_rig(tmp_path / "data", **broker.cell_login, cell_id=CELL) as rig,
+            subscriber(broker.port, f"{BASE}/#") as plant,
+        ):
+            await rig.start_spraying()
+            log.clear()
+            assert (await rig.api.post("/estop")).status_code == 202
+            await plant.wait(lambda: [e for e in plant.on(f"{BASE}/event") if e["to"] == "ERROR"])
+    sent = [topic for what, topic in log if what == "sent"]
+    assert f"{BASE}/state" in sent and f"{BASE}/event" in sent, log
+    event_sent = log.index(("sent", f"{BASE}/event"))
+    state_acknowledged = log.index(("acknowledged", f"{BASE}/state"))
+    assert event_sent < state_acknowledged, log
+    assert sent.index(f"{BASE}/state") < sent.index(f"{BASE}/event"), log  # still in order
