@@ -27,6 +27,7 @@ from server.settings.model import Settings
 from server.storage import CellStores
 from server.storage.journal import Journal
 from server.storage.workpieces import WorkpieceIn
+from tests.cpu_account import CpuAccount
 from tests.fakes import FakeCamera, FakeClock, FakeGlue, FakeRobot
 
 TESTS = Path(__file__).parent
@@ -52,6 +53,7 @@ def pytest_configure(config: pytest.Config) -> None:
     """
     limit_malloc_arenas()
     _terminal_size_of_the_controller(config)
+    config.pluginmanager.register(CpuAccount(config), "cpu_account")
 
 
 TERMINAL_SIZE = ("COLUMNS", "LINES")
