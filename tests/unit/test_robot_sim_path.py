@@ -6,6 +6,8 @@ runs: a path that grew by every move of every run was memory the cell never gave
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 
 from server.drivers.sim import robot_sim
@@ -31,7 +33,7 @@ def test_the_executed_path_keeps_the_newest_segments_up_to_its_bound(
     assert len(path) == 5
     assert [s.interrupted for s in path] == [True] * 5
     # the newest five: each one starts where the one before it was stopped
-    assert all(a.end == b.start for a, b in zip(path, path[1:], strict=False))
+    assert all(a.end == b.start for a, b in itertools.pairwise(path))
     assert len(sim.path_snapshot()) == 5
 
 

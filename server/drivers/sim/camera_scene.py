@@ -18,9 +18,10 @@ against it earns its accuracy claims honestly:
    (`camera_degradations.py`).
 
 Steps 1-3 only change when the scene changes, so they are cached, as the remapped 8-bit
-frame (6 MB; lit, in float, it would be 25 MB): a warm frame costs its light and noise only. The table with its markers is cached on its own (~45 MB); the parts are
-drawn onto a copy of it whenever the frame itself must be drawn again (~12 ms a part), so a
-bead that grows from frame to frame costs a copy, the parts, its own drawing and the remap.
+frame (6 MB; lit, in float, it would be 25 MB): a warm frame costs its light and noise
+only. The table with its markers is cached on its own (~45 MB); the parts are drawn onto a
+copy of it whenever the frame itself must be drawn again (~12 ms a part), so a bead that
+grows from frame to frame costs a copy, the parts, its own drawing and the remap.
 Each cache holds one entry, the table the camera looks at now: the image process keeps no
 second table it is not looking at.
 Nothing here does I/O; `server.drivers.camera.SimulatedCamera` wraps it.
