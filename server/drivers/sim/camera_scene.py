@@ -562,7 +562,7 @@ def render_table(
     degradations, if any, are applied (their lens and light parts cached with the frame).
     """
     snapshot = scene.snapshot()
-    clean = _clean_frame(snapshot, model)
+    clean: NDArray[Any] = _clean_frame(snapshot, model)
     if snapshot.defocus_px > 0:
         clean = cv2.GaussianBlur(clean, (0, 0), float(snapshot.defocus_px))
     if snapshot.exposure != 1.0:
