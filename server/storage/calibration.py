@@ -68,7 +68,7 @@ class CalibrationStore:
     def _load_camera(self, document: dict[str, Any]) -> None:
         self.camera = Intrinsics.from_dict(document["intrinsics"])
         self.camera_meta = {k: v for k, v in document.items() if k != "intrinsics"}
-        self._undistorter = Undistorter(self.camera)
+        self._undistorter = None
 
     def save_robot(
         self, calibration: PlaneCalibration, image_png: bytes | None, meta: dict[str, Any]
@@ -83,11 +83,21 @@ class CalibrationStore:
         meta = {"created_at": time.time(), **meta}
         write_json_atomic(self.camera_path, {**meta, "intrinsics": intrinsics.to_dict()})
         self.camera, self.camera_meta = intrinsics, meta
-        self._undistorter = Undistorter(intrinsics)
+        self._undistorter = None  # the new calibration's maps, built when first asked for
 
     def undistort(self, frame: np.ndarray) -> np.ndarray:
-        """The frame without lens distortion, when the camera is calibrated; else as it is."""
-        return self._undistorter(frame) if self._undistorter is not None else frame
+        """The frame without lens distortion, when the camera is calibrated; else as it is.
+
+        The remap tables (about 12 MB for 1920×1080) are built on the first call after a
+        calibration is loaded or saved, not before: in this process only the camera's
+        set-up view asks for them (a run's frames are undistorted in the image process),
+        and a cell whose set-up view is never opened does not hold them."""
+        camera, undistorter = self.camera, self._undistorter
+        if camera is None:
+            return frame
+        if undistorter is None or undistorter.intrinsics is not camera:
+            undistorter = self._undistorter = Undistorter(camera)
+        return undistorter(frame)
 
     def summary(self) -> dict[str, Any]:
         """What GET /calibration shows."""

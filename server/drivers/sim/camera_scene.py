@@ -17,10 +17,11 @@ against it earns its accuracy claims honestly:
    distortion, blur, uneven light, more noise, JPEG, marker sheets printed off scale
    (`camera_degradations.py`).
 
-Steps 1-3 only change when the scene changes, so they are cached: a warm frame costs the
-noise only (~30 ms). The table with its markers is cached on its own (~45 MB); the parts are
-drawn onto a copy of it whenever the frame itself must be drawn again (~12 ms a part), so a
-bead that grows from frame to frame costs a copy, the parts, its own drawing and the remap.
+Steps 1-3 only change when the scene changes, so they are cached, as the remapped 8-bit
+frame (6 MB; lit, in float, it would be 25 MB): a warm frame costs its light and noise
+only. The table with its markers is cached on its own (~45 MB); the parts are drawn onto a
+copy of it whenever the frame itself must be drawn again (~12 ms a part), so a bead that
+grows from frame to frame costs a copy, the parts, its own drawing and the remap.
 Each cache holds one entry, the table the camera looks at now: the image process keeps no
 second table it is not looking at.
 Nothing here does I/O; `server.drivers.camera.SimulatedCamera` wraps it.
@@ -405,7 +406,7 @@ class _RenderCache:
 # only ever hit by tests switching back and forth, and cost the image process its size again.
 _optics_cache = _RenderCache(1)  # ~12 MB: the remap tables
 _background_cache = _RenderCache(1)  # ~45 MB: table image with markers
-_frame_cache = _RenderCache(1)  # ~24 MB: remapped, lit frame before noise
+_frame_cache = _RenderCache(1)  # ~6 MB: the remapped table before light and noise
 
 
 def clear_render_caches() -> None:
@@ -521,8 +522,11 @@ def _build_background(scene: Scene, optics: _TableOptics) -> NDArray[np.uint8]:
     return image
 
 
-def _build_frame(scene: Scene, model: CameraModel) -> NDArray[np.float32]:
-    """The lit, noiseless camera frame (float32 H×W×3) for a snapshot of the scene."""
+def _build_frame(scene: Scene, model: CameraModel) -> NDArray[Any]:
+    """The camera's noiseless view of a snapshot of the scene, as the frame cache keeps it:
+    the remapped table before its light (uint8 H×W×3, a quarter of the lit frame's size),
+    or, with degradations, the lit frame with their lens and light applied (float32: their
+    blur and remap cost more than a frame's noise, so they are not redone per frame)."""
     optics = _optics(model)
     background = _background_cache.get_or_build(
         (model, scene._background_key()), lambda: _build_background(scene, optics)
@@ -540,10 +544,10 @@ def _build_frame(scene: Scene, model: CameraModel) -> NDArray[np.float32]:
     frame = cv2.remap(
         table, optics.map_x, optics.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
     )
+    if scene.degradations is None:
+        return frame
     lit = frame.astype(np.float32) * lighting_gain(model, scene.vignetting, scene.light_gradient)
-    if scene.degradations is not None:
-        lit = scene.degradations.apply_to_light(lit)
-    return lit
+    return scene.degradations.apply_to_light(lit)
 
 
 def render_table(
@@ -558,7 +562,7 @@ def render_table(
     degradations, if any, are applied (their lens and light parts cached with the frame).
     """
     snapshot = scene.snapshot()
-    clean = _clean_frame(snapshot, model)
+    clean: NDArray[Any] = _clean_frame(snapshot, model)
     if snapshot.defocus_px > 0:
         clean = cv2.GaussianBlur(clean, (0, 0), float(snapshot.defocus_px))
     if snapshot.exposure != 1.0:
@@ -577,10 +581,14 @@ def draw_table_ahead(scene: Scene, model: CameraModel = DEFAULT_CAMERA_MODEL) ->
     _clean_frame(scene.snapshot(), model)
 
 
-def _clean_frame(snapshot: Scene, model: CameraModel) -> Any:
-    """The lit, noiseless frame of a snapshot, from the cache or built into it."""
+def _clean_frame(snapshot: Scene, model: CameraModel) -> NDArray[np.float32]:
+    """The lit, noiseless frame (float32 H×W×3) of a snapshot, drawn from the cache or into
+    it, and lit here unless the cache holds it lit (`_build_frame`)."""
     bead = snapshot.bead.key if snapshot.bead else None
     light = (float(snapshot.vignetting), float(snapshot.light_gradient))
     pieces, degradations = tuple(snapshot.workpieces), snapshot.degradations
     key = (model, snapshot._background_key(), pieces, bead, light, degradations)
-    return _frame_cache.get_or_build(key, lambda: _build_frame(snapshot, model))
+    drawn = _frame_cache.get_or_build(key, lambda: _build_frame(snapshot, model))
+    if drawn.dtype != np.uint8:
+        return cast(NDArray[np.float32], drawn)
+    return np.multiply(drawn, lighting_gain(model, *light), dtype=np.float32)

@@ -23,7 +23,7 @@ batch requests (arrays) are refused with -32600.
 
 Simulator-only methods, never on a real controller (all prefixed `sim.`, and
 answered even while a stall is injected so a test can always clear it):
-  sim.getExecutedPath()   every finished or interrupted segment
+  sim.getExecutedPath()   the finished or interrupted segments (the last PATH_SIZE)
   sim.clearPath()
   sim.injectFault({"kind": "drop" | "stall" | "fail_next", "duration": s})
       (params by name, or that object as the single positional param)
@@ -60,7 +60,7 @@ import logging
 import math
 import signal
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -104,7 +104,13 @@ def motion_duration(start: Sequence[float], target: Sequence[float], speed: floa
     return max(distance, turn) / speed
 
 
-@dataclass(frozen=True)
+# Segments the simulator remembers: hundreds of runs of a part (a few to a few hundred moves
+# each), enough for any test between two clearPath calls and for the bead of the part on the
+# table (camera_bead.py); older ones go, so a cell that runs for days holds no more.
+PATH_SIZE = 10_000
+
+
+@dataclass(frozen=True, slots=True)
 class PathSegment:
     """One executed motion: where it started, where it really ended, and how."""
 
@@ -227,7 +233,7 @@ class RobotSimulator:
         self._pose = Pose.from_sequence(home)
         self._motion: _Motion | None = None
         self._ended_mono: float | None = None
-        self._path: list[PathSegment] = []
+        self._path: deque[PathSegment] = deque(maxlen=PATH_SIZE)  # oldest dropped first
         self._server: asyncio.Server | None = None
         self._clients: dict[asyncio.StreamWriter, asyncio.Task[None] | None] = {}
         self._stalled = False
@@ -325,7 +331,8 @@ class RobotSimulator:
 
     @property
     def executed_path(self) -> list[PathSegment]:
-        """Finished and interrupted segments, oldest first (the move under way is not in it)."""
+        """Finished and interrupted segments, oldest first (the move under way is not in it;
+        the last `PATH_SIZE`)."""
         self._settle()
         return list(self._path)
 
