@@ -17,7 +17,6 @@ from typing import Any
 from pydantic import ValidationError
 
 from server.bootstrap.logging_setup import log_path
-from server.common.runtime import give_back_soon
 from server.core.infra.bus import Bus
 from server.core.machine.events import AuditNote, Outcome, Payload, StopPayload
 from server.core.machine.faults import classify
@@ -191,8 +190,6 @@ class Cell:
             cleared=self.worker.alerts.cleared,
         )
         self.worker.view.on_run_ended(self.watch.on_run_ended)
-        # what a run's work freed between blocks still in use goes back to the kernel
-        self.worker.view.on_run_ended(lambda ended: give_back_soon())
         await self.watch.start()
         # The simulated cell presents a fresh part after each one (a real cell: a person or
         # a conveyor does; the next start finds the part by contour matching, or fails).

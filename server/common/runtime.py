@@ -29,19 +29,10 @@
   glibc otherwise raises that threshold each time such a block is freed, up to
   32 MiB, after which frames come from the heap, and the heap keeps what they
   leave: the image process held about 200 MB more than it used that way.
-- Freed memory inside the heaps is given back after each run (`give_back_soon`).
-  A run's work (its records, answers, bus messages, the journal's rows, made
-  on the loop and on threads) frees blocks between blocks still in use; glibc
-  returns only a heap's free top to the kernel, so the pages between stay
-  resident: on the simulated cell the server grew about 0.2 MB a run that way
-  (`bench.memory --cell`), more on a busy machine. `malloc_trim` hands every
-  wholly free page back; it runs in a worker thread, once the run's end has
-  been handled.
 """
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import ctypes
 import ctypes.util
@@ -77,25 +68,6 @@ def limit_malloc_arenas() -> bool:
     if mallopt is None or mallopt(M_ARENA_MAX, MALLOC_ARENAS) != 1:
         return False
     return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD) == 1)
-
-
-def give_back_free_memory() -> bool:
-    """Hand every wholly free page in glibc's heaps back to the kernel (`malloc_trim(0)`);
-    True if some was. Blocking, a few milliseconds at most: call it off the loop. Elsewhere
-    than glibc it does nothing (False)."""
-    name = ctypes.util.find_library("c")
-    try:
-        trim = ctypes.CDLL(name).malloc_trim if name else None
-    except (OSError, AttributeError):
-        return False
-    return bool(trim(0)) if trim is not None else False
-
-
-def give_back_soon() -> None:
-    """`give_back_free_memory` in the loop's default thread pool, once what runs now is
-    done (called on the loop, e.g. as a run ends: never on the worker's path)."""
-    loop = asyncio.get_running_loop()
-    loop.call_soon(loop.run_in_executor, None, give_back_free_memory)
 
 
 def raise_open_file_limit() -> int:

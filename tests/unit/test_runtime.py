@@ -13,7 +13,6 @@ import threading
 from collections.abc import AsyncIterator
 from pathlib import Path
 
-import psutil
 import pytest
 from starlette.applications import Starlette
 
@@ -22,8 +21,6 @@ from server.common.runtime import (
     background_held,
     background_thread,
     collection_deferred,
-    give_back_free_memory,
-    give_back_soon,
     limit_malloc_arenas,
     raise_open_file_limit,
 )
@@ -36,42 +33,6 @@ from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 
 def test_malloc_arenas_are_capped_where_the_c_library_is_glibc() -> None:
     assert limit_malloc_arenas() is (platform.libc_ver()[0] == "glibc")
-
-
-def unique_mb() -> float:
-    return float(psutil.Process().memory_full_info().uss) / 2**20
-
-
-def test_memory_freed_between_blocks_in_use_goes_back_to_the_kernel() -> None:
-    if platform.libc_ver()[0] != "glibc":
-        assert give_back_free_memory() is False
-        return
-    # 40 MB in blocks below the mmap threshold (so on the heap), each written to (resident)
-    blocks = [b"\x01" * 100_000 for _ in range(400)]
-    del blocks[::2]  # every other one freed: holes between blocks still in use
-    before = unique_mb()
-    assert give_back_free_memory()
-    given_back = before - unique_mb()
-    del blocks
-    assert given_back > 10, f"{given_back:.1f} MB given back of the 20 MB freed"
-
-
-async def test_the_give_back_runs_off_the_loop_after_what_runs_now() -> None:
-    called: list[int] = []
-    done = asyncio.Event()
-    loop = asyncio.get_running_loop()
-
-    def give_back() -> bool:
-        called.append(threading.get_ident())
-        loop.call_soon_threadsafe(done.set)
-        return True
-
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr("server.common.runtime.give_back_free_memory", give_back)
-        give_back_soon()
-        assert called == []  # not on the caller's path
-        await asyncio.wait_for(done.wait(), 60)  # a bound, not a figure
-    assert called == [called[0]] and called[0] != threading.get_ident()  # in a pool thread
 
 
 def test_the_open_file_limit_is_raised_to_the_hard_limit() -> None:
