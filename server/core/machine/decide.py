@@ -46,7 +46,7 @@ arbitrary states, events, payloads and facts.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Final
 
 from server.common.errors import TransitionNotAllowed
@@ -115,18 +115,29 @@ class Library:
     calibration_problem: str | None = None
 
 
-@dataclass(frozen=True, slots=True)
-class Facts:
-    """What the worker knows when it decides one event."""
+NO_LIBRARY: Final = Library()  # what an event that names no part knows of the library
+NO_STOPS: Final = Stops()
+NO_GUARD_FACTS: Final = GuardFacts()
 
-    guards: GuardFacts = field(default_factory=GuardFacts)  # ready devices, known faults
+
+@dataclass(slots=True)
+class Facts:
+    """What the worker knows when it decides one event.
+
+    Not frozen, because the worker builds one for every event it decides and a frozen
+    dataclass's constructor costs several times a plain one's; nothing changes a
+    `Facts` once built (every field holds an immutable value), and `decide` reads it
+    only.
+    """
+
+    guards: GuardFacts = NO_GUARD_FACTS  # ready devices, known faults
     journal_problem: str | None = None  # why the journal's last write failed, while it fails
     current_run: str | None = None  # the run id of the operation under way
-    stops: Stops = field(default_factory=Stops)
+    stops: Stops = NO_STOPS
     probing: bool = False  # a reset's probe of the devices is under way
     probed: Probed | None = None  # set when this event is that reset, back from its probe
     active_order: ActiveOrder | None = None
-    library: Library = field(default_factory=Library)
+    library: Library = NO_LIBRARY
     glue_line_problem: str | None = None  # why a start must wait for a purge (pot life)
 
 
@@ -304,4 +315,10 @@ def _create_workpiece(create: CreateWorkpiecePayload, library: Library) -> Refus
 
 def accepted_message(state: State, event: Event, decision: Decision) -> str:
     """The answer to an accepted event."""
-    return f"{event_label(event)} accepted: {state.value} → {decision.target.value}"
+    return _accepted_message(state, event, decision.target)
+
+
+@functools.cache
+def _accepted_message(state: State, event: Event, target: State) -> str:
+    # One per row of the table: built once, not for every event accepted.
+    return f"{event_label(event)} accepted: {state.value} → {target.value}"

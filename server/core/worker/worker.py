@@ -44,7 +44,7 @@ from server.core.worker.care import CareMeter
 from server.core.worker.context import MachineContext, ProcessingStats
 from server.core.worker.devices import CellDevices
 from server.core.worker.event_queue import Envelope, EventQueue, Priority
-from server.core.worker.facts import OrderSource, decision_facts, known_device_faults
+from server.core.worker.facts import OrderSource, active_order, known_device_faults, library_for
 from server.core.worker.jogging import start_jog
 from server.core.worker.posting import EventPoster
 from server.core.worker.purging import start_purge
@@ -133,6 +133,7 @@ class Worker:
             lambda: poster.post_ready(Event.SYSTEM_READY, "system"),
         )
         self._task: asyncio.Task[None] | None = None
+        self._guard_facts = Facts()  # the last facts() (see there)
         # Told of every verdict before its actions run (decisions.py says who needs it).
         self.decisions = DecisionListeners()
         self.reset_probes = ResetProbes(
@@ -195,27 +196,29 @@ class Worker:
     # --- facts -------------------------------------------------------------
 
     def facts(self) -> Facts:
-        """Guard facts from what is known without asking the devices (a reset probes them)."""
-        return Facts(self.changes.ready_now, known_device_faults(self.devices))
+        """Guard facts from what is known without asking the devices (a reset probes them);
+        the last ones again while nothing in them changed (asked for every event decided)."""
+        ready, known = self.changes.ready_now, known_device_faults(self.devices)
+        last = self._guard_facts
+        if last.ready_devices is not ready or last.active_faults != known:
+            last = self._guard_facts = Facts(ready, known)
+        return last
 
     def decision_facts(
         self, event: Event, payload: Payload, probed: decide.Probed | None = None
     ) -> decide.Facts:
         """Everything the decision on `event` reads (`server.core.machine.decide`)."""
-        running = self.ctx.operation
-        return decision_facts(
-            event,
-            payload,
-            self.ctx.state,
+        running, order = self.ctx.operation, active_order(self.orders)
+        return decide.Facts(
             guards=self.facts(),
             journal_problem=self.recorder.write_problem,
             current_run=running.run_id if running is not None else None,
-            stops=decide.Stops(self._estops, self.changes.faults),
+            stops=decide.Stops(self.stops.requested, self.changes.faults),
             probing=self.reset_probes.under_way,
             probed=probed,
-            orders=self.orders,
-            stores=self.stores,
-            glue_line=self.care.start_problem,
+            active_order=order,
+            library=library_for(event, payload, self.ctx.state, order, self.stores),
+            glue_line_problem=self.care.start_problem() if event is Event.START_REQUESTED else None,
         )
 
     # --- the loop ----------------------------------------------------------
