@@ -236,13 +236,25 @@ def _decide(
     return Accepted(decision, payload, _checkpoint(decision.transition), estops)
 
 
-@functools.cache
 def _checkpoint(row: Transition) -> int | None:
     """Index of the row's first action after its exit actions; None into ERROR (where a
-    stop leads, so it is never overtaken) or when there is none."""
-    if row.target is State.ERROR:
-        return None
-    return next((i for i, action in enumerate(actions_of(row)) if action not in EXIT_ACTIONS), None)
+    stop leads, so it is never overtaken) or when there is none.
+
+    Kept per row by identity: a row's hash hashes each of its enum fields in Python,
+    which every accepted event would pay again. The row is kept with its answer, so
+    its id is never another's."""
+    known = _CHECKPOINTS.get(id(row))
+    if known is not None and known[0] is row:
+        return known[1]
+    index = None
+    if row.target is not State.ERROR:
+        actions = enumerate(actions_of(row))
+        index = next((i for i, action in actions if action not in EXIT_ACTIONS), None)
+    _CHECKPOINTS[id(row)] = (row, index)
+    return index
+
+
+_CHECKPOINTS: dict[int, tuple[Transition, int | None]] = {}
 
 
 def precondition(

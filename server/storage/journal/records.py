@@ -154,7 +154,8 @@ def event(
     return _EVENT.row((event_id, at, type_, source, data, outcome, message, state))
 
 
-# The rows the worker writes for every event it decides, their statements built at import.
+# The rows the worker writes for every event it decides (and for every fault), their
+# statements built at import.
 _EVENT = _statement(
     "events", ("id", "time", "type", "source", "data", "outcome", "message", "state"), True
 )
@@ -239,18 +240,27 @@ def error(
 ) -> Record:
     """A fault or warning, with what it interrupted (None: no operation) and the stack
     when an exception caused it."""
-    return _row(
-        "errors",
-        time=at,
-        code=code,
-        message=message,
-        component=component,
-        classification=classification,
-        event_id=event_id,
-        state=state,
-        context=context if context is not None else {"operation": None},
-        trace=trace,
+    context = context if context is not None else {"operation": None}
+    return _ERROR.row(
+        (at, code, message, component, classification, event_id, state, context, trace)
     )
+
+
+_ERROR = _statement(
+    "errors",
+    (
+        "time",
+        "code",
+        "message",
+        "component",
+        "classification",
+        "event_id",
+        "state",
+        "context",
+        "trace",
+    ),
+    False,
+)
 
 
 def recovery(at: float, run_id: str, error_code: str, attempt: int, succeeded: bool) -> Record:
