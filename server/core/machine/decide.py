@@ -188,7 +188,9 @@ def decide(
     state: State, event: Event, payload: Payload, facts: Facts, settings: MotionSettings
 ) -> Verdict:
     """Decide `event` with `payload` in `state` (see the module's theory of operation)."""
-    claimed = claim_for_order(event, payload, facts.active_order)
+    claimed = payload
+    if event is Event.START_REQUESTED and facts.active_order is not None:
+        claimed = claim_for_order(event, payload, facts.active_order)
     verdict = _decide(state, event, claimed, facts, settings)
     if claimed is not payload and isinstance(verdict, Refusal):
         return replace(verdict, payload=claimed)
@@ -325,12 +327,8 @@ def _create_workpiece(create: CreateWorkpiecePayload, library: Library) -> Refus
     return None
 
 
-def accepted_message(state: State, event: Event, decision: Decision) -> str:
-    """The answer to an accepted event."""
-    return _accepted_message(state, event, decision.target)
-
-
 @functools.cache
-def _accepted_message(state: State, event: Event, target: State) -> str:
-    # One per row of the table: built once, not for every event accepted.
+def accepted_message(state: State, event: Event, target: State) -> str:
+    """The answer to an accepted event that led from `state` to `target` (one per row of
+    the table: built once, not for every event accepted)."""
     return f"{event_label(event)} accepted: {state.value} → {target.value}"

@@ -214,7 +214,9 @@ class CareMeter:
         self.read_drivers()
         settings, values, now = self._settings(), self.values, self.clock.time()
         holding: set[str] = set()
-        for item, plan, due, overdue in self._plans(settings.maintenance_items):
+        items = settings.maintenance_items
+        plans = self._item_plans if items is self._planned_items else self._plans(items)
+        for item, plan, due, overdue in plans:
             status = rules.item_status(plan, values, settings)
             if status == "overdue":
                 self._raise_once(overdue, "MAINTENANCE_OVERDUE", item, plan)
@@ -246,13 +248,13 @@ class CareMeter:
         self, items: tuple[MaintenanceItem, ...]
     ) -> tuple[tuple[MaintenanceItem, rules.ItemPlan, str, str], ...]:
         """Each item with its plan and the keys of its due and overdue warnings, worked
-        out again only when the schedule is another (PATCH /settings replaces it)."""
-        if items is not self._planned_items:
-            self._planned_items = items
-            self._item_plans = tuple(
-                (item, rules.item_plan(item), f"due:{item.name}", f"overdue:{item.name}")
-                for item in items
-            )
+        out again only when the schedule is another (PATCH /settings replaces it: `check`
+        keeps them while it is the same)."""
+        self._planned_items = items
+        self._item_plans = tuple(
+            (item, rules.item_plan(item), f"due:{item.name}", f"overdue:{item.name}")
+            for item in items
+        )
         return self._item_plans
 
     def _raise_once(self, key: str, code: str, item: MaintenanceItem, plan: rules.ItemPlan) -> None:

@@ -72,8 +72,15 @@ def _status(worst: float, settings: MaintenanceSettings) -> str:
 
 def item_status(plan: ItemPlan, values: Mapping[str, float], settings: MaintenanceSettings) -> str:
     """An item's status alone (`item_state`'s), without building what it shows: the care
-    meter asks at every check and every run's end."""
-    return _status(_most_used(plan, values)[0], settings)
+    meter asks at every check and every run's end, so the share is found inline."""
+    worst, get = 0.0, values.get
+    for counter, every, done in plan.counters:
+        share = (get(counter, 0.0) - get(done, 0.0)) / every * 100.0
+        if share > worst:
+            worst = share
+    if worst >= settings.maintenance_overdue_percent:
+        return "overdue"
+    return "due" if worst >= 100.0 else "ok"
 
 
 def item_state(
