@@ -219,12 +219,14 @@ class CareMeter:
         for item, plan, due, overdue in plans:
             status = rules.item_status(plan, values, settings)
             if status == "overdue":
-                self._raise_once(overdue, "MAINTENANCE_OVERDUE", item, plan)
+                code = "MAINTENANCE_OVERDUE"
+                self._raise_once(overdue, code, item, plan)
                 holding.add(overdue)
                 if due in self._raised:  # still due, as it was
                     holding.add(due)
             elif status == "due":
-                self._raise_once(due, "MAINTENANCE_DUE", item, plan)
+                code = "MAINTENANCE_DUE"
+                self._raise_once(due, code, item, plan)
                 holding.add(due)
         pot = rules.pot_status(values, settings, now)
         if pot == "expired":
