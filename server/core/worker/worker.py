@@ -135,6 +135,7 @@ class Worker:
         )
         self._task: asyncio.Task[None] | None = None
         self._guard_facts = Facts()  # the last facts() (see there)
+        self._counted = decide.NO_STOPS  # the last stops decision_facts counted, kept alike
         # Told of every verdict before its actions run (decisions.py says who needs it).
         self.decisions = DecisionListeners()
         self.reset_probes = ResetProbes(
@@ -203,7 +204,9 @@ class Worker:
         self, event: Event, payload: Payload, probed: decide.Probed | None = None
     ) -> decide.Facts:
         """Everything the decision on `event` reads (`server.core.machine.decide`)."""
-        running, orders = self.ctx.operation, self.orders
+        running, orders, stops = self.ctx.operation, self.orders, self._counted
+        if stops.estops != self.stops.requested or stops.faults != self.changes.faults:
+            stops = self._counted = decide.Stops(self.stops.requested, self.changes.faults)
         order = gather.active_order(orders) if orders is not None else None
         library = decide.NO_LIBRARY  # read only for a start or a create-workpiece
         if event in gather.LIBRARY_EVENTS:
@@ -212,7 +215,7 @@ class Worker:
             guards=self.facts(),
             journal_problem=self.recorder.write_problem,
             current_run=running.run_id if running is not None else None,
-            stops=decide.Stops(self.stops.requested, self.changes.faults),
+            stops=stops,
             probing=self.reset_probes.under_way,
             probed=probed,
             active_order=order,
