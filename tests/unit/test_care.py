@@ -162,3 +162,50 @@ async def test_a_care_warning_is_cleared_when_its_cause_goes(make_worker, fast_s
     assert await said_on_the_bus(bus) == [("alert_cleared", "POT_LIFE_NEAR")]
     care.check()
     assert await said_on_the_bus(bus) == []
+
+
+async def test_a_run_end_with_nothing_to_warn_of_builds_no_presentation(
+    make_worker, fast_settings, monkeypatch
+) -> None:
+    """Every run's end checks the schedule, the pot life and the level: judged by their
+    statuses alone, the dicts GET /maintenance shows are built only for a warning."""
+    settings = fast_settings.model_copy(
+        update={"pot_life_minutes": 10.0, "glue_reservoir_ml": 100.0}
+    )
+    glue = FakeGlue()
+    worker = await make_worker(settings, glue=glue)
+    wear.add(glue.health.details, wear.VALVE_CYCLES, 1)  # glue flowed: the pot life runs
+
+    def built(*_: Any, **__: Any) -> Any:
+        raise AssertionError("a presentation was built for a check that warns of nothing")
+
+    for name in ("item_state", "pot_life", "glue_level"):
+        monkeypatch.setattr(f"server.core.worker.care_rules.{name}", built)
+    worker.care.run_ended(ended(1))
+    assert worker.care.start_problem() is None
+
+
+async def test_a_due_warning_says_which_interval_and_a_new_schedule_is_judged_at_once(
+    make_worker, fast_settings
+) -> None:
+    """The warning's message names the most used interval; a schedule changed in force
+    (PATCH /settings assigns a new one) is the one the next check judges."""
+    items = (MaintenanceItem(name="clean nozzle", every_parts=4, every_ml=500.0),)
+    settings = fast_settings.model_copy(update={"maintenance_items": items})
+    worker = await make_worker(settings)
+    care = worker.care
+    care.run_ended(ended(2))
+    await worker.recorder.journal.caught_up()
+    assert "MAINTENANCE_DUE" not in alerts_of(worker)  # 2 of 4 parts
+    settings.maintenance_items = (MaintenanceItem(name="clean nozzle", every_parts=2),)
+    care.run_ended(ended(0))
+    await worker.recorder.journal.caught_up()
+    rows = [
+        row["message"]
+        for row in worker.recorder.journal.query("errors", limit=1000)
+        if row["code"] == "MAINTENANCE_DUE"
+    ]
+    assert rows == [
+        "maintenance due: clean nozzle (parts 2 of 2); when done, POST /maintenance/clean "
+        "nozzle/done"
+    ]

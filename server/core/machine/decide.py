@@ -46,7 +46,7 @@ arbitrary states, events, payloads and facts.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Final
 
 from server.common.errors import TransitionNotAllowed
@@ -115,18 +115,29 @@ class Library:
     calibration_problem: str | None = None
 
 
-@dataclass(frozen=True, slots=True)
-class Facts:
-    """What the worker knows when it decides one event."""
+NO_LIBRARY: Final = Library()  # what an event that names no part knows of the library
+NO_STOPS: Final = Stops()
+NO_GUARD_FACTS: Final = GuardFacts()
 
-    guards: GuardFacts = field(default_factory=GuardFacts)  # ready devices, known faults
+
+@dataclass(slots=True)
+class Facts:
+    """What the worker knows when it decides one event.
+
+    Not frozen, because the worker builds one for every event it decides and a frozen
+    dataclass's constructor costs several times a plain one's; nothing changes a
+    `Facts` once built (every field holds an immutable value), and `decide` reads it
+    only.
+    """
+
+    guards: GuardFacts = NO_GUARD_FACTS  # ready devices, known faults
     journal_problem: str | None = None  # why the journal's last write failed, while it fails
     current_run: str | None = None  # the run id of the operation under way
-    stops: Stops = field(default_factory=Stops)
+    stops: Stops = NO_STOPS
     probing: bool = False  # a reset's probe of the devices is under way
     probed: Probed | None = None  # set when this event is that reset, back from its probe
     active_order: ActiveOrder | None = None
-    library: Library = field(default_factory=Library)
+    library: Library = NO_LIBRARY
     glue_line_problem: str | None = None  # why a start must wait for a purge (pot life)
 
 
@@ -177,7 +188,9 @@ def decide(
     state: State, event: Event, payload: Payload, facts: Facts, settings: MotionSettings
 ) -> Verdict:
     """Decide `event` with `payload` in `state` (see the module's theory of operation)."""
-    claimed = claim_for_order(event, payload, facts.active_order)
+    claimed = payload
+    if event is Event.START_REQUESTED and facts.active_order is not None:
+        claimed = claim_for_order(event, payload, facts.active_order)
     verdict = _decide(state, event, claimed, facts, settings)
     if claimed is not payload and isinstance(verdict, Refusal):
         return replace(verdict, payload=claimed)
@@ -225,13 +238,25 @@ def _decide(
     return Accepted(decision, payload, _checkpoint(decision.transition), estops)
 
 
-@functools.cache
 def _checkpoint(row: Transition) -> int | None:
     """Index of the row's first action after its exit actions; None into ERROR (where a
-    stop leads, so it is never overtaken) or when there is none."""
-    if row.target is State.ERROR:
-        return None
-    return next((i for i, action in enumerate(actions_of(row)) if action not in EXIT_ACTIONS), None)
+    stop leads, so it is never overtaken) or when there is none.
+
+    Kept per row by identity: a row's hash hashes each of its enum fields in Python,
+    which every accepted event would pay again. The row is kept with its answer, so
+    its id is never another's."""
+    known = _CHECKPOINTS.get(id(row))
+    if known is not None and known[0] is row:
+        return known[1]
+    index = None
+    if row.target is not State.ERROR:
+        actions = enumerate(actions_of(row))
+        index = next((i for i, action in actions if action not in EXIT_ACTIONS), None)
+    _CHECKPOINTS[id(row)] = (row, index)
+    return index
+
+
+_CHECKPOINTS: dict[int, tuple[Transition, int | None]] = {}
 
 
 def precondition(
@@ -302,6 +327,8 @@ def _create_workpiece(create: CreateWorkpiecePayload, library: Library) -> Refus
     return None
 
 
-def accepted_message(state: State, event: Event, decision: Decision) -> str:
-    """The answer to an accepted event."""
-    return f"{event_label(event)} accepted: {state.value} → {decision.target.value}"
+@functools.cache
+def accepted_message(state: State, event: Event, target: State) -> str:
+    """The answer to an accepted event that led from `state` to `target` (one per row of
+    the table: built once, not for every event accepted)."""
+    return f"{event_label(event)} accepted: {state.value} → {target.value}"

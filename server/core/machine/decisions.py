@@ -43,22 +43,24 @@ class DecisionListeners:
     """The listeners of one worker."""
 
     def __init__(self) -> None:
-        self._listeners: list[DecisionListener] = []
+        # Read by the worker for every event (a list's truth costs no call): add and
+        # remove change it.
+        self.listeners: list[DecisionListener] = []
 
     def add(self, listener: DecisionListener) -> None:
-        self._listeners.append(listener)
+        self.listeners.append(listener)
 
     def remove(self, listener: DecisionListener) -> None:
-        if listener in self._listeners:
-            self._listeners.remove(listener)
+        if listener in self.listeners:
+            self.listeners.remove(listener)
 
     def __bool__(self) -> bool:
         """Whether anyone listens: the worker builds no note for nobody."""
-        return bool(self._listeners)
+        return bool(self.listeners)
 
     def tell(self, note: DecisionNote) -> None:
         """Give `note` to every listener; one that raises is logged and skipped."""
-        for listener in tuple(self._listeners):
+        for listener in tuple(self.listeners):
             try:
                 listener(note)
             except Exception:

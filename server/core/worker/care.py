@@ -90,6 +90,8 @@ class CareMeter:
         self._timer: Timer | None = None
         self._persisted_at = 0.0
         self._written: dict[str, float] = {}  # each key's value as the journal has it
+        self._planned_items: tuple[MaintenanceItem, ...] | None = None  # see _plans
+        self._item_plans: tuple[tuple[MaintenanceItem, rules.ItemPlan, str, str], ...] = ()
 
     # --- lifecycle -------------------------------------------------------------
 
@@ -204,53 +206,73 @@ class CareMeter:
 
     def check(self) -> None:
         """Read the drivers, raise each warning whose condition has just begun, and clear
-        each whose condition has ended."""
+        each whose condition has ended.
+
+        Run at every run's end as well as on the timer, so it judges by the statuses
+        alone (`care_rules.item_status`, `pot_status`, `glue_status`) and builds a
+        warning's message only when the warning is raised."""
         self.read_drivers()
+        settings, values, now = self._settings(), self.values, self.clock.time()
         holding: set[str] = set()
-        for item in self._settings().maintenance_items:
-            state = self._item_state(item)
-            due, overdue = f"due:{item.name}", f"overdue:{item.name}"
-            if state["status"] == "overdue":
+        items = settings.maintenance_items
+        plans = self._item_plans if items is self._planned_items else self._plans(items)
+        for item, plan, due, overdue in plans:
+            status = rules.item_status(plan, values, settings)
+            if status == "overdue":
                 code = "MAINTENANCE_OVERDUE"
-                self._raise_once(overdue, code, state)
+                self._raise_once(overdue, code, item, plan)
                 holding.add(overdue)
                 if due in self._raised:  # still due, as it was
                     holding.add(due)
-            elif state["status"] == "due":
+            elif status == "due":
                 code = "MAINTENANCE_DUE"
-                self._raise_once(due, code, state)
+                self._raise_once(due, code, item, plan)
                 holding.add(due)
-        pot = self.pot_life()
-        if pot["status"] == "expired":
+        pot = rules.pot_status(values, settings, now)
+        if pot == "expired":
             code = "POT_LIFE_EXCEEDED"
-            self._warn_once(code, pot["message"], "glue")
+            self._warn_once(code, lambda: rules.pot_life(values, settings, now), "glue")
             holding.add(code)
             if "POT_LIFE_NEAR" in self._raised:
                 holding.add("POT_LIFE_NEAR")
-        elif pot["status"] == "near":
+        elif pot == "near":
             code = "POT_LIFE_NEAR"
-            self._warn_once(code, pot["message"], "glue")
+            self._warn_once(code, lambda: rules.pot_life(values, settings, now), "glue")
             holding.add(code)
-        level = self.glue_level()
-        if level["status"] == "low":
+        if rules.glue_status(values, settings) == "low":
             code = "GLUE_LEVEL_LOW"
-            self._warn_once(code, level["message"], "glue")
+            self._warn_once(code, lambda: rules.glue_level(values, settings), "glue")
             holding.add(code)
-        self._clear_ended(holding)
+        if len(holding) != len(self._raised):  # every warning raised holds: none to clear
+            self._clear_ended(holding)
 
-    def _raise_once(self, key: str, code: str, state: dict[str, Any]) -> None:
+    def _plans(
+        self, items: tuple[MaintenanceItem, ...]
+    ) -> tuple[tuple[MaintenanceItem, rules.ItemPlan, str, str], ...]:
+        """Each item with its plan and the keys of its due and overdue warnings, worked
+        out again only when the schedule is another (PATCH /settings replaces it: `check`
+        keeps them while it is the same)."""
+        self._planned_items = items
+        self._item_plans = tuple(
+            (item, rules.item_plan(item), f"due:{item.name}", f"overdue:{item.name}")
+            for item in items
+        )
+        return self._item_plans
+
+    def _raise_once(self, key: str, code: str, item: MaintenanceItem, plan: rules.ItemPlan) -> None:
         if key not in self._raised:
             self._raised[key] = code
+            state = rules.item_state(item, self.values, self._settings(), plan)
             message = (
                 f"maintenance {state['status']}: {state['name']} ({state['reason']}); "
                 f"when done, POST /maintenance/{state['name']}/done"
             )
             self.alerts.warn(code, message, "maintenance", standing=True)
 
-    def _warn_once(self, code: str, message: str, component: str) -> None:
+    def _warn_once(self, code: str, judged: Callable[[], dict[str, Any]], component: str) -> None:
         if code not in self._raised:
             self._raised[code] = code
-            self.alerts.warn(code, message, component, standing=True)
+            self.alerts.warn(code, judged()["message"], component, standing=True)
 
     def _clear_ended(self, holding: set[str]) -> None:
         """Forget the warnings whose condition no longer holds; a code none still holds
@@ -270,9 +292,12 @@ class CareMeter:
         return rules.pot_life(self.values, self._settings(), self.clock.time())
 
     def start_problem(self) -> str | None:
-        """Why a start must wait for a purge (pot life past), or None."""
-        pot = self.pot_life()
-        return pot["message"] if pot["status"] == "expired" else None
+        """Why a start must wait for a purge (pot life past), or None (asked at every start)."""
+        settings, now = self._settings(), self.clock.time()
+        if rules.pot_status(self.values, settings, now) != "expired":
+            return None
+        message: str = rules.pot_life(self.values, settings, now)["message"]
+        return message
 
     def glue_level(self) -> dict[str, Any]:
         """The reservoir's estimated level from the glue dispensed since the last refill."""

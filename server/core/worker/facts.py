@@ -8,12 +8,9 @@ calibrations say. Only these two events read the library, so only they pay for i
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Protocol
 
-from server.core.machine import decide
-from server.core.machine.decide import ActiveOrder, Library
-from server.core.machine.engine import Facts as GuardFacts
+from server.core.machine.decide import NO_LIBRARY, ActiveOrder, Library
 from server.core.machine.events import CreateWorkpiecePayload, Payload, StartPayload
 from server.core.machine.transitions import TRANSITIONS, Event, State
 from server.core.operations.camera_frames import robot_calibration_problem
@@ -39,55 +36,37 @@ class OrderSource(Protocol):
     def active(self) -> Order | None: ...
 
 
-def decision_facts(
-    event: Event,
-    payload: Payload,
-    state: State,
-    *,
-    guards: GuardFacts,
-    journal_problem: str | None,
-    current_run: str | None,
-    stops: decide.Stops,
-    probing: bool,
-    probed: decide.Probed | None,
-    orders: OrderSource | None,
-    stores: CellStores,
-    glue_line: Callable[[], str | None] = lambda: None,
-) -> decide.Facts:
-    """The facts of one decision, with the active order and the library read now.
-
-    The library is read only for an event it concerns that the table accepts in
-    `state`: the decision asks it only then.
-    """
+def active_order(orders: OrderSource | None) -> ActiveOrder | None:
+    """A frozen copy of the order the cell works through (the book's order is its own)."""
     active = orders.active if orders is not None else None
-    order = None  # a frozen copy: the book's order is its own
-    if active is not None:
-        order = ActiveOrder(active.order_id, active.workpiece_id)
-    library = Library()
+    return ActiveOrder(active.order_id, active.workpiece_id) if active is not None else None
+
+
+def library_for(
+    event: Event, payload: Payload, state: State, order: ActiveOrder | None, stores: CellStores
+) -> Library:
+    """What the library says for `event`: read only for an event it concerns that the
+    table accepts in `state` (the decision asks it only then); `NO_LIBRARY` otherwise."""
     if event in LIBRARY_EVENTS and event in TRANSITIONS[state]:
-        library = library_facts(event, payload, order, stores)
-    return decide.Facts(
-        guards=guards,
-        journal_problem=journal_problem,
-        current_run=current_run,
-        stops=stops,
-        probing=probing,
-        probed=probed,
-        active_order=order,
-        library=library,
-        glue_line_problem=glue_line() if event is Event.START_REQUESTED else None,
-    )
+        return library_facts(event, payload, order, stores)
+    return NO_LIBRARY
 
 
 def known_device_faults(devices: CellDevices) -> tuple[str, ...]:
-    """The faults the devices' health already reports, and which are not connected."""
-    known: list[str] = []
-    for name, device in (
-        ("robot", devices.robot),
-        ("glue", devices.glue),
-        ("camera", devices.camera),
+    """The faults the devices' health already reports, and which are not connected.
+
+    Asked for every event decided and every snapshot, so the usual answer (all
+    connected, no fault) is found without building anything."""
+    robot, glue, camera = devices.robot.health, devices.glue.health, devices.camera.health
+    if (
+        robot.connected
+        and glue.connected
+        and camera.connected
+        and not (robot.active_faults or glue.active_faults or camera.active_faults)
     ):
-        health = device.health
+        return ()
+    known: list[str] = []
+    for name, health in (("robot", robot), ("glue", glue), ("camera", camera)):
         if not health.connected:
             known.append(f"{name}: not connected")
         elif health.active_faults:
@@ -102,7 +81,7 @@ def library_facts(
     if event is Event.START_REQUESTED and isinstance(payload, StartPayload):
         named = {payload.workpiece_id, order.workpiece_id if order is not None else None}
         if not payload.contour_matching:
-            return Library(known=_known(named, stores))
+            return Library(_known(named, stores))
         problem = robot_calibration_problem(stores.calibration, "contour matching")
         return Library(
             known=_known(named, stores),
@@ -115,7 +94,7 @@ def library_facts(
             known=_known({payload.workpiece_id}, stores),
             calibration_problem=str(problem) if problem is not None else None,
         )
-    return Library()
+    return NO_LIBRARY
 
 
 def _known(names: set[str | None], stores: CellStores) -> frozenset[str]:

@@ -39,12 +39,13 @@ from server.core.machine.events import JogPayload, Outcome, Payload
 from server.core.machine.transitions import OPERATION_OF_STATE, Event, State, event_label
 from server.core.operations.base import Operation
 from server.core.operations.jog import JogRefused
+from server.core.worker import facts as gather
 from server.core.worker.alerts import Alerts
 from server.core.worker.care import CareMeter
 from server.core.worker.context import MachineContext, ProcessingStats
 from server.core.worker.devices import CellDevices
 from server.core.worker.event_queue import Envelope, EventQueue, Priority
-from server.core.worker.facts import OrderSource, decision_facts, known_device_faults
+from server.core.worker.facts import OrderSource, known_device_faults
 from server.core.worker.jogging import start_jog
 from server.core.worker.posting import EventPoster
 from server.core.worker.purging import start_purge
@@ -133,6 +134,8 @@ class Worker:
             lambda: poster.post_ready(Event.SYSTEM_READY, "system"),
         )
         self._task: asyncio.Task[None] | None = None
+        self._guard_facts = Facts()  # the last facts() (see there)
+        self._counted = decide.NO_STOPS  # the last stops decision_facts counted, kept alike
         # Told of every verdict before its actions run (decisions.py says who needs it).
         self.decisions = DecisionListeners()
         self.reset_probes = ResetProbes(
@@ -186,36 +189,38 @@ class Worker:
                 envelope.future.set_exception(WorkerStopped("the server is shutting down"))
         self.devices.set_fault_listener(None)
 
-    @property
-    def _estops(self) -> int:
-        """E-stops begun so far (`EmergencyStops.requested`): a decision that saw fewer
-        than there are now was overtaken by a stop (see _handle)."""
-        return self.stops.requested
-
     # --- facts -------------------------------------------------------------
 
     def facts(self) -> Facts:
-        """Guard facts from what is known without asking the devices (a reset probes them)."""
-        return Facts(self.changes.ready_now, known_device_faults(self.devices))
+        """Guard facts from what is known without asking the devices (a reset probes them);
+        the last ones again while nothing in them changed (asked for every event decided)."""
+        ready, known = self.changes.ready_now, known_device_faults(self.devices)
+        last = self._guard_facts
+        if last.ready_devices is not ready or last.active_faults != known:
+            last = self._guard_facts = Facts(ready, known)
+        return last
 
     def decision_facts(
         self, event: Event, payload: Payload, probed: decide.Probed | None = None
     ) -> decide.Facts:
         """Everything the decision on `event` reads (`server.core.machine.decide`)."""
-        running = self.ctx.operation
-        return decision_facts(
-            event,
-            payload,
-            self.ctx.state,
+        running, orders, stops = self.ctx.operation, self.orders, self._counted
+        if stops.estops != self.stops.requested or stops.faults != self.changes.faults:
+            stops = self._counted = decide.Stops(self.stops.requested, self.changes.faults)
+        order = gather.active_order(orders) if orders is not None else None
+        library = decide.NO_LIBRARY  # read only for a start or a create-workpiece
+        if event in gather.LIBRARY_EVENTS:
+            library = gather.library_for(event, payload, self.ctx.state, order, self.stores)
+        return decide.Facts(
             guards=self.facts(),
             journal_problem=self.recorder.write_problem,
             current_run=running.run_id if running is not None else None,
-            stops=decide.Stops(self._estops, self.changes.faults),
+            stops=stops,
             probing=self.reset_probes.under_way,
             probed=probed,
-            orders=self.orders,
-            stores=self.stores,
-            glue_line=self.care.start_problem,
+            active_order=order,
+            library=library,
+            glue_line_problem=self.care.start_problem() if event is Event.START_REQUESTED else None,
         )
 
     # --- the loop ----------------------------------------------------------
@@ -273,7 +278,8 @@ class Worker:
         probed = probe.facts() if probe is not None else None
         facts = self.decision_facts(event, envelope.payload, probed)
         verdict = decide.decide(state, event, envelope.payload, facts, self.settings)
-        self._tell(state, event, verdict)
+        if self.decisions.listeners:
+            self._tell(state, event, verdict)
         if isinstance(verdict, decide.Refusal):
             if verdict.payload is not None:
                 envelope.payload = verdict.payload  # recorded as decided
@@ -285,7 +291,7 @@ class Worker:
         decision = verdict.decision
         for index, action in enumerate(decision.actions):
             if index == verdict.checkpoint:
-                overtaken = verdict.overtaken(self._estops)
+                overtaken = verdict.overtaken(self.stops.requested)
                 if overtaken is not None:
                     return self._refuse(envelope, overtaken.message)
             try:
@@ -297,14 +303,12 @@ class Worker:
             except PauseNotHeld as exc:
                 self.poster.post_fault(DeviceFault(exc.component, "PAUSE_NOT_HELD", str(exc)))
                 return self._refuse(envelope, f"pause not confirmed: {exc}; the cell stops")
-        message = decide.accepted_message(state, event, decision)
+        message = decide.accepted_message(state, event, decision.target)
         started = envelope.event_id if Action.START_RUN in decision.actions else None
         return Outcome(True, envelope.event_id, event, self.ctx.state, message, run_id=started)
 
     def _tell(self, state: State, event: Event, verdict: decide.Verdict) -> None:
         """The verdict to the decision listeners, before any of its actions."""
-        if not self.decisions:
-            return
         now = self.clock.time()
         if isinstance(verdict, decide.Refusal):
             self.decisions.tell(DecisionNote(state, event, "refused", None, now))
@@ -370,7 +374,7 @@ class Worker:
             robot=self.devices.robot,
             activities=self.activities,
             settings=self.settings,
-            stops=lambda: (self._estops, self.poster.faults_posted),
+            stops=lambda: (self.stops.requested, self.poster.faults_posted),
             known_faults=lambda: known_device_faults(self.devices),
         )
 
@@ -382,7 +386,7 @@ class Worker:
             activities=self.activities,
             settings=self.settings,
             care=self.care,
-            stops=lambda: (self._estops, self.poster.faults_posted),
+            stops=lambda: (self.stops.requested, self.poster.faults_posted),
             post_fault=self.poster.post_fault,
         )
 

@@ -46,18 +46,26 @@ def _row(table: str, *, replace: bool = False, **values: Any) -> Record:
     """A row of `table` (tables.py): `values` by column name, in the order given, JSON and
     flag columns encoded as the declaration says; the columns not given take their SQL
     default. Sealed when the table is."""
-    statement = _statement(table, tuple(values), replace)
-    params = list(values.values())
-    for at, encode in statement.encoders:
-        params[at] = encode(params[at])
-    return Record(statement.sql, tuple(params), statement.sealed)
+    return _statement(table, tuple(values), replace).row(tuple(values.values()))
 
 
 @dataclass(frozen=True, slots=True)
 class _Statement:
+    """One kind of row of a table: its SQL, checked against the declaration once, and the
+    encoders of its JSON and flag columns."""
+
     sql: str
     sealed: Sealed | None
     encoders: tuple[tuple[int, Callable[[Any], Any]], ...]  # (position, encoder) to apply
+
+    def row(self, values: tuple[Any, ...]) -> Record:
+        """The record of a row giving `values`, in the statement's column order."""
+        if self.encoders:
+            params = list(values)
+            for at, encode in self.encoders:
+                params[at] = encode(params[at])
+            values = tuple(params)
+        return Record(self.sql, values, self.sealed)
 
 
 @functools.cache
@@ -109,10 +117,21 @@ def _same(value: Any) -> Any:
 def _update(table: str, where: str, key: Any, **values: Any) -> Record:
     """An UPDATE of the declared columns `values` of `table`'s rows matching `where`
     (one placeholder, `key`)."""
+    return _update_statement(table, where, tuple(values)).row((*values.values(), key))
+
+
+@functools.cache
+def _update_statement(table: str, where: str, given: tuple[str, ...]) -> _Statement:
+    """The SQL of an UPDATE of the columns `given`, built once per kind of update (a run's
+    end, its progress): its values are the columns', then the key of `where`."""
     declared = TABLES[table]
-    assignments = ", ".join(f"{name} = ?" for name in values)
-    params = tuple(_encoder(declared.column(name))(value) for name, value in values.items())
-    return Record(f"UPDATE {table} SET {assignments} WHERE {where}", (*params, key))
+    assignments = ", ".join(f"{name} = ?" for name in given)
+    encoders = (
+        (at, encode)
+        for at, name in enumerate(given)
+        if (encode := _encoder(declared.column(name))) is not _same
+    )
+    return _Statement(f"UPDATE {table} SET {assignments} WHERE {where}", None, tuple(encoders))
 
 
 def _json(value: Any) -> str:
@@ -132,31 +151,33 @@ def event(
     state: str,
 ) -> Record:
     """An event the worker decided (replaces a row of the same id)."""
-    return _row(
-        "events",
-        replace=True,
-        id=event_id,
-        time=at,
-        type=type_,
-        source=source,
-        data=data,
-        outcome=outcome,
-        message=message,
-        state=state,
-    )
+    return _EVENT.row((event_id, at, type_, source, data, outcome, message, state))
+
+
+# The rows the worker writes for every event it decides (and for every fault), their
+# statements built at import.
+_EVENT = _statement(
+    "events", ("id", "time", "type", "source", "data", "outcome", "message", "state"), True
+)
+_TRANSITION = _statement(
+    "transitions",
+    ("time", "old_state", "new_state", "event", "event_id", "time_in_old_state"),
+    False,
+)
 
 
 def transition(row: dict[str, Any]) -> Record:
     """A transition, from its dict (timestamp, old_state, new_state, event, event_id,
     time_in_old_state)."""
-    return _row(
-        "transitions",
-        time=row["timestamp"],
-        old_state=row["old_state"],
-        new_state=row["new_state"],
-        event=row["event"],
-        event_id=row["event_id"],
-        time_in_old_state=row["time_in_old_state"],
+    return _TRANSITION.row(
+        (
+            row["timestamp"],
+            row["old_state"],
+            row["new_state"],
+            row["event"],
+            row["event_id"],
+            row["time_in_old_state"],
+        )
     )
 
 
@@ -219,18 +240,27 @@ def error(
 ) -> Record:
     """A fault or warning, with what it interrupted (None: no operation) and the stack
     when an exception caused it."""
-    return _row(
-        "errors",
-        time=at,
-        code=code,
-        message=message,
-        component=component,
-        classification=classification,
-        event_id=event_id,
-        state=state,
-        context=context if context is not None else {"operation": None},
-        trace=trace,
+    context = context if context is not None else {"operation": None}
+    return _ERROR.row(
+        (at, code, message, component, classification, event_id, state, context, trace)
     )
+
+
+_ERROR = _statement(
+    "errors",
+    (
+        "time",
+        "code",
+        "message",
+        "component",
+        "classification",
+        "event_id",
+        "state",
+        "context",
+        "trace",
+    ),
+    False,
+)
 
 
 def recovery(at: float, run_id: str, error_code: str, attempt: int, succeeded: bool) -> Record:
