@@ -72,6 +72,7 @@ from server.core.machine.transitions import normalize_command
 from server.core.worker.runs import RunEnded
 from server.mqtt.commands import CommandDoor
 from server.mqtt.outbox import Entry, Outbox
+from server.mqtt.publishing import publish_outbox
 from server.mqtt.topics import (
     Topics,
     alert_message,
@@ -90,7 +91,6 @@ log = logging.getLogger(__name__)
 BUS_TYPES = ("state_changed", "progress", "alert", "error", "report")
 BUS_BUFFER = 1024  # records between the bus and the outbox: drained at once, so rarely used
 FIRST_BACKOFF_S = 0.1
-PUBLISH_WINDOW = 16  # QoS 1 messages awaiting their acknowledgement at once
 STOP_FLUSH_S = 2.0  # at a clean stop, how long `offline` (and what waits) may take to go
 TICK_S = 1.0  # how often the health is looked at for a change
 MAX_COMMANDS_IN_FLIGHT = 64  # beyond this a command is refused (503), never an e-stop
@@ -510,57 +510,8 @@ class MqttLink:
         self._last_error = error
 
     async def _publish(self, client: aiomqtt.Client) -> None:
-        """The outbox, in order, with up to PUBLISH_WINDOW messages awaiting their
-        acknowledgement (QoS 1) at once.
-
-        Why a window: one at a time, each message waited a broker round trip for the
-        one before it, so a stop's event went out two round trips late (behind the
-        run's message and the retained state). The messages still leave in order on
-        the one connection; any not acknowledged when the connection ends go back to
-        the front of the outbox, in order, and are sent again on the next one.
-        """
-        sent: deque[tuple[Entry, asyncio.Future[None]]] = deque()
-        failed: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-
-        def acknowledged(publishing: asyncio.Future[None]) -> None:
-            if publishing.cancelled():
-                return
-            if (error := publishing.exception()) is not None:
-                if not failed.done():
-                    failed.set_exception(error)
-                return
-            while sent and _succeeded(sent[0][1]):
-                sent.popleft()
-            if not sent and not len(self.outbox):
-                self._drained.set()
-
-        try:
-            while True:
-                if not len(self.outbox):
-                    waiting = asyncio.ensure_future(self.outbox.wait())
-                    await asyncio.wait((waiting, failed), return_when=asyncio.FIRST_COMPLETED)
-                    waiting.cancel()
-                while len(sent) >= PUBLISH_WINDOW and not failed.done():
-                    await asyncio.wait((sent[0][1], failed), return_when=asyncio.FIRST_COMPLETED)
-                if failed.done():
-                    failed.result()  # the publish failed: the connection ends with it
-                entry = self.outbox.take()
-                if entry is None:
-                    continue
-                publishing = asyncio.ensure_future(
-                    client.publish(entry.topic, entry.payload, qos=1, retain=entry.retain)
-                )
-                sent.append((entry, publishing))
-                publishing.add_done_callback(acknowledged)
-        finally:
-            for entry, pending in reversed(sent):  # not acknowledged: sent again later
-                if not _succeeded(pending):
-                    pending.cancel()
-                    self.outbox.put_back(entry)
-            if not failed.done():
-                failed.cancel()
-            elif not failed.cancelled():
-                failed.exception()  # retrieved: raised above or superseded by the cancel
+        """The outbox, in order, each message acknowledged (`publishing.py`)."""
+        await publish_outbox(client, self.outbox, self._drained)
 
     async def _listen(self, client: aiomqtt.Client) -> None:
         """Commands, each in a task of its own; also how a lost connection is noticed."""
@@ -612,7 +563,3 @@ class MqttLink:
             await client.publish(
                 response_topic, encode({"status": status, **body}), qos=1, properties=properties
             )
-
-
-def _succeeded(publishing: asyncio.Future[None]) -> bool:
-    return publishing.done() and not publishing.cancelled() and publishing.exception() is None
