@@ -31,9 +31,9 @@ import httpx
 
 from server.bootstrap.app import create_app
 from server.bootstrap.cell import Cell
-from server.core.machine.transitions import State
 from server.core.worker.devices import CellDevices
 from server.settings.model import Settings
+from tests.conftest import START, demo_stores
 from tests.fakes import FakeCamera, FakeGlue, FakeRobot
 from tests.serving import IN_PROCESS_PEER, admin_headers
 
@@ -50,14 +50,17 @@ ROUTE_AND_POSTING = (
 LAYERS = (("server/api/", 3), ("server/bootstrap/", 2), ("server/core/", 1))
 
 
-def documented_steps() -> list[str]:
-    """The files of ARCHITECTURE.md's e-stop trace, in the trace's order."""
+def documented_steps(trace: str) -> list[str]:
+    """The files of an ARCHITECTURE.md trace ("## Trace: <trace>"), in the trace's order."""
     text = ARCHITECTURE.read_text(encoding="utf-8")
-    section = text.split("## Trace: the e-stop", 1)[1].split("\n## ", 1)[0]
+    section = text.split(f"## Trace: {trace}", 1)[1].split("\n## ", 1)[0]
     files: list[str] = []
     for found in re.finditer(r"^\d+\. `(server/[\w/]+\.py): ", section, re.MULTILINE):
         if found.group(1) not in files:
             files.append(found.group(1))
+    assert files, f"ARCHITECTURE.md has its trace of {trace}"
+    ranks = [layer_of(step) for step in files]
+    assert ranks == sorted(ranks, reverse=True), f"the trace turns back up a layer: {files}"
     return files
 
 
@@ -110,16 +113,10 @@ def first_entries(
         sys.setprofile(None)
 
 
-async def test_the_stop_crosses_the_files_its_trace_names_in_order(
-    fast_settings: Settings,
-) -> None:
-    steps = documented_steps()
-    assert steps, "ARCHITECTURE.md has its e-stop trace"
-    assert len(steps) <= 8, steps
-    ranks = [layer_of(step) for step in steps]
-    assert ranks == sorted(ranks, reverse=True), f"the trace turns back up a layer: {steps}"
-
-    cell = Cell(fast_settings, devices=CellDevices(FakeRobot(50), FakeGlue(), FakeCamera()))
+async def entered_by(settings: Settings, path: str, body: Any, steps: list[str]) -> list[str]:
+    """The step files a real POST `path` enters, in order, from its arrival to its 202."""
+    demo_stores(settings.data_path)  # the demo part, for POST /start
+    cell = Cell(settings, devices=CellDevices(FakeRobot(50), FakeGlue(), FakeCamera()))
     app = create_app(cell=cell)
     middlewares = {
         _relative(sys.modules[m.cls.__module__].__file__ or "")  # type: ignore[attr-defined]
@@ -132,7 +129,7 @@ async def test_the_stop_crosses_the_files_its_trace_names_in_order(
 
     async with app.router.lifespan_context(app):
         transport = httpx.ASGITransport(app=app, client=IN_PROCESS_PEER)
-        headers = admin_headers(fast_settings.data_path)
+        headers = admin_headers(settings.data_path)
         async with httpx.AsyncClient(transport=transport, base_url="http://cell") as client:
             assert cell.worker is not None and cell.worker._task is not None
             request_task = asyncio.current_task()
@@ -140,8 +137,25 @@ async def test_the_stop_crosses_the_files_its_trace_names_in_order(
             tasks = {request_task, cell.worker._task}
             halt_code = CellDevices.safe_halt.__code__
             with first_entries(watched, Cell.command.__code__, tasks, halt_code) as entered:
-                answer = await client.post("/estop", json={"reason": "trace"}, headers=headers)
+                answer = await client.post(path, json=body, headers=headers)
             assert answer.status_code == 202, answer.text
-            assert cell.view.state is State.ERROR
+    return entered
 
+
+async def test_the_stop_crosses_the_files_its_trace_names_in_order(
+    fast_settings: Settings,
+) -> None:
+    steps = documented_steps("the e-stop")
+    assert len(steps) <= 8, steps
+    entered = await entered_by(fast_settings, "/estop", {"reason": "trace"}, steps)
     assert entered == steps, f"the stop crossed {entered}; ARCHITECTURE.md's trace names {steps}"
+
+
+async def test_a_start_crosses_the_files_its_trace_names_in_order(
+    fast_settings: Settings,
+) -> None:
+    """The start's trace is pinned the same way (it crosses more than 8 files: the HTTP
+    door's middlewares and routing, which the stop leaves out)."""
+    steps = documented_steps("POST /start")
+    entered = await entered_by(fast_settings, "/start", START, steps)
+    assert entered == steps, f"the start crossed {entered}; ARCHITECTURE.md's trace names {steps}"
