@@ -91,7 +91,7 @@ class StopLane:
             body = await self._read_whole(scope, receive)
             if body is None:  # too large to read: stopped all the same, and the 413 says so
                 why = f"request body over {self.max_bytes} bytes, not read"
-                status, answer, _headers = await self._finish(stop, scope, StopPayload(None))
+                _status, answer, _headers = await self._finish(stop, scope, StopPayload(None))
                 answer = {"detail": why, **made_without_reason(answer)}
                 await JSONResponse(answer, status_code=413)(scope, receive, send)
                 return
@@ -156,7 +156,8 @@ def _payload_of(spec: CommandSpec, scope: Scope, body: bytes) -> StopPayload | N
     route would refuse the body (then the route does, and says why).
 
     As FastAPI reads a body: none is no request model; JSON when the content type is
-    absent or application/json (or +json), else bytes no model accepts.
+    application/json (or +json), else bytes no model accepts (FastAPI's strict content
+    type, its default: a body without a content type is not read as JSON either).
     """
     parsed: Any = None
     if body:
@@ -179,7 +180,7 @@ def _payload_of(spec: CommandSpec, scope: Scope, body: bytes) -> StopPayload | N
 def _is_json(scope: Scope) -> bool:
     content_type = Headers(scope=scope).get("content-type")
     if not content_type:
-        return True
+        return False
     header = MimeHeader()
     header["content-type"] = content_type
     subtype = header.get_content_subtype()

@@ -46,6 +46,8 @@ ROUTE_AND_POSTING = (
     "server/api/declared_query.py",
     "server/core/worker/posting.py",
 )
+# The cell's command door: a step as `Cell.command` only.
+DOOR = "server/bootstrap/cell.py"
 # The layer of a step file, highest first: a path never goes back to a higher one.
 LAYERS = (("server/api/", 3), ("server/bootstrap/", 2), ("server/core/", 1))
 
@@ -83,6 +85,7 @@ def first_entries(
     code of theirs first runs, in the request's task, the worker's or the halt's."""
     entered: list[str] = []
     paths: dict[str, str | None] = {}
+    halt_name = halt_code.co_qualname
 
     def ours() -> bool:
         task = asyncio.current_task()
@@ -90,19 +93,23 @@ def first_entries(
             return False
         if task in tasks:
             return True
+        # The halt's task: its coroutine (an eager task), or named after it (eager.py's
+        # first step, before Python 3.12).
         coro = task.get_coro()
-        return getattr(coro, "cr_code", None) is halt_code
+        return getattr(coro, "cr_code", None) is halt_code or task.get_name() == halt_name
 
     def profile(frame: FrameType, event: str, _arg: Any) -> None:
         if event != "call":
             return
         code = frame.f_code
         if code is door:
-            path: str | None = "server/bootstrap/cell.py"
+            path: str | None = DOOR
         else:
             if code.co_filename not in paths:
                 paths[code.co_filename] = _relative(code.co_filename)
             path = paths[code.co_filename]
+            if path == DOOR:
+                return  # the cell's other functions (`started`...) are not its door
         if path in watched and path not in entered and ours():
             entered.append(path)
 
@@ -119,18 +126,21 @@ async def entered_by(settings: Settings, path: str, body: Any, steps: list[str])
     cell = Cell(settings, devices=CellDevices(FakeRobot(50), FakeGlue(), FakeCamera()))
     app = create_app(cell=cell)
     middlewares = {
-        _relative(sys.modules[m.cls.__module__].__file__ or "")  # type: ignore[attr-defined]
+        _relative(sys.modules[m.cls.__module__].__file__ or "")
         for m in app.user_middleware
-        if m.cls.__module__.startswith("server.")  # type: ignore[attr-defined]
+        if m.cls.__module__.startswith("server.")
     }
     assert "server/api/access.py" in middlewares
     watched = {p for p in middlewares if p} | set(ROUTE_AND_POSTING) | set(steps)
-    watched.add("server/bootstrap/cell.py")  # as Cell.command only (the profiler)
+    watched.add(DOOR)
 
     async with app.router.lifespan_context(app):
         transport = httpx.ASGITransport(app=app, client=IN_PROCESS_PEER)
         headers = admin_headers(settings.data_path)
         async with httpx.AsyncClient(transport=transport, base_url="http://cell") as client:
+            # A first request builds the app's middleware stack (their constructors
+            # run then), as a server's lifespan call does before any request.
+            assert (await client.get("/state", headers=headers)).status_code == 200
             assert cell.worker is not None and cell.worker._task is not None
             request_task = asyncio.current_task()
             assert request_task is not None
