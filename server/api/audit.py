@@ -91,10 +91,23 @@ def _journal(request: Request) -> Journal:
     return journal
 
 
-def note(request: Request, label: Callable[[Outcome], str]) -> AuditNote:
+def note(scope: Scope, label: Callable[[Outcome], str]) -> AuditNote:
     """Who sends this command, for the row committed with its event."""
-    principal, address, action = _who(request.scope)
+    principal, address, action = _who(scope)
     return AuditNote(principal, address, action, label)
+
+
+def answered(scope: Scope, outcome: Outcome) -> None:
+    """Tell the observer how a command's answer stands on record.
+
+    Its row was committed with the event (`note`), so the observer leaves it; or, when
+    the event is not on record, the observer tries once more, with why.
+    """
+    state = scope.setdefault("state", {})
+    if outcome.journal_problem is None:
+        state["audited"] = True
+    else:
+        state["audit_reason"] = f"event {outcome.event_id}: {outcome.message}"
 
 
 async def record_before_change(request: Request, detail: str) -> None:

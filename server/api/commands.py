@@ -10,9 +10,13 @@ matching names no workpiece); 503 with Retry-After when the event queue is
 full, or when the journal cannot write: an answer is never a 202 for what is
 not on record. A refusal changes nothing and is journaled and audited like any
 command; the audit row is committed with the event, before the answer.
-The e-stop route does not queue behind anything: it halts the devices first,
-then posts the event ahead of everything waiting; it is a 202 once the cell
-has stopped, even when the journal could not record it (the message says so).
+The e-stop's route is declared here like the others (openapi.json, the
+policy), but a stop is made and answered before the router, in the stop lane
+(server/api/stop_lane.py): it halts the devices first, then posts the event
+ahead of everything waiting; a 202 once the cell has stopped, even when the
+journal could not record it (the message says so). The route finishes a stop
+only when the lane handed it on: a body to refuse (422, `stop_anyway`), or a
+cell not started when the request passed the lane.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from fastapi.responses import JSONResponse
 
 from server.api import audit
 from server.api.declared_query import IGNORES_UNKNOWN_QUERY, DeclaredQueryRoute
-from server.api.stop_lane import source_of, stop_begun
+from server.api.stop_lane import made_without_reason, source_of, stop_begun
 from server.bootstrap.cell import Cell
 from server.commands.answers import answer_of, audit_label
 from server.commands.catalogue import CATALOGUE, CommandSpec
@@ -67,28 +71,25 @@ async def _run(request: Request, command: Command, payload: Payload | None = Non
         command,
         source=source_of(request.scope),
         payload=payload,
-        audit=audit.note(request, audit_label),
+        audit=audit.note(request.scope, audit_label),
     )
     return _answered(request, outcome)
 
 
 async def _stop(request: Request, payload: StopPayload) -> JSONResponse:
-    """Finish the stop the stop lane began as the request passed the gate (one is made
-    here if it did not: the cell was not started then)."""
+    """Finish the stop the stop lane began and handed on (one is made here if it did
+    not: the cell was not started when the request passed the lane)."""
     stop = stop_begun(request.scope) or _cell(request).stops.begin()
     outcome = await stop.finish(
         source=source_of(request.scope),
         payload=payload,
-        audit=audit.note(request, audit_label),
+        audit=audit.note(request.scope, audit_label),
     )
     return _answered(request, outcome)
 
 
 def _answered(request: Request, outcome: Outcome) -> JSONResponse:
-    if outcome.journal_problem is None:
-        request.state.audited = True  # its row was committed with the event
-    else:  # not on record: the observer tries once more, with why
-        request.state.audit_reason = f"event {outcome.event_id}: {outcome.message}"
+    audit.answered(request.scope, outcome)
     return _answer(*answer_of(outcome))
 
 
@@ -103,10 +104,6 @@ def _endpoint(spec: CommandSpec) -> Callable[..., Awaitable[JSONResponse]]:
         if not spec.stop:
             payload = spec.payload(body) if spec.payload is not None else None
             return await _run(request, spec.command, payload)
-        dropped = getattr(request.state, "body_dropped", None)
-        if dropped is not None:  # too large to read: the stop is made, the 413 says so
-            answer = await stop_anyway(request)
-            return JSONResponse({"detail": dropped, **answer}, status_code=413)
         stop = spec.payload(body) if spec.payload is not None else None
         return await _stop(request, stop if isinstance(stop, StopPayload) else StopPayload())
 
@@ -143,14 +140,12 @@ for _spec in CATALOGUE:
 
 
 async def stop_anyway(request: Request) -> dict[str, Any]:
-    """Make the e-stop whose body was invalid or too large (no reason recorded).
+    """Make the e-stop whose body was invalid (no reason recorded).
 
     The gate has let the request through (the role is checked before routing),
     so only the optional reason was wrong: refusing the stop over it would be
-    the wrong way round. The answer stays a 4xx (the request was wrong: 422 or
-    413), with what the cell did beside it.
+    the wrong way round. The answer stays a 4xx (the request was wrong: 422),
+    with what the cell did beside it.
     """
     response = await _stop(request, StopPayload(None))
-    answer = json.loads(bytes(response.body))
-    answer["message"] = f"the stop was made without its reason: {answer.get('message', '')}"
-    return {k: answer[k] for k in ("accepted", "event_id", "state", "message") if k in answer}
+    return made_without_reason(json.loads(bytes(response.body)))

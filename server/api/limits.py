@@ -1,8 +1,8 @@
 """A request body larger than max_request_bytes is refused with 413 before it is read whole.
 
-Except on a stop route: a stop is never refused over its body. There the body
-is dropped instead (the route sees none) and the route is told why, so it can
-make the stop and answer 413 beside it.
+It sits inside the access gate and the stop lane (server/bootstrap/app.py), so a
+stop never meets it: the lane reads a stop's body itself, up to the same limit,
+and stops the cell even when the body is too large (server/api/stop_lane.py).
 """
 
 from __future__ import annotations
@@ -11,8 +11,6 @@ import json
 from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
-
-from server.api.stop_lane import is_stop
 
 
 def _body_headers(scope: Scope) -> tuple[bytes | None, bool]:
@@ -42,12 +40,9 @@ class BodySizeLimit:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        if is_stop(scope):
-            await self.app(scope, self._dropping_oversized(scope, receive), send)
-            return
         declared, chunked = _body_headers(scope)
         if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
-            await self._refuse(send)
+            await self._refuse(scope, send)
             return
         if not chunked:
             # No Transfer-Encoding: the body is at most the Content-Length just checked
@@ -78,49 +73,14 @@ class BodySizeLimit:
                 await send(message)
             elif not refused:
                 refused = True
-                await self._refuse(send)
+                await self._refuse(scope, send)
 
         await self.app(scope, counting_receive, guarded_send)
 
-    def _dropping_oversized(self, scope: Scope, receive: Receive) -> Receive:
-        """The whole body, or none with `body_dropped` in the request's state if over the limit.
-
-        Read whole before the route sees any of it (bounded by the limit), so the
-        route gets either valid bytes or nothing, never a truncated document.
-        """
-        delivered = False
-
-        def dropped() -> Message:
-            why = f"request body over {self.max_bytes} bytes, not read"
-            scope.setdefault("state", {})["body_dropped"] = why
-            return {"type": "http.request", "body": b"", "more_body": False}
-
-        async def receive_whole() -> Message:
-            nonlocal delivered
-            if delivered:
-                return await receive()
-            delivered = True
-            declared = dict(scope.get("headers") or []).get(b"content-length")
-            if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
-                return dropped()
-            chunks: list[bytes] = []
-            size = 0
-            while True:
-                message = await receive()
-                if message["type"] != "http.request":
-                    return message
-                chunk = message.get("body", b"")
-                size += len(chunk)
-                if size > self.max_bytes:
-                    return dropped()
-                chunks.append(chunk)
-                if not message.get("more_body", False):
-                    return {"type": "http.request", "body": b"".join(chunks), "more_body": False}
-
-        return receive_whole
-
-    async def _refuse(self, send: Send) -> None:
-        body: dict[str, Any] = {"detail": f"request body over {self.max_bytes} bytes"}
+    async def _refuse(self, scope: Scope, send: Send) -> None:
+        detail = f"request body over {self.max_bytes} bytes"
+        scope.setdefault("state", {})["audit_reason"] = detail  # the refusal's audit row
+        body: dict[str, Any] = {"detail": detail}
         payload = json.dumps(body).encode()
         await send(
             {

@@ -172,8 +172,12 @@ def create_app(
     # HEAD and OPTIONS, once the gate has let them through (each as its route needs).
     app.state.route_methods = methods.RouteMethods(app)
     app.add_middleware(methods.HttpManners, methods=app.state.route_methods)
-    # The e-stop's devices commanded as soon as the gate lets it through (before routing).
-    app.add_middleware(StopLane)
+    # Bodies over the limit refused (413) before they are read whole; a stop never gets
+    # here (its lane reads its body, up to the same limit, and stops regardless).
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
+    # The e-stop made and answered as soon as the gate lets it through: its devices
+    # commanded before its body is read, its event ahead of the queue (stop_lane.py).
+    app.add_middleware(StopLane, max_bytes=settings.max_request_bytes)
     # Every HTTP request, before routing: the policy in server/security/policy.py.
     app.add_middleware(access.AccessGate, access=app.state.access)
     app.state.answers = in_flight
@@ -199,7 +203,6 @@ def create_app(
             # provenance and how long to wait after a 503.
             expose_headers=["X-Frame-Time", "X-Frame-Source", "X-Frame-Run-Id", "Retry-After"],
         )
-    app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
     app.include_router(ws.router)
     app.include_router(camera_preview.ws_router)
     mount_dashboard(app)  # the operator dashboard at /, assets under /hmi/

@@ -35,7 +35,8 @@ Applied here, by `install`, which the composition root
 
 At its door, because each is how that door reads a stop (they stay there):
 
-- HTTP, the halt begun at the access gate, before routing and the body:
+- HTTP, the stop made and answered just inside the access gate, its halt begun
+  before its body is read, and no body limit, routing or route on its way:
   `server/api/stop_lane.py: StopLane._stop` (bench.estop_latency).
 - The halt itself, a task whose first step has run, with no collection and no
   background thread in between: `server/core/worker/stop.py:
@@ -43,7 +44,8 @@ At its door, because each is how that door reads a stop (they stay there):
   start_task`, `server/common/runtime.py: collection_deferred` and
   `background_held` (bench.estop_latency).
 - JSON answers built directly, not through FastAPI's response model path:
-  `server/api/commands.py: _answer` (the stop's 202) and
+  `server/api/stop_lane.py: StopLane._stop` (the stop's 202),
+  `server/api/commands.py: _answer` (the other commands') and
   `server/api/direct_json.py: DirectJsonRoute` (GET /state;
   bench.rest_throughput).
 - MQTT, a stop taken out of the client's incoming queue as it is parsed, on a

@@ -240,8 +240,8 @@ CATALOGUE: Final = (
 )
 
 BY_COMMAND: Final = MappingProxyType({spec.command: spec for spec in CATALOGUE})
-# The stop routes on HTTP (POST): begun at the gate, never locked out, never refused
-# over their body (server/api/stop_lane.py).
+# The stop routes on HTTP (POST): made in the stop lane just inside the gate, never
+# locked out, never refused over their body (server/api/stop_lane.py).
 STOP_PATHS: Final = tuple(spec.path for spec in CATALOGUE if spec.stop)
 # The stop commands, which every door serves ahead of its own queue: HTTP's stop lane,
 # MQTT's stop topics (server/mqtt/link.py), OPC UA's stop methods (server/opcua/).

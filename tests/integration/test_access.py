@@ -315,6 +315,23 @@ async def test_an_oversized_body_is_refused_with_413(server) -> None:
     assert streamed.status_code == 413
 
 
+async def test_an_oversized_body_is_on_record_as_refused(server) -> None:
+    """A 413 is a refusal like the others (docs/security.md): its audit row says why. The
+    body limit sat outside the response observers, and no row was written."""
+    admin = auth(server.tokens["admin"])
+    huge = {"name": "x", "outline_mm": [[0.0, 0.0]] * 200_000}
+    assert (await server.post("/workpieces", json=huge, headers=admin)).status_code == 413
+    async with asyncio.timeout(5):  # the observer's row goes out behind the answer
+        while True:
+            query = {"outcome": "refused (413)"}
+            rows = (await server.get("/audit", params=query, headers=admin)).json()["audit"]
+            if rows:
+                break
+            await asyncio.sleep(0.01)
+    assert rows[0]["action"] == "POST /workpieces"
+    assert "(admin," in rows[0]["principal"] and "bytes" in rows[0]["detail"]
+
+
 async def test_trusted_networks_close_the_api_to_other_addresses(fast_settings) -> None:
     settings = fast_settings.model_copy(update={"trusted_networks": ["10.0.0.0/8"]})
     cell = Cell(settings, devices=CellDevices(FakeRobot(50), FakeGlue(), FakeCamera()))

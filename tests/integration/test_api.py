@@ -108,6 +108,21 @@ async def test_an_estop_with_an_invalid_body_still_stops_the_cell(api, body, fie
     assert api.cell.devices.glue.valve_open is False
 
 
+@pytest.mark.parametrize("content_type", [None, "text/plain"])
+async def test_an_estop_whose_body_is_not_sent_as_json_still_stops_the_cell(
+    api, content_type
+) -> None:
+    """FastAPI reads a body as JSON only under a JSON content type: otherwise it is a 422
+    naming the body, and the stop is made all the same, without its reason."""
+    headers = {} if content_type is None else {"content-type": content_type}
+    sent = await api.post("/estop", content=b'{"reason": "jammed"}', headers=headers)
+    assert sent.status_code == 422, sent.text
+    answer = sent.json()
+    assert answer["errors"][0]["field"] == "body"
+    assert answer["accepted"] is True and answer["state"] == "ERROR"
+    assert "stop was made" in answer["message"]
+
+
 @pytest.mark.parametrize("streamed", [False, True])
 async def test_an_estop_with_an_oversized_body_still_stops_the_cell(served, streamed) -> None:
     """Over max_request_bytes the body is not read, but the stop is made: 413 says both."""

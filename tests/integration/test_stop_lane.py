@@ -14,7 +14,7 @@ from urllib.parse import urlsplit
 import httpx
 import pytest
 
-from server.api import commands
+from server.api import audit, commands
 from server.bootstrap.cell import Cell
 from server.core.machine.transitions import State
 from server.core.worker.devices import CellDevices
@@ -81,7 +81,9 @@ async def test_a_stop_the_gate_refuses_commands_nothing(fast_settings: Settings)
 async def test_a_stop_whose_route_fails_is_still_made(
     fast_settings: Settings, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The lane's halt never stays without its transition: the cell goes to ERROR."""
+    """The lane's halt never stays without its transition: the cell goes to ERROR.
+
+    An invalid body goes on to the route (its 422), which finishes the stop there."""
 
     async def broken(*_args: object, **_kwargs: object) -> None:
         raise RuntimeError("a defect on the route's way")
@@ -91,10 +93,37 @@ async def test_a_stop_whose_route_fails_is_still_made(
     cell = Cell(fast_settings, devices=CellDevices(robot, FakeGlue(), FakeCamera()))
     async with serve(cell) as url, httpx.AsyncClient(base_url=url, timeout=10) as client:
         stops_before = robot.stops
-        answer = await client.post("/estop", headers=admin_headers(fast_settings.data_path))
+        answer = await client.post(
+            "/estop", json={"reason": 5}, headers=admin_headers(fast_settings.data_path)
+        )
         assert answer.status_code == 500
         async with asyncio.timeout(5):
             while cell.view.state is not State.ERROR:
                 await asyncio.sleep(0.005)
         assert robot.stops > stops_before
+        assert cell.worker is not None and cell.worker.ctx.stop_reason.code == "EMERGENCY_STOP"
+
+
+async def test_a_stop_whose_lane_fails_after_its_halt_is_still_made(
+    fast_settings: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A defect between the halt and the stop's event (here the audit note) still leaves
+    the cell in ERROR, the stop on record: the lane posts the event on its way out."""
+
+    def broken(*_args: object, **_kwargs: object) -> None:
+        raise RuntimeError("a defect on the lane's way")
+
+    monkeypatch.setattr(audit, "note", broken)
+    robot = FakeRobot(50)
+    cell = Cell(fast_settings, devices=CellDevices(robot, FakeGlue(), FakeCamera()))
+    async with serve(cell) as url, httpx.AsyncClient(base_url=url, timeout=10) as client:
+        stops_before = robot.stops
+        answer = await client.post(
+            "/estop", json={"reason": "x"}, headers=admin_headers(fast_settings.data_path)
+        )
+        assert answer.status_code == 500
+        async with asyncio.timeout(5):
+            while cell.view.state is not State.ERROR:
+                await asyncio.sleep(0.005)
+        assert robot.stops == stops_before + 1
         assert cell.worker is not None and cell.worker.ctx.stop_reason.code == "EMERGENCY_STOP"

@@ -13,6 +13,8 @@ nothing extra to decide).
 from __future__ import annotations
 
 import asyncio
+import itertools
+import secrets
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -54,6 +56,22 @@ class Envelope:
     # The operation this event's transition cancelled (CANCEL_RUN runs before
     # RECORD_FAULT): the fault's record names what it interrupted.
     interrupted: RunningOperation | None = None
+
+
+class EventIds:
+    """The id of each event put on one worker's queue: this boot's prefix and a sequence.
+
+    Shared by the two ways onto the queue (`posting.py: EventPoster` and the e-stop's
+    `stop.py: Stop.post`), so every event of a boot has a distinct id in logs and the
+    journal; the prefix tells one boot's events from another's.
+    """
+
+    def __init__(self) -> None:
+        self._boot = secrets.token_hex(3)
+        self._sequence = itertools.count(1)
+
+    def next(self) -> str:
+        return f"{self._boot}-{next(self._sequence):06d}"
 
 
 class EventQueue:

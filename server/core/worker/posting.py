@@ -1,21 +1,21 @@
 """Putting events on the worker's queue: commands, device faults, readiness, run outcomes.
 
-Every sender goes through here, so every envelope gets its event id (boot
-prefix and sequence number) and its future, and a full request lane or a
-journal behind its writes refuses loudly instead of dropping anything.
+Every sender but the e-stop goes through here, so every envelope gets its event
+id (`EventIds`) and its future, and a full request lane or a journal behind its
+writes refuses loudly instead of dropping anything. The e-stop queues its own
+event (server/core/worker/stop.py: `Stop.post`): it is never refused, and its
+halt is already made when it is queued.
 """
 
 from __future__ import annotations
 
 import asyncio
-import itertools
 import logging
-import secrets
 
 from server.common.errors import EventQueueFull
 from server.core.machine.events import AuditNote, FaultPayload, Outcome, Payload, payload_of
 from server.core.machine.transitions import Event
-from server.core.worker.event_queue import Envelope, EventQueue, Priority
+from server.core.worker.event_queue import Envelope, EventIds, EventQueue, Priority
 from server.core.worker.recorder import Recorder
 from server.drivers.base import DeviceFault
 
@@ -25,13 +25,12 @@ log = logging.getLogger(__name__)
 class EventPoster:
     """Queues the worker's events; counts the faults reported (decided or still queued)."""
 
-    def __init__(self, queue: EventQueue, recorder: Recorder) -> None:
+    def __init__(self, queue: EventQueue, ids: EventIds, recorder: Recorder) -> None:
         self.queue = queue
+        self.ids = ids
         self.recorder = recorder
         self.loop: asyncio.AbstractEventLoop | None = None  # the worker's, once started
         self.faults_posted = 0
-        self._boot = secrets.token_hex(3)
-        self._ids = itertools.count(1)
 
     def submit(
         self,
@@ -49,7 +48,7 @@ class EventPoster:
         if bounded and self.recorder.behind:
             raise EventQueueFull(self.queue.capacity)  # the disk is behind: refuse, never drop
         envelope = Envelope(
-            event_id=f"{self._boot}-{next(self._ids):06d}",
+            event_id=self.ids.next(),
             event=event,
             source=source,
             payload=payload,

@@ -10,13 +10,14 @@ commands no move and no glue from then on), and the one halt there is
 with no garbage collection and no background thread in between
 (`collection_deferred`, `background_held`; server/common/runtime.py says why).
 
-The `Stop` it returns carries that halt to its end: `finish` queues the
-EMERGENCY_STOP ahead of everything waiting (the worker's HALT action takes the
-halt already made instead of commanding the devices again) and answers once
-the worker has decided it and the halt has reported. Every door makes its stop
-here: HTTP begins it as the request passes the access gate
-(server/api/stop_lane.py) and finishes it in the route with the reason; MQTT,
-OPC UA and the façade call `EmergencyStops.stop`, both at once.
+The `Stop` it returns carries that halt to its end: `finish` puts the
+EMERGENCY_STOP in the queue's top lane itself (never bounded, never refused, so
+no poster stands between the stop and the worker; the worker's HALT action
+takes the halt already made instead of commanding the devices again) and
+answers once the worker has decided it and the halt has reported. Every door
+makes its stop here: HTTP in its stop lane (server/api/stop_lane.py: begun as
+the request passes the access gate, finished there with the body's reason);
+MQTT, OPC UA and the façade through `EmergencyStops.stop`, both at once.
 """
 
 from __future__ import annotations
@@ -30,11 +31,9 @@ from server.core.infra.eager import start_task
 from server.core.machine.events import AuditNote, Outcome, StopPayload
 from server.core.machine.transitions import Event
 from server.core.worker.devices import CellDevices, HaltReport
-from server.core.worker.event_queue import Envelope, Priority
+from server.core.worker.event_queue import Envelope, EventIds, EventQueue, Priority
 
 log = logging.getLogger(__name__)
-
-Submit = Callable[..., Envelope]
 
 
 def halt_at_once(devices: CellDevices, timeout: float) -> asyncio.Future[HaltReport]:
@@ -56,9 +55,10 @@ class Stop:
     and audit note; `post` after that returns the same envelope.
     """
 
-    def __init__(self, halt: asyncio.Future[HaltReport], submit: Submit) -> None:
+    def __init__(self, halt: asyncio.Future[HaltReport], queue: EventQueue, ids: EventIds) -> None:
         self.halt = halt
-        self._submit = submit
+        self._queue = queue
+        self._ids = ids
         self.envelope: Envelope | None = None
 
     @property
@@ -72,17 +72,20 @@ class Stop:
         payload: StopPayload | None = None,
         audit: AuditNote | None = None,
     ) -> Envelope:
-        """Queue the EMERGENCY_STOP of this halt, ahead of everything waiting (not bounded)."""
+        """Queue the EMERGENCY_STOP of this halt in the top lane, ahead of everything
+        waiting (not bounded: never refused, not even with the journal behind)."""
         if self.envelope is None:
-            self.envelope = self._submit(
-                Event.EMERGENCY_STOP,
+            self.envelope = Envelope(
+                event_id=self._ids.next(),
+                event=Event.EMERGENCY_STOP,
                 source=source,
                 payload=payload or StopPayload(),
                 priority=Priority.EMERGENCY,
-                bounded=False,
+                future=asyncio.get_running_loop().create_future(),
                 audit=audit,
+                halt_made=self.halt,
             )
-            self.envelope.halt_made = self.halt
+            self._queue.put(self.envelope, bounded=False)
         return self.envelope
 
     async def finish(
@@ -113,12 +116,14 @@ class EmergencyStops:
         self,
         devices: CellDevices,
         cut_leash: Callable[[], None],
-        submit: Submit,
+        queue: EventQueue,
+        ids: EventIds,
         timeout: float,
     ) -> None:
         self._devices = devices
         self._cut_leash = cut_leash  # the running operation's (Runs.cut_leash)
-        self._submit = submit  # Worker.submit
+        self._queue = queue  # the worker's: the stop's event goes in its top lane
+        self._ids = ids  # the worker's event ids, shared with its poster
         self._timeout = timeout  # emergency_stop_timeout: each halt command's bound
         self.requested = 0  # e-stops begun so far
 
@@ -126,7 +131,7 @@ class EmergencyStops:
         """The stop's first moves, at once (module docstring); its event must follow."""
         self.requested += 1
         self._cut_leash()
-        return Stop(halt_at_once(self._devices, self._timeout), self._submit)
+        return Stop(halt_at_once(self._devices, self._timeout), self._queue, self._ids)
 
     async def stop(
         self,

@@ -44,7 +44,7 @@ from server.core.worker.alerts import Alerts
 from server.core.worker.care import CareMeter
 from server.core.worker.context import MachineContext, ProcessingStats
 from server.core.worker.devices import CellDevices
-from server.core.worker.event_queue import Envelope, EventQueue, Priority
+from server.core.worker.event_queue import Envelope, EventIds, EventQueue, Priority
 from server.core.worker.facts import OrderSource, known_device_faults
 from server.core.worker.jogging import start_jog
 from server.core.worker.posting import EventPoster
@@ -90,11 +90,12 @@ class Worker:
         self.clock = clock
         self.ctx = MachineContext(history_size=settings.history_size)
         self.queue = EventQueue(settings.event_queue_size)
+        ids = EventIds()  # every event's id, whoever queues it
         self.stats = ProcessingStats(settings.performance_history_size)
         self.recorder = Recorder(
             journal, lambda f: self.poster.post_fault(f), self.ctx, snapshot_file, clock
         )
-        self.poster = poster = EventPoster(self.queue, self.recorder)
+        self.poster = poster = EventPoster(self.queue, ids, self.recorder)
         self.submit = poster.submit  # every sender's way into the queue
         self.request = poster.request  # a command, answered once decided and on record
         self.report_fault = poster.report_fault  # the drivers' fault listener, any thread
@@ -119,7 +120,7 @@ class Worker:
         )
         # Every e-stop: its halt at once, its event ahead of the queue, its answer (stop.py).
         self.stops = EmergencyStops(
-            devices, self.runs.cut_leash, poster.submit, settings.emergency_stop_timeout
+            devices, self.runs.cut_leash, self.queue, ids, settings.emergency_stop_timeout
         )
         self.stores = stores
         self.orders: OrderSource | None = None  # the order book, once the cell has one
