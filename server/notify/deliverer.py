@@ -22,9 +22,7 @@ import time
 import uuid
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
-
-import httpx
+from typing import TYPE_CHECKING, Any
 
 from server.notify import retry, signing
 from server.notify.notices import Notice
@@ -32,6 +30,9 @@ from server.security.destinations import DestinationRefused
 from server.settings.notifications import WebhookSettings
 from server.settings.webhooks import WebhookTarget
 from server.storage.journal import Journal, records
+
+if TYPE_CHECKING:
+    import httpx
 
 log = logging.getLogger(__name__)
 
@@ -167,6 +168,8 @@ class Deliverer:
             self.target.secret_value, timestamp, body, pending.delivery_id, pending.notice.kind
         )
         started = time.time()
+        import httpx  # loaded already: the notifier made the client
+
         status: int | None = None
         error = ""
         retry_after = None

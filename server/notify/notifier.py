@@ -21,9 +21,7 @@ import asyncio
 import logging
 import time
 from collections import deque
-from typing import Any
-
-import httpx
+from typing import TYPE_CHECKING, Any
 
 from server.core.infra.bus import Bus, BusMessage, Subscription, SubscriptionClosed
 from server.core.worker.runs import RunEnded
@@ -34,6 +32,9 @@ from server.notify.notices import Notice
 from server.security import destinations
 from server.settings.notifications import WebhookSettings
 from server.storage.journal import Journal
+
+if TYPE_CHECKING:  # imported when a webhook starts: a cell with none never loads httpx
+    import httpx
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +70,8 @@ class Notifier:
         """Start each webhook's delivery and the feeding; the cell is started already."""
         if self._subscription is None:
             return
+        import httpx
+
         settings = self.settings
         self._view = view
         self._client = httpx.AsyncClient(

@@ -27,10 +27,12 @@ import ipaddress
 import socket
 import ssl
 from collections.abc import Iterable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import httpcore
-import httpx
+
+if TYPE_CHECKING:  # httpx is imported where a webhook is sent: the settings need none of it
+    import httpx
 
 IPAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
 IPNetwork = ipaddress.IPv4Network | ipaddress.IPv6Network
@@ -173,6 +175,8 @@ def guarded_transport(allowed: Sequence[IPNetwork]) -> httpx.AsyncHTTPTransport:
     httpx takes no network backend of its own, so its pool is replaced by an httpcore
     pool built as httpx builds it (TLS verified against the system's CAs, no proxy).
     """
+    import httpx
+
     transport = httpx.AsyncHTTPTransport(trust_env=False)
     context: ssl.SSLContext = httpx.create_ssl_context(trust_env=False)
     transport._pool = httpcore.AsyncConnectionPool(

@@ -27,8 +27,6 @@ import re
 from collections.abc import Iterable
 from urllib.parse import urlsplit
 
-import httpx
-
 REDACTED = "[redacted]"
 
 
@@ -100,6 +98,8 @@ class Redactor:
 
 def _spellings(url: str) -> set[str]:
     """The URL as configured and as httpx writes it (its request line, percent-encoded)."""
+    import httpx  # here: only a configured secret URL needs it, and the settings import this
+
     spellings = {url}
     with contextlib.suppress(httpx.InvalidURL):  # an URL httpx cannot parse, it never requests
         spellings.add(str(httpx.URL(url)))

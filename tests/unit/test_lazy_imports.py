@@ -1,9 +1,11 @@
 """A server with a feature off does not load what only that feature uses.
 
-OPC UA (asyncua), MQTT (aiomqtt, paho) and TLS's certificate checks
-(cryptography) cost the server memory and start-up time for nothing when
-their settings are unset, which is the default; each is imported where the
-feature is built (`server/bootstrap/plant.py`, `server/bootstrap/tls.py`).
+OPC UA (asyncua), MQTT (aiomqtt, paho), TLS's certificate checks
+(cryptography) and the webhooks' HTTP client (httpx, with the rich and click it
+brings) cost the server memory and start-up time for nothing when their
+settings are unset, which is the default; each is imported where the feature
+is built (`server/bootstrap/plant.py`, `server/bootstrap/tls.py`,
+`server/notify/notifier.py: Notifier.start`).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import sys
 
 from tests.processes import ROOT, environment
 
-ONLY_WHEN_ASKED_FOR = ("asyncua", "aiomqtt", "paho", "cryptography")
+ONLY_WHEN_ASKED_FOR = ("asyncua", "aiomqtt", "paho", "cryptography", "httpx", "rich")
 
 PROBE = """
 import sys
@@ -23,7 +25,7 @@ print(" ".join(sorted({name.split(".")[0] for name in sys.modules})))
 """
 
 
-def test_the_server_loads_no_plant_link_nor_tls_library_it_was_not_asked_for() -> None:
+def test_the_server_loads_no_plant_link_tls_nor_webhook_library_it_was_not_asked_for() -> None:
     done = subprocess.run(
         [sys.executable, "-c", PROBE],
         capture_output=True,
