@@ -19,7 +19,7 @@ import os
 import signal
 import subprocess
 import uuid
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 import aiomqtt
@@ -445,16 +445,7 @@ async def test_the_stop_is_answered_before_the_link_publishes_it(
     monkeypatch.setattr(AnswersInFlight, "begin", noting_begin)
     monkeypatch.setattr(AnswersInFlight, "end", noting_end)
     monkeypatch.setattr(MqttLink, "_put_state", noting_put)
-    with mosquitto(tmp_path / "broker") as broker:
-        async with (
-            open_rig(tmp_path / "data", **broker.cell_login, cell_id=CELL) as rig,
-            subscriber(broker.port, f"{BASE}/#") as plant,
-        ):
-            await rig.start_spraying()
-            log.clear()
-            assert (await rig.api.post("/estop")).status_code == 202
-            await plant.wait(lambda: [e for e in plant.on(f"{BASE}/event") if e["to"] == "ERROR"])
-            assert rig.robot.last_stop_at is not None and not rig.glue.valve_open
+    await _stop_while_spraying(tmp_path, log.clear)
     # The stop's answer began and ended (its last byte handed to the socket) before
     # the link turned the transition into messages.
     assert log[:3] == ["answer begins", "answer ends", "ERROR published"], log
@@ -474,18 +465,25 @@ async def test_a_transitions_messages_do_not_wait_for_each_others_acknowledgemen
         log.append(("acknowledged", topic))
 
     monkeypatch.setattr(aiomqtt.Client, "publish", noting_publish)
-    with mosquitto(tmp_path / "broker") as broker:
-        async with (
-            open_rig(tmp_path / "data", **broker.cell_login, cell_id=CELL) as rig,
-            subscriber(broker.port, f"{BASE}/#") as plant,
-        ):
-            await rig.start_spraying()
-            log.clear()
-            assert (await rig.api.post("/estop")).status_code == 202
-            await plant.wait(lambda: [e for e in plant.on(f"{BASE}/event") if e["to"] == "ERROR"])
+    await _stop_while_spraying(tmp_path, log.clear)
     sent = [topic for what, topic in log if what == "sent"]
     assert f"{BASE}/state" in sent and f"{BASE}/event" in sent, log
     event_sent = log.index(("sent", f"{BASE}/event"))
     state_acknowledged = log.index(("acknowledged", f"{BASE}/state"))
     assert event_sent < state_acknowledged, log
     assert sent.index(f"{BASE}/state") < sent.index(f"{BASE}/event"), log  # still in order
+
+
+async def _stop_while_spraying(tmp_path: Path, before_the_stop: Callable[[], None]) -> None:
+    """A cell on a real broker, stopped on its spray path; returns once the plant has the
+    stop's event. `before_the_stop` runs just before the stop is sent."""
+    with mosquitto(tmp_path / "broker") as broker:
+        async with (
+            open_rig(tmp_path / "data", **broker.cell_login, cell_id=CELL) as rig,
+            subscriber(broker.port, f"{BASE}/#") as plant,
+        ):
+            await rig.start_spraying()
+            before_the_stop()
+            assert (await rig.api.post("/estop")).status_code == 202
+            await plant.wait(lambda: [e for e in plant.on(f"{BASE}/event") if e["to"] == "ERROR"])
+            assert rig.robot.last_stop_at is not None and not rig.glue.valve_open
