@@ -4,7 +4,7 @@ asyncua reads a connection's requests in order and serves one at a time: it
 awaits a Call's methods, sends the answer, and only then reads the next
 request. A method of the cell answers once the worker has decided its command
 and the decision is on disk (server/opcua/methods.py), so a stop behind a
-burst of calls on one session waited for each of them to be decided and
+burst of calls on one session would wait for each of them to be decided and
 written. The stop is served ahead of that queue, as HTTP's stop lane serves it
 ahead of the HTTP requests (server/api/stop_lane.py).
 
