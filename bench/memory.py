@@ -145,23 +145,30 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument(
         "--layouts", default="sim,devices", help="with --cell: sim, devices or both"
     )
+    parser.add_argument(
+        "--soak-minutes",
+        type=float,
+        default=0.0,
+        help="with --cell: after the runs, go on running this long, measured every 5 minutes",
+    )
     args = parser.parse_args(argv)
     logging.disable(logging.ERROR)
     if args.cell:
-        return cell_main(args.runs, args.layouts.split(","))
+        return cell_main(args.runs, args.layouts.split(","), args.soak_minutes)
     rows = asyncio.run(measure(args.events, args.operations))
     emit("memory", rows, {"target_growth_mb": 10})
     return rows
 
 
-def cell_main(runs: int, layouts: list[str]) -> list[dict[str, Any]]:
-    rows = [row for layout in layouts for row in cell_memory.measure(layout, runs)]
+def cell_main(runs: int, layouts: list[str], soak_minutes: float = 0.0) -> list[dict[str, Any]]:
+    rows = [row for layout in layouts for row in cell_memory.measure(layout, runs, soak_minutes)]
     totals = cell_memory.totals(rows)
     emit(
         "memory_cell",
         rows,
         {
             "runs": runs,
+            "soak_minutes": soak_minutes,
             "unique_total_mb": totals,
             "target_unique_mb": {"sim": 250, "devices": 150},
             **cell_memory.environment_note(),

@@ -288,11 +288,12 @@ _attached: dict[str, shared_memory.SharedMemory] = {}  # oldest first
 ATTACHED_AT_MOST = 16  # two per call under way; more only once blocks grew
 
 M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter number
-MMAP_THRESHOLD = 1 << 20
+MMAP_THRESHOLD = 1 << 17
 
 
 def _large_blocks_given_back() -> None:
-    """Frames and images (1 MiB and more) mapped apart, so freeing one gives it back.
+    """Frames, images and their crops (128 KiB and more) mapped apart, so freeing one
+    gives it back.
 
     glibc raises its mmap threshold each time such a block is freed, up to 32 MiB;
     past that, every frame the child draws or reads comes from the heap, and the heap
