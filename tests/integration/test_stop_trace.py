@@ -4,7 +4,7 @@ A profiler (`sys.setprofile`) notes, during a real POST /estop on the app in pro
 (its middlewares, the worker, the journal; fake devices), which step files run code,
 in the order each is first entered. A step file is one the request could be handed on
 through on its way to the worker: every module of one of the app's own middlewares,
-the command routes and their route class, the poster, the cell's command door
+the command route's endpoint and its route class, the poster, the cell's command door
 (`Cell.command`), and the files the trace names. Helpers a step calls and returns
 from (the audit note, the answer's wording, `decide`) and generic utilities (the
 queue, the bus, eager tasks, the journal's writer thread) are not steps.
@@ -35,7 +35,9 @@ from types import FrameType
 from typing import Any
 
 import httpx
+from fastapi.routing import APIRoute
 
+from server.api import commands
 from server.bootstrap.app import create_app
 from server.bootstrap.cell import Cell
 from server.core.worker.devices import CellDevices
@@ -46,13 +48,9 @@ from tests.serving import IN_PROCESS_PEER, admin_headers
 
 ROOT = Path(__file__).resolve().parents[2]
 ARCHITECTURE = ROOT / "docs" / "ARCHITECTURE.md"
-# Files a request is handed on through on its way to a command's route and the worker,
-# besides the app's middlewares (read from the app itself).
-ROUTE_AND_POSTING = (
-    "server/api/commands.py",
-    "server/api/declared_query.py",
-    "server/core/worker/posting.py",
-)
+# Files a request is handed on through on its way to the worker, besides the app's
+# middlewares and the command route's own class and endpoint (read from the app itself).
+POSTING = ("server/core/worker/posting.py",)
 # The HTTP transport: a file of it that a request is handed on through is a step.
 HTTP = "server/api/"
 # The stop lane: only a stop enters it.
@@ -98,6 +96,10 @@ class Entries:
     def stepped(self) -> list[str]:
         """The step files, in the order each was first entered."""
         return [path for path in self.order if path in self.steps]
+
+
+def _module_file(module: str) -> str | None:
+    return _relative(sys.modules[module].__file__ or "")
 
 
 @contextmanager
@@ -170,11 +172,13 @@ async def entered_by(settings: Settings, path: str, body: Any, steps: list[str])
     cell = Cell(settings, devices=CellDevices(FakeRobot(50), FakeGlue(), FakeCamera()))
     app = create_app(cell=cell)
     middlewares = {
-        _relative(sys.modules[m.cls.__module__].__file__ or "")
+        _module_file(m.cls.__module__)
         for m in app.user_middleware
         if m.cls.__module__.startswith("server.")
     }
-    watched = {p for p in middlewares if p} | set(ROUTE_AND_POSTING) | set(steps)
+    route = next(r for r in commands.router.routes if isinstance(r, APIRoute) and r.path == path)
+    route_files = {_module_file(type(route).__module__), _module_file(route.endpoint.__module__)}
+    watched = {p for p in middlewares | route_files if p} | set(POSTING) | set(steps)
     watched.add(DOOR)
 
     async with app.router.lifespan_context(app):
