@@ -18,9 +18,10 @@ routing, each kept in its own module and called here as a function that returns:
 
 then the request is handed on to the router. Why one middleware and not one per
 concern: each ASGI layer is a frame and an `await` every request crosses, and
-the checks read best in the order they apply, in one place. A WebSocket or the
-lifespan passes straight through: the WebSocket proves who it is in
-server/api/ws.py.
+the checks read best in the order they apply, in one place. Only Starlette's
+CORS middleware, when `cors_allowed_origins` is set, stands outside it. A
+WebSocket or the lifespan passes straight through: the WebSocket proves who it
+is in server/api/ws.py.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def is_stop(scope: Scope) -> bool:
     return scope["type"] == "http" and scope["method"] == "POST" and scope["path"] in STOP_PATHS
 
 
-class Door:
+class HttpDoor:
     """ASGI middleware: every HTTP request's checks, in the order they apply
     (module docstring); the router behind it is `app`."""
 

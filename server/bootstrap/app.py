@@ -1,7 +1,7 @@
 """The composition root: the cell, the plant interfaces and the HTTP app, built together.
 
 `create_app` builds everything a server runs (the `Cell`, the OPC UA and MQTT
-links and the webhooks of `plant.py`, the routes and middlewares around them,
+links and the webhooks of `plant.py`, the routes and the HTTP door around them,
 the latency machinery of `latency.py`); FastAPI's lifespan then only starts
 what it was given, in order, and stops it in reverse.
 Everything the cell does is decided by the worker; this module only wires the
@@ -48,7 +48,7 @@ from server.api import (
 )
 from server.api.audit_repeats import AuditRepeats
 from server.api.dashboard import mount_dashboard
-from server.api.door import Door, is_stop
+from server.api.door import HttpDoor, is_stop
 from server.api.schemas import RETRY_AFTER_S
 from server.bootstrap import latency
 from server.bootstrap.cell import Cell
@@ -177,7 +177,7 @@ def create_app(
     # made and answered at once (its devices commanded before its body is read, its
     # event ahead of the queue), the body limit, HEAD and OPTIONS.
     app.add_middleware(
-        Door,
+        HttpDoor,
         access=app.state.access,
         observers=[
             audit.audit_observer(
