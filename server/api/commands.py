@@ -57,7 +57,8 @@ class CommandRoute(APIRoute):
             return handler
 
         async def command(request: Request) -> Response:
-            check(request)
+            if request.scope["query_string"]:
+                check(request)
             return await handler(request)
 
         return command

@@ -8,8 +8,8 @@ routing, each kept in its own module and called here as a function that returns:
    trail, metrics) told of the status once it has gone;
 2. the access check (server/api/access.py, `Access.check`): network, token, and
    the role the policy names; a refusal is answered here, with no routing;
-3. a stop (`is_stop`: a POST to one of the catalogue's stop paths) is handed to
-   the stop lane (server/api/stop_lane.py), which halts the cell before its body
+3. a stop (a POST to one of the catalogue's stop paths, as `is_stop` says) is
+   handed to the stop lane (server/api/stop_lane.py), which halts the cell before its body
    is read and answers it; no other request enters the lane's module;
 4. the body limit (server/api/limits.py, `bounded`): a body over
    `max_request_bytes`, declared or streamed, is a 413;
@@ -75,35 +75,35 @@ class HttpDoor:
             await self.app(scope, receive, send)
             return
         watch = ResponseWatch(scope, send, self.answers)
+        send = watch.send
         try:
-            await self._enter(scope, receive, watch.send)
+            # `is_stop`, written out: the type is known, and every request pays for it.
+            stop = scope["method"] == "POST" and scope["path"] in STOP_PATHS
+            refusal = self.access.check(scope, stop=stop)
+            if refusal is not None:
+                status, reason, headers = refusal
+                scope.setdefault("state", {})["audit_reason"] = reason
+                response = JSONResponse({"detail": reason}, status, headers=headers)
+                await response(scope, receive, send)
+                return
+            if stop:
+                cell: Cell | None = getattr(scope["app"].state, "cell", None)
+                if cell is not None and cell.started:
+                    await self.stop_lane.stop(cell.stops, scope, receive, send)
+                    return
+                # A cell not started yet: the stop goes on to its route, which makes it.
+            bounded = limits.bounded(scope, receive, send, self.max_bytes)
+            if bounded is None:
+                await limits.refuse(scope, send, self.max_bytes)
+                return
+            receive, send = bounded
+            method = scope["method"]
+            if method == "HEAD" or method == "OPTIONS":
+                await self._manners(scope, receive, send)
+                return
+            await self.app(scope, receive, send)
         finally:
             watch.finish(scope, self.observers)
-
-    async def _enter(self, scope: Scope, receive: Receive, send: Send) -> None:
-        stop = is_stop(scope)
-        refusal = self.access.check(scope, stop=stop)
-        if refusal is not None:
-            status, reason, headers = refusal
-            scope.setdefault("state", {})["audit_reason"] = reason
-            await JSONResponse({"detail": reason}, status, headers=headers)(scope, receive, send)
-            return
-        if stop:
-            cell: Cell | None = getattr(scope["app"].state, "cell", None)
-            if cell is not None and cell.started:
-                await self.stop_lane.stop(cell.stops, scope, receive, send)
-                return
-            # A cell not started yet: the stop goes on to its route, which makes it.
-        bounded = limits.bounded(scope, receive, send, self.max_bytes)
-        if bounded is None:
-            await limits.refuse(scope, send, self.max_bytes)
-            return
-        receive, send = bounded
-        method = scope["method"]
-        if method == "HEAD" or method == "OPTIONS":
-            await self._manners(scope, receive, send)
-            return
-        await self.app(scope, receive, send)
 
     async def _manners(self, scope: Scope, receive: Receive, send: Send) -> None:
         """HEAD as the path's GET without its body; OPTIONS answered with `Allow`."""

@@ -16,18 +16,6 @@ from typing import Any
 from starlette.types import Message, Receive, Scope, Send
 
 
-def _body_headers(scope: Scope) -> tuple[bytes | None, bool]:
-    """The request's Content-Length, and whether it names a Transfer-Encoding."""
-    declared = None
-    chunked = False
-    for name, value in scope.get("headers") or ():
-        if name == b"content-length":
-            declared = value
-        elif name == b"transfer-encoding":
-            chunked = True
-    return declared, chunked
-
-
 def bounded(
     scope: Scope, receive: Receive, send: Send, max_bytes: int
 ) -> tuple[Receive, Send] | None:
@@ -38,7 +26,13 @@ def bounded(
     Content-Length just checked (the HTTP server reads no more), or it has none, as on
     every GET. A streamed one is counted (`StreamedBody`).
     """
-    declared, chunked = _body_headers(scope)
+    declared = None
+    chunked = False
+    for name, value in scope.get("headers") or ():
+        if name == b"content-length":
+            declared = value
+        elif name == b"transfer-encoding":
+            chunked = True
     if declared is not None and declared.isdigit() and int(declared) > max_bytes:
         return None
     if not chunked:
