@@ -9,7 +9,7 @@ How:
   simulated devices, a fresh data directory, default settings. /state needs the
   viewer role (server/security/policy.py), so every request carries the admin
   bearer token: the measured cost includes the route lookup among all the
-  cell's routes, the token check, the middlewares (body-size limit, audit and
+  cell's routes, the token check, the HTTP door (body-size limit, audit and
   metrics observers), building the snapshot and validating the response model.
 - The body /state answers is read once; the bare app (`--serve-bare`) is a
   FastAPI app with one GET /state returning that very dict (same JSON size)

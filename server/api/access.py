@@ -1,8 +1,9 @@
 """Who may do what, checked in one place: the HTTP gate and the WebSocket's handshake.
 
-Every HTTP request goes through `AccessGate` (the policy table in
-server/security/policy.py says which role it needs); the WebSocket checks its
-ticket or bearer token in server/api/ws.py with `authenticate_websocket`. Both
+Every HTTP request is checked by `Access.check`, which the HTTP door
+(server/api/door.py) asks first (the policy table in server/security/policy.py
+says which role it needs); the WebSocket checks its ticket or bearer token in
+server/api/ws.py with `authenticate_websocket`. Both
 read the token with the same parser (`bearer_token`), so the two doors cannot
 drift apart. The refusals they leave in the request's state are written to the
 audit trail by server/api/audit.py; server/api/openapi_doc.py describes the
@@ -19,11 +20,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 from fastapi import WebSocket
-from fastapi.responses import JSONResponse
 from starlette.requests import HTTPConnection
-from starlette.types import ASGIApp, Receive, Scope, Send
+from starlette.types import Scope
 
-from server.api.stop_lane import is_stop
 from server.security.forwarded import (
     UNKNOWN,
     client_address,
@@ -40,6 +39,8 @@ log = logging.getLogger(__name__)
 CHALLENGE = {"WWW-Authenticate": "Bearer"}  # on every 401
 LOCKED_OUT = "locked_out"  # in a WebSocket's scope state: (seconds to wait, why)
 CLOSE_LOCKED_OUT = 4429  # a WebSocket from a locked-out address: 429's close code
+# A refusal: status, reason, headers to add.
+Refusal = tuple[int, str, dict[str, str] | None]
 REWRITTEN = (
     "the server in front of the app replaced this request's address with one from its "
     "X-Forwarded-For, which cannot be checked; serve the app with proxy headers off "
@@ -109,6 +110,46 @@ class Access:
             listener(token_id)
         return entry
 
+    def check(self, scope: Scope, *, stop: bool) -> Refusal | None:
+        """The gate of an HTTP request: None if it may pass, else its status, reason and the
+        headers to add (a 401 asks for a bearer token, a 429 says when to try again).
+
+        It runs before routing and matches the request's own path against the policy
+        table (`role_for_request`): a path no entry matches needs ADMIN, so a new route
+        stays closed until the table names it. Why not a FastAPI dependency: resolving
+        one per request costs a fifth of a GET /state (docs/benchmarks.md), and a
+        refused request should cost no routing at all. A `stop` is never locked out by
+        the bad-token throttle (server/security/throttle.py).
+
+        It leaves the client's address and `principal` in the request's state for the
+        routes and the audit trail.
+        """
+        host, refusal = self.screen(scope)
+        scope.setdefault("state", {})["client_address"] = host
+        if refusal is not None:
+            return 403, refusal, None
+        needed = role_for_request(scope["method"], scope["path"])
+        if needed is None:
+            return None
+        locked = None if stop else self.locked_out(host)
+        if locked is not None:
+            wait, why = locked
+            return 429, why, {"Retry-After": str(wait)}
+        token = bearer_token(scope)
+        if token is None:
+            return 401, "authentication required: send Authorization: Bearer <token>", CHALLENGE
+        principal = self.verify_token(host, token)
+        if principal is None:
+            return 401, "the token is unknown or revoked", CHALLENGE
+        scope.setdefault("state", {})["principal"] = principal
+        if principal.role < needed:
+            return (
+                403,
+                f"this needs the {needed.label} role; {principal.name} has {principal.role.label}",
+                None,
+            )
+        return None
+
     def address_allowed(self, host: str | None) -> bool:
         if not self.networks:
             return True
@@ -149,66 +190,6 @@ def bearer_token(scope: Scope) -> str | None:
             token = token.strip()
             return token if scheme.lower() == "bearer" and token else None
     return None
-
-
-class AccessGate:
-    """ASGI middleware: the one gate of every HTTP request (network, token, role).
-
-    It runs before routing and matches the request's own path against the
-    policy table (`role_for_request`): a path no entry matches needs ADMIN, so
-    a new route stays closed until the table names it. Why not a FastAPI
-    dependency: resolving one per request costs a fifth of a GET /state
-    (docs/benchmarks.md), and a refused request should cost no routing at all.
-
-    It leaves `principal` (and, when it refuses, `audit_reason`) in the
-    request's state for the routes and the audit trail. WebSockets prove who
-    they are in server/api/ws.py (`authenticate_websocket`).
-    """
-
-    def __init__(self, app: ASGIApp, access: Access) -> None:
-        self.app = app
-        self.access = access
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        refusal = self._check(scope)
-        if refusal is None:
-            await self.app(scope, receive, send)
-            return
-        status, reason, headers = refusal
-        scope.setdefault("state", {})["audit_reason"] = reason
-        await JSONResponse({"detail": reason}, status, headers=headers)(scope, receive, send)
-
-    def _check(self, scope: Scope) -> tuple[int, str, dict[str, str] | None] | None:
-        """None if the request may pass, else the status, the reason and headers to add."""
-        access = self.access
-        host, refusal = access.screen(scope)
-        scope.setdefault("state", {})["client_address"] = host
-        if refusal is not None:
-            return 403, refusal, None
-        needed = role_for_request(scope["method"], scope["path"])
-        if needed is None:
-            return None
-        locked = None if is_stop(scope) else access.locked_out(host)  # a stop: never (throttle.py)
-        if locked is not None:
-            wait, why = locked
-            return 429, why, {"Retry-After": str(wait)}
-        token = bearer_token(scope)
-        if token is None:
-            return 401, "authentication required: send Authorization: Bearer <token>", CHALLENGE
-        principal = access.verify_token(host, token)
-        if principal is None:
-            return 401, "the token is unknown or revoked", CHALLENGE
-        scope.setdefault("state", {})["principal"] = principal
-        if principal.role < needed:
-            return (
-                403,
-                f"this needs the {needed.label} role; {principal.name} has {principal.role.label}",
-                None,
-            )
-        return None
 
 
 def websocket_principal(websocket: WebSocket) -> Principal | None:

@@ -79,6 +79,21 @@ def _who(scope: Scope) -> tuple[str, str, str]:
     )
 
 
+def source_of(scope: Scope) -> str:
+    """Who sent a command over the API, as its event's `source` says it: `api:<token name>`.
+
+    The token's name is what a person at the panel knows the sender by ("line 3 HMI"),
+    so a stop reason built from it says who stopped the cell. The address stays in the
+    audit row (server/api/audit.py), not here. Without a principal (a server with no
+    gate, in tests): `api:<host>`.
+    """
+    principal = scope.get("state", {}).get("principal")
+    if principal is not None:
+        return f"api:{principal.name}"
+    client = scope.get("client")
+    return f"api:{client[0] if client else 'unknown'}"
+
+
 def row(scope: Scope, outcome: str, detail: str) -> Record:
     """The audit row of a request."""
     principal, address, action = _who(scope)

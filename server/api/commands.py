@@ -11,10 +11,11 @@ full, or when the journal cannot write: an answer is never a 202 for what is
 not on record. A refusal changes nothing and is journaled and audited like any
 command; the audit row is committed with the event, before the answer.
 The e-stop's route is declared here like the others (openapi.json, the
-policy), but a stop is made and answered before the router, in the stop lane
-(server/api/stop_lane.py): it halts the devices first, then posts the event
-ahead of everything waiting; a 202 once the cell has stopped, even when the
-journal could not record it (the message says so). The route finishes a stop
+policy), but a stop is made and answered before the router, by the stop lane
+the HTTP door hands it to (server/api/door.py, server/api/stop_lane.py): it
+halts the devices first, then posts the event ahead of everything waiting; a
+202 once the cell has stopped, even when the journal could not record it (the
+message says so). The route finishes a stop
 only when the lane handed it on: a body to refuse (422, `stop_anyway`), or a
 cell not started when the request passed the lane.
 """
@@ -26,12 +27,14 @@ import json
 from collections.abc import Awaitable, Callable
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Request
+from fastapi import APIRouter, Body, Request, Response
 from fastapi.responses import JSONResponse
+from fastapi.routing import APIRoute
 
 from server.api import audit
-from server.api.declared_query import IGNORES_UNKNOWN_QUERY, DeclaredQueryRoute
-from server.api.stop_lane import made_without_reason, source_of, stop_begun
+from server.api.audit import source_of
+from server.api.declared_query import IGNORES_UNKNOWN_QUERY, Handler, query_check_of
+from server.api.stop_lane import made_without_reason, stop_begun
 from server.bootstrap.cell import Cell
 from server.commands.answers import answer_of, audit_label
 from server.commands.catalogue import CATALOGUE, CommandSpec
@@ -41,7 +44,27 @@ from server.core.machine.transitions import Command
 
 __all__ = ["router", "stop_anyway"]
 
-router = APIRouter(tags=["commands"], route_class=DeclaredQueryRoute)
+
+class CommandRoute(APIRoute):
+    """A catalogue entry's route: a query parameter it does not declare is a 422
+    (server/api/declared_query.py's `QueryCheck`, asked here before FastAPI reads the
+    body, as every route of the app asks it), then FastAPI's own handler."""
+
+    def get_route_handler(self) -> Handler:
+        handler = super().get_route_handler()
+        check = query_check_of(self)
+        if check is None:  # a stop: never refused over a query parameter
+            return handler
+
+        async def command(request: Request) -> Response:
+            if request.scope["query_string"]:
+                check(request)
+            return await handler(request)
+
+        return command
+
+
+router = APIRouter(tags=["commands"], route_class=CommandRoute)
 
 RESPONSES: dict[int | str, dict[str, Any]] = {
     202: {"model": CommandResult, "description": "accepted: the machine changed state"},

@@ -5,7 +5,7 @@ modules (`app.js` and what it imports; StaticFiles serves `.js` as JavaScript,
 which module scripts require), are under `/hmi/...`. Nothing here is secret:
 the page asks for a token and sends it as `Authorization: Bearer` on every API
 call, like any other client. The page and its assets go through the same
-gate as every request (`access.AccessGate`: policy entry `("GET", "/")` and the
+gate as every request (`access.Access.check`: policy entry `("GET", "/")` and the
 open prefix `/hmi/`, after the `trusted_networks` check). The page may only
 talk to its own origin (Content-Security-Policy), so it fetches nothing from
 elsewhere and cannot be framed by another site.

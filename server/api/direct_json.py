@@ -10,7 +10,7 @@ calls the endpoint itself and validates and serializes its result with the
 route's own response field, as FastAPI's fast path does (`serialize_json` into
 a `Response` with `application/json`): the same bytes, status and headers, the
 same 500 if the result does not match the model. Routing, the query check
-(server/api/declared_query.py), the middlewares and openapi.json are unchanged.
+(server/api/declared_query.py), the HTTP door and openapi.json are unchanged.
 """
 
 from __future__ import annotations

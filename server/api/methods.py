@@ -6,10 +6,10 @@ router's 405 named only the first route's methods. `RouteMethods` reads which
 methods each path answers from the app's own routes (the truth, not a second
 list), and:
 
-- `HttpManners` (ASGI middleware between the access gate and the router)
-  answers `HEAD` as the path's `GET` would, without the body, and `OPTIONS`
-  with 204 and `Allow`. Other methods pass straight through: a command pays
-  one string comparison.
+- the HTTP door (server/api/door.py), after the access check and the body
+  limit, answers `HEAD` as the path's `GET` would (`without_body`), and
+  `OPTIONS` with 204 and `Allow` (`answer_options`). Other methods pass
+  straight through: a command pays one string comparison.
 - `method_not_allowed` (the app's handler for 405) names every method of the
   path in `Allow`.
 
@@ -29,7 +29,7 @@ from starlette.applications import Starlette
 from starlette.exceptions import HTTPException
 from starlette.routing import Mount
 from starlette.staticfiles import StaticFiles
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import Message, Send
 
 METHOD_ORDER = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
 STATIC_METHODS = frozenset({"GET", "HEAD"})  # what StaticFiles answers
@@ -82,36 +82,14 @@ def allow_header(methods: Iterable[str]) -> str:
     return ", ".join(m for m in METHOD_ORDER if m in given)
 
 
-class HttpManners:
-    """ASGI middleware: HEAD as GET without the body, OPTIONS answered with Allow."""
-
-    def __init__(self, app: ASGIApp, methods: RouteMethods) -> None:
-        self.app = app
-        self.methods = methods
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        method = scope.get("method")
-        if scope["type"] != "http" or method not in ("HEAD", "OPTIONS"):
-            await self.app(scope, receive, send)
-            return
-        allowed = self.methods.allowed(scope["path"])
-        if method == "OPTIONS" and allowed:
-            headers = [(b"allow", allow_header(allowed).encode("latin-1"))]
-            await send({"type": "http.response.start", "status": 204, "headers": headers})
-            await send({"type": "http.response.body", "body": b""})
-            return
-        if method == "HEAD" and "GET" in allowed:
-            as_get = {**scope, "method": "GET"}  # a copy: the server's scope stays HEAD
-            try:
-                await self.app(as_get, receive, _without_body(send))
-            finally:
-                if "route" in as_get:  # for the metrics' route label
-                    scope["route"] = as_get["route"]
-            return
-        await self.app(scope, receive, send)
+async def answer_options(send: Send, allowed: frozenset[str]) -> None:
+    """OPTIONS' answer: 204 with `Allow`."""
+    headers = [(b"allow", allow_header(allowed).encode("latin-1"))]
+    await send({"type": "http.response.start", "status": 204, "headers": headers})
+    await send({"type": "http.response.body", "body": b""})
 
 
-def _without_body(send: Send) -> Send:
+def without_body(send: Send) -> Send:
     """GET's answer with its headers (Content-Length included) and none of its body."""
 
     async def send_head(message: Message) -> None:

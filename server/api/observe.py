@@ -2,12 +2,13 @@
 
 Starlette's function middlewares (`@app.middleware("http")`) run the rest of
 the app in a task group with memory streams: several extra task hops per
-request, paid by every command including the e-stop. This plain ASGI
-middleware passes the request straight through and only notes the status
-code on its way out; the observers (audit trail, metrics) run once the
-response has been sent. It also counts the commands being answered
-(server/core/infra/answers_in_flight.py), from arrival to the last byte handed to the socket,
-so the plant's interfaces can hold their work until the answer has gone.
+request, paid by every command including the e-stop. The HTTP door
+(server/api/door.py) instead gives each request a `ResponseWatch`: its `send`
+notes the status code on the way out, and `finish` runs the observers (audit
+trail, metrics) once the response has been sent. It also counts the commands
+being answered (server/core/infra/answers_in_flight.py), from arrival to the last
+byte handed to the socket, so the plant's interfaces can hold their work until
+the answer has gone.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import Message, Scope, Send
 
 from server.core.infra.answers_in_flight import READS, AnswersInFlight
 
@@ -23,41 +24,43 @@ from server.core.infra.answers_in_flight import READS, AnswersInFlight
 Observer = Callable[[Scope, int, float], None]
 
 
-class ResponseObservers:
-    """ASGI middleware: call each observer after every HTTP response."""
+class ResponseWatch:
+    """One HTTP request's response, watched from its arrival to its last byte.
 
-    def __init__(
-        self, app: ASGIApp, observers: list[Observer], answers: AnswersInFlight | None = None
-    ) -> None:
-        self.app = app
-        self.observers = observers
-        self.answers = answers
+    `send` stands in for the server's send; `finish` (always called, the response
+    sent or not) ends the answer's count if the last byte never went and calls each
+    observer with the status (500 if the app failed before it started a response).
+    """
 
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        started = time.perf_counter()
-        status = 500  # if the app fails before it starts a response
-        answers = self.answers if scope["method"] not in READS else None
-        answering = answers is not None
-        ticket = answers.begin() if answers is not None else 0
+    __slots__ = ("_answers", "_send", "_started", "_ticket", "status")
 
-        async def noting_status(message: Message) -> None:
-            nonlocal status, answering
-            if message["type"] == "http.response.start":
-                status = message["status"]
-            await send(message)
-            ended = message["type"] == "http.response.body" and not message.get("more_body")
-            if ended and answering and answers is not None:
-                answering = False
-                answers.end(ticket)  # the answer is on the wire: the plant may hear of it now
+    def __init__(self, scope: Scope, send: Send, answers: AnswersInFlight | None) -> None:
+        self._started = time.perf_counter()
+        self.status = 500
+        self._send = send
+        # A command is counted in flight until its answer is on the wire; a read is not.
+        self._answers = answers if scope["method"] not in READS else None
+        self._ticket = self._answers.begin() if self._answers is not None else 0
 
-        try:
-            await self.app(scope, receive, noting_status)
-        finally:
-            if answering and answers is not None:
-                answers.end(ticket)
-            seconds = time.perf_counter() - started
-            for observe in self.observers:
-                observe(scope, status, seconds)
+    async def send(self, message: Message) -> None:
+        if message["type"] == "http.response.start":
+            self.status = message["status"]
+        await self._send(message)
+        if (
+            self._answers is not None
+            and message["type"] == "http.response.body"
+            and not message.get("more_body")
+        ):
+            self._end_answer()  # the answer is on the wire: the plant may hear of it now
+
+    def finish(self, scope: Scope, observers: list[Observer]) -> None:
+        if self._answers is not None:
+            self._end_answer()
+        seconds = time.perf_counter() - self._started
+        for observe in observers:
+            observe(scope, self.status, seconds)
+
+    def _end_answer(self) -> None:
+        answers, self._answers = self._answers, None
+        if answers is not None:
+            answers.end(self._ticket)

@@ -2,7 +2,7 @@
 
 FastAPI describes the routes, but two things it cannot see: the 422 body the
 app's own validation handler sends (server/bootstrap/app.py, `_install_error_handlers`),
-and the gate (server/api/access.py, `AccessGate`), a middleware, so the
+and the gate (server/api/access.py, `Access.check`), in a middleware, so the
 generated document knows nothing of tokens, roles, 401 or 403. Both are
 patched in here, in one place; the gate's part is derived from the same policy
 table the gate reads (server/security/policy.py), so the document cannot drift
@@ -103,9 +103,10 @@ def _refusal(description: str, **extra: Any) -> dict[str, Any]:
 
 
 def document_access(schema: dict[str, Any]) -> None:
-    """Describe `AccessGate` in an OpenAPI document: the bearer scheme, who may call what, 401/403.
+    """Describe the access gate in an OpenAPI document: the bearer scheme, who may call what,
+    401/403.
 
-    Derived from the policy table, as `AccessGate` is: an operation that needs a role gets the
+    Derived from the policy table, as `Access.check` is: an operation that needs a role gets the
     security requirement, `x-required-role`, a sentence in its description and the 401 and 403
     it can answer; an open one gets only the 403 of `trusted_networks`, which applies to all.
     """

@@ -1,12 +1,11 @@
-"""The e-stop's HTTP door: which requests are stops, and each stop made and answered here.
+"""The e-stop's HTTP side: each stop made and answered here.
 
-The stop routes are the command catalogue's (`STOP_PATHS`: the paths of its
-entries marked `stop`, server/commands/catalogue.py), and `is_stop` the one
-answer to "is this request a stop": the access gate (never locked out), this
-lane and the 422 handler all ask it; openapi.json reads the same `STOP_PATHS`.
+Which requests are stops the HTTP door decides (server/api/door.py: `is_stop`,
+POST to a path of the catalogue's `STOP_PATHS`); it hands each one here once the
+access check has let it through, and no other request enters this module.
 
-Why the stop is made here, in a middleware inside the access gate, and not in
-its route: between the gate and a route a request crosses the body limit,
+Why the stop is made here, as the request arrives, and not in its route: between
+the access check and a route a request crosses the body limit,
 FastAPI's routing, the reading and validation of its body and the handler's
 own steps, most of the time from the request's arrival to the halt's commands
 (docs/benchmarks.md, "Software stop"), and a body slow to arrive would hold the
@@ -23,8 +22,8 @@ stop can stop), the lane:
    queue's top lane, answered once the worker has decided it and it is on
    record) and answers: 202, or 413 for a body too large, with what the cell did.
 
-So a stop never passes the body limit (server/api/limits.py sits inside this
-lane), the router or the route. A body the lane cannot take as the route's
+So a stop never passes the body limit (server/api/limits.py, which the door
+asks after the lane), the router or the route. A body the lane cannot take as the route's
 request model would (not JSON, a field wrong) goes on to the route with the
 stop begun (`stop_begun`), where FastAPI words the 422 as for every command and
 `commands.stop_anyway` finishes the stop. Whatever happens on the way, a halt
@@ -36,7 +35,6 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Awaitable
 from email.message import Message as MimeHeader
 from typing import TYPE_CHECKING, Any
 
@@ -46,12 +44,12 @@ from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.api import audit
+from server.api.audit import source_of
 from server.commands.answers import answer_of, audit_label
-from server.commands.catalogue import CATALOGUE, STOP_PATHS, CommandSpec
+from server.commands.catalogue import CATALOGUE, CommandSpec
 from server.core.machine.events import StopPayload
 
 if TYPE_CHECKING:
-    from server.bootstrap.cell import Cell
     from server.core.worker.stop import EmergencyStops, Stop
 
 log = logging.getLogger(__name__)
@@ -63,29 +61,17 @@ STOP_BEGUN = "stop_begun"
 _STOP_SPECS: dict[str, CommandSpec] = {spec.path: spec for spec in CATALOGUE if spec.stop}
 
 
-def is_stop(scope: Scope) -> bool:
-    """Whether this HTTP request is a stop (POST to a stop route)."""
-    return scope["type"] == "http" and scope["method"] == "POST" and scope["path"] in STOP_PATHS
-
-
 class StopLane:
-    """ASGI middleware, inside the access gate: a stop request halts, is decided and
-    answered here (module docstring); every other request is handed on untouched."""
+    """A stop request halts, is decided and answered here (module docstring); the HTTP
+    door hands it each stop once the access check has let it through."""
 
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
-        self.app = app
+    def __init__(self, route: ASGIApp, max_bytes: int) -> None:
+        self.route = route  # where a body to refuse goes on to (the router)
         self.max_bytes = max_bytes  # max_request_bytes: the most of a stop's body read
 
-    def __call__(self, scope: Scope, receive: Receive, send: Send) -> Awaitable[None]:
-        """Not a coroutine: any other request is handed on as it is, with no frame of ours."""
-        stops = _stops_of(scope) if is_stop(scope) else None
-        if stops is None:
-            return self.app(scope, receive, send)
-        return self._stop(stops, scope, receive, send)
-
-    async def _stop(
-        self, stops: EmergencyStops, scope: Scope, receive: Receive, send: Send
-    ) -> None:
+    async def stop(self, stops: EmergencyStops, scope: Scope, receive: Receive, send: Send) -> None:
+        """Begin the stop, read its body, finish it and answer (or hand a body to refuse
+        on to the route, the stop begun)."""
         stop = stops.begin()
         try:
             body = await self._read_whole(scope, receive)
@@ -98,7 +84,7 @@ class StopLane:
             payload = _payload_of(_STOP_SPECS[scope["path"]], scope, body)
             if payload is None:  # the route's validation words what is wrong (422)
                 scope.setdefault("state", {})[STOP_BEGUN] = stop
-                await self.app(scope, _replaying(body, receive), send)
+                await self.route(scope, _replaying(body, receive), send)
                 return
             status, answer, headers = await self._finish(stop, scope, payload)
             await JSONResponse(answer, status_code=status, headers=headers or None)(
@@ -203,27 +189,7 @@ def _replaying(body: bytes, receive: Receive) -> Receive:
     return replay
 
 
-def source_of(scope: Scope) -> str:
-    """Who sent a command over the API, as its event's `source` says it: `api:<token name>`.
-
-    The token's name is what a person at the panel knows the sender by ("line 3 HMI"),
-    so a stop reason built from it says who stopped the cell. The address stays in the
-    audit row (server/api/audit.py), not here. Without a principal (a server with no
-    gate, in tests): `api:<host>`.
-    """
-    principal = scope.get("state", {}).get("principal")
-    if principal is not None:
-        return f"api:{principal.name}"
-    client = scope.get("client")
-    return f"api:{client[0] if client else 'unknown'}"
-
-
 def stop_begun(scope: Scope) -> Stop | None:
     """The stop the lane began and handed on to the route for this request, if it did."""
     stop: Stop | None = scope.get("state", {}).get(STOP_BEGUN)
     return stop
-
-
-def _stops_of(scope: Scope) -> EmergencyStops | None:
-    cell: Cell | None = getattr(scope["app"].state, "cell", None)
-    return cell.stops if cell is not None and cell.started else None

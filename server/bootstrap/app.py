@@ -1,7 +1,7 @@
 """The composition root: the cell, the plant interfaces and the HTTP app, built together.
 
 `create_app` builds everything a server runs (the `Cell`, the OPC UA and MQTT
-links and the webhooks of `plant.py`, the routes and middlewares around them,
+links and the webhooks of `plant.py`, the routes and the HTTP door around them,
 the latency machinery of `latency.py`); FastAPI's lifespan then only starts
 what it was given, in order, and stops it in reverse.
 Everything the cell does is decided by the worker; this module only wires the
@@ -48,10 +48,8 @@ from server.api import (
 )
 from server.api.audit_repeats import AuditRepeats
 from server.api.dashboard import mount_dashboard
-from server.api.limits import BodySizeLimit
-from server.api.observe import ResponseObservers
+from server.api.door import HttpDoor, is_stop
 from server.api.schemas import RETRY_AFTER_S
-from server.api.stop_lane import StopLane, is_stop
 from server.bootstrap import latency
 from server.bootstrap.cell import Cell
 from server.bootstrap.plant import PlantLinks, stop_cell, webhooks_of
@@ -169,29 +167,27 @@ def create_app(
     ):
         app.include_router(router)
     app.state.metrics = metrics.Metrics(app)
-    # HEAD and OPTIONS, once the gate has let them through (each as its route needs).
+    # HEAD and OPTIONS, once the access check has let them through (each as its route needs).
     app.state.route_methods = methods.RouteMethods(app)
-    app.add_middleware(methods.HttpManners, methods=app.state.route_methods)
-    # Bodies over the limit refused (413) before they are read whole; a stop never gets
-    # here (its lane reads its body, up to the same limit, and stops regardless).
-    app.add_middleware(BodySizeLimit, max_bytes=settings.max_request_bytes)
-    # The e-stop made and answered as soon as the gate lets it through: its devices
-    # commanded before its body is read, its event ahead of the queue (stop_lane.py).
-    app.add_middleware(StopLane, max_bytes=settings.max_request_bytes)
-    # Every HTTP request, before routing: the policy in server/security/policy.py.
-    app.add_middleware(access.AccessGate, access=app.state.access)
     app.state.answers = in_flight
     # Identical refusals within audit_repeat_window: one audit row with a count.
     app.state.audit_repeats = AuditRepeats(settings.audit_repeat_window, lambda: cell.journal)
+    # Every HTTP request's checks before routing, in one middleware (server/api/door.py):
+    # the response watched, the access policy (server/security/policy.py), the e-stop
+    # made and answered at once (its devices commanded before its body is read, its
+    # event ahead of the queue), the body limit, HEAD and OPTIONS.
     app.add_middleware(
-        ResponseObservers,
-        answers=app.state.answers,
+        HttpDoor,
+        access=app.state.access,
         observers=[
             audit.audit_observer(
                 lambda scope: scope["app"].state.cell.journal, app.state.audit_repeats
             ),
             app.state.metrics.observe_response,
         ],
+        answers=app.state.answers,
+        route_methods=app.state.route_methods,
+        max_bytes=settings.max_request_bytes,
     )
     if settings.cors_allowed_origins:
         app.add_middleware(

@@ -35,16 +35,17 @@ Applied here, by `install`, which the composition root
 
 At its door, because each is how that door reads a stop (they stay there):
 
-- HTTP, the stop made and answered just inside the access gate, its halt begun
+- HTTP, the stop made and answered just after the access check, its halt begun
   before its body is read, and no body limit, routing or route on its way:
-  `server/api/stop_lane.py: StopLane._stop` (bench.estop_latency).
+  `server/api/door.py: HttpDoor` hands it to `server/api/stop_lane.py:
+  StopLane.stop` (bench.estop_latency).
 - The halt itself, a task whose first step has run, with no collection and no
   background thread in between: `server/core/worker/stop.py:
   EmergencyStops.begin` and `halt_at_once`, `server/core/infra/eager.py:
   start_task`, `server/common/runtime.py: collection_deferred` and
   `background_held` (bench.estop_latency).
 - JSON answers built directly, not through FastAPI's response model path:
-  `server/api/stop_lane.py: StopLane._stop` (the stop's 202),
+  `server/api/stop_lane.py: StopLane.stop` (the stop's 202),
   `server/api/commands.py: _answer` (the other commands') and
   `server/api/direct_json.py: DirectJsonRoute` (GET /state;
   bench.rest_throughput).
