@@ -26,6 +26,7 @@ from paho.mqtt.properties import Properties
 
 from clients.client.mqtt_signing import sign_command
 from server.line.broker import DEMO_PASSWORDS
+from server.mqtt.link import ADMITTED as MQTT_ADMITTED
 from server.opcua.address_space import NAMESPACE_URI
 from server.opcua.call_lane import ADMITTED
 from tests.mosquitto import WAIT_S, mosquitto
@@ -225,3 +226,34 @@ async def test_an_opcua_burst_is_served_a_few_calls_at_a_time_and_a_stop_ahead_o
         # The stop is read right behind the burst; with a few calls served at a time most
         # of the burst is still in the line then, and the stop goes in ahead of it.
         assert entered.index("estop") < BURST // 2
+
+
+async def test_an_mqtt_flood_is_served_a_few_commands_at_a_time(tmp_path: Path) -> None:
+    """The MQTT link serves at most ADMITTED commands at once (server/mqtt/link.py); the
+    rest wait in the client's incoming queue, and every one is still answered."""
+    with mosquitto(tmp_path / "broker") as broker:
+        async with open_rig(
+            tmp_path / "data", **broker.cell_login, cell_id=CELL, mqtt_commands=True
+        ) as rig:
+            await _link_up(rig)
+            command = rig.cell.command
+            inside = 0  # the MQTT commands (not the stop) in the cell now
+            most = 0
+
+            async def counted(what: Any, **kwargs: Any) -> Any:
+                nonlocal inside, most
+                if not kwargs.get("source", "").startswith("mqtt:") or what.value == "estop":
+                    return await command(what, **kwargs)
+                inside += 1
+                most = max(most, inside)
+                try:
+                    return await command(what, **kwargs)
+                finally:
+                    inside -= 1
+
+            rig.cell.command = counted  # type: ignore[method-assign]
+            made = await rig.api.post("/tokens", json={"name": "mes", "role": "operator"})
+            await asyncio.to_thread(_publish_flood_then_stop, broker.port, made.json()["token"])
+            await rig.wait_state("ERROR")
+        print(f"at most {most} MQTT commands in the cell at once")
+        assert 0 < most <= MQTT_ADMITTED
