@@ -8,8 +8,11 @@ reads commands on its standard input:
 
 - "stop <door> <flood>": sends `flood` pause commands through `door` (http, mqtt,
   opcua) without waiting for their answers, then the door's stop, and prints
-  "sent <time>" (time.time() just before the stop was handed to its client) once
-  the stop and every flood command are answered. The pauses are refused (409) in
+  "sent <time> <written>" once the stop and every flood command are answered:
+  `time`, time.time() just before the stop was handed to its client; `written`,
+  when the stop's bytes were handed to the kernel (`StopWrites`), so the time the
+  client's own loop and its outgoing queue held the stop is told apart from the
+  server's. The pauses are refused (409) in
   IDLE and in ERROR: they cost the door and the worker their whole path and change
   nothing.
 
@@ -26,10 +29,12 @@ import os
 import sys
 import time
 import uuid
+from asyncio import selector_events
 from typing import Any
 
 import aiomqtt
 import httpx
+import paho.mqtt.client as paho_client
 from asyncua import Client, ua
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
@@ -39,7 +44,46 @@ from server.line.broker import DEMO_PASSWORDS
 from server.opcua.address_space import NAMESPACE_URI
 
 QUIET_S = 3.0  # no MQTT answer for this long: the rest were dropped on the way
+MAX_OPCUA_REQUESTS = 500  # the server lets a connection have this many waiting
 HTTP_POOL = 64  # the flood's connections (the server holds 64 per address)
+
+
+class StopWrites:
+    """When this process last handed a stop's bytes to the kernel, whatever the door.
+
+    Each client's lowest write is wrapped: asyncio's socket transport (httpx over
+    anyio, asyncua) and paho's socket send (aiomqtt). A write is a stop's if it
+    holds the stop's marker: the HTTP request line, the MQTT topic, the OPC UA
+    method's node id. A transport that must buffer a write (the socket full) sends
+    it later, so the stamp is then the buffering's; it is not reset between trials.
+    """
+
+    MARKERS = (b"POST /estop ", b"/command/estop", b".EmergencyStop")
+    last = 0.0
+
+    @classmethod
+    def install(cls) -> None:
+        transport: Any = selector_events._SelectorSocketTransport
+        write = transport.write
+
+        def stamped_write(self: Any, data: Any) -> None:
+            cls._look(data)
+            write(self, data)
+
+        transport.write = stamped_write
+        sock_send = paho_client.Client._sock_send
+
+        def stamped_send(self: Any, buf: bytes | bytearray) -> int:
+            cls._look(buf)
+            return sock_send(self, buf)
+
+        paho_client.Client._sock_send = stamped_send  # type: ignore[method-assign]
+
+    @classmethod
+    def _look(cls, data: Any) -> None:
+        chunk = bytes(data[:512])
+        if any(marker in chunk for marker in cls.MARKERS):
+            cls.last = time.time()
 
 
 class Doors:
@@ -117,6 +161,9 @@ async def serve(http_url: str, mqtt_port: int, opcua_url: str, cell_id: str) -> 
     headers = {"Authorization": f"Bearer {token}"}
     limits = httpx.Limits(max_connections=HTTP_POOL)
     opcua = Client(opcua_url, timeout=120, watchdog_intervall=60)  # a busy machine: no false alarm
+    # asyncua's client sends at most 100 requests at a time by default and holds the rest
+    # until answers come: the flood's calls and the stop all on their way at once instead.
+    opcua.uaclient.set_max_concurrent_requests(MAX_OPCUA_REQUESTS)
     opcua.set_user("bench")
     opcua.set_password(token)
     async with (
@@ -155,9 +202,10 @@ async def serve(http_url: str, mqtt_port: int, opcua_url: str, cell_id: str) -> 
                 break
             if words[0] == "stop":
                 sent = await doors.stop(words[1], int(words[2]))
-                print(f"sent {sent}", flush=True)
+                print(f"sent {sent} {StopWrites.last}", flush=True)
         reader.cancel()
 
 
 if __name__ == "__main__":
+    StopWrites.install()
     asyncio.run(serve(sys.argv[1], int(sys.argv[2]), sys.argv[3], sys.argv[4]))

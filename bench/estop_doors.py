@@ -3,7 +3,10 @@
 A trial sends one e-stop through one door and measures the **device stop**: from
 just before the stop was handed to the door's client to the later of the robot
 receiving `stop` and the dispenser receiving the valve-close write (the
-simulators' own stamps, as `bench.estop_latency` takes them). Flooded, the door
+simulators' own stamps, as `bench.estop_latency` takes them). `written_p50_ms` and
+`written_p99_ms` measure the same stop from when the doors' client handed its bytes
+to the kernel: what the client's own loop and outgoing queue held it for is not in
+them (bench/door_client.py: `StopWrites`). Flooded, the door
 is sent `--mqtt-flood` / `--opcua-flood` / `--http-flood` pause commands just
 before the stop, on the same connection (MQTT: the same client, so the broker
 delivers the stop after them; OPC UA: the same session, the calls all on their
@@ -78,13 +81,15 @@ class DoorClient:
         if line.strip() != "ready":
             raise RuntimeError(f"the door client did not start: {line!r}")
 
-    def stop(self, door: str, flood: int) -> float:
+    def stop(self, door: str, flood: int) -> tuple[float, float]:
+        """Send one stop behind `flood` commands: when it was handed to the door's client,
+        and when its bytes were handed to the kernel."""
         self.stdin.write(f"stop {door} {flood}\n")
         self.stdin.flush()
         words = self.stdout.readline().split()
-        if not words or words[0] != "sent":
+        if len(words) != 3 or words[0] != "sent":
             raise RuntimeError(f"the {door} stop failed: {words}")
-        return float(words[1])
+        return float(words[1]), float(words[2])
 
     def close(self) -> None:
         self.stdin.close()
@@ -111,7 +116,13 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
         cell = Cell(settings)
         port = free_port()
         server = uvicorn.Server(
-            uvicorn.Config(create_app(cell=cell), host="127.0.0.1", port=port, log_level="error")
+            uvicorn.Config(
+                # as python -m server runs: its collector tuned (server/bootstrap/latency.py)
+                create_app(cell=cell, tune_process=True),
+                host="127.0.0.1",
+                port=port,
+                log_level="error",
+            )
         )
         serving = asyncio.create_task(server.serve())
         while not server.started:
@@ -131,17 +142,19 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
             DoorClient, url, broker.port, f"opc.tcp://127.0.0.1:{opcua_port}", token
         )
         samples: dict[tuple[str, str], list[float]] = {}
+        written: dict[tuple[str, str], list[float]] = {}
         for _ in range(args.trials):
             for door in DOORS:
                 for condition, flood in (("quiet", 0), ("flooded", floods[door])):
                     await to_idle(cell.worker)
                     await asyncio.to_thread(witness.tell, "arm")
-                    sent = await asyncio.to_thread(client.stop, door, flood)
+                    sent, wrote = await asyncio.to_thread(client.stop, door, flood)
                     stamps = await asyncio.to_thread(witness.tell, "stamps")
                     if "None" in stamps:
                         raise RuntimeError(f"the {door} stop reached no device: {stamps}")
-                    device_stop = max(float(stamps[1]), float(stamps[2])) - sent
-                    samples.setdefault((door, condition), []).append(device_stop)
+                    halted = max(float(stamps[1]), float(stamps[2]))
+                    samples.setdefault((door, condition), []).append(halted - sent)
+                    written.setdefault((door, condition), []).append(halted - wrote)
         await to_idle(cell.worker)
         await asyncio.to_thread(client.close)
         server.should_exit = True
@@ -151,12 +164,15 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
     for door in DOORS:
         for condition in ("quiet", "flooded"):
             flood = 0 if condition == "quiet" else floods[door]
+            after_written = percentiles_ms(written[(door, condition)])
             rows.append(
                 {
                     "door": door,
                     "condition": f"{condition} ({flood} pauses ahead)" if flood else condition,
                     **percentiles_ms(samples[(door, condition)]),
                     "target_p99_ms": 5.0,
+                    "written_p50_ms": after_written["p50_ms"],
+                    "written_p99_ms": after_written["p99_ms"],
                 }
             )
     return rows

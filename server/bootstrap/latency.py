@@ -51,9 +51,12 @@ At its door, because each is how that door reads a stop (they stay there):
   bench.rest_throughput).
 - MQTT, a stop taken out of the client's incoming queue as it is parsed, on a
   connection of its own: `server/mqtt/link.py: StopFirstQueue` and
-  `MqttLink._stop_at_once` (bench.estop_doors).
-- OPC UA, a session's calls served side by side, a stop's first step at once:
-  `server/opcua/call_lane.py: CallLane._take_call` (bench.estop_doors).
+  `MqttLink._stop_at_once`; the other commands served a few at a time
+  (`MqttLink._listen`, `ADMITTED`), so a flood does not make the loop's turns
+  long ahead of the stop lane's socket (bench.estop_doors).
+- OPC UA, a session's calls served side by side, a few at a time, the rest in a
+  line a stop overtakes, its first step at once: `server/opcua/call_lane.py:
+  CallLane._take_call` (bench.estop_doors).
 """
 
 from __future__ import annotations

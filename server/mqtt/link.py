@@ -93,7 +93,8 @@ BUS_BUFFER = 1024  # records between the bus and the outbox: drained at once, so
 FIRST_BACKOFF_S = 0.1
 STOP_FLUSH_S = 2.0  # at a clean stop, how long `offline` (and what waits) may take to go
 TICK_S = 1.0  # how often the health is looked at for a change
-MAX_COMMANDS_IN_FLIGHT = 64  # beyond this a command is refused (503), never an e-stop
+ADMITTED = 4  # commands served at once; the next waits in the client's incoming queue
+MAX_COMMANDS_WAITING = 64  # more than this in the incoming queue: refused (503), never a stop
 
 
 def broker_address(url: str) -> tuple[str, int, bool]:
@@ -162,6 +163,8 @@ class MqttLink:
         self._client: aiomqtt.Client | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._in_flight: set[asyncio.Task[None]] = set()
+        self._served = 0  # commands (not stops) being served now, at most ADMITTED
+        self._slot = asyncio.Event()  # set when a served command is done
         self._connected = False
         self._since: float | None = None
         self._reconnects = 0
@@ -514,7 +517,16 @@ class MqttLink:
         await publish_outbox(client, self.outbox, self._drained)
 
     async def _listen(self, client: aiomqtt.Client) -> None:
-        """Commands, each in a task of its own; also how a lost connection is noticed."""
+        """Commands, each in a task of its own, at most ADMITTED at once; also how a lost
+        connection is noticed.
+
+        Why a few at a time: each command's check (a signature), submission and answer
+        is work on the loop, and a flood's commands started together made turns of the
+        loop long enough to hold back the stop lane's socket (docs/benchmarks.md, "The
+        stop through every door"). The commands beyond them wait in the client's
+        incoming queue, as parsed messages, not tasks; more than MAX_COMMANDS_WAITING
+        there and the one read is refused (503). A stop never waits for a slot.
+        """
         async for message in client.messages:
             if self._commands is None:
                 continue
@@ -522,16 +534,26 @@ class MqttLink:
             name = self.topics.command_name(topic)
             if name is None:
                 continue
-            if len(self._in_flight) >= MAX_COMMANDS_IN_FLIGHT and not is_stop(
-                normalize_command(name)
-            ):
-                answer = (503, {"accepted": False, "message": "too many MQTT commands at once"})
-                await self._answer(message, answer, client)
-                continue
-            command = self._command(message, topic, name, client)
-            task = asyncio.create_task(command, name="mqtt-command")
+            if not is_stop(normalize_command(name)):
+                if len(client.messages) >= MAX_COMMANDS_WAITING:
+                    answer = (503, {"accepted": False, "message": "too many MQTT commands at once"})
+                    await self._answer(message, answer, client)
+                    continue
+                while self._served >= ADMITTED:
+                    self._slot.clear()
+                    await self._slot.wait()
+                self._served += 1
+                command = self._command(message, topic, name, client)
+                task = asyncio.create_task(command, name="mqtt-command")
+                task.add_done_callback(self._slot_freed)
+            else:
+                task = asyncio.create_task(self._command(message, topic, name, client))
             self._in_flight.add(task)
             task.add_done_callback(self._in_flight.discard)
+
+    def _slot_freed(self, _: asyncio.Task[None]) -> None:
+        self._served -= 1
+        self._slot.set()
 
     async def _command(
         self, message: aiomqtt.Message, topic: str, name: str, client: aiomqtt.Client | None

@@ -20,11 +20,22 @@ request is read. Its answer is sent when it is ready: OPC UA matches an answer
 to its request by the request handle, not by order. Every other request goes
 to asyncua as before.
 
-As many calls of one connection may wait for their answers at once as asyncua
-lets requests wait on a connection (`max_pending_messages_per_connection`,
-500): what waited in asyncua's queue before now waits in the worker's
-(bounded too: its refusal is BadResourceUnavailable, as HTTP's 503). Beyond
-that a call is answered BadTooManyOperations at once, never a stop.
+Only `ADMITTED` calls of the whole server are served at once; the others wait
+in the lane's line, in the order they came, and each is started as one ahead
+of it finishes. Why: asyncua hands a connection's requests over one after the
+other without yielding while they are already read, so a burst of calls was
+decoded and started in one turn of the loop, each one's checks and submission
+run there and then, and a stop read after the burst waited for that whole
+turn (docs/benchmarks.md, "The stop through every door"). Waiting in the line
+costs the loop nothing: a call there is a few decoded fields, not a task. A
+stop is never in the line: it is started at once, before any call waiting.
+
+As many calls of one connection may wait for their answers at once (in the
+line or served) as asyncua lets requests wait on a connection
+(`max_pending_messages_per_connection`, 500): what waited in asyncua's queue
+before now waits in the line and the worker's queue (bounded too: its refusal
+is BadResourceUnavailable, as HTTP's 503). Beyond that a call is answered
+BadTooManyOperations at once, never a stop.
 """
 
 from __future__ import annotations
@@ -34,6 +45,7 @@ import contextlib
 import logging
 import time
 import weakref
+from collections import deque
 from collections.abc import Awaitable, Callable
 from typing import Any, Final
 
@@ -47,7 +59,10 @@ log = logging.getLogger(__name__)
 
 _CALL_REQUEST: Final = ua.NodeId(ua.Int32(ua.ObjectIds.CallRequest_Encoding_DefaultBinary))
 
+ADMITTED = 4  # the calls of all sessions served at once; the rest wait in the line
+
 ProcessMessage = Callable[[Any, Any], Awaitable[bool]]
+Call = tuple[Any, Any, Any, Any, list[Any]]  # processor, session, request header, seq, methods
 
 
 class CallLane:
@@ -60,6 +75,9 @@ class CallLane:
         self._in_flight: weakref.WeakKeyDictionary[Any, set[asyncio.Task[None]]] = (
             weakref.WeakKeyDictionary()
         )
+        self._waiting: weakref.WeakKeyDictionary[Any, int] = weakref.WeakKeyDictionary()
+        self._line: deque[Call] = deque()  # calls admitted to no service yet, in order
+        self._served = 0  # calls (not stops) being served now, at most ADMITTED
 
     def install(self) -> None:
         """Wrap asyncua's session creation (after `Server.init`): each connection's
@@ -76,6 +94,7 @@ class CallLane:
 
     async def close(self) -> None:
         """Cancel the calls still waiting for their answers (the server stops)."""
+        self._line.clear()
         tasks = [task for tasks in self._in_flight.values() for task in tasks]
         for task in tasks:
             task.cancel()
@@ -123,14 +142,47 @@ class CallLane:
         params = struct_from_binary(ua.CallParameters, peek)
         methods = params.MethodsToCall or []
         stop = any(self._is_stop(method.MethodId) for method in methods)
-        in_flight = self._in_flight[processor]
-        if not stop and len(in_flight) >= self._limit:
-            _fault(processor, requesthdr, seqhdr, ua.StatusCodes.BadTooManyOperations)
+        call = (processor, session, requesthdr, seqhdr, methods)
+        if stop:
+            self._start(call, stop=True)
             return True
-        task = start_task(self._serve(processor, session, requesthdr, seqhdr, methods))
+        waiting = len(self._in_flight[processor]) + self._waiting.get(processor, 0)
+        if waiting >= self._limit:
+            _fault(processor, requesthdr, seqhdr, ua.StatusCodes.BadTooManyOperations)
+        elif self._served < ADMITTED:
+            self._start(call, stop=False)
+        else:
+            self._line.append(call)
+            self._waiting[processor] = self._waiting.get(processor, 0) + 1
+        return True
+
+    @property
+    def waiting(self) -> int:
+        """Calls in the line, not yet served."""
+        return len(self._line)
+
+    def _start(self, call: Call, *, stop: bool) -> None:
+        """Serve `call` as a task whose first step runs now: a stop's halt frames are
+        written before this returns; a call's checks and submission go in its order."""
+        processor = call[0]
+        task = start_task(self._serve(*call))
+        in_flight = self._in_flight[processor]
         in_flight.add(task)
         task.add_done_callback(in_flight.discard)
-        return True
+        if not stop:
+            self._served += 1
+            task.add_done_callback(self._next)
+
+    def _next(self, _: asyncio.Task[None]) -> None:
+        """A call was served: the first in the line is started in its place."""
+        self._served -= 1
+        while self._line and self._served < ADMITTED:
+            call = self._line.popleft()
+            processor = call[0]
+            self._waiting[processor] -= 1
+            if processor.session is None:  # its session closed while it waited
+                continue
+            self._start(call, stop=False)
 
     async def _serve(
         self, processor: Any, session: Any, requesthdr: Any, seqhdr: Any, methods: list[Any]

@@ -16,6 +16,7 @@ import json
 import sqlite3
 import threading
 from pathlib import Path
+from typing import Any
 
 import paho.mqtt.client as paho
 from asyncua import Client, ua
@@ -25,7 +26,9 @@ from paho.mqtt.properties import Properties
 
 from clients.client.mqtt_signing import sign_command
 from server.line.broker import DEMO_PASSWORDS
+from server.mqtt.link import ADMITTED as MQTT_ADMITTED
 from server.opcua.address_space import NAMESPACE_URI
+from server.opcua.call_lane import ADMITTED
 from tests.mosquitto import WAIT_S, mosquitto
 from tests.rig import Rig, open_rig
 from tests.serving import free_port
@@ -163,3 +166,94 @@ async def test_an_opcua_stop_behind_a_burst_of_calls_is_decided_before_the_burst
         # the stop comes after the calls ahead of it are read; but not after they are
         # decided and answered: it overtakes those still waiting for the worker.
         assert after, "the stop waited for every call sent before it to be decided"
+
+
+async def test_an_opcua_burst_is_served_a_few_calls_at_a_time_and_a_stop_ahead_of_the_rest(
+    tmp_path: Path,
+) -> None:
+    """The OPC UA lane admits at most ADMITTED calls into the cell at once; the rest wait
+    in its line without a task, and a stop read behind them is made before they are."""
+    port = free_port()
+    overrides = {"cell_id": CELL, "opcua_endpoint": f"opc.tcp://127.0.0.1:{port}"}
+    async with open_rig(tmp_path / "data", **overrides) as rig:
+        command = rig.cell.command
+        inside: list[str] = []  # the OPC UA commands in the cell now
+        most = 0  # the most non-stop commands that were in the cell at once
+        entered: list[str] = []  # every command, in the order it entered the cell
+
+        async def counted(what: Any, **kwargs: Any) -> Any:
+            nonlocal most
+            if not kwargs.get("source", "").startswith("opcua:"):
+                return await command(what, **kwargs)
+            entered.append(what.value)
+            inside.append(what.value)
+            most = max(most, sum(1 for name in inside if name != "estop"))
+            try:
+                return await command(what, **kwargs)
+            finally:
+                inside.remove(what.value)
+
+        rig.cell.command = counted  # type: ignore[method-assign]
+        made = await rig.api.post("/tokens", json={"name": "plc", "role": "operator"})
+        opc = Client(f"opc.tcp://127.0.0.1:{port}", timeout=WAIT_S, watchdog_intervall=WAIT_S)
+        # asyncua's client sends 100 requests at a time by default, the rest after answers:
+        # the whole burst and the stop on their way at once instead.
+        opc.uaclient.set_max_concurrent_requests(BURST + 1)
+        opc.set_user("plc")
+        opc.set_password(made.json()["token"])
+        async with opc:
+            ns = await opc.get_namespace_index(NAMESPACE_URI)
+
+            def request(method: str) -> ua.CallMethodRequest:
+                call = ua.CallMethodRequest()
+                call.ObjectId = ua.NodeId.from_string(f"ns={ns};s={CELL}")
+                call.MethodId = ua.NodeId.from_string(f"ns={ns};s={CELL}.{method}")
+                call.InputArguments = []
+                return call
+
+            calls = [
+                asyncio.ensure_future(opc.uaclient.call([request("Pause")])) for _ in range(BURST)
+            ]
+            calls.append(asyncio.ensure_future(opc.uaclient.call([request("EmergencyStop")])))
+            answers = await asyncio.gather(*calls)
+        assert answers[-1][0].StatusCode.is_good(), answers[-1]
+        assert all(answer[0].StatusCode.is_bad() for answer in answers[:-1])  # refused: 409
+        assert len(entered) == BURST + 1  # every call reached the cell: none lost
+        print(
+            f"at most {most} calls in the cell at once; the stop entered {entered.index('estop')}th"
+        )
+        assert 0 < most <= ADMITTED
+        # The stop is read right behind the burst; with a few calls served at a time most
+        # of the burst is still in the line then, and the stop goes in ahead of it.
+        assert entered.index("estop") < BURST // 2
+
+
+async def test_an_mqtt_flood_is_served_a_few_commands_at_a_time(tmp_path: Path) -> None:
+    """The MQTT link serves at most ADMITTED commands at once (server/mqtt/link.py); the
+    rest wait in the client's incoming queue, and every one is still answered."""
+    with mosquitto(tmp_path / "broker") as broker:
+        async with open_rig(
+            tmp_path / "data", **broker.cell_login, cell_id=CELL, mqtt_commands=True
+        ) as rig:
+            await _link_up(rig)
+            command = rig.cell.command
+            inside = 0  # the MQTT commands (not the stop) in the cell now
+            most = 0
+
+            async def counted(what: Any, **kwargs: Any) -> Any:
+                nonlocal inside, most
+                if not kwargs.get("source", "").startswith("mqtt:") or what.value == "estop":
+                    return await command(what, **kwargs)
+                inside += 1
+                most = max(most, inside)
+                try:
+                    return await command(what, **kwargs)
+                finally:
+                    inside -= 1
+
+            rig.cell.command = counted  # type: ignore[method-assign]
+            made = await rig.api.post("/tokens", json={"name": "mes", "role": "operator"})
+            await asyncio.to_thread(_publish_flood_then_stop, broker.port, made.json()["token"])
+            await rig.wait_state("ERROR")
+        print(f"at most {most} MQTT commands in the cell at once")
+        assert 0 < most <= MQTT_ADMITTED
