@@ -59,7 +59,14 @@ from server.core.machine.events import (
     Payload,
     StartPayload,
 )
-from server.core.machine.transitions import COMMANDS, Event, State, Transition, event_label
+from server.core.machine.transitions import (
+    COMMANDS,
+    TRANSITIONS,
+    Event,
+    State,
+    Transition,
+    event_label,
+)
 from server.core.operations.jog import step_problem
 from server.core.operations.safe_position import workspace_problem
 from server.drivers.base import Pose
@@ -235,28 +242,25 @@ def _decide(
     unmet = precondition(event, payload, facts, settings)
     if unmet is not None:
         return unmet
-    return Accepted(decision, payload, _checkpoint(decision.transition), estops)
+    return Accepted(decision, payload, _CHECKPOINTS[state][event], estops)
 
 
 def _checkpoint(row: Transition) -> int | None:
     """Index of the row's first action after its exit actions; None into ERROR (where a
-    stop leads, so it is never overtaken) or when there is none.
-
-    Kept per row by identity: a row's hash hashes each of its enum fields in Python,
-    which every accepted event would pay again. The row is kept with its answer, so
-    its id is never another's."""
-    known = _CHECKPOINTS.get(id(row))
-    if known is not None and known[0] is row:
-        return known[1]
-    index = None
-    if row.target is not State.ERROR:
-        actions = enumerate(actions_of(row))
-        index = next((i for i, action in actions if action not in EXIT_ACTIONS), None)
-    _CHECKPOINTS[id(row)] = (row, index)
-    return index
+    stop leads, so it is never overtaken) or when there is none."""
+    if row.target is State.ERROR:
+        return None
+    actions = enumerate(actions_of(row))
+    return next((i for i, action in actions if action not in EXIT_ACTIONS), None)
 
 
-_CHECKPOINTS: dict[int, tuple[Transition, int | None]] = {}
+# Each row's checkpoint by state and event, worked out once at import: every accepted
+# event reads it, and two lookups by enum (a string's cached hash) cost less than
+# hashing the row's fields or working it out again.
+_CHECKPOINTS: Final = {
+    state: {event: _checkpoint(row) for event, row in rows.items()}
+    for state, rows in TRANSITIONS.items()
+}
 
 
 def precondition(
