@@ -169,9 +169,12 @@ class ProbeDevices:
     began: Stops
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Accepted:
     """The event is accepted: run `decision.actions` in order with `payload`.
+
+    Not frozen, for `Facts`' reason: one is built for every event accepted, and nothing
+    changes it once built.
 
     `checkpoint` is the index of the first action after the exit actions, for a
     decision that does not lead to ERROR: before it, `overtaken` is asked with the
@@ -195,9 +198,9 @@ def decide(
     state: State, event: Event, payload: Payload, facts: Facts, settings: MotionSettings
 ) -> Verdict:
     """Decide `event` with `payload` in `state` (see the module's theory of operation)."""
-    claimed = payload
-    if event is Event.START_REQUESTED and facts.active_order is not None:
-        claimed = claim_for_order(event, payload, facts.active_order)
+    if facts.active_order is None or event is not Event.START_REQUESTED:
+        return _decide(state, event, payload, facts, settings)  # nothing to claim
+    claimed = claim_for_order(event, payload, facts.active_order)
     verdict = _decide(state, event, claimed, facts, settings)
     if claimed is not payload and isinstance(verdict, Refusal):
         return replace(verdict, payload=claimed)
