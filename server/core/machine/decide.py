@@ -132,9 +132,9 @@ class Facts:
     """What the worker knows when it decides one event.
 
     Not frozen, because the worker builds one for every event it decides and a frozen
-    dataclass's constructor costs several times a plain one's; nothing changes a
-    `Facts` once built (every field holds an immutable value), and `decide` reads it
-    only.
+    dataclass's constructor costs several times a plain one's (and sets `library` and
+    `glue_line_problem` only for the events that read them); nothing changes a `Facts`
+    once gathered (every field holds an immutable value), and `decide` reads it only.
     """
 
     guards: GuardFacts = NO_GUARD_FACTS  # ready devices, known faults
