@@ -15,7 +15,7 @@ from server.core.machine import decide
 from server.core.machine.actions import EXIT_ACTIONS, actions_of
 from server.core.machine.engine import Decision, Facts, step
 from server.core.machine.events import NoPayload
-from server.core.machine.transitions import TRANSITIONS, State
+from server.core.machine.transitions import TRANSITIONS, Event, State
 from server.settings.model import Settings
 from server.storage.journal import records
 
@@ -58,3 +58,9 @@ def test_each_rows_checkpoint_is_its_first_action_after_the_exit_actions() -> No
 def test_a_json_column_is_the_text_json_dumps_gives(value: Any) -> None:
     text = json.dumps(value, default=str, separators=(",", ":")) if value != {} else "{}"
     assert records._json(value) == text
+
+
+def test_a_state_or_events_str_is_its_value() -> None:
+    """The worker names states and events by `str()` on its per-event path."""
+    for member in (*State, *Event):
+        assert str(member) == member.value and type(str(member)) is str
