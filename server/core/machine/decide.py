@@ -59,7 +59,14 @@ from server.core.machine.events import (
     Payload,
     StartPayload,
 )
-from server.core.machine.transitions import COMMANDS, Event, State, Transition, event_label
+from server.core.machine.transitions import (
+    COMMANDS,
+    TRANSITIONS,
+    Event,
+    State,
+    Transition,
+    event_label,
+)
 from server.core.operations.jog import step_problem
 from server.core.operations.safe_position import workspace_problem
 from server.drivers.base import Pose
@@ -125,9 +132,9 @@ class Facts:
     """What the worker knows when it decides one event.
 
     Not frozen, because the worker builds one for every event it decides and a frozen
-    dataclass's constructor costs several times a plain one's; nothing changes a
-    `Facts` once built (every field holds an immutable value), and `decide` reads it
-    only.
+    dataclass's constructor costs several times a plain one's (and sets `library` and
+    `glue_line_problem` only for the events that read them); nothing changes a `Facts`
+    once gathered (every field holds an immutable value), and `decide` reads it only.
     """
 
     guards: GuardFacts = NO_GUARD_FACTS  # ready devices, known faults
@@ -162,9 +169,12 @@ class ProbeDevices:
     began: Stops
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Accepted:
     """The event is accepted: run `decision.actions` in order with `payload`.
+
+    Not frozen, for `Facts`' reason: one is built for every event accepted, and nothing
+    changes it once built.
 
     `checkpoint` is the index of the first action after the exit actions, for a
     decision that does not lead to ERROR: before it, `overtaken` is asked with the
@@ -188,9 +198,9 @@ def decide(
     state: State, event: Event, payload: Payload, facts: Facts, settings: MotionSettings
 ) -> Verdict:
     """Decide `event` with `payload` in `state` (see the module's theory of operation)."""
-    claimed = payload
-    if event is Event.START_REQUESTED and facts.active_order is not None:
-        claimed = claim_for_order(event, payload, facts.active_order)
+    if facts.active_order is None or event is not Event.START_REQUESTED:
+        return _decide(state, event, payload, facts, settings)  # nothing to claim
+    claimed = claim_for_order(event, payload, facts.active_order)
     verdict = _decide(state, event, claimed, facts, settings)
     if claimed is not payload and isinstance(verdict, Refusal):
         return replace(verdict, payload=claimed)
@@ -235,28 +245,25 @@ def _decide(
     unmet = precondition(event, payload, facts, settings)
     if unmet is not None:
         return unmet
-    return Accepted(decision, payload, _checkpoint(decision.transition), estops)
+    return Accepted(decision, payload, _CHECKPOINTS[state][event], estops)
 
 
 def _checkpoint(row: Transition) -> int | None:
     """Index of the row's first action after its exit actions; None into ERROR (where a
-    stop leads, so it is never overtaken) or when there is none.
-
-    Kept per row by identity: a row's hash hashes each of its enum fields in Python,
-    which every accepted event would pay again. The row is kept with its answer, so
-    its id is never another's."""
-    known = _CHECKPOINTS.get(id(row))
-    if known is not None and known[0] is row:
-        return known[1]
-    index = None
-    if row.target is not State.ERROR:
-        actions = enumerate(actions_of(row))
-        index = next((i for i, action in actions if action not in EXIT_ACTIONS), None)
-    _CHECKPOINTS[id(row)] = (row, index)
-    return index
+    stop leads, so it is never overtaken) or when there is none."""
+    if row.target is State.ERROR:
+        return None
+    actions = enumerate(actions_of(row))
+    return next((i for i, action in actions if action not in EXIT_ACTIONS), None)
 
 
-_CHECKPOINTS: dict[int, tuple[Transition, int | None]] = {}
+# Each row's checkpoint by state and event, worked out once at import: every accepted
+# event reads it, and two lookups by enum (a string's cached hash) cost less than
+# hashing the row's fields or working it out again.
+_CHECKPOINTS: Final = {
+    state: {event: _checkpoint(row) for event, row in rows.items()}
+    for state, rows in TRANSITIONS.items()
+}
 
 
 def precondition(

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Final
 
 from server.common.errors import GuardRefused, TransitionNotAllowed
 from server.core.machine.actions import Action, actions_of
@@ -76,17 +78,36 @@ def step(state: State, event: Event, facts: Facts | None = None) -> Decision:
     GuardRefused (a subclass) when the row exists but its guard does not hold;
     in both cases the state is unchanged.
     """
-    row = TRANSITIONS[state].get(event)
-    if row is None:
+    decision = DECISIONS[state].get(event)
+    if decision is None:
         raise TransitionNotAllowed(
             event.value, state.value, f"{event_label(event)} is not allowed in {state.value}"
         )
-    failure = _guard_failure(row.guard, facts or Facts())
-    if failure is not None:
-        raise GuardRefused(
-            event.value, state.value, f"{event_label(event)} is refused in {state.value}: {failure}"
+    guard = decision.transition.guard
+    if guard is not None:
+        failure = _guard_failure(guard, facts or NO_FACTS)
+        if failure is not None:
+            raise GuardRefused(
+                event.value,
+                state.value,
+                f"{event_label(event)} is refused in {state.value}: {failure}",
+            )
+    return decision
+
+
+NO_FACTS: Final = Facts()
+# Each row's decision, built once at import: a decision is the row and its actions
+# alone (frozen), so every event accepted by a row gets the same one, and `step` pays
+# neither a new Decision nor `actions_of`'s cache lookup, which hashes the row's
+# fields, for each event.
+DECISIONS: Final = MappingProxyType(
+    {
+        state: MappingProxyType(
+            {event: Decision(event, row, actions_of(row)) for event, row in rows.items()}
         )
-    return Decision(event=event, transition=row, actions=actions_of(row))
+        for state, rows in TRANSITIONS.items()
+    }
+)
 
 
 def check(state: State, event: Event, facts: Facts | None = None) -> tuple[bool, str]:

@@ -58,6 +58,14 @@ FROM_DRIVERS = {
     "camera_frames": ("camera", wear.FRAMES),
 }
 COUNTERS = (*FROM_DRIVERS, "parts", "purges")
+# FROM_DRIVERS by device, in its order, for `read_drivers`.
+_GLUE_COUNTERS, _ROBOT_COUNTERS, _CAMERA_COUNTERS = (
+    tuple((name, key) for name, (of, key) in FROM_DRIVERS.items() if of == device)
+    for device in ("glue", "robot", "camera")
+)
+assert (*_GLUE_COUNTERS, *_ROBOT_COUNTERS, *_CAMERA_COUNTERS) == tuple(
+    (name, key) for name, (_, key) in FROM_DRIVERS.items()
+), "FROM_DRIVERS lists each device's counters together: glue, robot, camera"
 assert COUNTERS == rules.COUNTERS, "care_rules.COUNTERS names the same totals"
 LAST_DISPENSE = rules.LAST_DISPENSE
 REFILLED_AT_ML = rules.REFILLED_AT_ML
@@ -86,12 +94,26 @@ class CareMeter:
         self.clock = clock
         self.values: dict[str, float] = {name: 0.0 for name in COUNTERS}
         self._seen: dict[str, float] = {}  # the drivers' counters at the last read
+        # A copy of each device's details (glue, robot, camera) at the last read; None
+        # before the first.
+        self._details: list[dict[str, Any] | None] = [None, None, None]
         self._raised: dict[str, str] = {}  # each condition warned of, until it ends: its code
         self._timer: Timer | None = None
         self._persisted_at = 0.0
         self._written: dict[str, float] = {}  # each key's value as the journal has it
         self._planned_items: tuple[MaintenanceItem, ...] | None = None  # see _plans
         self._item_plans: tuple[tuple[MaintenanceItem, rules.ItemPlan, str, str], ...] = ()
+        # The statuses `_statuses` last judged, with the plans, percent and totals they
+        # were judged from.
+        self._judged: (
+            tuple[
+                tuple[tuple[MaintenanceItem, rules.ItemPlan, str, str], ...],
+                float,
+                dict[str, float],
+                tuple[str, ...],
+            ]
+            | None
+        ) = None
 
     # --- lifecycle -------------------------------------------------------------
 
@@ -132,16 +154,29 @@ class CareMeter:
     # --- counting --------------------------------------------------------------
 
     def read_drivers(self) -> None:
-        """Add what each driver's counters grew by since the last read."""
-        health = self.devices.by_name()
+        """Add what each driver's counters grew by since the last read.
+
+        Every check and every run's end reads them, so a device whose details are
+        those of the last read (one comparison of two dicts) is passed over: none of
+        its counters grew. The others' counters are read in FROM_DRIVERS' order."""
+        devices, seen, values, last = self.devices, self._seen, self.values, self._details
         dispensed = False
-        for name, (device, key) in FROM_DRIVERS.items():
-            now = float(health[device].health.details.get(key, 0.0))
-            grew = now - self._seen.get(name, 0.0)
-            self._seen[name] = now
-            if grew > 0:
-                self.values[name] = self.values.get(name, 0.0) + grew
-                dispensed = dispensed or name in ("valve_cycles", "glue_ml")
+        for at, device, counters in (
+            (0, devices.glue, _GLUE_COUNTERS),
+            (1, devices.robot, _ROBOT_COUNTERS),
+            (2, devices.camera, _CAMERA_COUNTERS),
+        ):
+            details = device.health.details
+            if details == last[at]:
+                continue
+            last[at] = dict(details)
+            for name, key in counters:
+                now = float(details.get(key, 0.0))
+                grew = now - seen.get(name, 0.0)
+                seen[name] = now
+                if grew > 0:
+                    values[name] = values.get(name, 0.0) + grew
+                    dispensed = dispensed or name in ("valve_cycles", "glue_ml")
         if dispensed:
             self.note_dispense()
 
@@ -170,6 +205,8 @@ class CareMeter:
         few it changed), or `every_key` (the periodic write and the last one at stop,
         which also make good a write the journal could not take)."""
         self._persisted_at = self.clock.monotonic()
+        if not every_key and self.values == self._written:  # nothing changed (one C compare)
+            return
         changed = {k: v for k, v in self.values.items() if every_key or self._written.get(k) != v}
         if changed:
             self.journal.append(wear_table.records(changed, self.clock.time()), durable=False)
@@ -216,8 +253,8 @@ class CareMeter:
         holding: set[str] = set()
         items = settings.maintenance_items
         plans = self._item_plans if items is self._planned_items else self._plans(items)
-        for item, plan, due, overdue in plans:
-            status = rules.item_status(plan, values, settings)
+        statuses = self._statuses(plans, values, settings)
+        for (item, plan, due, overdue), status in zip(plans, statuses, strict=True):
             if status == "overdue":
                 code = "MAINTENANCE_OVERDUE"
                 self._raise_once(overdue, code, item, plan)
@@ -245,6 +282,29 @@ class CareMeter:
             holding.add(code)
         if len(holding) != len(self._raised):  # every warning raised holds: none to clear
             self._clear_ended(holding)
+
+    def _statuses(
+        self,
+        plans: tuple[tuple[MaintenanceItem, rules.ItemPlan, str, str], ...],
+        values: dict[str, float],
+        settings: MaintenanceSettings,
+    ) -> tuple[str, ...]:
+        """Each planned item's status (`care_rules.item_status`), the last ones again while
+        the plans, the totals and maintenance_overdue_percent are those they were judged
+        from: the status reads nothing else, and between two runs' ends the totals are
+        often the same, which one comparison of the two dicts finds."""
+        percent = settings.maintenance_overdue_percent
+        judged = self._judged
+        if (
+            judged is not None
+            and judged[0] is plans
+            and judged[1] == percent
+            and judged[2] == values
+        ):
+            return judged[3]
+        statuses = tuple(rules.item_status(plan, values, settings) for _, plan, _, _ in plans)
+        self._judged = (plans, percent, dict(values), statuses)
+        return statuses
 
     def _plans(
         self, items: tuple[MaintenanceItem, ...]

@@ -206,11 +206,14 @@ class MachineContext:
         return self.error.message if self.error else None
 
     def enter(self, state: State, event: str, event_id: str, now: float) -> TransitionRecord:
-        """Change to `state` on `event`; the transition goes into the bounded history."""
+        """Change to `state` on `event`; the transition goes into the bounded history.
+
+        The states' names by `str()`, which is a StrEnum's value without the enum's
+        Python-level `value` property (every change of state reads them)."""
         record = TransitionRecord(
             timestamp=now,
-            old_state=self.state.value,
-            new_state=state.value,
+            old_state=str(self.state),
+            new_state=str(state),
             event=event,
             event_id=event_id,
             time_in_old_state=round(now - self.since, 6),

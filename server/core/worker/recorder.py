@@ -174,7 +174,9 @@ class Recorder:
 
     def commit(self, envelope: Envelope, outcome: Outcome) -> asyncio.Future[None] | None:
         """The event's row, its audit row and everything it caused, in one write; the
-        future marks it durable (so no command is answered without who sent it on record)."""
+        future marks it durable (so no command is answered without who sent it on record).
+        The event's and state's names by `str()`, a StrEnum's value without the enum's
+        Python-level `value` property (every event reads them)."""
         pending, self._pending = self._pending, []
         note = envelope.audit
         if note is not None:
@@ -191,12 +193,12 @@ class Recorder:
         event = records.event(
             envelope.event_id,
             envelope.timestamp,
-            envelope.event.value,
+            str(envelope.event),
             envelope.source,
             envelope.payload.as_dict(),
             "accepted" if outcome.accepted else "refused",
             outcome.message,
-            outcome.state.value,
+            str(outcome.state),
         )
         return self.journal.append([event, *pending])
 

@@ -76,7 +76,7 @@ class StateChanges:
     def change_state(self, decision: Decision, envelope: Envelope) -> None:
         """Enter the decision's target: history, journal, snapshot, bus, the ERROR alert."""
         now = self.clock.time()
-        record = self.ctx.enter(decision.target, decision.event.value, envelope.event_id, now)
+        record = self.ctx.enter(decision.target, str(decision.event), envelope.event_id, now)
         what = (
             record.old_state,
             record.new_state,

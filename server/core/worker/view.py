@@ -42,7 +42,9 @@ class CellView:
         return self._ctx.since
 
     def snapshot(self) -> dict[str, Any]:
-        """The state as GET /state and the WebSocket snapshot show it."""
+        """The state as GET /state and the WebSocket snapshot show it (taken at every change
+        of state: the states' names by `str()`, a StrEnum's value without the enum's
+        Python-level `value` property)."""
         ctx = self._ctx
         now = self._worker.clock.time()
         operation = None
@@ -53,8 +55,8 @@ class CellView:
                 "progress": ctx.operation.progress or None,
             }
         return {
-            "state": ctx.state.value,
-            "previous_state": ctx.previous_state.value if ctx.previous_state else None,
+            "state": str(ctx.state),
+            "previous_state": str(ctx.previous_state) if ctx.previous_state else None,
             "since": ctx.since,
             "time_in_state": round(now - ctx.since, 3),
             "operation": operation,

@@ -206,13 +206,11 @@ class Worker:
     ) -> decide.Facts:
         """Everything the decision on `event` reads (`server.core.machine.decide`)."""
         running, orders, stops = self.ctx.operation, self.orders, self._counted
-        if stops.estops != self.stops.requested or stops.faults != self.changes.faults:
-            stops = self._counted = decide.Stops(self.stops.requested, self.changes.faults)
+        requested, faults = self.stops.requested, self.changes.faults
+        if stops.estops != requested or stops.faults != faults:
+            stops = self._counted = decide.Stops(requested, faults)
         order = gather.active_order(orders) if orders is not None else None
-        library = decide.NO_LIBRARY  # read only for a start or a create-workpiece
-        if event in gather.LIBRARY_EVENTS:
-            library = gather.library_for(event, payload, self.ctx.state, order, self.stores)
-        return decide.Facts(
+        facts = decide.Facts(
             guards=self.facts(),
             journal_problem=self.recorder.write_problem,
             current_run=running.run_id if running is not None else None,
@@ -220,9 +218,12 @@ class Worker:
             probing=self.reset_probes.under_way,
             probed=probed,
             active_order=order,
-            library=library,
-            glue_line_problem=self.care.start_problem() if event is Event.START_REQUESTED else None,
         )
+        if event in gather.LIBRARY_EVENTS:  # the library and pot life: read for these only
+            facts.library = gather.library_for(event, payload, self.ctx.state, order, self.stores)
+            if event is Event.START_REQUESTED:
+                facts.glue_line_problem = self.care.start_problem()
+        return facts
 
     # --- the loop ----------------------------------------------------------
 

@@ -137,7 +137,13 @@ def _update_statement(table: str, where: str, given: tuple[str, ...]) -> _Statem
 def _json(value: Any) -> str:
     if value == {}:  # most events carry no data: no encoder for them
         return "{}"
-    return json.dumps(value, default=str, separators=(",", ":"))
+    return _ENCODER.encode(value)
+
+
+# What `json.dumps(value, default=str, separators=(",", ":"))` would build for every
+# value, built once: the encoder keeps no state between calls, and a JSON column is
+# written with most events the worker decides.
+_ENCODER = json.JSONEncoder(default=str, separators=(",", ":"))
 
 
 def event(
