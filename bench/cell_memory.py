@@ -45,7 +45,6 @@ SPEED_FACTOR = "20"  # the simulated robot's moves go this many times faster: a 
 # machine busy with other work a frame (even the camera's first answer) can wait seconds.
 CAMERA_TIMEOUT_S = "30"
 RUN_TIMEOUT_S = 300.0  # a bound on one run, never a performance assertion
-SOAK_EVERY_S = 300.0  # with a soak, the cell is measured this often
 
 
 def role_of(process: psutil.Process, server_pid: int) -> str:
@@ -177,10 +176,12 @@ def devices_apart() -> Iterator[tuple[dict[str, str], dict[str, int]]]:
         yield env, {"robot simulator": robot.process.pid, "glue simulator": glue.process.pid}
 
 
-def measure(layout: str, runs: int, soak_minutes: float = 0.0) -> list[dict[str, Any]]:
+def measure(
+    layout: str, runs: int, soak_minutes: float = 0.0, every_minutes: float = 5.0
+) -> list[dict[str, Any]]:
     """The rows of one layout: after start-up, after the first run, after the last; then,
     with `soak_minutes`, runs go on for that long, the cell measured every
-    SOAK_EVERY_S (a soak: memory that levels off shows flat rows, a leak a slope)."""
+    `every_minutes` (a soak: memory that levels off shows flat rows, a leak a slope)."""
     with contextlib.ExitStack() as stack:
         env = {
             "GLUE_APP_SIMULATION_SPEED_FACTOR": SPEED_FACTOR,
@@ -206,15 +207,15 @@ def measure(layout: str, runs: int, soak_minutes: float = 0.0) -> list[dict[str,
                 rows += measure_point("after 1 run", server.pid, others)
         rows += measure_point(f"after {runs} run{'s' * (runs != 1)}", server.pid, others)
         started = time.monotonic()
-        done, next_point = runs, started + SOAK_EVERY_S
+        done, next_point = runs, started + every_minutes * 60
         while soak_minutes and time.monotonic() - started < soak_minutes * 60:
             if (fault := one_run(api)) is not None:
                 faults.append(fault)
             done += 1
             if time.monotonic() >= next_point:
-                minutes = round((time.monotonic() - started) / 60)
-                rows += measure_point(f"soak {minutes} min, {done} runs", server.pid, others)
-                next_point += SOAK_EVERY_S
+                minutes = (time.monotonic() - started) / 60
+                rows += measure_point(f"soak {minutes:.1f} min, {done} runs", server.pid, others)
+                next_point += every_minutes * 60
     return [{"layout": layout} | row | {"runs_stopped": len(faults)} for row in rows]
 
 

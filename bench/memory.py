@@ -22,7 +22,8 @@ Target: growth under 10 MB.
 `--cell` measures instead the whole cell as `python -m server` runs it, each
 process apart (server, image process, resource tracker), after start-up and
 after `--runs` spray runs, with the simulators in the server's process and
-again apart from it (bench/cell_memory.py). Targets: the cell's unique memory
+again apart from it (bench/cell_memory.py); with `--soak-minutes`, runs go on
+that long and the cell is measured every `--every-minutes`. Targets: the cell's unique memory
 after the runs at most 250 MB simulated, 150 MB with the devices elsewhere.
 """
 
@@ -149,19 +150,28 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         "--soak-minutes",
         type=float,
         default=0.0,
-        help="with --cell: after the runs, go on running this long, measured every 5 minutes",
+        help="with --cell: after the runs, go on running this long (a soak)",
+    )
+    parser.add_argument(
+        "--every-minutes", type=float, default=5.0, help="with --soak-minutes: how often to measure"
     )
     args = parser.parse_args(argv)
     logging.disable(logging.ERROR)
     if args.cell:
-        return cell_main(args.runs, args.layouts.split(","), args.soak_minutes)
+        return cell_main(args.runs, args.layouts.split(","), args.soak_minutes, args.every_minutes)
     rows = asyncio.run(measure(args.events, args.operations))
     emit("memory", rows, {"target_growth_mb": 10})
     return rows
 
 
-def cell_main(runs: int, layouts: list[str], soak_minutes: float = 0.0) -> list[dict[str, Any]]:
-    rows = [row for layout in layouts for row in cell_memory.measure(layout, runs, soak_minutes)]
+def cell_main(
+    runs: int, layouts: list[str], soak_minutes: float = 0.0, every_minutes: float = 5.0
+) -> list[dict[str, Any]]:
+    rows = [
+        row
+        for layout in layouts
+        for row in cell_memory.measure(layout, runs, soak_minutes, every_minutes)
+    ]
     totals = cell_memory.totals(rows)
     emit(
         "memory_cell",

@@ -265,12 +265,25 @@ def may_send(role: Role, command: Command) -> bool:
 
 def may(role: Role, available: Iterable[str]) -> list[str]:
     """What a principal of `role` may do now: the commands available in the current
-    state (the worker's `available_commands`) that its role allows, in their order."""
-    return [
-        name
-        for name in available
-        if (command := _command_named(name)) is not None and may_send(role, command)
-    ]
+    state (the worker's `available_commands`) that its role allows, in their order.
+
+    Every GET /state asks; the answers are few (a role and a state's commands), so
+    each is worked out once and kept (at most MAY_KEPT of them)."""
+    key = (role, tuple(available))
+    found = _may.get(key)
+    if found is None:
+        if len(_may) >= MAY_KEPT:
+            _may.clear()
+        found = _may[key] = tuple(
+            name
+            for name in key[1]
+            if (command := _command_named(name)) is not None and may_send(role, command)
+        )
+    return list(found)
+
+
+MAY_KEPT = 256
+_may: dict[tuple[Role, tuple[str, ...]], tuple[str, ...]] = {}
 
 
 def _command_named(name: str) -> Command | None:

@@ -352,12 +352,14 @@ def test_bead_inspection_reports_rates_and_times(results_in_tmp: Path) -> None:
     assert written_rows(results_in_tmp, "bead_inspection") == rows
 
 
-def test_cell_memory_lists_every_process_of_both_layouts(results_in_tmp: Path) -> None:
-    rows = memory.main(["--cell", "--runs", "1", "--layouts", "sim,devices"])
+def test_cell_memory_lists_every_process_of_both_layouts_and_soaks(results_in_tmp: Path) -> None:
+    soak = ["--soak-minutes", "0.02", "--every-minutes", "0.001"]
+    rows = memory.main(["--cell", "--runs", "1", "--layouts", "sim,devices", *soak])
     for layout in ("sim", "devices"):
         mine = [row for row in rows if row["layout"] == layout]
         totals = [row["point"] for row in mine if row["process"] == "cell total"]
-        assert totals == ["started", "after 1 run"]
+        assert totals[:2] == ["started", "after 1 run"]
+        assert len(totals) > 2 and all(point.startswith("soak ") for point in totals[2:])
         assert {"server", "image process", "cell total"} <= {row["process"] for row in mine}
         for row in mine:
             assert 0 < row["unique_mb"] <= row["pss_mb"] <= row["rss_mb"]
