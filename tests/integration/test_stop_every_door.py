@@ -124,35 +124,40 @@ async def test_an_mqtt_stop_behind_a_flood_is_decided_before_the_flood_sent_ahea
 BURST = 450  # OPC UA calls on one session, sent before the stop (a session may have 500 waiting)
 
 
+async def _burst_then_stop(rig: Rig, port: int) -> list[Any]:
+    """BURST Pause calls (refused in IDLE), then an EmergencyStop, on one session, every
+    request on its way before the first is answered; the answers, in the same order."""
+    made = await rig.api.post("/tokens", json={"name": "plc", "role": "operator"})
+    # The client probes the server every watchdog_intervall and gives up on a slow
+    # answer: on a busy shared machine that is not the connection lost.
+    opc = Client(f"opc.tcp://127.0.0.1:{port}", timeout=WAIT_S, watchdog_intervall=WAIT_S)
+    # asyncua's client sends 100 requests at a time by default, the rest after answers:
+    # the whole burst and the stop on their way at once instead.
+    opc.uaclient.set_max_concurrent_requests(BURST + 1)
+    opc.set_user("plc")
+    opc.set_password(made.json()["token"])
+    async with opc:
+        ns = await opc.get_namespace_index(NAMESPACE_URI)
+
+        def request(method: str) -> ua.CallMethodRequest:
+            call = ua.CallMethodRequest()
+            call.ObjectId = ua.NodeId.from_string(f"ns={ns};s={CELL}")
+            call.MethodId = ua.NodeId.from_string(f"ns={ns};s={CELL}.{method}")
+            call.InputArguments = []
+            return call
+
+        calls = [asyncio.ensure_future(opc.uaclient.call([request("Pause")])) for _ in range(BURST)]
+        calls.append(asyncio.ensure_future(opc.uaclient.call([request("EmergencyStop")])))
+        return list(await asyncio.gather(*calls))
+
+
 async def test_an_opcua_stop_behind_a_burst_of_calls_is_decided_before_the_burst(
     tmp_path: Path,
 ) -> None:
     port = free_port()
     overrides = {"cell_id": CELL, "opcua_endpoint": f"opc.tcp://127.0.0.1:{port}"}
     async with open_rig(tmp_path / "data", **overrides) as rig:
-        made = await rig.api.post("/tokens", json={"name": "plc", "role": "operator"})
-        # The client probes the server every watchdog_intervall and gives up on a slow
-        # answer: on a busy shared machine that is not the connection lost.
-        opc = Client(f"opc.tcp://127.0.0.1:{port}", timeout=WAIT_S, watchdog_intervall=WAIT_S)
-        opc.set_user("plc")
-        opc.set_password(made.json()["token"])
-        async with opc:
-            ns = await opc.get_namespace_index(NAMESPACE_URI)
-
-            def request(method: str) -> ua.CallMethodRequest:
-                call = ua.CallMethodRequest()
-                call.ObjectId = ua.NodeId.from_string(f"ns={ns};s={CELL}")
-                call.MethodId = ua.NodeId.from_string(f"ns={ns};s={CELL}.{method}")
-                call.InputArguments = []
-                return call
-
-            # One session, every request on its way before the first is answered (asyncua's
-            # client sends each as it is made): BURST Pauses (refused in IDLE), then the stop.
-            calls = [
-                asyncio.ensure_future(opc.uaclient.call([request("Pause")])) for _ in range(BURST)
-            ]
-            calls.append(asyncio.ensure_future(opc.uaclient.call([request("EmergencyStop")])))
-            answers = await asyncio.gather(*calls)
+        answers = await _burst_then_stop(rig, port)
         assert answers[-1][0].StatusCode.is_good(), answers[-1]
         await rig.wait_state("ERROR")
         assert rig.cell.journal is not None
@@ -194,28 +199,7 @@ async def test_an_opcua_burst_is_served_a_few_calls_at_a_time_and_a_stop_ahead_o
                 inside.remove(what.value)
 
         rig.cell.command = counted  # type: ignore[method-assign]
-        made = await rig.api.post("/tokens", json={"name": "plc", "role": "operator"})
-        opc = Client(f"opc.tcp://127.0.0.1:{port}", timeout=WAIT_S, watchdog_intervall=WAIT_S)
-        # asyncua's client sends 100 requests at a time by default, the rest after answers:
-        # the whole burst and the stop on their way at once instead.
-        opc.uaclient.set_max_concurrent_requests(BURST + 1)
-        opc.set_user("plc")
-        opc.set_password(made.json()["token"])
-        async with opc:
-            ns = await opc.get_namespace_index(NAMESPACE_URI)
-
-            def request(method: str) -> ua.CallMethodRequest:
-                call = ua.CallMethodRequest()
-                call.ObjectId = ua.NodeId.from_string(f"ns={ns};s={CELL}")
-                call.MethodId = ua.NodeId.from_string(f"ns={ns};s={CELL}.{method}")
-                call.InputArguments = []
-                return call
-
-            calls = [
-                asyncio.ensure_future(opc.uaclient.call([request("Pause")])) for _ in range(BURST)
-            ]
-            calls.append(asyncio.ensure_future(opc.uaclient.call([request("EmergencyStop")])))
-            answers = await asyncio.gather(*calls)
+        answers = await _burst_then_stop(rig, port)
         assert answers[-1][0].StatusCode.is_good(), answers[-1]
         assert all(answer[0].StatusCode.is_bad() for answer in answers[:-1])  # refused: 409
         assert len(entered) == BURST + 1  # every call reached the cell: none lost
