@@ -77,8 +77,7 @@ class HttpDoor:
         watch = ResponseWatch(scope, send, self.answers)
         send = watch.send
         try:
-            # `is_stop`, written out: the type is known, and every request pays for it.
-            stop = scope["method"] == "POST" and scope["path"] in STOP_PATHS
+            stop = is_stop(scope)
             refusal = self.access.check(scope, stop=stop)
             if refusal is not None:
                 status, reason, headers = refusal

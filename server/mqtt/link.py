@@ -163,8 +163,7 @@ class MqttLink:
         self._client: aiomqtt.Client | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._in_flight: set[asyncio.Task[None]] = set()
-        self._served = 0  # commands (not stops) being served now, at most ADMITTED
-        self._slot = asyncio.Event()  # set when a served command is done
+        self._admitted = asyncio.Semaphore(ADMITTED)  # commands (not stops) served at once
         self._connected = False
         self._since: float | None = None
         self._reconnects = 0
@@ -539,21 +538,14 @@ class MqttLink:
                     answer = (503, {"accepted": False, "message": "too many MQTT commands at once"})
                     await self._answer(message, answer, client)
                     continue
-                while self._served >= ADMITTED:
-                    self._slot.clear()
-                    await self._slot.wait()
-                self._served += 1
+                await self._admitted.acquire()
                 command = self._command(message, topic, name, client)
                 task = asyncio.create_task(command, name="mqtt-command")
-                task.add_done_callback(self._slot_freed)
+                task.add_done_callback(lambda _: self._admitted.release())
             else:
                 task = asyncio.create_task(self._command(message, topic, name, client))
             self._in_flight.add(task)
             task.add_done_callback(self._in_flight.discard)
-
-    def _slot_freed(self, _: asyncio.Task[None]) -> None:
-        self._served -= 1
-        self._slot.set()
 
     async def _command(
         self, message: aiomqtt.Message, topic: str, name: str, client: aiomqtt.Client | None
