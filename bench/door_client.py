@@ -6,6 +6,10 @@ HMI holds one, plus a pool for the flood), an MQTT v5 client (the demo broker's
 `operator`) and an OPC UA client (signed in with the token), prints "ready", then
 reads commands on its standard input:
 
+- "flood <door> <count>": sends `count` pause commands through `door` without waiting
+  for their answers and prints "begun" once the first of them are on their way (the
+  flood of another client than the stop's, as a runaway script beside the HMI);
+  "finish" waits until all are answered and prints "done";
 - "stop <door> <flood>": sends `flood` pause commands through `door` (http, mqtt,
   opcua) without waiting for their answers, then the door's stop, and prints
   "sent <time> <written>" once the stop and every flood command are answered:
@@ -99,33 +103,49 @@ class Doors:
         self.ns = 0
         self.cell_id = ""
 
-    async def stop(self, door: str, flood: int) -> float:
+        self.flooding: list[asyncio.Future[Any]] = []
+        self.flooded_answers = 0  # MQTT answers the flood waits for
+
+    async def flood(self, door: str, count: int) -> None:
+        """Send `count` pauses through `door`, without waiting for their answers; return
+        once the first are on their way (each future's first step hands its request to the
+        client, in this order)."""
+        if door == "mqtt":
+            self.flooded_answers += count
+        self.flooding += [asyncio.ensure_future(self._pause(door)) for _ in range(count)]
+        await asyncio.sleep(0)
+
+    async def _pause(self, door: str) -> Any:
         if door == "http":
-            pending = [asyncio.ensure_future(self.flood_http.post("/pause")) for _ in range(flood)]
-            await asyncio.sleep(0)  # the flood's requests begun before the stop
-            sent = time.time()
+            return await self.flood_http.post("/pause")
+        if door == "mqtt":
+            return await self._publish("pause", None)
+        return await self._call("Pause")
+
+    async def finish(self) -> None:
+        """Wait for every flooded command's answer."""
+        pending, self.flooding = self.flooding, []
+        await asyncio.gather(*pending, return_exceptions=True)
+        answers, self.flooded_answers = self.flooded_answers, 0
+        if answers:
+            await self._drain(answers)
+
+    async def stop(self, door: str, flood: int) -> float:
+        """The door's stop behind `flood` pauses of this same client (for MQTT the same
+        connection, so the broker delivers the stop after them; for OPC UA the same
+        session; for HTTP a pool of connections beside the HMI's own)."""
+        await self.flood(door, flood)
+        sent = time.time()
+        if door == "http":
             answer = await self.http.post("/estop")
             assert answer.status_code == 202, answer.text
-            await asyncio.gather(*pending)
-            return sent
-        if door == "mqtt":
-            assert self.mqtt is not None
-            # Each publish's first step hands its message to the client, in this order;
-            # none waits for the broker's acknowledgement of the one before.
-            pending = [asyncio.ensure_future(self._publish("pause", None)) for _ in range(flood)]
-            await asyncio.sleep(0)
-            sent = time.time()
+        elif door == "mqtt":
             await self._publish("estop", {"reason": "bench"})
-            await asyncio.gather(*pending)
-            await self._drain(flood + 1)
-            return sent
-        assert self.opcua is not None
-        calls = [asyncio.ensure_future(self._call("Pause")) for _ in range(flood)]
-        await asyncio.sleep(0)
-        sent = time.time()
-        stop = await self._call("EmergencyStop")
-        assert stop.StatusCode.is_good(), stop
-        await asyncio.gather(*calls, return_exceptions=True)
+            self.flooded_answers += 1
+        else:
+            stop = await self._call("EmergencyStop")
+            assert stop.StatusCode.is_good(), stop
+        await self.finish()
         return sent
 
     async def _drain(self, count: int) -> None:
@@ -203,6 +223,12 @@ async def serve(http_url: str, mqtt_port: int, opcua_url: str, cell_id: str) -> 
             if words[0] == "stop":
                 sent = await doors.stop(words[1], int(words[2]))
                 print(f"sent {sent} {StopWrites.last}", flush=True)
+            elif words[0] == "flood":
+                await doors.flood(words[1], int(words[2]))
+                print("begun", flush=True)
+            elif words[0] == "finish":
+                await doors.finish()
+                print("done", flush=True)
         reader.cancel()
 
 

@@ -6,20 +6,28 @@ receiving `stop` and the dispenser receiving the valve-close write (the
 simulators' own stamps, as `bench.estop_latency` takes them). `written_p50_ms` and
 `written_p99_ms` measure the same stop from when the doors' client handed its bytes
 to the kernel: what the client's own loop and outgoing queue held it for is not in
-them (bench/door_client.py: `StopWrites`). Flooded, the door
-is sent `--mqtt-flood` / `--opcua-flood` / `--http-flood` pause commands just
-before the stop, on the same connection (MQTT: the same client, so the broker
-delivers the stop after them; OPC UA: the same session, the calls all on their
-way before the first is answered; HTTP: a pool of 64 connections, the stop on
-the HMI's own kept-alive one). The pauses are refused in IDLE and in ERROR, so
-each costs the door and the worker their whole path and changes nothing. After
-each trial the cell is reset to IDLE.
+them (bench/door_client.py: `StopWrites`).
+
+Three conditions per door, `--mqtt-flood` / `--opcua-flood` / `--http-flood` pause
+commands ahead of the stop when flooded:
+- quiet: the stop alone;
+- flooded by another client: a second client process (a runaway script beside the
+  HMI) has begun its flood when the HMI's client sends the stop on its own
+  connection; what the stop waits for is the server's (and the broker's) doing;
+- behind its own client's pauses: the flood on the stop's own connection (MQTT: the
+  same client, so the broker delivers the stop after them, as MQTT's ordering asks;
+  OPC UA: the same session, the calls all on their way before the first is answered;
+  HTTP: a pool of 64 connections of the same client, the stop on the HMI's own
+  kept-alive one), so the stop also waits for its own client and the ordered stream.
+The pauses are refused in IDLE and in ERROR, so each costs the door and the worker
+their whole path and changes nothing. After each trial the cell is reset to IDLE.
 
 Who runs where: the server (the production app under uvicorn, MQTT commands and
 OPC UA on) in this process's loop; Debian's mosquitto; the robot and glue
 simulators in a process of their own (bench/stop_witness.py); the three doors'
-clients in another (bench/door_client.py). Every door's conditions alternate
-trial by trial, so the machine's moods fall on all of them alike.
+clients in another, the other client's flood in a third (bench/door_client.py).
+Every door's conditions alternate trial by trial, so the machine's moods fall on all
+of them alike.
 
 Run: `python -m bench.estop_doors` (`--trials 30` per door and condition by
 default). No timing is promised: on a shared machine the figures measure the
@@ -53,6 +61,10 @@ from tests.serving import free_port
 
 CELL_ID = "cell-bench"
 DOORS = ("http", "mqtt", "opcua")
+QUIET = "quiet"
+OTHER = "flooded by another client ({flood} pauses)"
+SAME = "behind {flood} pauses of its own client"
+CONDITIONS = (QUIET, OTHER, SAME)
 
 
 class DoorClient:
@@ -90,6 +102,20 @@ class DoorClient:
         if len(words) != 3 or words[0] != "sent":
             raise RuntimeError(f"the {door} stop failed: {words}")
         return float(words[1]), float(words[2])
+
+    def flood(self, door: str, count: int) -> None:
+        """Begin a flood of `count` pauses through `door`; return once it is on its way."""
+        self._ask(f"flood {door} {count}", "begun")
+
+    def finish(self) -> None:
+        """Wait until the flood is answered."""
+        self._ask("finish", "done")
+
+    def _ask(self, line: str, answer: str) -> None:
+        self.stdin.write(line + "\n")
+        self.stdin.flush()
+        if (got := self.stdout.readline().strip()) != answer:
+            raise RuntimeError(f"the door client answered {got!r} to {line!r}")
 
     def close(self) -> None:
         self.stdin.close()
@@ -138,17 +164,22 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
             token = made.json()["token"]
             while not (await http.get("/health")).json()["mqtt"]["connected"]:
                 await asyncio.sleep(0.05)
-        client = await asyncio.to_thread(
-            DoorClient, url, broker.port, f"opc.tcp://127.0.0.1:{opcua_port}", token
-        )
+        opcua_url = f"opc.tcp://127.0.0.1:{opcua_port}"
+        client = await asyncio.to_thread(DoorClient, url, broker.port, opcua_url, token)
+        flooder = await asyncio.to_thread(DoorClient, url, broker.port, opcua_url, token)
         samples: dict[tuple[str, str], list[float]] = {}
         written: dict[tuple[str, str], list[float]] = {}
         for _ in range(args.trials):
             for door in DOORS:
-                for condition, flood in (("quiet", 0), ("flooded", floods[door])):
+                for condition in CONDITIONS:
                     await to_idle(cell.worker)
                     await asyncio.to_thread(witness.tell, "arm")
+                    if condition == OTHER:
+                        await asyncio.to_thread(flooder.flood, door, floods[door])
+                    flood = floods[door] if condition == SAME else 0
                     sent, wrote = await asyncio.to_thread(client.stop, door, flood)
+                    if condition == OTHER:
+                        await asyncio.to_thread(flooder.finish)
                     stamps = await asyncio.to_thread(witness.tell, "stamps")
                     if "None" in stamps:
                         raise RuntimeError(f"the {door} stop reached no device: {stamps}")
@@ -157,18 +188,18 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
                     written.setdefault((door, condition), []).append(halted - wrote)
         await to_idle(cell.worker)
         await asyncio.to_thread(client.close)
+        await asyncio.to_thread(flooder.close)
         server.should_exit = True
         await serving
     await asyncio.to_thread(witness.close)
     rows = []
     for door in DOORS:
-        for condition in ("quiet", "flooded"):
-            flood = 0 if condition == "quiet" else floods[door]
+        for condition in CONDITIONS:
             after_written = percentiles_ms(written[(door, condition)])
             rows.append(
                 {
                     "door": door,
-                    "condition": f"{condition} ({flood} pauses ahead)" if flood else condition,
+                    "condition": condition.format(flood=floods[door]),
                     **percentiles_ms(samples[(door, condition)]),
                     "target_p99_ms": 5.0,
                     "written_p50_ms": after_written["p50_ms"],

@@ -11,9 +11,12 @@ routing, each kept in its own module and called here as a function that returns:
 3. a stop (a POST to one of the catalogue's stop paths, as `is_stop` says) is
    handed to the stop lane (server/api/stop_lane.py), which halts the cell before its body
    is read and answers it; no other request enters the lane's module;
-4. the body limit (server/api/limits.py, `bounded`): a body over
+4. admission: a command (a POST to one of the catalogue's other command paths)
+   waits here, before its body is read, while `ADMITTED` commands are being served,
+   as on MQTT and OPC UA (the catalogue says why); a stop never waits for it;
+5. the body limit (server/api/limits.py, `bounded`): a body over
    `max_request_bytes`, declared or streamed, is a 413;
-5. the HTTP manners (server/api/methods.py): HEAD answered as GET without the
+6. the HTTP manners (server/api/methods.py): HEAD answered as GET without the
    body, OPTIONS with 204 and `Allow`;
 
 then the request is handed on to the router. Why one middleware and not one per
@@ -26,6 +29,7 @@ is in server/api/ws.py.
 
 from __future__ import annotations
 
+import asyncio
 from typing import TYPE_CHECKING
 
 from starlette.responses import JSONResponse
@@ -35,7 +39,7 @@ from server.api import limits, methods
 from server.api.access import Access
 from server.api.observe import Observer, ResponseWatch
 from server.api.stop_lane import StopLane
-from server.commands.catalogue import STOP_PATHS
+from server.commands.catalogue import ADMITTED, COMMAND_PATHS, STOP_PATHS
 from server.core.infra.answers_in_flight import AnswersInFlight
 
 if TYPE_CHECKING:
@@ -69,6 +73,7 @@ class HttpDoor:
         self.route_methods = route_methods
         self.max_bytes = max_bytes  # max_request_bytes
         self.stop_lane = StopLane(app, max_bytes)
+        self.admitted = asyncio.Semaphore(ADMITTED)  # commands (not stops) served at once
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -91,18 +96,26 @@ class HttpDoor:
                     await self.stop_lane.stop(cell.stops, scope, receive, send)
                     return
                 # A cell not started yet: the stop goes on to its route, which makes it.
-            bounded = limits.bounded(scope, receive, send, self.max_bytes)
-            if bounded is None:
-                await limits.refuse(scope, send, self.max_bytes)
+            elif scope["method"] == "POST" and scope["path"] in COMMAND_PATHS:
+                async with self.admitted:
+                    await self._route(scope, receive, send)
                 return
-            receive, send = bounded
-            method = scope["method"]
-            if method == "HEAD" or method == "OPTIONS":
-                await self._manners(scope, receive, send)
-                return
-            await self.app(scope, receive, send)
+            await self._route(scope, receive, send)
         finally:
             watch.finish(scope, self.observers)
+
+    async def _route(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """The body limit and the HTTP manners, then the router."""
+        bounded = limits.bounded(scope, receive, send, self.max_bytes)
+        if bounded is None:
+            await limits.refuse(scope, send, self.max_bytes)
+            return
+        receive, send = bounded
+        method = scope["method"]
+        if method == "HEAD" or method == "OPTIONS":
+            await self._manners(scope, receive, send)
+            return
+        await self.app(scope, receive, send)
 
     async def _manners(self, scope: Scope, receive: Receive, send: Send) -> None:
         """HEAD as the path's GET without its body; OPTIONS answered with `Allow`."""

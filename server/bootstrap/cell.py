@@ -36,6 +36,7 @@ from server.core.worker.view import CellView
 from server.core.worker.worker import Worker
 from server.drivers.base import DeviceFault
 from server.orders.book import OrderBook
+from server.orders.fresh_part import fresh_part_per_run
 from server.settings.model import Settings
 from server.settings.recording import RecordingSettings
 from server.settings.runtime import restore_saved
@@ -194,6 +195,8 @@ class Cell:
         # The simulated cell presents a fresh part after each one (a real cell: a person or
         # a conveyor does; the next start finds the part by contour matching, or fails).
         next_part = getattr(devices.camera, "present_next_part", None)
+        if next_part is not None:
+            fresh_part_per_run(self.worker.view, next_part)
         self.orders = book = OrderBook(self, self.journal, next_part=next_part)
         self.worker.orders = book  # a start while an order is active makes a part of it
         await self.orders.start()

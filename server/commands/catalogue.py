@@ -248,6 +248,15 @@ STOP_PATHS: Final = tuple(spec.path for spec in CATALOGUE if spec.stop)
 STOP_COMMANDS: Final = frozenset(spec.command for spec in CATALOGUE if spec.stop)
 
 
+# The HTTP command routes (POST) that are not stops: served at most ADMITTED at once.
+COMMAND_PATHS: Final = frozenset(spec.path for spec in CATALOGUE if not spec.stop)
+# Commands (not stops) each door serves at once, HTTP, MQTT and OPC UA alike; the rest wait
+# as what they are (a request read, a message decoded, a call), not as tasks at work. Why:
+# a door that starts a flood's commands all at once makes a turn of the loop as long as
+# all their checks, and a stop read meanwhile waits for that turn to end.
+ADMITTED: Final = 4
+
+
 def is_stop(command: Command | None) -> bool:
     """Whether `command` is a stop (None, an unknown command: not one)."""
     return command in STOP_COMMANDS

@@ -63,7 +63,7 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from server.bootstrap.cell import Cell
-from server.commands.catalogue import STOP_COMMANDS, is_stop
+from server.commands.catalogue import ADMITTED, STOP_COMMANDS, is_stop
 from server.core.infra.answers_in_flight import AnswersInFlight, after_answers
 from server.core.infra.bus import SubscriptionClosed
 from server.core.infra.eager import start_task
@@ -93,7 +93,6 @@ BUS_BUFFER = 1024  # records between the bus and the outbox: drained at once, so
 FIRST_BACKOFF_S = 0.1
 STOP_FLUSH_S = 2.0  # at a clean stop, how long `offline` (and what waits) may take to go
 TICK_S = 1.0  # how often the health is looked at for a change
-ADMITTED = 4  # commands served at once; the next waits in the client's incoming queue
 MAX_COMMANDS_WAITING = 64  # more than this in the incoming queue: refused (503), never a stop
 
 

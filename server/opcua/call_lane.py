@@ -53,13 +53,13 @@ from asyncua import Server, ua
 from asyncua.common.utils import ServiceError
 from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary
 
+from server.commands.catalogue import ADMITTED
 from server.core.infra.eager import start_task
 
 log = logging.getLogger(__name__)
 
 _CALL_REQUEST: Final = ua.NodeId(ua.Int32(ua.ObjectIds.CallRequest_Encoding_DefaultBinary))
 
-ADMITTED = 4  # the calls of all sessions served at once; the rest wait in the line
 
 ProcessMessage = Callable[[Any, Any], Awaitable[bool]]
 Call = tuple[Any, Any, Any, Any, list[Any]]  # processor, session, request header, seq, methods

@@ -181,7 +181,7 @@ def test_estop_doors_measures_every_door_quiet_and_flooded(results_in_tmp: Path)
     assert [(row["door"], row["condition"].split(" ")[0]) for row in rows] == [
         (door, condition)
         for door in ("http", "mqtt", "opcua")
-        for condition in ("quiet", "flooded")
+        for condition in ("quiet", "flooded", "behind")
     ]
     for row in rows:
         assert row["n"] == 1 and row["p50_ms"] > 0

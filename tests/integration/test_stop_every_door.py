@@ -18,6 +18,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import httpx
 import paho.mqtt.client as paho
 from asyncua import Client, ua
 from paho.mqtt.enums import CallbackAPIVersion
@@ -25,10 +26,9 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from clients.client.mqtt_signing import sign_command
+from server.commands.catalogue import ADMITTED
 from server.line.broker import DEMO_PASSWORDS
-from server.mqtt.link import ADMITTED as MQTT_ADMITTED
 from server.opcua.address_space import NAMESPACE_URI
-from server.opcua.call_lane import ADMITTED
 from tests.mosquitto import WAIT_S, mosquitto
 from tests.rig import Rig, open_rig
 from tests.serving import free_port
@@ -36,6 +36,7 @@ from tests.serving import free_port
 CELL = "cell-7"
 BASE = f"glue/{CELL}"
 FLOOD = 600  # under mosquitto's default max_queued_messages (1000) for one client
+HTTP_BURST = 40  # requests at once, each on a connection of its own
 
 
 def _publish_flood_then_stop(port: int, token: str) -> None:
@@ -240,4 +241,34 @@ async def test_an_mqtt_flood_is_served_a_few_commands_at_a_time(tmp_path: Path) 
             await asyncio.to_thread(_publish_flood_then_stop, broker.port, made.json()["token"])
             await rig.wait_state("ERROR")
         print(f"at most {most} MQTT commands in the cell at once")
-        assert 0 < most <= MQTT_ADMITTED
+        assert 0 < most <= ADMITTED
+
+
+async def test_an_http_burst_is_served_a_few_commands_at_a_time(tmp_path: Path) -> None:
+    """The HTTP door serves at most ADMITTED commands at once (server/api/door.py); the
+    others wait before their bodies are read, and every one is still answered."""
+    async with open_rig(tmp_path / "data") as rig:
+        command = rig.cell.command
+        inside = 0  # the HTTP commands (not the stop) in the cell now
+        most = 0
+
+        async def counted(what: Any, **kwargs: Any) -> Any:
+            nonlocal inside, most
+            if not kwargs.get("source", "").startswith("api:") or what.value == "estop":
+                return await command(what, **kwargs)
+            inside += 1
+            most = max(most, inside)
+            try:
+                return await command(what, **kwargs)
+            finally:
+                inside -= 1
+
+        rig.cell.command = counted  # type: ignore[method-assign]
+        pool = httpx.Limits(max_connections=HTTP_BURST)
+        async with httpx.AsyncClient(
+            base_url=rig.api.base_url, headers=rig.api.headers, limits=pool, timeout=WAIT_S
+        ) as burst:
+            answers = await asyncio.gather(*(burst.post("/pause") for _ in range(HTTP_BURST)))
+        assert [answer.status_code for answer in answers] == [409] * HTTP_BURST  # IDLE
+    print(f"at most {most} HTTP commands in the cell at once")
+    assert 0 < most <= ADMITTED

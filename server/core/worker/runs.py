@@ -111,6 +111,8 @@ class Runs:
         self._leash: Leash | None = None  # the running operation's hold on the devices
         # Called with (kind, outcome, seconds) when an operation ends, e.g. by metrics.
         self.listeners: list[Callable[[RunEnded], None]] = []
+        # Called with the operation's name as a run starts, before its first step.
+        self.start_listeners: list[Callable[[str], None]] = []
 
     def is_current(self, run_id: str) -> bool:
         running = self.ctx.operation
@@ -120,6 +122,8 @@ class Runs:
 
     def start(self, name: str, run_id: str, params: dict[str, Any]) -> None:
         """Start operation `name` as run `run_id` with the request's parameters."""
+        for listener in self.start_listeners:
+            listener(name)
         self._gate = PauseGate(self.clock)
         running = RunningOperation(name, run_id, self.clock.time(), dict(params))
         self.ctx.operation = running

@@ -177,6 +177,11 @@ class CellView:
         """Call `listener(seconds)` after each event is decided (e.g. a histogram)."""
         self._worker.stats.listeners.append(listener)
 
+    def on_run_started(self, listener: Callable[[str], None]) -> None:
+        """Call `listener(operation)` as an operation starts, before its first step (in the
+        worker: never block)."""
+        self._worker.runs.start_listeners.append(listener)
+
     def on_run_ended(self, listener: Callable[[RunEnded], None]) -> None:
         """Call `listener(ended)` when an operation ends (in the worker: never block)."""
         self._worker.runs.listeners.append(listener)

@@ -123,7 +123,11 @@ def dispensed_by(robot: Any, glue: Any) -> BeadSource:
 
     def source(since: float, shifts: Sequence[Shift]) -> BeadLayer:
         return deposit_strokes(
-            robot.path_snapshot(), list(glue.history), glue.speed_factor, since=since, shifts=shifts
+            robot.path_snapshot(since),
+            list(glue.history),
+            glue.speed_factor,
+            since=since,
+            shifts=shifts,
         )
 
     return source

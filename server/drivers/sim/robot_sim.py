@@ -336,13 +336,19 @@ class RobotSimulator:
         self._settle()
         return list(self._path)
 
-    def path_snapshot(self) -> list[PathSegment]:
-        """The executed path with the move under way cut at now, without settling anything.
+    def path_snapshot(self, since: float = -math.inf) -> list[PathSegment]:
+        """The executed path with the move under way cut at now, without settling anything;
+        only the segments still moving after `since` (time.time()).
 
         Safe to call from another thread (the simulated camera renders the bead in one): it
         only copies, while `executed_path` also records a move that has run out of time.
         """
-        path = list(self._path)
+        recent: list[PathSegment] = []
+        for segment in reversed(self._path.copy()):  # a copy: the loop may append meanwhile
+            if segment.t_end <= since:
+                break
+            recent.append(segment)
+        path = recent[::-1]
         motion = self._motion
         if motion is not None:
             now = time.monotonic()
