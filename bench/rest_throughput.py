@@ -99,8 +99,10 @@ def spawned(
     data_dir: Path,
     ready_path: str,
     stop_signal: signal.Signals = signal.SIGTERM,
+    ready_within: float = 60.0,
 ) -> Iterator[subprocess.Popen[str]]:
-    """Run `python <command>` from the project root until GET `ready_path` answers 200.
+    """Run `python <command>` from the project root until GET `ready_path` answers 200
+    (within `ready_within` seconds).
 
     Stopped with `stop_signal`: SIGINT for a server under cProfile, which writes
     its statistics on KeyboardInterrupt (uvicorn re-raises SIGTERM, which would not).
@@ -115,7 +117,7 @@ def spawned(
             cwd=ROOT,
         )
         try:
-            deadline = time.monotonic() + 60
+            deadline = time.monotonic() + ready_within
             while True:
                 if process.poll() is not None:
                     raise RuntimeError(f"{command} exited with {process.returncode}")
@@ -124,7 +126,7 @@ def spawned(
                     httpx.get(url, timeout=1).raise_for_status()
                     break
                 if time.monotonic() > deadline:
-                    raise RuntimeError(f"{command} did not answer within 60 s")
+                    raise RuntimeError(f"{command} did not answer within {ready_within:g} s")
                 time.sleep(0.1)
             yield process
         finally:
@@ -300,7 +302,8 @@ def profile_cell(args: argparse.Namespace, top: int = 15) -> dict[str, Any]:
         data_dir, stats_file = Path(tmp), Path(tmp, "cell.prof")
         command = ["-m", "cProfile", "-o", str(stats_file), *CELL_COMMAND]
         port = free_port()
-        with spawned(command, port, data_dir, "/health", signal.SIGINT) as process:
+        # cProfile slows the start (the cell commissions itself, frames drawn and matched)
+        with spawned(command, port, data_dir, "/health", signal.SIGINT, 300.0) as process:
             headers = admin_headers(data_dir)
             settled_state(port, headers)
             requests = measure("profiled", port, process.pid, headers, args)["requests"]

@@ -34,6 +34,7 @@ from fastapi.routing import APIRoute
 from server.api import audit
 from server.api.audit import source_of
 from server.api.declared_query import IGNORES_UNKNOWN_QUERY, Handler, query_check_of
+from server.api.door import ASKED_AT_ESTOPS
 from server.api.stop_lane import made_without_reason, stop_begun
 from server.bootstrap.cell import Cell
 from server.commands.answers import answer_of, audit_label
@@ -95,6 +96,7 @@ async def _run(request: Request, command: Command, payload: Payload | None = Non
         source=source_of(request.scope),
         payload=payload,
         audit=audit.note(request.scope, audit_label),
+        asked_at_estops=request.scope.get("state", {}).get(ASKED_AT_ESTOPS),
     )
     return _answered(request, outcome)
 

@@ -12,8 +12,10 @@ routing, each kept in its own module and called here as a function that returns:
    handed to the stop lane (server/api/stop_lane.py), which halts the cell before its body
    is read and answers it; no other request enters the lane's module;
 4. admission: a command (a POST to one of the catalogue's other command paths)
-   waits here, before its body is read, while `ADMITTED` commands are being served,
-   as on MQTT and OPC UA (the catalogue says why); a stop never waits for it;
+   notes the e-stops counted as it arrives (`ASKED_AT_ESTOPS`: one made after it
+   refuses it, server/core/machine/decide.py) and waits here, before its body is
+   read, while `ADMITTED` commands are being served, as on MQTT and OPC UA (the
+   catalogue says why); a stop never waits for it;
 5. the body limit (server/api/limits.py, `bounded`): a body over
    `max_request_bytes`, declared or streamed, is a 413;
 6. the HTTP manners (server/api/methods.py): HEAD answered as GET without the
@@ -44,6 +46,9 @@ from server.core.infra.answers_in_flight import AnswersInFlight
 
 if TYPE_CHECKING:
     from server.bootstrap.cell import Cell
+
+
+ASKED_AT_ESTOPS = "asked_at_estops"  # the scope state's key: the e-stops a command found
 
 
 def is_stop(scope: Scope) -> bool:
@@ -90,13 +95,15 @@ class HttpDoor:
                 response = JSONResponse({"detail": reason}, status, headers=headers)
                 await response(scope, receive, send)
                 return
+            cell: Cell | None = getattr(scope["app"].state, "cell", None)
             if stop:
-                cell: Cell | None = getattr(scope["app"].state, "cell", None)
                 if cell is not None and cell.started:
                     await self.stop_lane.stop(cell.stops, scope, receive, send)
                     return
                 # A cell not started yet: the stop goes on to its route, which makes it.
             elif scope["method"] == "POST" and scope["path"] in COMMAND_PATHS:
+                if cell is not None and cell.started:  # refused if a stop comes ahead of it
+                    scope.setdefault("state", {})[ASKED_AT_ESTOPS] = cell.stops_now()
                 async with self.admitted:
                     await self._route(scope, receive, send)
                 return

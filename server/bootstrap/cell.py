@@ -301,19 +301,30 @@ class Cell:
         source: str,
         payload: Payload | None = None,
         audit: AuditNote | None = None,
+        asked_at_estops: int | None = None,
     ) -> Outcome:
         """Run an operator command (start, pause, estop, ...) with its typed payload.
 
         `audit` says who sent it: its row is committed with the event, before the answer.
         An e-stop is the stop service's (`server/core/worker/stop.py`): halted at once,
-        queued ahead of everything waiting.
+        queued ahead of everything waiting. Any other command is refused if an e-stop was
+        made after it reached its door: `asked_at_estops`, the count then (`stops_now()`;
+        by default, now), so a door that holds commands in a line takes it as each arrives.
         """
         assert self.worker is not None, "the cell is not started"
         event = COMMANDS[command]
         if event is Event.EMERGENCY_STOP:
             stop = payload if isinstance(payload, StopPayload) else StopPayload()
             return await self.stops.stop(source=source, payload=stop, audit=audit)
-        return await self.worker.request(event, source=source, payload=payload, audit=audit)
+        if asked_at_estops is None:
+            asked_at_estops = self.stops.requested
+        return await self.worker.request(
+            event, source=source, payload=payload, audit=audit, asked_at_estops=asked_at_estops
+        )
+
+    def stops_now(self) -> int:
+        """The e-stops counted so far: what a door notes as a command reaches it."""
+        return self.stops.requested
 
     def alert(self, code: str, message: str, component: str) -> None:
         """An alert on every channel (log, journal, WebSocket, MQTT, OPC UA, webhooks), for

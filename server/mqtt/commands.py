@@ -72,8 +72,11 @@ class CommandDoor:
         self.nonces = NonceCache()
         self._clock = clock
 
-    async def handle(self, topic: str, name: str, raw: bytes) -> Answer:
-        """Check, run and answer one command message; every refusal is audited."""
+    async def handle(
+        self, topic: str, name: str, raw: bytes, asked_at_estops: int | None = None
+    ) -> Answer:
+        """Check, run and answer one command message; every refusal is audited.
+        `asked_at_estops`: the e-stops counted when it was read off the socket."""
         action = f"MQTT {topic}"
         command = normalize_command(name)
         if command is None:
@@ -93,10 +96,15 @@ class CommandDoor:
         )
         if isinstance(checked, Refusal):
             return self.refuse(None, action, checked.status, checked.detail)
-        return await self.execute(checked.principal, action, command, checked.body)
+        return await self.execute(checked.principal, action, command, checked.body, asked_at_estops)
 
     async def execute(
-        self, principal: Principal, action: str, command: Command, body: Any
+        self,
+        principal: Principal,
+        action: str,
+        command: Command,
+        body: Any,
+        asked_at_estops: int | None = None,
     ) -> Answer:
         """Run a command whose sender is known: the role, the body, then the cell.
 
@@ -119,15 +127,24 @@ class CommandDoor:
                 return 422, {"detail": problem, "errors": errors, **answer}
             status, body = self.refuse(principal, action, 422, problem)
             return status, {**body, "errors": errors}
-        return await self._run(principal, action, command, payload)
+        return await self._run(principal, action, command, payload, asked_at_estops)
 
     async def _run(
-        self, principal: Principal, action: str, command: Command, payload: Payload | None
+        self,
+        principal: Principal,
+        action: str,
+        command: Command,
+        payload: Payload | None,
+        asked_at_estops: int | None = None,
     ) -> Answer:
         note = AuditNote(principal.describe(), self.address, action, audit_label)
         try:
             outcome = await self.cell.command(
-                command, source=f"{self.source}:{principal.name}", payload=payload, audit=note
+                command,
+                source=f"{self.source}:{principal.name}",
+                payload=payload,
+                audit=note,
+                asked_at_estops=asked_at_estops,
             )
         except (EventQueueFull, WorkerStopped, JournalUnavailable) as exc:
             self._audit(principal, action, "refused (503)", str(exc))

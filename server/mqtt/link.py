@@ -52,6 +52,7 @@ import logging
 import random
 import ssl
 import time
+import weakref
 from collections import deque
 from collections.abc import Awaitable, Callable
 from typing import Any
@@ -163,6 +164,8 @@ class MqttLink:
         self._tasks: list[asyncio.Task[None]] = []
         self._in_flight: set[asyncio.Task[None]] = set()
         self._admitted = asyncio.Semaphore(ADMITTED)  # commands (not stops) served at once
+        # the e-stops counted as each command message was read off the socket
+        self._asked: weakref.WeakKeyDictionary[Message, int] = weakref.WeakKeyDictionary()
         self._connected = False
         self._since: float | None = None
         self._reconnects = 0
@@ -411,6 +414,8 @@ class MqttLink:
         topic = str(message.topic)
         name = self.topics.command_name(topic)
         if name is None or not is_stop(normalize_command(name)):
+            # refused if a stop comes ahead of it (server/core/machine/decide.py)
+            self._asked[message] = self.cell.stops_now()
             return False
         if not lane and self._lane_up and topic in self._lane_topics:
             return True  # the lane's subscription has it too: served there
@@ -551,7 +556,7 @@ class MqttLink:
     ) -> None:
         assert self._commands is not None
         raw = message.payload if isinstance(message.payload, bytes) else b""
-        answer = await self._commands.handle(topic, name, raw)
+        answer = await self._commands.handle(topic, name, raw, self._asked.pop(message, None))
         await self._answer(message, answer, client)
 
     async def _answer(

@@ -47,6 +47,7 @@ import time
 import weakref
 from collections import deque
 from collections.abc import Awaitable, Callable
+from contextvars import ContextVar
 from typing import Any, Final
 
 from asyncua import Server, ua
@@ -62,15 +63,25 @@ _CALL_REQUEST: Final = ua.NodeId(ua.Int32(ua.ObjectIds.CallRequest_Encoding_Defa
 
 
 ProcessMessage = Callable[[Any, Any], Awaitable[bool]]
-Call = tuple[Any, Any, Any, Any, list[Any]]  # processor, session, request header, seq, methods
+# The e-stops counted when the call being served was read: `_serve` sets it in the call's
+# own task, and the cell's methods (server/opcua/methods.py) hand it to `Cell.command`.
+ASKED_AT_ESTOPS: ContextVar[int | None] = ContextVar("asked_at_estops", default=None)
+# processor, session, request header, seq, methods, the e-stops counted as it was read
+Call = tuple[Any, Any, Any, Any, list[Any], int]
 
 
 class CallLane:
     """Serves the Call requests of every session of one server, stops first."""
 
-    def __init__(self, server: Server, is_stop: Callable[[ua.NodeId], bool]) -> None:
+    def __init__(
+        self,
+        server: Server,
+        is_stop: Callable[[ua.NodeId], bool],
+        stops_now: Callable[[], int],
+    ) -> None:
         self.server = server
         self._is_stop = is_stop  # whether a method node is a stop (the catalogue's `stop`)
+        self._stops_now = stops_now  # the cell's e-stops counted so far (`Cell.stops_now`)
         self._limit = server.iserver.max_pending_messages_per_connection
         self._in_flight: weakref.WeakKeyDictionary[Any, set[asyncio.Task[None]]] = (
             weakref.WeakKeyDictionary()
@@ -142,7 +153,7 @@ class CallLane:
         params = struct_from_binary(ua.CallParameters, peek)
         methods = params.MethodsToCall or []
         stop = any(self._is_stop(method.MethodId) for method in methods)
-        call = (processor, session, requesthdr, seqhdr, methods)
+        call = (processor, session, requesthdr, seqhdr, methods, self._stops_now())
         if stop:
             self._start(call, stop=True)
             return True
@@ -185,9 +196,18 @@ class CallLane:
             self._start(call, stop=False)
 
     async def _serve(
-        self, processor: Any, session: Any, requesthdr: Any, seqhdr: Any, methods: list[Any]
+        self,
+        processor: Any,
+        session: Any,
+        requesthdr: Any,
+        seqhdr: Any,
+        methods: list[Any],
+        asked_at_estops: int,
     ) -> None:
-        """The call's methods, then its answer, as asyncua answers a Call."""
+        """The call's methods, then its answer, as asyncua answers a Call. The methods
+        find the e-stops counted when the call was read in `ASKED_AT_ESTOPS` (asyncua
+        hands them their own arguments only): one made since refuses them."""
+        ASKED_AT_ESTOPS.set(asked_at_estops)  # this task's own context
         try:
             results = await session.call(methods)
         except (ServiceError, ua.uaerrors.UaStatusCodeError) as refused:

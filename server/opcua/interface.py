@@ -102,7 +102,7 @@ class OpcUaInterface:
         self.server = Server(user_manager=TokenUsers(tokens))  # type: ignore[arg-type]
         self.methods = CellMethods(self.server, cell, tokens)
         self.alarms = CellAlarms(self.server, cell, tokens, answers)
-        self.calls = CallLane(self.server, self.methods.is_stop)
+        self.calls = CallLane(self.server, self.methods.is_stop, cell.stops_now)
         self.tokens = tokens
         self.nodes: CellNodes | None = None
         self.packml: PackMLFeed | None = None  # the PackML state machines, Status and Admin

@@ -42,6 +42,7 @@ from server.common.errors import EventQueueFull, JournalUnavailable, WorkerStopp
 from server.core.machine.events import AuditNote, Outcome
 from server.core.machine.transitions import Command
 from server.opcua.address_space import node_id_of
+from server.opcua.call_lane import ASKED_AT_ESTOPS
 from server.opcua.identity import ANONYMOUS, CellUser, caller
 from server.opcua.nodes import add_method
 from server.security.tokens import Role, TokenStore
@@ -289,7 +290,11 @@ class CellMethods:
         note = AuditNote(who, address, action, _label)
         try:
             outcome = await self.cell.command(
-                method.command, source=f"opcua:{address}", payload=admitted.payload, audit=note
+                method.command,
+                source=f"opcua:{address}",
+                payload=admitted.payload,
+                audit=note,
+                asked_at_estops=ASKED_AT_ESTOPS.get(),
             )
         except (EventQueueFull, WorkerStopped, JournalUnavailable) as exc:
             return self._refuse(

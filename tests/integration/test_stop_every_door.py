@@ -125,10 +125,13 @@ async def test_an_mqtt_stop_behind_a_flood_is_decided_before_the_flood_sent_ahea
 BURST = 450  # OPC UA calls on one session, sent before the stop (a session may have 500 waiting)
 
 
-async def _burst_then_stop(rig: Rig, port: int) -> list[Any]:
-    """BURST Pause calls (refused in IDLE), then an EmergencyStop, on one session, every
-    request on its way before the first is answered; the answers, in the same order."""
-    made = await rig.api.post("/tokens", json={"name": "plc", "role": "operator"})
+async def _burst_then_stop(
+    rig: Rig, port: int, method: str = "Pause", role: str = "operator"
+) -> list[Any]:
+    """BURST `method` calls (Pause: refused in IDLE), then an EmergencyStop, on one
+    session, every request on its way before the first is answered; the answers, in the
+    same order."""
+    made = await rig.api.post("/tokens", json={"name": "plc", "role": role})
     # The client probes the server every watchdog_intervall and gives up on a slow
     # answer: on a busy shared machine that is not the connection lost.
     opc = Client(f"opc.tcp://127.0.0.1:{port}", timeout=WAIT_S, watchdog_intervall=WAIT_S)
@@ -147,7 +150,7 @@ async def _burst_then_stop(rig: Rig, port: int) -> list[Any]:
             call.InputArguments = []
             return call
 
-        calls = [asyncio.ensure_future(opc.uaclient.call([request("Pause")])) for _ in range(BURST)]
+        calls = [asyncio.ensure_future(opc.uaclient.call([request(method)])) for _ in range(BURST)]
         calls.append(asyncio.ensure_future(opc.uaclient.call([request("EmergencyStop")])))
         return list(await asyncio.gather(*calls))
 
@@ -272,3 +275,27 @@ async def test_an_http_burst_is_served_a_few_commands_at_a_time(tmp_path: Path) 
         assert [answer.status_code for answer in answers] == [409] * HTTP_BURST  # IDLE
     print(f"at most {most} HTTP commands in the cell at once")
     assert 0 < most <= ADMITTED
+
+
+async def test_a_reset_sent_before_a_stop_never_clears_that_stop(tmp_path: Path) -> None:
+    """Resets read before a stop and still waiting when it is made are refused, so the
+    stop's ERROR stays until a reset sent after it (server/core/machine/decide.py, "asked
+    before a stop"): decided after the stop, one of them would take the cell to IDLE."""
+    port = free_port()
+    overrides = {"cell_id": CELL, "opcua_endpoint": f"opc.tcp://127.0.0.1:{port}"}
+    async with open_rig(tmp_path / "data", **overrides) as rig:
+        assert (await rig.api.post("/estop", json={"reason": "a first stop"})).status_code == 202
+        await rig.wait_state("ERROR")  # where a reset is allowed
+        answers = await _burst_then_stop(rig, port, "Reset", "maintenance")
+        assert answers[-1][0].StatusCode.is_good(), answers[-1]
+        state = (await rig.api.get("/state")).json()
+        assert state["state"] == "ERROR", state
+        assert rig.cell.journal is not None
+        await rig.cell.journal.caught_up()
+        with sqlite3.connect(tmp_path / "data" / "journal.db") as db:
+            refused = db.execute(
+                "SELECT COUNT(*) FROM events WHERE type = 'RESET_REQUESTED' "
+                "AND message LIKE 'sent before an emergency stop%'"
+            ).fetchone()[0]
+        print(f"resets refused as sent before the stop: {refused}")
+        assert refused > 0

@@ -92,6 +92,7 @@ facts_strategy = st.builds(
     probing=st.booleans(),
     probed=st.none() | st.builds(Probed, stops, st.sampled_from(((), ("robot: no answer",)))),
     active_order=st.none() | st.builds(ActiveOrder, st.just(ORDER), st.sampled_from(PARTS)),
+    asked_at_estops=st.none() | st.integers(0, 2),
     library=st.builds(
         Library,
         st.frozensets(st.sampled_from(PARTS)),
@@ -227,6 +228,8 @@ def test_a_reset_is_decided_in_two_passes(drawn, facts) -> None:
                     probing)  # fmt: skip
     if facts.journal_problem is not None:
         assert isinstance(first, Refusal)
+    elif facts.asked_at_estops not in (None, facts.stops.estops):  # a stop came since
+        assert first == Refusal(decide.ASKED_BEFORE_STOP)
     elif facts.probing:
         assert first == Refusal(decide.RESET_UNDER_WAY)
     else:
@@ -266,3 +269,20 @@ def test_an_accepted_decision_is_abandoned_after_its_exit_actions_if_a_stop_came
 
 def _fields(facts: Facts) -> dict[str, Any]:
     return {name: getattr(facts, name) for name in Facts.__slots__}
+
+
+@settings(max_examples=250)
+@given(states, events(), facts_strategy)
+def test_a_command_asked_before_a_stop_made_since_is_refused_whatever_the_state(
+    state, drawn, facts
+) -> None:
+    """Nothing sent before an e-stop is decided after it; a stop is never refused."""
+    event, payload = drawn
+    verdict = decided(state, event, payload, facts)
+    asked_before = facts.asked_at_estops not in (None, facts.stops.estops)
+    if event in decide.COMPLETION_EVENTS or facts.journal_problem is not None:
+        return  # refused by their own rules first
+    if asked_before and event in decide.JOURNALED_COMMANDS and facts.probed is None:
+        assert verdict == Refusal(decide.ASKED_BEFORE_STOP)
+    elif isinstance(verdict, Refusal):
+        assert verdict.message != decide.ASKED_BEFORE_STOP

@@ -36,6 +36,11 @@ worker only executes what it is given. In the order they are asked:
    actions. Before running it the worker asks `Accepted.overtaken` whether an
    e-stop was requested since the decision was made; if so the decision is
    abandoned (nothing decided before a stop may undo it).
+8. **Asked before a stop.** A command carries the e-stops counted when it reached
+   its door (`Facts.asked_at_estops`); one made since, ahead of it, refuses it
+   whatever the state, so nothing sent before a stop is decided after it (a reset
+   pressed just before an e-stop never clears that stop's ERROR). Its sender may
+   send it again.
 
 `Facts` is everything the worker knows that these rules read, gathered before
 each decision (`server/core/worker/facts.py`). No I/O, no clock, no loop here, so
@@ -82,6 +87,10 @@ RESET_OVERTAKEN: Final = (
     "still in ERROR, nothing was changed: reset again"
 )
 RESET_UNDER_WAY: Final = "a reset is already probing the devices; wait for its answer"
+ASKED_BEFORE_STOP: Final = (
+    "sent before an emergency stop that was made first; nothing was changed "
+    "(send it again if it is still wanted)"
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -146,6 +155,8 @@ class Facts:
     active_order: ActiveOrder | None = None
     library: Library = NO_LIBRARY
     glue_line_problem: str | None = None  # why a start must wait for a purge (pot life)
+    # The e-stops counted when the command reached its door (None: not a command)
+    asked_at_estops: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -231,6 +242,9 @@ def _decide(
         problem = facts.journal_problem  # queued before the journal failed: decide nothing
         return Refusal(f"refused: the journal cannot write ({problem})", journal_problem=problem)
     guards, estops = facts.guards, facts.stops.estops
+    asked_at = facts.asked_at_estops
+    if asked_at not in (None, estops) and event in JOURNALED_COMMANDS and facts.probed is None:
+        return Refusal(ASKED_BEFORE_STOP)  # (a reset back from its probe: its own rule)
     if facts.probed is not None and event is Event.RESET_REQUESTED:  # back from its probe
         if facts.stops != facts.probed.began:
             return Refusal(RESET_OVERTAKEN)

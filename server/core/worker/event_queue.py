@@ -51,6 +51,8 @@ class Envelope:
     timestamp: float = field(default_factory=time.time)
     future: asyncio.Future[Outcome] | None = None
     audit: AuditNote | None = None  # who sent it: its audit row goes into the event's commit
+    # A command's e-stops counted when it reached its door (decide.py's "asked before a stop")
+    asked_at_estops: int | None = None
     # An e-stop's halt, made before it was queued: its transition's first HALT is this one.
     halt_made: asyncio.Future[HaltReport] | None = None
     # The operation this event's transition cancelled (CANCEL_RUN runs before

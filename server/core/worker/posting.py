@@ -41,6 +41,7 @@ class EventPoster:
         priority: Priority = Priority.REQUEST,
         bounded: bool = True,
         audit: AuditNote | None = None,
+        asked_at_estops: int | None = None,
     ) -> Envelope:
         """Queue an event (loop thread only). Raises EventQueueFull when `bounded` and full."""
         payload = payload_of(event, payload)
@@ -55,6 +56,7 @@ class EventPoster:
             priority=priority,
             future=loop.create_future(),
             audit=audit,
+            asked_at_estops=asked_at_estops,
         )
         self.queue.put(envelope, bounded=bounded)
         return envelope
@@ -66,14 +68,18 @@ class EventPoster:
         source: str,
         payload: Payload | None = None,
         audit: AuditNote | None = None,
+        asked_at_estops: int | None = None,
     ) -> Outcome:
-        """Queue a request and wait for the worker's decision.
+        """Queue a request and wait for the worker's decision; `asked_at_estops`, the
+        e-stops counted when it reached its door (refused if one was made since).
 
         Raises JournalUnavailable when the journal's last write failed and it still
         cannot write: nothing is decided that could not be put on record.
         """
         await self.recorder.ensure_writable()
-        envelope = self.submit(event, source=source, payload=payload, audit=audit)
+        envelope = self.submit(
+            event, source=source, payload=payload, audit=audit, asked_at_estops=asked_at_estops
+        )
         assert envelope.future is not None
         return await envelope.future
 

@@ -279,6 +279,7 @@ class Worker:
         probe = self.reset_probes.returned(envelope)  # a reset back from its probe
         probed = probe.facts() if probe is not None else None
         facts = self.decision_facts(event, envelope.payload, probed)
+        facts.asked_at_estops = envelope.asked_at_estops
         verdict = decide.decide(state, event, envelope.payload, facts, self.settings)
         if self.decisions.listeners:
             self._tell(state, event, verdict)
