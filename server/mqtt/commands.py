@@ -23,6 +23,12 @@ e-stop path (`Cell.command` → `EmergencyStops.stop`: the devices halted
 before the event is queued) and is never refused over its body: it is made,
 and the 422 says so, as over HTTP. It is refused, like any command, when it is
 not signed, fresh and new: a replayed stop must not stop the cell again.
+
+A command signed no later than a stop of the same token (to the millisecond) is refused
+(409) when it is read after that stop: the stop lane's connection brings a stop ahead
+of the commands still queued for the other, and nothing sent before a stop is decided
+after it (server/core/machine/decide.py, "asked before a stop"); the sender's own
+clock orders its own messages.
 """
 
 from __future__ import annotations
@@ -35,9 +41,10 @@ from typing import Any
 
 from server.bootstrap.cell import Cell
 from server.commands.answers import answer_of, audit_label, invalid_request, payload_of
-from server.commands.catalogue import spec_of
+from server.commands.catalogue import is_stop, spec_of
 from server.commands.requests import RETRY_AFTER_S
 from server.common.errors import EventQueueFull, JournalUnavailable, WorkerStopped
+from server.core.machine.decide import ASKED_BEFORE_STOP
 from server.core.machine.events import AuditNote, Payload, StopPayload
 from server.core.machine.transitions import Command, normalize_command
 from server.mqtt.signed import NonceCache, Refusal, verify
@@ -70,6 +77,9 @@ class CommandDoor:
         self.max_age_ms = int(max_age_s * 1000)
         self.max_skew_ms = int(max_skew_s * 1000)
         self.nonces = NonceCache()
+        # per token id, the latest signed time of a stop it sent (a command signed before it
+        # by the same sender is refused, whichever connection brought it first)
+        self._stop_signed_ms: dict[str, int] = {}
         self._clock = clock
 
     async def handle(
@@ -96,6 +106,14 @@ class CommandDoor:
         )
         if isinstance(checked, Refusal):
             return self.refuse(None, action, checked.status, checked.detail)
+        token = checked.principal.token_id
+        if is_stop(command):
+            self._stop_signed_ms[token] = max(checked.ts_ms, self._stop_signed_ms.get(token, -1))
+        elif checked.ts_ms <= self._stop_signed_ms.get(token, -1):
+            # Signed no later than a stop of the same sender (its clock counts milliseconds:
+            # within one, the safe side), read only now: the stop lane's connection had the
+            # stop first (decide.py, "asked before a stop").
+            return self.refuse(checked.principal, action, 409, ASKED_BEFORE_STOP)
         return await self.execute(checked.principal, action, command, checked.body, asked_at_estops)
 
     async def execute(

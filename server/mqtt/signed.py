@@ -63,10 +63,12 @@ class Refusal:
 
 @dataclass(frozen=True)
 class Verified:
-    """A signed, fresh, new command: who sent it and its body."""
+    """A signed, fresh, new command: who sent it, its body, and when it was signed (the
+    sender's clock, unix ms)."""
 
     principal: Principal
     body: Any
+    ts_ms: int
 
 
 class NonceCache:
@@ -167,4 +169,4 @@ def verify(
     if nonces.seen(nonce):
         return Refusal(401, "replayed: this nonce was already used")
     nonces.add(nonce, ts_ms)
-    return Verified(principal, body)
+    return Verified(principal, body, ts_ms)

@@ -39,8 +39,8 @@ FLOOD = 600  # under mosquitto's default max_queued_messages (1000) for one clie
 HTTP_BURST = 40  # requests at once, each on a connection of its own
 
 
-def _publish_flood_then_stop(port: int, token: str) -> None:
-    """FLOOD signed `pause` commands, each asking for its answer, then one `estop`, on one
+def _publish_flood_then_stop(port: int, token: str, command: str = "pause") -> None:
+    """FLOOD signed `command`s, each asking for its answer, then one `estop`, on one
     connection, in this order (MQTT keeps a client's order), each acknowledged (QoS 1);
     returns once every one of them is answered."""
     client = paho.Client(CallbackAPIVersion.VERSION2, protocol=paho.MQTTv5)
@@ -58,7 +58,7 @@ def _publish_flood_then_stop(port: int, token: str) -> None:
         properties.ResponseTopic = reply_to
         infos = []
         for _ in range(FLOOD):
-            topic = f"{BASE}/command/pause"
+            topic = f"{BASE}/command/{command}"
             payload = json.dumps(sign_command(token, topic, None)).encode()
             infos.append(client.publish(topic, payload, qos=1, properties=properties))
         topic = f"{BASE}/command/estop"
@@ -117,9 +117,18 @@ async def test_an_mqtt_stop_behind_a_flood_is_decided_before_the_flood_sent_ahea
             assert "EMERGENCY_STOP" in mqtt, mqtt
             stop_at = mqtt.index("EMERGENCY_STOP")
             before, after = mqtt[:stop_at], mqtt[stop_at + 1 :]
-            print(f"pauses decided before the stop: {len(before)}, after it: {len(after)}")
+            # Read after the stop, a pause signed before it is refused at the door
+            # (server/mqtt/commands.py), so it never reaches the worker.
+            with sqlite3.connect(tmp_path / "data" / "journal.db") as db:
+                (refused,) = db.execute(
+                    "SELECT COUNT(*) FROM audit WHERE detail LIKE 'sent before an emergency%'"
+                ).fetchone()
+            print(
+                f"pauses decided before the stop: {len(before)}, after it: {len(after)}, "
+                f"refused at the door as sent before it: {refused}"
+            )
             # Every pause was sent before the stop; the stop went ahead of most of them.
-            assert len(after) > len(before), (len(before), len(after))
+            assert len(after) + refused > len(before), (len(before), len(after), refused)
 
 
 BURST = 450  # OPC UA calls on one session, sent before the stop (a session may have 500 waiting)
@@ -299,3 +308,32 @@ async def test_a_reset_sent_before_a_stop_never_clears_that_stop(tmp_path: Path)
             ).fetchone()[0]
         print(f"resets refused as sent before the stop: {refused}")
         assert refused > 0
+
+
+async def test_an_mqtt_reset_signed_before_a_stop_never_clears_it(tmp_path: Path) -> None:
+    """The stop lane's connection brings the stop ahead of the resets its sender published
+    before it; read after it, each of them is refused (server/mqtt/commands.py), and the
+    stop's ERROR stays."""
+    with mosquitto(tmp_path / "broker") as broker:
+        async with open_rig(
+            tmp_path / "data", **broker.cell_login, cell_id=CELL, mqtt_commands=True
+        ) as rig:
+            await _link_up(rig)
+            assert (
+                await rig.api.post("/estop", json={"reason": "a first stop"})
+            ).status_code == 202
+            await rig.wait_state("ERROR")  # where a reset is allowed
+            made = await rig.api.post("/tokens", json={"name": "mes", "role": "maintenance"})
+            await asyncio.to_thread(
+                _publish_flood_then_stop, broker.port, made.json()["token"], "reset"
+            )
+            state = (await rig.api.get("/state")).json()
+            assert state["state"] == "ERROR", state
+            assert rig.cell.journal is not None
+            await rig.cell.journal.caught_up()
+            with sqlite3.connect(tmp_path / "data" / "journal.db") as db:
+                refused = db.execute(
+                    "SELECT COUNT(*) FROM audit WHERE detail LIKE 'sent before an emergency%'"
+                ).fetchone()[0]
+            print(f"resets refused as signed before the stop: {refused}")
+            assert refused > 0

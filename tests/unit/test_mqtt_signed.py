@@ -44,7 +44,7 @@ def test_a_signed_command_is_accepted_once_and_carries_no_secret() -> None:
     assert set(message) == {"token_id", "ts_ms", "nonce", "body", "sig"}
     assert TOKEN.split("_")[2] not in str(message)  # the secret never goes on the wire
     nonces = NonceCache()
-    assert check(message, nonces=nonces) == Verified(PRINCIPAL, body)
+    assert check(message, nonces=nonces) == Verified(PRINCIPAL, body, NOW)
     again = check(message, nonces=nonces, now=NOW + 1000)
     assert isinstance(again, Refusal) and "replayed" in again.detail
 
