@@ -38,7 +38,9 @@ from tests.rig import SPRAY_DEMO, Rig, open_rig
 
 CLIENTS = 40  # bounded for CI: concurrent HTTP clients
 COMMANDS_PER_CLIENT = 75  # bounded for CI: 3000 commands in all
-QUEUE_SIZE = 32  # event_queue_size: below CLIENTS, so the request lane can fill
+# event_queue_size: below the commands the HTTP door serves at once (ADMITTED, 4), so the
+# request lane can fill
+QUEUE_SIZE = 2
 SEED = 20261203
 HEALTH_POLL_S = 0.05
 BACKOFF_S = 0.05
