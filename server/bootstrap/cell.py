@@ -317,7 +317,7 @@ class Cell:
             stop = payload if isinstance(payload, StopPayload) else StopPayload()
             return await self.stops.stop(source=source, payload=stop, audit=audit)
         if asked_at_estops is None:
-            asked_at_estops = self.stops.requested
+            asked_at_estops = self.stops_now()
         return await self.worker.request(
             event, source=source, payload=payload, audit=audit, asked_at_estops=asked_at_estops
         )

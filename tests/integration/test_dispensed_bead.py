@@ -73,13 +73,19 @@ async def test_a_run_leaves_a_bead_where_the_valve_was_open(tmp_path) -> None:
         assert np.median(glue_seen(rig.camera, cleared, sprayed)) < 20
 
 
+async def _a_sprayed_part_seen(rig: Rig) -> np.ndarray:
+    """One run of the demo part, its bead seen by the camera: the points sprayed."""
+    rig.camera.bead_source = dispensed_by(rig.robot, rig.glue)
+    snapshot = await run(rig, "start", SPRAY_DEMO)
+    assert snapshot["state"] == "IDLE", snapshot
+    sprayed, _ = sprayed_points(rig)
+    assert np.median(glue_seen(rig.camera, await rig.camera.capture(), sprayed)) > 80
+    return sprayed
+
+
 async def test_the_next_part_of_an_order_comes_without_the_glue_of_the_last(tmp_path) -> None:
     async with open_rig(tmp_path) as rig:
-        rig.camera.bead_source = dispensed_by(rig.robot, rig.glue)
-        snapshot = await run(rig, "start", SPRAY_DEMO)
-        assert snapshot["state"] == "IDLE", snapshot
-        sprayed, _ = sprayed_points(rig)
-        assert np.median(glue_seen(rig.camera, await rig.camera.capture(), sprayed)) > 80
+        sprayed = await _a_sprayed_part_seen(rig)
         rig.camera.present_next_part()  # what an order does between its parts
         fresh = await rig.camera.capture()
         assert np.median(glue_seen(rig.camera, fresh, sprayed)) < 20
@@ -89,11 +95,7 @@ async def test_the_next_start_after_a_completed_run_sprays_a_fresh_part(tmp_path
     """Outside an order too, a finished part leaves the table as the next run starts, so the
     bead the camera draws does not grow with every run ever made."""
     async with open_rig(tmp_path) as rig:
-        rig.camera.bead_source = dispensed_by(rig.robot, rig.glue)
-        snapshot = await run(rig, "start", SPRAY_DEMO)
-        assert snapshot["state"] == "IDLE", snapshot
-        sprayed, _ = sprayed_points(rig)
-        assert np.median(glue_seen(rig.camera, await rig.camera.capture(), sprayed)) > 80
+        sprayed = await _a_sprayed_part_seen(rig)
         # the next run is cancelled as it starts, long before it sprays
         assert (await rig.api.post("/start", json=SPRAY_DEMO)).status_code == 202
         assert (await rig.api.post("/cancel")).status_code == 202

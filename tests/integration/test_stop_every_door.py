@@ -73,6 +73,27 @@ def _publish_flood_then_stop(port: int, token: str, command: str = "pause") -> N
         client.disconnect()
 
 
+class CommandsInside:
+    """Counts, through `rig.cell.command`, the commands (not stops) from a source starting
+    with `source` that are in the cell at once; `most`, the most at any moment."""
+
+    def __init__(self, rig: Rig, source: str) -> None:
+        self.inside = self.most = 0
+        command = rig.cell.command
+
+        async def counted(what: Any, **kwargs: Any) -> Any:
+            if not kwargs.get("source", "").startswith(source) or what.value == "estop":
+                return await command(what, **kwargs)
+            self.inside += 1
+            self.most = max(self.most, self.inside)
+            try:
+                return await command(what, **kwargs)
+            finally:
+                self.inside -= 1
+
+        rig.cell.command = counted  # type: ignore[method-assign]
+
+
 async def _link_up(rig: Rig) -> None:
     async with asyncio.timeout(WAIT_S):
         while not (await rig.api.get("/health")).json()["mqtt"]["connected"]:
@@ -233,57 +254,27 @@ async def test_an_mqtt_flood_is_served_a_few_commands_at_a_time(tmp_path: Path) 
             tmp_path / "data", **broker.cell_login, cell_id=CELL, mqtt_commands=True
         ) as rig:
             await _link_up(rig)
-            command = rig.cell.command
-            inside = 0  # the MQTT commands (not the stop) in the cell now
-            most = 0
-
-            async def counted(what: Any, **kwargs: Any) -> Any:
-                nonlocal inside, most
-                if not kwargs.get("source", "").startswith("mqtt:") or what.value == "estop":
-                    return await command(what, **kwargs)
-                inside += 1
-                most = max(most, inside)
-                try:
-                    return await command(what, **kwargs)
-                finally:
-                    inside -= 1
-
-            rig.cell.command = counted  # type: ignore[method-assign]
+            counted = CommandsInside(rig, "mqtt:")
             made = await rig.api.post("/tokens", json={"name": "mes", "role": "operator"})
             await asyncio.to_thread(_publish_flood_then_stop, broker.port, made.json()["token"])
             await rig.wait_state("ERROR")
-        print(f"at most {most} MQTT commands in the cell at once")
-        assert 0 < most <= ADMITTED
+        print(f"at most {counted.most} MQTT commands in the cell at once")
+        assert 0 < counted.most <= ADMITTED
 
 
 async def test_an_http_burst_is_served_a_few_commands_at_a_time(tmp_path: Path) -> None:
     """The HTTP door serves at most ADMITTED commands at once (server/api/door.py); the
     others wait before their bodies are read, and every one is still answered."""
     async with open_rig(tmp_path / "data") as rig:
-        command = rig.cell.command
-        inside = 0  # the HTTP commands (not the stop) in the cell now
-        most = 0
-
-        async def counted(what: Any, **kwargs: Any) -> Any:
-            nonlocal inside, most
-            if not kwargs.get("source", "").startswith("api:") or what.value == "estop":
-                return await command(what, **kwargs)
-            inside += 1
-            most = max(most, inside)
-            try:
-                return await command(what, **kwargs)
-            finally:
-                inside -= 1
-
-        rig.cell.command = counted  # type: ignore[method-assign]
+        counted = CommandsInside(rig, "api:")
         pool = httpx.Limits(max_connections=HTTP_BURST)
         async with httpx.AsyncClient(
             base_url=rig.api.base_url, headers=rig.api.headers, limits=pool, timeout=WAIT_S
         ) as burst:
             answers = await asyncio.gather(*(burst.post("/pause") for _ in range(HTTP_BURST)))
         assert [answer.status_code for answer in answers] == [409] * HTTP_BURST  # IDLE
-    print(f"at most {most} HTTP commands in the cell at once")
-    assert 0 < most <= ADMITTED
+    print(f"at most {counted.most} HTTP commands in the cell at once")
+    assert 0 < counted.most <= ADMITTED
 
 
 async def test_a_reset_sent_before_a_stop_never_clears_that_stop(tmp_path: Path) -> None:
