@@ -30,6 +30,7 @@ from asyncua import Server, ua
 from server.core.machine.decisions import DecisionNote
 from server.core.machine.transitions import Event, State
 from server.opcua import packml_model as model
+from server.opcua import tags
 from server.opcua.address_space import (
     ALARM_EXTENT,
     MACHINES,
@@ -101,6 +102,7 @@ class PackMLFeed:
         self._state_totals: dict[tuple[int, int], float] = {}
         self._shown = (UnitMode.PRODUCE, PackMLState.IDLE)  # the mode and state written last
         self.warnings: deque[dict[str, Any]] = deque(maxlen=ALARM_EXTENT)
+        self._written: dict[str, object] = {}  # each tag's value as last written
 
     # --- what the cell says ------------------------------------------------------------
 
@@ -259,6 +261,12 @@ class PackMLFeed:
         await self._write("TagID", cell_id, None)
 
     async def _write(self, path: str, value: object, at: float | None) -> None:
+        """Write `path` if its value changed, as the interface writes its tags: about half
+        of a state's twenty tags keep their value from one state to the next (the
+        machines above the one that changed, the mode, the speeds)."""
+        if path in self._written and tags.same(self._written[path], value):
+            return
+        self._written[path] = value
         nodes = self.nodes
         kind = nodes.types[path]
         await self.server.write_attribute_value(
