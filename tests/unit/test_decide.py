@@ -283,6 +283,8 @@ def test_a_command_asked_before_a_stop_made_since_is_refused_whatever_the_state(
     if event in decide.COMPLETION_EVENTS or facts.journal_problem is not None:
         return  # refused by their own rules first
     if asked_before and event in decide.JOURNALED_COMMANDS and facts.probed is None:
-        assert verdict == Refusal(decide.ASKED_BEFORE_STOP)
+        # the payload as decided rides along (a start claimed for the active order)
+        assert isinstance(verdict, Refusal), verdict
+        assert (verdict.message, verdict.field) == (decide.ASKED_BEFORE_STOP, None)
     elif isinstance(verdict, Refusal):
         assert verdict.message != decide.ASKED_BEFORE_STOP
