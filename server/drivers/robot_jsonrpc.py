@@ -63,6 +63,7 @@ from server.drivers.jsonlines import (
     encode_message,
     make_request,
 )
+from server.drivers.move_timing import expected_move_duration, next_poll_s
 
 logger = logging.getLogger(__name__)
 
@@ -81,18 +82,6 @@ class MotionInterrupted(DeviceError):
             f"{method} ended at {_fmt(reached)} instead of {_fmt(target)}; "
             "the move was stopped or replaced before it finished",
         )
-
-
-def expected_move_duration(start: Pose, target: Pose, speed: float) -> float:
-    """Seconds a move should take: the larger of the tool-point distance (mm) and the
-    largest orientation change (deg) over speed, ignoring acceleration.
-
-    Only an estimate for the move deadline, to which the full timeout is added;
-    the simulator times its moves by the same rule.
-    """
-    distance = math.dist(start[:3], target[:3])
-    turn = max(abs(b - a) for a, b in zip(start[3:], target[3:], strict=True))
-    return max(distance, turn) / speed
 
 
 def _fmt(pose: Pose) -> str:
@@ -533,9 +522,8 @@ class JsonRpcRobot:
 
         Deadline: expected duration (distance / speed) + timeout. Cancellation
         sends a shielded stop before re-raising, so the arm never keeps going
-        for a caller that gave up. The poll due just after the expected end is
-        moved onto it (`_next_poll_s`): the arm stands still at each waypoint,
-        valve open while spraying, until the driver sees it has arrived.
+        for a caller that gave up. The polls are placed by the move's expected
+        end (`server/drivers/move_timing.py`).
         """
         began = time.monotonic()
         try:
@@ -555,7 +543,7 @@ class JsonRpcRobot:
                     )
                 if not await self.is_moving():
                     break
-                await asyncio.sleep(self._next_poll_s(expected_end - loop.time()))
+                await asyncio.sleep(next_poll_s(expected_end - loop.time(), self.poll_interval))
             reached = await self.get_position()
         except asyncio.CancelledError:
             stopping = asyncio.ensure_future(self._best_effort_stop(f"{method} was cancelled"))
@@ -568,18 +556,6 @@ class JsonRpcRobot:
             wear.add(self.health.details, wear.MOTION_S, time.monotonic() - began)
         if not self._arrived(reached, target):
             raise MotionInterrupted(method, target, reached)
-
-    def _next_poll_s(self, until_expected_end: float) -> float:
-        """Seconds to the next isMoving: every poll_interval, but at the expected end
-        when that comes sooner, and a fifth of the interval for the interval after it
-        (an arm that accelerates arrives a little late)."""
-        if until_expected_end > self.poll_interval:
-            return self.poll_interval
-        if until_expected_end > 0:
-            return until_expected_end
-        if until_expected_end > -self.poll_interval:
-            return self.poll_interval / 5
-        return self.poll_interval
 
     def _arrived(self, reached: Pose, target: Pose) -> bool:
         tolerance = self.position_tolerance
