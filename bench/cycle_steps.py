@@ -51,7 +51,7 @@ STEP_ORDER = (
     "run's end → IDLE",
 )
 IMAGE_STEPS = {"_table_view": "frame: drawn", "undistort_frame": "frame: undistorted"}
-IMAGE_STEPS["_look"] = "analysis"
+IMAGE_STEPS["look_at_part"] = "analysis"
 
 
 class StepClock:

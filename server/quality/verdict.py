@@ -7,9 +7,10 @@ or the device and the figure against its tolerance (the setting's value).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from server.settings.quality import QualitySettings
+if TYPE_CHECKING:  # the image process imports this module (look.py): no settings there
+    from server.settings.quality import QualitySettings
 
 
 def precision_reasons(precision: dict[str, Any], settings: QualitySettings) -> list[str]:

@@ -43,6 +43,14 @@ class Placed(Protocol):
     def outline_mm(self) -> np.ndarray: ...
 
 
+@dataclass(frozen=True)
+class PlacedPart:
+    """A `Placed` as it crosses to the image process: the id and the outline alone."""
+
+    workpiece_id: str
+    outline_mm: np.ndarray
+
+
 def marker_residuals(
     frame: np.ndarray, calibration: PlaneCalibration, positions: list[tuple[float, float]]
 ) -> dict[str, Any]:

@@ -4,113 +4,24 @@ calibration (chessboard views → intrinsics), each validated and persisted."""
 from __future__ import annotations
 
 import asyncio
-from dataclasses import dataclass
-from functools import cache
 from typing import Any
 
-import cv2
 import numpy as np
 
 from server.common.errors import OperationError
 from server.core.operations.base import OperationContext, OperationResult, OperationWarning
 from server.core.operations.camera_frames import capture, capture_undistorted
 from server.quality.vision_check import DEGRADING_SHARE
-from server.vision.homography import (
-    PlaneCalibration,
-    annotate_markers,
-    fit_plane_calibration,
-    leave_one_out_errors,
-    mapped_side_mm,
-)
 from server.vision.intrinsics import calibrate_intrinsics, find_chessboard
-from server.vision.markers import MarkerDetection, MarkerDetector, border_corners, missing_markers
+from server.vision.marker_map import (
+    REQUIRED_MARKERS,
+    MarkersMissing,
+    ScaleNotMeasurable,
+    calibrate_from_frame,
+)
 from server.vision.process import IMAGE_PROCESS
 
-REQUIRED_MARKERS = range(9)
 MIN_VIEW_SHIFT_PX = 20.0  # a real operator must move the board between views
-
-
-@cache
-def _detector() -> MarkerDetector:
-    return MarkerDetector(fast=False)  # calibration wants the reference, not the fast path
-
-
-@dataclass(frozen=True)
-class IndependentChecks:
-    """What the calibration is checked against besides its own fit.
-
-    `side_mm` is each marker's side through the map (its scale against the printed size);
-    `holdout_mm` each marker's leave-one-out error (where the map has no marker).
-    """
-
-    side_mm: dict[int, float]
-    holdout_mm: dict[int, float]
-
-    @property
-    def mean_side_mm(self) -> float:
-        return sum(self.side_mm.values()) / len(self.side_mm)
-
-    def scale_error_pct(self, marker_size_mm: float) -> float:
-        """How far the map's scale is from the printed markers', in %, signed."""
-        return 100.0 * (self.mean_side_mm / marker_size_mm - 1.0)
-
-    @property
-    def worst_holdout(self) -> tuple[int, float]:
-        marker = max(self.holdout_mm, key=self.holdout_mm.__getitem__)
-        return marker, self.holdout_mm[marker]
-
-
-def _check_independently(
-    frame: np.ndarray,
-    calibration: PlaneCalibration,
-    detections: dict[int, MarkerDetection],
-    marker_positions: list[tuple[float, float]],
-) -> IndependentChecks:
-    """The markers' sides through the map, and the leave-one-out errors."""
-    cells = _detector().dictionary.markerSize + 2  # the black border is one cell wide
-    side_mm = {}
-    for i in REQUIRED_MARKERS:
-        try:
-            edges = border_corners(frame, detections[i].corners, cells)
-        except ValueError:
-            continue  # a smudged border: the other markers still measure the scale
-        side_mm[i] = mapped_side_mm(calibration.homography, edges)
-    if not side_mm:
-        raise OperationError(
-            "CALIBRATION_SCALE",
-            "robot calibration scale not measurable: no marker's border edges were found; "
-            "check that the markers are clean and evenly lit",
-        )
-    holdout_mm = leave_one_out_errors(
-        {i: detections[i].centre for i in REQUIRED_MARKERS},
-        {i: marker_positions[i] for i in REQUIRED_MARKERS},
-    )
-    return IndependentChecks(side_mm, holdout_mm)
-
-
-def _calibrate_from_frame(
-    frame: np.ndarray, marker_positions: list[tuple[float, float]]
-) -> tuple[PlaneCalibration, bytes | None, IndependentChecks]:
-    """The map, the annotated frame as PNG, and the checks; run in the image process
-    (`server.vision.process`), so only the PNG crosses back, not the frame."""
-    detections = _detector().detect(frame)
-    missing = missing_markers(detections, REQUIRED_MARKERS)
-    if missing:
-        names = ", ".join(str(m) for m in missing)
-        plural = "s" if len(missing) > 1 else ""
-        raise OperationError(
-            "MARKER_NOT_FOUND",
-            f"marker{plural} {names} not found: check lighting and that the "
-            f"marker{plural} {'are' if plural else 'is'} uncovered",
-            recoverable=True,
-        )
-    pixels = {i: detections[i].centre for i in REQUIRED_MARKERS}
-    robot_mm = {i: marker_positions[i] for i in REQUIRED_MARKERS}
-    calibration = fit_plane_calibration(pixels, robot_mm)
-    checks = _check_independently(frame, calibration, detections, marker_positions)
-    annotated = annotate_markers(frame, detections, calibration.residuals_mm)
-    ok, png = cv2.imencode(".png", annotated)
-    return calibration, png.tobytes() if ok else None, checks
 
 
 async def calibrate_robot(ctx: OperationContext) -> OperationResult:
@@ -124,9 +35,25 @@ async def calibrate_robot(ctx: OperationContext) -> OperationResult:
     settings = ctx.settings
     frame = await capture_undistorted(ctx, "robot calibration")
     ctx.report({"step": "detecting markers", "fraction": 0.3})
-    calibration, image_png, checks = await IMAGE_PROCESS.call(
-        _calibrate_from_frame, settings.marker_positions_mm, frame=frame
-    )
+    try:
+        calibration, image_png, checks = await IMAGE_PROCESS.call(
+            calibrate_from_frame, settings.marker_positions_mm, frame=frame
+        )
+    except MarkersMissing as exc:
+        names = ", ".join(str(m) for m in exc.missing)
+        plural = "s" if len(exc.missing) > 1 else ""
+        raise OperationError(
+            "MARKER_NOT_FOUND",
+            f"marker{plural} {names} not found: check lighting and that the "
+            f"marker{plural} {'are' if plural else 'is'} uncovered",
+            recoverable=True,
+        ) from None
+    except ScaleNotMeasurable:
+        raise OperationError(
+            "CALIBRATION_SCALE",
+            "robot calibration scale not measurable: no marker's border edges were found; "
+            "check that the markers are clean and evenly lit",
+        ) from None
     limit = settings.calibration_max_error_mm
     if calibration.mean_error_mm > limit:
         worst = max(calibration.residuals_mm, key=calibration.residuals_mm.__getitem__)

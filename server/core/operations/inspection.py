@@ -15,7 +15,6 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 
 from server.common.errors import OperationError
@@ -27,23 +26,16 @@ from server.core.operations.camera_frames import (
 )
 from server.core.operations.workpieces import Target
 from server.quality.dispensing import dispensing_consistency
+from server.quality.look import look_at_part
 from server.quality.model import PlannedSegment, RunSamples
 from server.quality.precision import trajectory_precision
 from server.quality.trends import bead_width_percent, glue_volume_percent
-from server.quality.verdict import dispensing_reasons, part_reasons, precision_reasons, verdict_of
-from server.quality.vision_check import degrading, marker_residuals, relocate
+from server.quality.verdict import dispensing_reasons, precision_reasons, verdict_of
+from server.quality.vision_check import PlacedPart, degrading
 from server.vision.bead import (
-    BeadSegment,
     BeadTolerances,
-    annotate_bead,
-    expected_bead_width_mm,
-    inspect_bead,
 )
-from server.vision.homography import PlaneCalibration
-from server.vision.outlines import transform_outline
 from server.vision.process import IMAGE_PROCESS
-
-JPEG_QUALITY = 85
 
 
 @dataclass(frozen=True)
@@ -116,10 +108,10 @@ async def inspect_run(
     positions = list(settings.marker_positions_mm)
     measured = precision_reasons(precision, settings) + dispensing_reasons(dispensing, settings)
     vision, per_segment, parts, reasons, jpeg = await IMAGE_PROCESS.call(
-        _look,
+        look_at_part,
         calibration,
         positions,
-        targets,
+        [PlacedPart(t.workpiece_id, t.outline_mm) for t in targets],
         library,
         segments,
         tolerances,
@@ -152,55 +144,6 @@ async def inspect_run(
         ctx, reasons, precision, dispensing, vision, per_segment, samples, started, jpeg
     )
     return Inspection(document, summary_of(document), jpeg, warnings)
-
-
-def _look(
-    frame: np.ndarray,
-    calibration: PlaneCalibration,
-    marker_positions: list[tuple[float, float]],
-    targets: list[Target],
-    library: dict[str, np.ndarray],
-    segments: list[PlannedSegment],
-    tolerances: BeadTolerances,
-    measured: list[str],
-    max_offset_mm: float,
-) -> tuple[dict[str, Any], list[dict[str, Any]], list[Any], list[str], bytes | None]:
-    """The frame's vision work: markers, parts, the bead, the part's reasons and the
-    annotated JPEG. Run in the image process (`server.vision.process`), so only the JPEG
-    and the findings cross.
-
-    The reasons are the part's whole verdict: `measured` (its path and its glue, judged
-    before the frame), its position and its bead; the image is stamped from them, so the
-    picture and the record never disagree."""
-    vision = marker_residuals(frame, calibration, marker_positions)
-    parts = relocate(frame, calibration, targets, library)
-    moved = {p.workpiece_id: p.transform for p in parts}
-    beads = [
-        BeadSegment(
-            s.index,
-            s.workpiece_id,
-            transform_outline(s.path_mm, moved[s.workpiece_id])
-            if s.workpiece_id in moved
-            else s.path_mm,
-            expected_bead_width_mm(s.flow_ml_min, s.speed_mm_s),
-        )
-        for s in segments
-    ]
-    findings = inspect_bead(frame, beads, calibration, tolerances)
-    found = [p.as_dict() for p in parts]
-    reasons = (
-        measured
-        + part_reasons(found, max_offset_mm)
-        + [problem for finding in findings for problem in finding.problems]
-    )
-    annotated = annotate_bead(frame, beads, findings, calibration, reasons)
-    ok, jpeg = cv2.imencode(".jpg", annotated, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-    per_segment = []
-    for bead, finding in zip(beads, findings, strict=True):
-        per_segment.append(
-            {**finding.as_dict(), "expected_width_mm": round(bead.expected_width_mm, 3)}
-        )
-    return vision, per_segment, found, reasons, jpeg.tobytes() if ok else None
 
 
 def _document(

@@ -18,27 +18,9 @@ from pydantic import ValidationError
 from server.common.errors import OperationError
 from server.core.operations.base import OperationContext, OperationResult
 from server.core.operations.camera_frames import capture_undistorted, require_robot_calibration
-from server.storage.workpieces import SpraySettings, Workpiece, WorkpieceIn
-from server.vision.outlines import (
-    match_outline,
-    outline_to_mm,
-    part_outlines_px,
-    transform_outline,
-)
+from server.storage.workpieces import SpraySettings, WorkpieceIn
+from server.vision.part_finding import match_parts, measure_part
 from server.vision.process import IMAGE_PROCESS
-
-THUMBNAIL_PX = 256
-
-
-def _thumbnail(frame: np.ndarray, contour_px: np.ndarray) -> bytes:
-    x, y, w, h = cv2.boundingRect(contour_px.astype(np.float32))
-    margin = max(w, h) // 10 + 4
-    crop = frame[max(0, y - margin) : y + h + margin, max(0, x - margin) : x + w + margin]
-    scale = THUMBNAIL_PX / max(crop.shape[:2])
-    if scale < 1:
-        crop = cv2.resize(crop, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    ok, png = cv2.imencode(".png", crop)
-    return png.tobytes() if ok else b""
 
 
 def _not_found(what: str) -> OperationError:
@@ -50,28 +32,6 @@ def _not_found(what: str) -> OperationError:
     )
 
 
-def _measure(
-    frame: np.ndarray, homography: np.ndarray, library: dict[str, np.ndarray]
-) -> tuple[np.ndarray, bytes, dict[str, Any] | None]:
-    """The largest part's outline (mm), its thumbnail (PNG) and the stored part it matches
-    (id, score, fit error), if any; run in the image process."""
-    outlines = part_outlines_px(frame)
-    if not outlines:
-        raise _not_found("workpiece creation")
-    outline_mm = outline_to_mm(outlines[0], homography)
-    match = match_outline(outline_mm, library) if library else None
-    similar = (
-        None
-        if match is None
-        else {
-            "workpiece_id": match.workpiece_id,
-            "score": round(match.score, 5),
-            "fit_error_mm": round(match.fit_error_mm, 3),
-        }
-    )
-    return outline_mm, _thumbnail(frame, outlines[0]), similar
-
-
 async def create_workpiece(ctx: OperationContext) -> OperationResult:
     """Capture the part on the table and store its outline (mm) in the library."""
     homography = require_robot_calibration(ctx, "workpiece creation").homography
@@ -81,9 +41,10 @@ async def create_workpiece(ctx: OperationContext) -> OperationResult:
     library = ctx.stores.workpieces
     entries = await asyncio.to_thread(library.list)
     outlines = {w.id: np.asarray(w.outline_mm, dtype=np.float64) for w in entries}
-    outline_mm, thumbnail, similar = await IMAGE_PROCESS.call(
-        _measure, homography, outlines, frame=frame
-    )
+    measured = await IMAGE_PROCESS.call(measure_part, homography, outlines, frame=frame)
+    if measured is None:
+        raise _not_found("workpiece creation")
+    outline_mm, thumbnail, similar = measured
     if similar is not None:  # which stored part it is, in words as well as figures
         similar["name"] = next(w.name for w in entries if w.id == similar["workpiece_id"])
     if similar is not None and ctx.params.get("if_new"):
@@ -154,38 +115,6 @@ class Target:
     match: dict[str, Any] | None = None
 
 
-def _match_all(
-    frame: np.ndarray,
-    homography: np.ndarray,
-    library: dict[str, np.ndarray],
-    by_id: dict[str, Workpiece],
-) -> list[Target]:
-    """Each part outline in the frame matched to the library; run in the image process."""
-    targets = []
-    for contour in part_outlines_px(frame):
-        detected = outline_to_mm(contour, homography)
-        match = match_outline(detected, library)
-        if match is None:
-            continue
-        entry = by_id[match.workpiece_id]
-        placed = transform_outline(library[match.workpiece_id], match.transform)
-        targets.append(
-            Target(
-                entry.id,
-                entry.name,
-                placed,
-                entry.spray,
-                {
-                    "score": round(match.score, 5),
-                    "rotation_deg": round(match.rotation_deg, 3),
-                    "translation_mm": [round(v, 3) for v in match.translation_mm],
-                    "fit_error_mm": round(match.fit_error_mm, 3),
-                },
-            )
-        )
-    return targets
-
-
 async def locate_workpieces(ctx: OperationContext, only: str | None) -> list[Target]:
     """Find the parts on the table and match each to the library (or to `only`)."""
     homography = require_robot_calibration(ctx, "contour matching").homography
@@ -202,7 +131,11 @@ async def locate_workpieces(ctx: OperationContext, only: str | None) -> list[Tar
     by_id = {w.id: w for w in entries}
     frame = await capture_undistorted(ctx, "contour matching")
 
-    targets = await IMAGE_PROCESS.call(_match_all, homography, library, by_id, frame=frame)
+    found = await IMAGE_PROCESS.call(match_parts, homography, library, frame=frame)
+    targets = []
+    for workpiece_id, placed, figures in found:
+        entry = by_id[workpiece_id]
+        targets.append(Target(entry.id, entry.name, placed, entry.spray, figures))
     if not targets:
         raise OperationError(
             "WORKPIECE_NOT_MATCHED",
