@@ -13,12 +13,17 @@ after the first run and after the last, every process of the cell is read from
 
 Two layouts: `sim`, the default run (simulators on loopback in the server's own
 process, the simulated camera rendering in the image process), and `devices`,
-the robot and glue simulators as processes of their own, the server pointed at
-them by address (ROBOT_IP, GLUE_CONTROLLER_PORT) as at real devices; their own
-memory is listed apart and not counted in the cell's total. The camera stays
-simulated in `devices` (no camera stream is served on loopback): its renderer's
-share is the image process's, so the `devices` total is the server's own with
-an image process that renders.
+every device a process of its own, the server pointed at each by address as at
+real devices: the robot and glue simulators (ROBOT_IP, GLUE_CONTROLLER_PORT) and
+a network camera (VISION_CAMERA_ID, an MJPEG stream over HTTP from
+`server.drivers.sim.camera_stream`, read through OpenCV's video I/O as a real
+one is). Their own memory is listed apart and not counted in the cell's total.
+A cell with a real camera does not commission itself: the `devices` data
+directory is commissioned first by the same server on the simulated camera,
+which the stream's table matches, then the server starts again on the stream.
+Its runs are inspected against a frame without the bead (the stream does not
+know what the robot laid): the parts are judged defective, as nothing here
+reads.
 
 The processes are found by walking the server's descendants: the image process
 (`multiprocessing.spawn`), multiprocessing's resource tracker.
@@ -27,6 +32,7 @@ The processes are found by walking the server's descendants: the image process
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 import time
@@ -37,6 +43,7 @@ from typing import Any
 import httpx
 import psutil
 
+from server.settings.calibration import CalibrationSettings
 from tests.processes import server_process, simulator
 from tests.serving import free_port
 
@@ -45,6 +52,7 @@ SPEED_FACTOR = "20"  # the simulated robot's moves go this many times faster: a 
 # machine busy with other work a frame (even the camera's first answer) can wait seconds.
 CAMERA_TIMEOUT_S = "30"
 RUN_TIMEOUT_S = 300.0  # a bound on one run, never a performance assertion
+CAMERA_SETTING = "VISION_CAMERA_ID"  # the camera's address (an OpenCV index or URL)
 
 
 def role_of(process: psutil.Process, server_pid: int) -> str:
@@ -162,18 +170,37 @@ def one_run(api: httpx.Client) -> str | None:
 
 @contextlib.contextmanager
 def devices_apart() -> Iterator[tuple[dict[str, str], dict[str, int]]]:
-    """The robot and glue simulators as processes of their own: the server's settings for
-    them and their pids."""
+    """The robot, glue and camera simulators as processes of their own: the server's
+    settings for them (the camera's under CAMERA_SETTING) and their pids."""
     with (
         simulator("server.drivers.sim.robot_sim", "--speed-factor", SPEED_FACTOR) as robot,
         simulator("server.drivers.sim.glue_sim", "--speed-factor", SPEED_FACTOR) as glue,
+        simulator("server.drivers.sim.camera_stream") as camera,
     ):
         env = {
             "ROBOT_IP": "127.0.0.1",
             "GLUE_APP_ROBOT_PORT": str(robot.port),
             "GLUE_CONTROLLER_PORT": f"tcp://127.0.0.1:{glue.port}",
+            CAMERA_SETTING: f"http://127.0.0.1:{camera.port}/stream.mjpg",
+            # a real camera's table is set explicitly: the stream's is the simulated one
+            "GLUE_APP_MARKER_POSITIONS_MM": json.dumps(CalibrationSettings().marker_positions_mm),
         }
-        yield env, {"robot simulator": robot.process.pid, "glue simulator": glue.process.pid}
+        pids = {
+            "robot simulator": robot.process.pid,
+            "glue simulator": glue.process.pid,
+            "camera stream": camera.process.pid,
+        }
+        yield env, pids
+
+
+def commission(data: Path, env: dict[str, str]) -> None:
+    """Commission `data` as the simulated cell does itself: the server once on the
+    simulated camera, with the same devices otherwise, stopped once it is IDLE."""
+    simulated = {name: value for name, value in env.items() if name != CAMERA_SETTING}
+    port = free_port()
+    with server_process(port, data, simulated, timeout=300), admin(port, data) as api:
+        wait_state(api, "IDLE")
+        require_commissioned(data)
 
 
 def measure(
@@ -194,6 +221,8 @@ def measure(
         data = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-memory-")))
         port = free_port()
         (data / "data").mkdir()
+        if layout == "devices":
+            commission(data / "data", env)
         server = stack.enter_context(server_process(port, data / "data", env, timeout=300))
         api = stack.enter_context(admin(port, data / "data"))
         wait_state(api, "IDLE")

@@ -18,12 +18,12 @@ from server.core.operations.calibration import calibrate_camera, calibrate_robot
 from server.core.operations.workpieces import create_workpiece
 from server.core.worker.devices import CellDevices
 from server.drivers.camera import SimulatedCamera
+from server.drivers.sim.camera_workpieces import DEMO_WORKPIECE
 from server.settings.model import Settings
 from server.storage import CellStores
 
 log = logging.getLogger(__name__)
 
-DEMO_WORKPIECE = ("rect-120x80", 400.0, -75.0, 5.0)  # shape, x mm, y mm, rotation deg
 DEMO_ID = "demo"
 DEMO_BEAD_INSET_MM = -5.0  # the demo part's outline offset: its bead lies inside
 # Tries of a step whose frame did not come in time. The image process works at the lowest

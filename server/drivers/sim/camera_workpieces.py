@@ -14,6 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+# Where the simulated cell's demo part lies (shape, x mm, y mm, rotation deg): placed by
+# commissioning, and shown by the network camera simulator (camera_stream.py).
+DEMO_WORKPIECE = ("rect-120x80", 400.0, -75.0, 5.0)
+
 
 @dataclass(frozen=True)
 class WorkpieceShape:
