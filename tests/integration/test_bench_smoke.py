@@ -364,7 +364,8 @@ def test_cell_memory_lists_every_process_of_both_layouts_and_soaks(results_in_tm
         for row in mine:
             assert 0 < row["unique_mb"] <= row["pss_mb"] <= row["rss_mb"]
     apart = {row["process"] for row in rows if row["layout"] == "devices"}
-    assert {"robot simulator (not counted)", "glue simulator (not counted)"} <= apart
+    simulators = ("robot simulator", "glue simulator", "camera stream")
+    assert {f"{name} (not counted)" for name in simulators} <= apart
     saved = json.loads((results_in_tmp / "memory_cell.json").read_text())
     assert set(saved["unique_total_mb"]) == {"sim", "devices"}
 
