@@ -42,6 +42,8 @@ it minus that time, on the same machine's clock.
 - `opcua`: transition → OPC UA data change of cell-1's CellState, with the
   subscription's publishing interval (`--publishing-ms`, the server's floor is
   what asyncua grants) included: a client sees a change at the next publish.
+- `written`: transition → the server's write of that CellState (the value's
+  ServerTimestamp): the OPC UA data change's lag before the publishing interval.
 - `alarms`: the cell raising or clearing an alarm (an e-stop's fault recorded, the
   reset that clears it) → the OPC UA event on a subscription to cell-1's Server
   object, the event's own `Time` against its arrival, the same publishing interval
@@ -88,6 +90,7 @@ SPEED_FACTOR = "3.0"  # the witness's simulators' speed (bench/stop_witness.py),
 WITHOUT_INTERFACES = ("plain", "control")
 SPARKPLUG_GROUP = "bench"  # cell-1's Sparkplug B group
 WITNESSED = ("cell-1", *WITHOUT_INTERFACES)  # each stop timed at the devices too
+WRITTEN = "_written"  # the key this bench adds to a CellState: when the server wrote it
 
 
 def free_port() -> int:
@@ -206,7 +209,10 @@ async def opcua_changes(
         def datachange_notification(self, node: Any, value: Any, data: Any) -> None:
             arrived = time.time()
             with contextlib.suppress(ValueError, TypeError):
-                received.append((arrived, json.loads(value)))
+                document = json.loads(value)
+                written = data.monitored_item.Value.ServerTimestamp
+                document[WRITTEN] = written.timestamp() if written is not None else None
+                received.append((arrived, document))
 
     client = Client(f"opc.tcp://127.0.0.1:{port}")
     await client.connect()
@@ -377,6 +383,13 @@ async def cycles(client: httpx.AsyncClient, cells: list[Cell], count: int) -> No
         await reset_all(client, cells)
 
 
+def written_lags(received: Received, since: float, until: float) -> list[float]:
+    """The server's write of CellState (its ServerTimestamp) minus the transition's own
+    time, once per transition: the OPC UA lag before the publishing interval's wait."""
+    as_written = [(document[WRITTEN], document) for _, document in received if document[WRITTEN]]
+    return lags(as_written, "since", since, until)
+
+
 def lags(
     received: list[tuple[float, dict[str, Any]]], stamp: str, since: float, until: float
 ) -> list[float]:
@@ -499,6 +512,10 @@ async def run(cycles_count: int, publishing_ms: float, data: Path) -> list[dict[
             {
                 "figure": f"alarm → OPC UA event ({granted:g} ms), {phase}",
                 **percentiles_ms(alarm_lags),
+            },
+            {
+                "figure": f"transition → CellState written (its ServerTimestamp), {phase}",
+                **percentiles_ms(written_lags(opcua, since, until)),
             },
         ]
     return [

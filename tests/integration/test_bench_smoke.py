@@ -201,15 +201,18 @@ def test_plant_latency_sees_every_transition_on_mqtt_sparkplug_and_opcua(
 ) -> None:
     """Two cycles of five cells (e-stop, reset, start, e-stop while spraying, reset):
     5 transitions × 3 MQTT cells × 2 cycles on the broker, 5 × 2 in cell-1's Sparkplug
-    DDATA and 5 × 2 on cell-1's OPC UA subscription; cell-1's alarm events; then the
+    DDATA and 5 × 2 on cell-1's OPC UA subscription, each with the server's write time;
+    cell-1's alarm events; then the
     same two cycles of cell-1 alone, each seen once on every interface; per condition,
     one device stop and one answer per cycle of each of the three cells compared
     (cell-1, plain and the control)."""
     rows = plant_latency.main(["--cycles", "2"])
     counts = [row["n"] for row in rows]
-    assert counts[:3] == [30, 10, 10] and counts[4:7] == [10, 10, 10], counts
-    assert counts[8:] == [2] * 12, counts
-    for alarm in (rows[3], rows[7]):
+    # per phase: MQTT, Sparkplug, OPC UA data change, alarm events, CellState written
+    assert counts[:3] == [30, 10, 10] and counts[5:8] == [10, 10, 10], counts
+    assert counts[4] == counts[9] == 10, counts
+    assert counts[10:] == [2] * 12, counts
+    for alarm in (rows[3], rows[8]):
         assert alarm["figure"].startswith("alarm") and alarm["n"] > 0, alarm
     for row in rows:
         assert_ordered_latencies(row)
