@@ -175,8 +175,13 @@ def server_process(
 
 def run_module(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
     """Run `python -m ARGS` to its end (a CLI such as `server backup`), output captured."""
+    return run_python("-m", *args, timeout=timeout)
+
+
+def run_python(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
+    """Run `python ARGS` to its end (`-c CODE`, a script), in this checkout, output captured."""
     return subprocess.run(
-        [sys.executable, "-m", *args],
+        [sys.executable, *args],
         capture_output=True,
         text=True,
         env=_env(None),

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import subprocess
 import sys
 import time
 from collections.abc import Iterator
@@ -15,7 +14,7 @@ import pytest
 
 from server.common.errors import OperationError
 from server.vision.process import ImageProcess, ImageProcessFailed
-from tests.processes import ROOT, environment, has_ended
+from tests.processes import has_ended, run_python
 
 
 # What the child runs: module-level, as the image process requires.
@@ -189,13 +188,6 @@ def test_the_child_runs_none_of_the_parents_main_module(tmp_path: Path) -> None:
     child: it would import the whole server there for nothing."""
     script = tmp_path / "runs_a_cell.py"
     script.write_text(SCRIPT)
-    done = subprocess.run(
-        [sys.executable, str(script)],
-        capture_output=True,
-        text=True,
-        env=environment(),
-        cwd=ROOT,
-        timeout=120,
-    )
+    done = run_python(str(script))
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "None"

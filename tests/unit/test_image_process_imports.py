@@ -13,11 +13,9 @@ imported in a fresh interpreter, and what that loaded.
 from __future__ import annotations
 
 import ast
-import subprocess
-import sys
 from pathlib import Path
 
-from tests.processes import ROOT, environment
+from tests.processes import ROOT, run_python
 
 OPERATIONS = ROOT / "server" / "core" / "operations"
 # Never in the image process of a cell with a real camera.
@@ -65,14 +63,7 @@ def test_every_function_handed_over_comes_from_a_light_module() -> None:
         f"for name in {modules!r}: importlib.import_module(name)\n"
         "print(' '.join(sorted(sys.modules)))\n"
     )
-    done = subprocess.run(
-        [sys.executable, "-c", probe],
-        capture_output=True,
-        text=True,
-        env=environment(),
-        cwd=ROOT,
-        timeout=120,
-    )
+    done = run_python("-c", probe)
     assert done.returncode == 0, done.stderr
     loaded = done.stdout.split()
     heavy = sorted(m for m in loaded if m.split(".")[0] in HEAVY or m.startswith(HEAVY))

@@ -10,10 +10,7 @@ is built (`server/bootstrap/plant.py`, `server/bootstrap/tls.py`,
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
-from tests.processes import ROOT, environment
+from tests.processes import run_python
 
 ONLY_WHEN_ASKED_FOR = ("asyncua", "aiomqtt", "paho", "cryptography", "httpx", "rich")
 
@@ -26,14 +23,7 @@ print(" ".join(sorted({name.split(".")[0] for name in sys.modules})))
 
 
 def test_the_server_loads_no_plant_link_tls_nor_webhook_library_it_was_not_asked_for() -> None:
-    done = subprocess.run(
-        [sys.executable, "-c", PROBE],
-        capture_output=True,
-        text=True,
-        env=environment(),
-        cwd=ROOT,
-        timeout=120,
-    )
+    done = run_python("-c", PROBE)
     assert done.returncode == 0, done.stderr
     loaded = set(done.stdout.split())
     assert not loaded & set(ONLY_WHEN_ASKED_FOR), sorted(loaded & set(ONLY_WHEN_ASKED_FOR))

@@ -30,7 +30,6 @@ import asyncio
 import contextlib
 import itertools
 import logging
-import signal
 from collections.abc import Sequence
 
 import cv2
@@ -39,6 +38,7 @@ import numpy as np
 from server.drivers.sim.camera_model import DEFAULT_CAMERA_MODEL
 from server.drivers.sim.camera_scene import Scene, clear_render_caches, render_table
 from server.drivers.sim.camera_workpieces import DEMO_WORKPIECE
+from server.drivers.sim.standalone import stopped_by_signals
 from server.settings.calibration import CalibrationSettings
 
 logger = logging.getLogger(__name__)
@@ -140,10 +140,7 @@ async def _run(args: argparse.Namespace) -> None:
     frames = await asyncio.to_thread(table_frames)
     stream = CameraStream(frames, args.fps, args.host, args.port)
     await stream.start()
-    stop_requested = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop_requested.set)
+    stop_requested = stopped_by_signals()
     print(f"camera stream listening on {args.host}:{stream.port}", flush=True)
     try:
         await stop_requested.wait()

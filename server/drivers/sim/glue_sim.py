@@ -74,7 +74,6 @@ import json
 import logging
 import math
 import random
-import signal
 import sys
 import time
 from collections.abc import Callable
@@ -89,6 +88,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from server.drivers import glue_registers as regs
 from server.drivers.glue_registers import Register, Table
 from server.drivers.sim.glue_flow import FLOW_TIME_CONSTANT_S
+from server.drivers.sim.standalone import stopped_by_signals
 
 logger = logging.getLogger(__name__)
 
@@ -591,10 +591,7 @@ async def _run(args: argparse.Namespace) -> None:
         control_port=args.control_port,
         speed_factor=args.speed_factor,
     )
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+    stop = stopped_by_signals()
     try:
         await sim.start()
     except (OSError, RuntimeError) as exc:

@@ -58,7 +58,6 @@ import contextlib
 import functools
 import logging
 import math
-import signal
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
@@ -83,6 +82,7 @@ from server.drivers.jsonlines import (
     make_result,
     parse_request,
 )
+from server.drivers.sim.standalone import stopped_by_signals
 
 logger = logging.getLogger(__name__)
 
@@ -632,10 +632,7 @@ async def _run(args: argparse.Namespace) -> None:
         speed_factor=args.speed_factor,
     )
     await simulator.start()
-    stop_requested = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop_requested.set)
+    stop_requested = stopped_by_signals()
     print(f"robot simulator listening on {args.host}:{simulator.port}", flush=True)
     try:
         await stop_requested.wait()
