@@ -5,8 +5,7 @@ Apart from the inspection (`server/core/operations/inspection.py`) because it ru
 in the image process (`server.vision.process`), which imports the module of each
 function it is handed: this one imports vision and the quality's pure functions
 only, so the image process of a cell with a real camera holds OpenCV and numpy,
-not the server's settings, models and operations (about 26 MB,
-`bench.memory --cell`, the `devices` layout).
+not the server's settings, models and operations (docs/benchmarks.md, Memory).
 """
 
 from __future__ import annotations

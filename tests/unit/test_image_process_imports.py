@@ -3,9 +3,8 @@ and the quality's pure functions only.
 
 The image process imports the module of each function it is handed
 (`server/vision/process.py`). A function defined beside its operation brought the
-whole operations package, the settings and pydantic into that process with it:
-26 MB of a cell whose every device is real (`bench.memory --cell`, the `devices`
-layout, against its goal of 150 MB for the cell). Found here from the sources:
+whole operations package, the settings and pydantic into that process with it
+(docs/benchmarks.md, Memory: the cell with every device real). Found here from the sources:
 each `IMAGE_PROCESS.call(f, ...)` in `server/core/operations/`, `f`'s module
 imported in a fresh interpreter, and what that loaded.
 """
