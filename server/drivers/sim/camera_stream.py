@@ -38,7 +38,11 @@ import numpy as np
 from server.drivers.sim.camera_model import DEFAULT_CAMERA_MODEL
 from server.drivers.sim.camera_scene import Scene, clear_render_caches, render_table
 from server.drivers.sim.camera_workpieces import DEMO_WORKPIECE
-from server.drivers.sim.standalone import stopped_by_signals
+from server.drivers.sim.standalone import (
+    run_standalone,
+    serve_until_signalled,
+    simulator_arguments,
+)
 from server.settings.calibration import CalibrationSettings
 
 logger = logging.getLogger(__name__)
@@ -140,27 +144,14 @@ async def _run(args: argparse.Namespace) -> None:
     frames = await asyncio.to_thread(table_frames)
     stream = CameraStream(frames, args.fps, args.host, args.port)
     await stream.start()
-    stop_requested = stopped_by_signals()
-    print(f"camera stream listening on {args.host}:{stream.port}", flush=True)
-    try:
-        await stop_requested.wait()
-    finally:
-        await stream.stop()
+    await serve_until_signalled(stream, "camera stream")
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Command-line entry: serve until SIGTERM or SIGINT."""
-    parser = argparse.ArgumentParser(description="Network camera simulator (MJPEG over HTTP)")
-    parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--port", type=int, default=8081, help="0 picks a free port")
+    parser = simulator_arguments("Network camera simulator (MJPEG over HTTP)", 8081)
     parser.add_argument("--fps", type=float, default=10.0, help="frames a second per stream")
-    parser.add_argument("--log-level", default="WARNING")
-    args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(message)s"
-    )
-    with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(_run(args))
+    run_standalone(_run, parser, argv)
 
 
 if __name__ == "__main__":

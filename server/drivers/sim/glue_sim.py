@@ -88,7 +88,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 from server.drivers import glue_registers as regs
 from server.drivers.glue_registers import Register, Table
 from server.drivers.sim.glue_flow import FLOW_TIME_CONSTANT_S
-from server.drivers.sim.standalone import stopped_by_signals
+from server.drivers.sim.standalone import serve_until_signalled, stopped_by_signals
 
 logger = logging.getLogger(__name__)
 
@@ -597,13 +597,9 @@ async def _run(args: argparse.Namespace) -> None:
     except (OSError, RuntimeError) as exc:
         print(f"glue simulator could not start on {args.host}:{args.port}: {exc}", file=sys.stderr)
         raise SystemExit(2) from exc
-    try:
-        if sim.control_port is not None:
-            print(f"glue simulator control on {sim.host}:{sim.control_port}", flush=True)
-        print(f"glue simulator listening on {sim.host}:{sim.port}", flush=True)
-        await stop.wait()
-    finally:
-        await sim.stop()
+    if sim.control_port is not None:
+        print(f"glue simulator control on {sim.host}:{sim.control_port}", flush=True)
+    await serve_until_signalled(sim, "glue simulator", stop)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -54,7 +54,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import functools
 import logging
 import math
@@ -82,7 +81,11 @@ from server.drivers.jsonlines import (
     make_result,
     parse_request,
 )
-from server.drivers.sim.standalone import stopped_by_signals
+from server.drivers.sim.standalone import (
+    run_standalone,
+    serve_until_signalled,
+    simulator_arguments,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -632,29 +635,16 @@ async def _run(args: argparse.Namespace) -> None:
         speed_factor=args.speed_factor,
     )
     await simulator.start()
-    stop_requested = stopped_by_signals()
-    print(f"robot simulator listening on {args.host}:{simulator.port}", flush=True)
-    try:
-        await stop_requested.wait()
-    finally:
-        await simulator.stop()
+    await serve_until_signalled(simulator, "robot simulator")
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Command-line entry: serve until SIGTERM or SIGINT."""
-    parser = argparse.ArgumentParser(description="Robot controller simulator (JSON-RPC over TCP)")
-    parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--port", type=int, default=30003, help="0 picks a free port")
+    parser = simulator_arguments("Robot controller simulator (JSON-RPC over TCP)", 30003)
     parser.add_argument("--speed-factor", type=float, default=1.0, help="motion time divisor")
     parser.add_argument("--workspace-min", type=float, nargs=3, default=(100.0, -400.0, -5.0))
     parser.add_argument("--workspace-max", type=float, nargs=3, default=(800.0, 400.0, 500.0))
-    parser.add_argument("--log-level", default="WARNING")
-    args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(message)s"
-    )
-    with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(_run(args))
+    run_standalone(_run, parser, argv)
 
 
 if __name__ == "__main__":
