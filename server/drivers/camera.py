@@ -438,16 +438,20 @@ class SimulatedCamera(_CameraBase):
         """
         self._open = True
         started = time.monotonic()
+        message = f"simulated camera did not open within {self.timeout:g} s (stall injected)"
         try:
             async with asyncio.timeout(self.timeout):
                 await self._wait_out_faults()
-            async with asyncio.timeout(max(self.timeout, SIM_WARM_UP_S)):
+            # Not a stall when it times out: the image process (a Python of its own) did
+            # not start, which a machine short of CPU or memory shows first.
+            waited = max(self.timeout, SIM_WARM_UP_S)
+            message = f"the image process did not answer within {waited:g} s (host overloaded?)"
+            async with asyncio.timeout(waited):
                 await IMAGE_PROCESS.call(os.getpid)  # queued ahead of the first frame
             self._first_frame = asyncio.ensure_future(self._render(advance=False))
             self._first_frame.add_done_callback(_drawn_or_not)
         except TimeoutError:
             self._open = False
-            message = f"simulated camera did not open within {self.timeout:g} s (stall injected)"
             self.health.record_error(message, connected=False)
             raise DeviceTimeout(DEVICE, message) from None
         except DeviceError as exc:

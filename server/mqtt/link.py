@@ -13,7 +13,8 @@ Three tasks, none of which the worker or the e-stop ever awaits:
   (server/mqtt/outbox.py: the oldest event, progress and alert messages are
   dropped and counted, the retained topics keep their latest);
 - the ticker republishes the retained health when it changes and every
-  `mqtt_health_interval`, and the KPIs every `mqtt_kpis_interval`.
+  `mqtt_health_interval`, and the KPIs every `mqtt_kpis_interval` and within a
+  tick after each run ends (a part's count is not a period late).
 
 The broker is told `online` on `status` at each connection, with its time, and
 a last will of `offline` it publishes itself if the cell goes silent for 1.5
@@ -293,6 +294,7 @@ class MqttLink:
         transition that follows the run's end: so a subscriber hears the run, then the
         cell leaving its state, in the order they happened (as the webhooks do)."""
         message = run_message(self.topics.cell_id, ended, time.time())
+        self._kpis_due = True  # the part's count: at the ticker's next look, as Sparkplug B
         self._held_runs.append((self.cell.bus.last_seq, Entry(self.topics.run, encode(message))))
         if self._handled_seq >= self.cell.bus.last_seq:  # the feed is idle: nothing before it
             self._release_runs(self._handled_seq)
@@ -331,6 +333,7 @@ class MqttLink:
         self.outbox.put(Entry(self.topics.state, encode(state), retain=True))
 
     _last_health = ""
+    _kpis_due = False  # a run ended since the KPIs were last published
 
     def _put_health_if_changed(self, *, anyway: bool = False) -> None:
         health = self._health()
@@ -348,8 +351,9 @@ class MqttLink:
             self._put_health_if_changed(anyway=now >= next_health)
             if now >= next_health:
                 next_health = now + settings.mqtt_health_interval
-            if now >= next_kpis:
+            if now >= next_kpis or self._kpis_due:
                 next_kpis = now + settings.mqtt_kpis_interval
+                self._kpis_due = False
                 try:
                     kpis = await self._kpis()
                 except Exception as exc:  # a journal read failed: the next tick tries again

@@ -68,7 +68,10 @@ class MqttSettings(Section):
         description="longest wait between reconnection attempts, seconds (from 0.1 s, doubling)",
     )
     mqtt_kpis_interval: float = Field(
-        10.0, ge=1, le=3600, description="seconds between publications of the retained KPIs"
+        10.0,
+        ge=1,
+        le=3600,
+        description="seconds between publications of the retained KPIs (also after each run ends)",
     )
     mqtt_health_interval: float = Field(
         10.0,

@@ -487,3 +487,25 @@ async def _stop_while_spraying(tmp_path: Path, before_the_stop: Callable[[], Non
             assert (await rig.api.post("/estop")).status_code == 202
             await plant.wait(lambda: [e for e in plant.on(f"{BASE}/event") if e["to"] == "ERROR"])
             assert rig.robot.last_stop_at is not None and not rig.glue.valve_open
+
+
+async def test_the_retained_kpis_count_a_part_as_soon_as_its_run_ends(tmp_path: Path) -> None:
+    """The period is a floor, not a delay: a plant's dashboard counts the part when
+    it is made, as Sparkplug B's node does, not up to `mqtt_kpis_interval` later."""
+    with mosquitto(tmp_path / "broker") as broker:
+        async with (
+            open_rig(
+                tmp_path / "data", **broker.cell_login, cell_id=CELL, mqtt_kpis_interval=3600
+            ) as rig,
+            subscriber(broker.port, f"{BASE}/#") as plant,
+        ):
+            await plant.wait(lambda: plant.on(f"{BASE}/kpis"))  # the first, at start
+            assert (await run(rig, "start", SPRAY_DEMO))["state"] == "IDLE"
+            quality = (await rig.api.get("/kpis")).json()["quality"]
+            assert quality["parts_good"] + quality["parts_defective"] == 1, quality
+
+            def told() -> bool:
+                kpis = plant.on(f"{BASE}/kpis")
+                return bool(kpis) and kpis[-1]["quality"] == quality
+
+            await plant.wait(told)
