@@ -39,6 +39,7 @@ from typing import Any
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
+from server.api.door import on_headers
 from server.security.forwarded import parse_networks
 from server.settings.model import Settings
 
@@ -190,7 +191,18 @@ class GuardedHttpProtocol(HttpToolsProtocol):
         self.partial = False
         self.registry.fresh.pop(self, None)
         self.registry.between.pop(self, None)
+        ready = getattr(self.loop, "_ready", None)  # asyncio's line of callbacks to run
+        queued = len(ready) if ready is not None else -1
         super().on_headers_complete()
+        if on_headers(self._app_itself(), self.scope) and ready is not None:
+            _first_in_line(ready, queued, self.tasks)
+
+    def _app_itself(self) -> Any:
+        """The app inside uvicorn's wrappers (its trace logger, when that level is on)."""
+        app = self.app
+        while not hasattr(app, "state") and hasattr(app, "app"):
+            app = app.app
+        return app
 
     def on_response_complete(self) -> None:
         super().on_response_complete()
@@ -235,6 +247,20 @@ class GuardedHttpProtocol(HttpToolsProtocol):
             registry.per_address[self.address] -= 1
             if registry.per_address[self.address] <= 0:
                 del registry.per_address[self.address]
+
+
+def _first_in_line(ready: Any, queued: int, tasks: set[asyncio.Task[None]]) -> None:
+    """Move the step uvicorn just queued for a stop's task to the front of the loop's
+    line, so it runs as soon as the callback reading its bytes returns: what it waits
+    for is then the stop lane's own work, never the steps of a flood's requests queued
+    before it (server/api/door.py: `on_headers`). Only that one step, and only when it
+    is certainly the task's (a pipelined request starts no task here)."""
+    if len(ready) != queued + 1:
+        return
+    step = ready[-1]
+    if getattr(getattr(step, "_callback", None), "__self__", None) in tasks:
+        ready.pop()
+        ready.appendleft(step)
 
 
 def guarded_http_protocol(limits: ConnectionLimits) -> type[asyncio.Protocol]:

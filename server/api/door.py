@@ -12,10 +12,10 @@ routing, each kept in its own module and called here as a function that returns:
    handed to the stop lane (server/api/stop_lane.py), which halts the cell before its body
    is read and answers it; no other request enters the lane's module;
 4. admission: a command (a POST to one of the catalogue's other command paths)
-   notes the e-stops counted as it arrives (`ASKED_AT_ESTOPS`: one made after it
-   refuses it, server/core/machine/decide.py) and waits here, before its body is
-   read, while `ADMITTED` commands are being served, as on MQTT and OPC UA (the
-   catalogue says why); a stop never waits for it;
+   has noted the e-stops counted as its headers were read (`ASKED_AT_ESTOPS`, by
+   `on_headers`: one made after it refuses it, server/core/machine/decide.py) and
+   waits here, before its body is read, while `ADMITTED` commands are being
+   served, as on MQTT and OPC UA (the catalogue says why); a stop never waits for it;
 5. the body limit (server/api/limits.py, `bounded`): a body over
    `max_request_bytes`, declared or streamed, is a 413;
 6. the HTTP manners (server/api/methods.py): HEAD answered as GET without the
@@ -32,7 +32,7 @@ is in server/api/ws.py.
 from __future__ import annotations
 
 import asyncio
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -49,6 +49,26 @@ if TYPE_CHECKING:
 
 
 ASKED_AT_ESTOPS = "asked_at_estops"  # the scope state's key: the e-stops a command found
+
+
+def on_headers(app: Any, scope: Scope) -> bool:
+    """What the HTTP protocol asks the moment a request's headers are read, before
+    the loop runs the work queued ahead of it (server/api/connection_guard.py):
+    whether the request is a stop, which then goes first in the loop's line, so a
+    flood on other connections holds it back no turn of the loop at all.
+
+    A command notes the e-stops counted here, not at its turn in the door: a stop
+    read after it that overtakes it in the line is still a stop made after it.
+    Only for the app of a started cell; otherwise the door does it all in order.
+    """
+    cell = getattr(getattr(app, "state", None), "cell", None)
+    if cell is None or not cell.started or scope["type"] != "http":
+        return False
+    if is_stop(scope):
+        return True
+    if scope["method"] == "POST" and scope["path"] in COMMAND_PATHS:
+        scope.setdefault("state", {})[ASKED_AT_ESTOPS] = cell.stops_now()
+    return False
 
 
 def is_stop(scope: Scope) -> bool:
@@ -103,7 +123,7 @@ class HttpDoor:
                 # A cell not started yet: the stop goes on to its route, which makes it.
             elif scope["method"] == "POST" and scope["path"] in COMMAND_PATHS:
                 if cell is not None and cell.started:  # refused if a stop comes ahead of it
-                    scope.setdefault("state", {})[ASKED_AT_ESTOPS] = cell.stops_now()
+                    scope.setdefault("state", {}).setdefault(ASKED_AT_ESTOPS, cell.stops_now())
                 async with self.admitted:
                     await self._route(scope, receive, send)
                 return

@@ -38,7 +38,9 @@ At its door, because each is how that door reads a stop (they stay there):
 - HTTP, the stop made and answered just after the access check, its halt begun
   before its body is read, and no body limit, routing or route on its way:
   `server/api/door.py: HttpDoor` hands it to `server/api/stop_lane.py:
-  StopLane.stop` (bench.estop_latency).
+  StopLane.stop` (bench.estop_latency); its task first in the loop's line as
+  its headers are read, ahead of a flood's requests read before it:
+  `server/api/connection_guard.py: _first_in_line` (bench.estop_doors).
 - The halt itself, a task whose first step has run, with no collection and no
   background thread in between: `server/core/worker/stop.py:
   EmergencyStops.begin` and `halt_at_once`, `server/core/infra/eager.py:
