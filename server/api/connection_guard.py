@@ -194,15 +194,8 @@ class GuardedHttpProtocol(HttpToolsProtocol):
         ready = getattr(self.loop, "_ready", None)  # asyncio's line of callbacks to run
         queued = len(ready) if ready is not None else -1
         super().on_headers_complete()
-        if on_headers(self._app_itself(), self.scope) and ready is not None:
+        if on_headers(self.app, self.scope) and ready is not None:
             _first_in_line(ready, queued, self.tasks)
-
-    def _app_itself(self) -> Any:
-        """The app inside uvicorn's wrappers (its trace logger, when that level is on)."""
-        app = self.app
-        while not hasattr(app, "state") and hasattr(app, "app"):
-            app = app.app
-        return app
 
     def on_response_complete(self) -> None:
         super().on_response_complete()

@@ -61,14 +61,17 @@ def on_headers(app: Any, scope: Scope) -> bool:
     read after it that overtakes it in the line is still a stop made after it.
     Only for the app of a started cell; otherwise the door does it all in order.
     """
-    cell = getattr(getattr(app, "state", None), "cell", None)
-    if cell is None or not cell.started or scope["type"] != "http":
+    if scope["method"] != "POST":  # most requests: nothing to note, nothing to hurry
         return False
-    if is_stop(scope):
-        return True
-    if scope["method"] == "POST" and scope["path"] in COMMAND_PATHS:
+    stop = is_stop(scope)
+    if not stop and scope["path"] not in COMMAND_PATHS:
+        return False
+    cell = getattr(getattr(app, "state", None), "cell", None)
+    if cell is None or not cell.started:
+        return False
+    if not stop:
         scope.setdefault("state", {})[ASKED_AT_ESTOPS] = cell.stops_now()
-    return False
+    return stop
 
 
 def is_stop(scope: Scope) -> bool:

@@ -526,7 +526,7 @@ class ModbusGlueDispenser:
     def _observe(self, status: GlueStatus, uptime_s: int) -> None:
         """Update health.details and report the onsets one status read shows (module doc)."""
         details, now = self.health.details, time.time()
-        wear.glue_held(details, now)
+        wear.glue_held(details, now, status.flow_ml_min if status.valve_open else 0.0)
         details.update(
             valve_open=status.valve_open,
             flow_ml_min=status.flow_ml_min,
