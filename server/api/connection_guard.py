@@ -35,8 +35,9 @@ import logging
 import time
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
+from starlette.types import Scope
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from server.api.door import on_headers
@@ -194,7 +195,8 @@ class GuardedHttpProtocol(HttpToolsProtocol):
         ready = getattr(self.loop, "_ready", None)  # asyncio's line of callbacks to run
         queued = len(ready) if ready is not None else -1
         super().on_headers_complete()
-        if on_headers(self.app, self.scope) and ready is not None:
+        scope = cast("Scope", self.scope)  # uvicorn's TypedDict, the ASGI scope the door reads
+        if on_headers(self.app, scope) and ready is not None:
             _first_in_line(ready, queued, self.tasks)
 
     def on_response_complete(self) -> None:
