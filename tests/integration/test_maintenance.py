@@ -75,9 +75,9 @@ async def test_a_run_counts_valve_cycles_and_glue_and_200_parts_make_the_nozzle_
         sim_ml = rig.glue.dispensed_ml
         assert sim_ml > 0
         # The driver counts the mean of each two flow readings (glue_poll_interval apart,
-        # later on a loaded machine); the simulator integrates its model every 10 ms, and
-        # the flow follows the arm's speed, so drops as the arm turns at each waypoint,
-        # between two readings: the same glue within a fifth over a run this short.
+        # later on a loaded machine); the simulator steps its model as it is read, and the
+        # flow follows the arm's speed, so drops as the arm turns at each waypoint, between
+        # two readings: the same glue within a fifth over a run this short.
         assert counters["glue_ml"] == pytest.approx(sim_ml, rel=0.2)
         assert counters["travel_m"] > 0
         assert counters["camera_frames"] > 0

@@ -25,8 +25,7 @@ four times the setpoint meanwhile); a valve opened with the arm at rest (a purge
 gives the fixed flow until the arm moves (a purge, all along; a run resumed after
 a pause, until the arm sets off again, then the flow follows it). Flows are ml per
 minute of wall time, the clock the server reads and integrates them on, and
-`dispensed_ml` is their integral on it, the model stepped every `MODEL_STEP_S` while
-the valve is open. `speed_factor` > 1 makes the dynamics
+`dispensed_ml` is their integral on it. `speed_factor` > 1 makes the dynamics
 faster (the flow's and the pressure's time constants, a late valve, the
 temperature's drift), like the cell's `simulation_speed_factor`. `close_commanded_at`
 is the time.time() of the last write of "closed" to the valve command; `valve_closed_at`
@@ -100,7 +99,6 @@ AMBIENT_C = 25.0
 # lets the arm settle first: server/core/worker/purging.py); a run opens it on its way,
 # or, resumed after a pause, just before the arm sets off again.
 FIXED_FLOW_AFTER_S = 1.0
-MODEL_STEP_S = 0.01  # how often the flow model steps on its own while the valve is open
 _HOLDING_FCS = {3, 6, 16}
 _INPUT_FCS = {4}
 _CONTROL_LINE_LIMIT = 64 * 1024
@@ -132,7 +130,6 @@ class GlueSimulator:
         self._noise = noise
         self._rng = random.Random(seed)
         self._server: ModbusTcpServer | None = None
-        self._model_clock: asyncio.Task[None] | None = None
         self._control: asyncio.Server | None = None
         self._control_writers: set[asyncio.StreamWriter] = set()
         self.port = 0
@@ -204,7 +201,6 @@ class GlueSimulator:
         )
         await server.serve_forever(background=True)  # RuntimeError if the port is taken
         self._server = server
-        self._model_clock = asyncio.create_task(self._step_model(), name="glue-sim-model")
         self.port = server.transport.sockets[0].getsockname()[1]  # type: ignore[attr-defined]
         if self._requested_control_port is not None:
             try:
@@ -222,9 +218,6 @@ class GlueSimulator:
 
     async def stop(self) -> None:
         """Stop serving and drop every connection; safe to call twice."""
-        if self._model_clock is not None:
-            self._model_clock.cancel()
-            self._model_clock = None
         if self._control is not None:
             self._control.close()
             self._control = None
@@ -400,19 +393,6 @@ class GlueSimulator:
             self._flow = 0.0
         gain = 1 - math.exp(-dt / PRESSURE_TIME_CONSTANT_S)
         self._pressure += (self._pressure_sp - self._pressure) * gain
-
-    async def _step_model(self) -> None:
-        """Step the flow model every MODEL_STEP_S while the valve is open (or about to be).
-
-        Why: `dispensed_ml` is the model's integral, and stepped only when the dispenser
-        is read it held the arm's speed of one read over the whole time since the last;
-        reads that come late on a loaded machine then made it another figure. On its own
-        clock the integral no longer depends on who reads the dispenser, nor when.
-        """
-        while True:
-            await asyncio.sleep(MODEL_STEP_S)
-            if self._valve_open or self._opens_at is not None:
-                self._advance()
 
     def _jitter(self, sigma: float) -> float:
         return self._rng.gauss(0.0, sigma) if self._noise else 0.0
