@@ -51,6 +51,7 @@ import uvicorn
 
 from bench.estop_latency import StopWitness, to_idle, wait_state
 from bench.report import emit, percentiles_ms
+from server.__main__ import uvicorn_options
 from server.bootstrap.app import create_app
 from server.bootstrap.cell import Cell
 from server.core.machine.transitions import State
@@ -143,11 +144,13 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
         port = free_port()
         server = uvicorn.Server(
             uvicorn.Config(
-                # as python -m server runs: its collector tuned (server/bootstrap/latency.py)
+                # as python -m server runs: its collector tuned (server/bootstrap/latency.py),
+                # its HTTP protocol the guarded one (server/api/connection_guard.py)
                 create_app(cell=cell, tune_process=True),
                 host="127.0.0.1",
                 port=port,
                 log_level="error",
+                **uvicorn_options(settings),
             )
         )
         serving = asyncio.create_task(server.serve())
