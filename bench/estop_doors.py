@@ -6,7 +6,12 @@ receiving `stop` and the dispenser receiving the valve-close write (the
 simulators' own stamps, as `bench.estop_latency` takes them). `written_p50_ms` and
 `written_p99_ms` measure the same stop from when the doors' client handed its bytes
 to the kernel: what the client's own loop and outgoing queue held it for is not in
-them (bench/door_client.py: `StopWrites`).
+them (bench/door_client.py: `StopWrites`). That time is split in two at the moment
+the server began the halt (`EmergencyStops.last_halted_at`, both frames written
+straight after): `server_*` from the client's bytes to the halt (the kernel's
+delivery, the wait for a core, the door), `devices_*` from the halt to the later
+device stamp (the two frames written, and the simulators' process waking to read
+them, on the same cores).
 
 Three conditions per door, `--mqtt-flood` / `--opcua-flood` / `--http-flood` pause
 commands ahead of the stop when flooded:
@@ -30,8 +35,8 @@ Every door's conditions alternate trial by trial, so the machine's moods fall on
 of them alike.
 
 Run: `python -m bench.estop_doors` (`--trials 30` per door and condition by
-default). No timing is promised: on a shared machine the figures measure the
-machine as much as the server.
+default; `--doors http` measures one door). No timing is promised: on a shared
+machine the figures measure the machine as much as the server.
 """
 
 from __future__ import annotations
@@ -172,8 +177,10 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
         flooder = await asyncio.to_thread(DoorClient, url, broker.port, opcua_url, token)
         samples: dict[tuple[str, str], list[float]] = {}
         written: dict[tuple[str, str], list[float]] = {}
+        to_frames: dict[tuple[str, str], list[float]] = {}
+        to_devices: dict[tuple[str, str], list[float]] = {}
         for _ in range(args.trials):
-            for door in DOORS:
+            for door in args.doors:
                 for condition in CONDITIONS:
                     await to_idle(cell.worker)
                     await asyncio.to_thread(witness.tell, "arm")
@@ -187,8 +194,12 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
                     if "None" in stamps:
                         raise RuntimeError(f"the {door} stop reached no device: {stamps}")
                     halted = max(float(stamps[1]), float(stamps[2]))
+                    framed = cell.stops.last_halted_at
+                    assert framed is not None
                     samples.setdefault((door, condition), []).append(halted - sent)
                     written.setdefault((door, condition), []).append(halted - wrote)
+                    to_frames.setdefault((door, condition), []).append(framed - wrote)
+                    to_devices.setdefault((door, condition), []).append(halted - framed)
         await to_idle(cell.worker)
         await asyncio.to_thread(client.close)
         await asyncio.to_thread(flooder.close)
@@ -196,9 +207,11 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
         await serving
     await asyncio.to_thread(witness.close)
     rows = []
-    for door in DOORS:
+    for door in args.doors:
         for condition in CONDITIONS:
             after_written = percentiles_ms(written[(door, condition)])
+            server = percentiles_ms(to_frames[(door, condition)])
+            devices = percentiles_ms(to_devices[(door, condition)])
             rows.append(
                 {
                     "door": door,
@@ -207,6 +220,10 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
                     "target_p99_ms": 5.0,
                     "written_p50_ms": after_written["p50_ms"],
                     "written_p99_ms": after_written["p99_ms"],
+                    "server_p50_ms": server["p50_ms"],
+                    "server_p99_ms": server["p99_ms"],
+                    "devices_p50_ms": devices["p50_ms"],
+                    "devices_p99_ms": devices["p99_ms"],
                 }
             )
     return rows
@@ -220,6 +237,9 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--mqtt-flood", type=int, default=3000, help="MQTT commands ahead")
     parser.add_argument("--opcua-flood", type=int, default=300, help="OPC UA calls ahead")
     parser.add_argument("--http-flood", type=int, default=1000, help="HTTP requests ahead")
+    parser.add_argument(
+        "--doors", nargs="+", choices=DOORS, default=list(DOORS), help="the doors to measure"
+    )
     parser.add_argument("--name", default="estop_doors", help="the result file's name")
     args = parser.parse_args(argv)
     logging.disable(logging.ERROR)  # every e-stop logs a fault; not what is measured

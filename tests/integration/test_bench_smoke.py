@@ -185,6 +185,11 @@ def test_estop_doors_measures_every_door_quiet_and_flooded(results_in_tmp: Path)
     ]
     for row in rows:
         assert row["n"] == 1 and row["p50_ms"] > 0
+        # the frames leave the server before a device can note them: both parts are
+        # real spans of the one stop, and together they are its time from the wire
+        assert row["server_p50_ms"] > 0 and row["devices_p50_ms"] > 0
+        parts = row["server_p50_ms"] + row["devices_p50_ms"]
+        assert abs(parts - row["written_p50_ms"]) < 0.01
     assert (results_in_tmp / "estop_doors.json").is_file()
 
 

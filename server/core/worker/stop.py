@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections.abc import Callable
 
 from server.common.runtime import background_held, collection_deferred
@@ -126,11 +127,16 @@ class EmergencyStops:
         self._ids = ids  # the worker's event ids, shared with its poster
         self._timeout = timeout  # emergency_stop_timeout: each halt command's bound
         self.requested = 0  # e-stops begun so far
+        # When the last stop's halt began, its frames written to the devices' sockets
+        # straight after (Unix time, as a device's own clock notes their arrival): splits
+        # a stop's time into the server's part and the devices' (bench.estop_doors).
+        self.last_halted_at: float | None = None
 
     def begin(self) -> Stop:
         """The stop's first moves, at once (module docstring); its event must follow."""
         self.requested += 1
         self._cut_leash()
+        self.last_halted_at = time.time()
         return Stop(halt_at_once(self._devices, self._timeout), self._queue, self._ids)
 
     async def stop(
