@@ -54,6 +54,7 @@ from typing import Any
 import httpx
 import uvicorn
 
+from bench.door_client import HTTP_POOL
 from bench.estop_latency import StopWitness, to_idle, wait_state
 from bench.report import emit, percentiles_ms
 from server.__main__ import uvicorn_options
@@ -143,6 +144,9 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
             mqtt_commands=True,
             opcua_endpoint=f"opc.tcp://127.0.0.1:{opcua_port}",
             event_queue_size=max(1000, 2 * max(floods.values())),
+            # The HMI and the other client stand for two hosts, but here share one
+            # address: each has its own share of connections, as two hosts would.
+            http_max_connections_per_address=4 * HTTP_POOL,
             **broker.cell_login,
         )
         cell = Cell(settings)
