@@ -110,8 +110,12 @@ async function sendCommand(name, body) {
   if (name === "create-workpiece" && body === undefined) return askWorkpiece();
   hmi.pending.add(name);
   renderCommands();
+  const shown = hmi.shown;
   try {
     const response = await api("POST", `/${name}`, body);
+    // An acceptance says less than what was shown while it was on its way (its run's end,
+    // come first over the socket): it does not replace that.
+    if (response.status === 202 && hmi.shown !== shown) return;
     showAnswer(response.status, await errorText(response), await stateOf(response));
   } catch (error) {
     if (!(error instanceof AuthError)) showMessage("error", `${name}: ${error.message}`);

@@ -114,6 +114,7 @@ export function showAnswer(status, text, state) {
  * cell is in ERROR). */
 export function showMessage(kind, text, clears = "") {
   const box = $("message");
+  hmi.shown += 1;
   box.hidden = false;
   box.dataset.kind = kind;
   box.dataset.clears = clears;

@@ -53,6 +53,7 @@ export const hmi = {
   thumbnails: [],        // blob URLs to release
   partImage: null,       // blob URL of the last part's inspection image, to release
   pending: new Set(),    // commands whose request is in flight
+  shown: 0,              // messages shown so far (render.js: showMessage)
   renderHooks: [],
   creating: null,        // the workpiece this page asked to capture: {name}
   onWorkpieceCreated: () => {}, // app.js: what the capture this page asked for found       // drawn again with the command buttons (orders.js: its buttons)

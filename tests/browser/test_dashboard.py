@@ -545,3 +545,40 @@ async def test_connection_loss_shows_the_banner_marks_state_stale_and_reconnects
     await expect_live(page, timeout=10_000)
     assert (await page.evaluate("window.hmi.status()"))["connects"] == connects + 2
     assert problems == []
+
+
+async def test_a_stored_workpiece_is_still_said_when_its_answer_comes_after_its_end(
+    dashboard: Dashboard, browser: Browser
+) -> None:
+    """The capture can end (over the socket) before its POST's 202 reaches the page: the
+    late "accepted" must not replace "stored as", nor clear it as a state left behind."""
+    page, problems = await open_page(browser, dashboard, PANEL)
+    await log_in(page, dashboard.token)
+    await expect_state(page, "IDLE")
+    stored_shown = asyncio.Event()
+
+    async def answer_late(route: Any) -> None:
+        body = route.request.post_data or ""
+        response = await route.fetch()
+        if "if_new" not in body:  # the copy's capture: its answer held until its end shows
+            await stored_shown.wait()
+        await route.fulfill(response=response)
+
+    await page.route("**/create-workpiece", answer_late)
+    answers = iter([("prompt", "late"), ("confirm", None)])
+
+    async def answer(dialog: Any) -> None:
+        kind, text = next(answers)
+        assert dialog.type == kind, (dialog.type, dialog.message)
+        await (dialog.accept(text) if kind == "prompt" else dialog.accept())
+
+    page.on("dialog", answer)
+    await page.click('[data-command="create-workpiece"]')
+    await expect(page.locator("#message")).to_contain_text("workpiece late stored as")
+    async with page.expect_response("**/create-workpiece") as held:
+        stored_shown.set()
+    assert (await held.value).status == 202
+    await expect_state(page, "IDLE")
+    await page.evaluate("() => new Promise(r => setTimeout(r, 300))")  # the late answer applied
+    await expect(page.locator("#message")).to_contain_text("workpiece late stored as")
+    assert problems == []
