@@ -181,7 +181,7 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
         flooder = await asyncio.to_thread(DoorClient, url, broker.port, opcua_url, token)
         samples: dict[tuple[str, str], list[float]] = {}
         written: dict[tuple[str, str], list[float]] = {}
-        to_frames: dict[tuple[str, str], list[float]] = {}
+        to_halt: dict[tuple[str, str], list[float]] = {}
         to_devices: dict[tuple[str, str], list[float]] = {}
         for _ in range(args.trials):
             for door in args.doors:
@@ -198,12 +198,12 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
                     if "None" in stamps:
                         raise RuntimeError(f"the {door} stop reached no device: {stamps}")
                     halted = max(float(stamps[1]), float(stamps[2]))
-                    framed = cell.stops.last_halted_at
-                    assert framed is not None
+                    halt_began = cell.stops.last_halted_at
+                    assert halt_began is not None
                     samples.setdefault((door, condition), []).append(halted - sent)
                     written.setdefault((door, condition), []).append(halted - wrote)
-                    to_frames.setdefault((door, condition), []).append(framed - wrote)
-                    to_devices.setdefault((door, condition), []).append(halted - framed)
+                    to_halt.setdefault((door, condition), []).append(halt_began - wrote)
+                    to_devices.setdefault((door, condition), []).append(halted - halt_began)
         await to_idle(cell.worker)
         await asyncio.to_thread(client.close)
         await asyncio.to_thread(flooder.close)
@@ -214,7 +214,7 @@ async def run(args: argparse.Namespace, data: Path) -> list[dict[str, Any]]:
     for door in args.doors:
         for condition in CONDITIONS:
             after_written = percentiles_ms(written[(door, condition)])
-            server = percentiles_ms(to_frames[(door, condition)])
+            server = percentiles_ms(to_halt[(door, condition)])
             devices = percentiles_ms(to_devices[(door, condition)])
             rows.append(
                 {
