@@ -40,8 +40,18 @@ def _ephemeral_range() -> tuple[int, int]:
         return 32768, 60999  # Linux's default
 
 
+# Ports above the privileged range that Chromium refuses to open (net::ERR_UNSAFE_PORT),
+# whatever serves them: a dashboard on one cannot be loaded by the browser tests.
+BROWSER_REFUSED_PORTS = frozenset(
+    {1719, 1720, 1723, 2049, 3659, 4045, 4190, 5060, 5061, 6000, 6566}
+    | set(range(6665, 6670))
+    | {6679, 6697, 10080}
+)
+
+
 def free_port() -> int:
-    """A loopback port free now, chosen below the kernel's ephemeral range.
+    """A loopback port free now, chosen below the kernel's ephemeral range and never
+    one a browser refuses (`BROWSER_REFUSED_PORTS`).
 
     A port the kernel hands out for bind(0) is also one it hands out as the local end
     of any outgoing connection: while a test starts a server on it (a subprocess that
@@ -52,6 +62,8 @@ def free_port() -> int:
     ceiling = low - 16  # room for a few ports numbered after it
     for _ in range(200 if ceiling - floor >= 1000 else 0):  # no room below: as the kernel says
         port = random.randrange(floor, ceiling)
+        if port in BROWSER_REFUSED_PORTS:
+            continue
         with socket.socket() as probe:
             try:
                 probe.bind(("127.0.0.1", port))
