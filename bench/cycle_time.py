@@ -18,6 +18,10 @@ order does between its parts), so each frame shows one part's bead.
 - `step: ...`: the p50 of each step of a run's end, in the modes that inspect
   (bench/cycle_steps.py says what each step is), to show where the time goes.
 
+`--busy` measures the runs with a busy loop on every core at the default priority
+(bench/busy.py), as another job on the same machine would keep them; the cell
+starts and commissions itself before they start.
+
 `both / neither` is what a verdict and an arm out of the way cost the plant per
 part: the retract replaces the next run's first travel, and the inspection takes
 its frame as soon as the arm is clear of the beads and does its work while the arm
@@ -28,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import logging
 import shutil
@@ -37,6 +42,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench.busy import busy_loop_on_every_core
 from bench.cycle_steps import STEP_ORDER, StepClock
 from bench.report import emit, percentiles_ms
 from server.bootstrap.cell import Cell
@@ -86,7 +92,9 @@ MODES = {  # name: (inspection_enabled, retract_after_run)
 }
 
 
-async def run(runs: int, block: int) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+async def run(
+    runs: int, block: int, busy: bool = False
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     data = Path(tempfile.mkdtemp(prefix="bench-cycle-"))
     cell = Cell(Settings(data_path=data))
     cycles: dict[str, list[float]] = {mode: [] for mode in MODES}
@@ -98,7 +106,8 @@ async def run(runs: int, block: int) -> tuple[list[dict[str, Any]], dict[str, An
         assert worker is not None
         await wait_state(worker, State.IDLE)
         clock = StepClock(cell.devices.camera, cell.stores.inspection_images)
-        with clock:
+        loaded = busy_loop_on_every_core() if busy else contextlib.nullcontext()
+        with clock, loaded:
             await measure(cell, worker, clock, runs, block, cycles, inspection_s, verdicts)
     finally:
         await cell.stop()
@@ -154,10 +163,14 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     )
     parser.add_argument("--runs", type=int, default=10, help="runs measured in each mode")
     parser.add_argument("--block", type=int, default=2, help="runs in a row in one mode")
+    parser.add_argument(
+        "--busy", action="store_true", help="the runs beside a busy loop on every core"
+    )
+    parser.add_argument("--name", default="cycle_time", help="the result file's name")
     args = parser.parse_args(argv)
     logging.disable(logging.WARNING)
-    rows, extra = asyncio.run(run(args.runs, args.block))
-    emit("cycle_time", rows, {"runs": args.runs, "block": args.block, **extra})
+    rows, extra = asyncio.run(run(args.runs, args.block, args.busy))
+    emit(args.name, rows, {"runs": args.runs, "block": args.block, "busy": args.busy, **extra})
     for name, value in extra["p50_ratios"].items():
         print(f"{name}: {value:.3f} (p50)")
     return rows

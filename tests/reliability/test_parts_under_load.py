@@ -15,36 +15,16 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import subprocess
-import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 
+from bench.busy import busy_loop_on_every_core
 from server.bootstrap.cell import Cell
 from server.core.machine.events import StartPayload
 from server.core.machine.transitions import Event, State
 from server.settings.model import Settings
 
 PARTS = int(os.environ.get("PARTS_UNDER_LOAD", 10))
-SPINNERS_PER_CORE = 1  # a busy loop on every core, as the issue sets it
 SPRAY_DEMO = StartPayload(contour_matching=False, workpiece_id="demo")
 WAIT_S = 600.0  # a bound on a run on a machine kept busy on purpose, not a figure
-
-
-@contextmanager
-def busy_loop_on_every_core() -> Iterator[list[int]]:
-    """Processes spinning, one per core; each ended by its pid when the block ends."""
-    spinners = [
-        subprocess.Popen([sys.executable, "-c", "while True: pass"])
-        for _ in range(SPINNERS_PER_CORE * (os.cpu_count() or 1))
-    ]
-    try:
-        yield [spinner.pid for spinner in spinners]
-    finally:
-        for spinner in spinners:
-            spinner.kill()
-        for spinner in spinners:
-            spinner.wait(timeout=30)
 
 
 async def until(cell: Cell, *states: State) -> None:
