@@ -48,8 +48,8 @@ from tests.processes import server_process, simulator
 from tests.serving import free_port
 
 SPEED_FACTOR = "20"  # the simulated robot's moves go this many times faster: a run in seconds
-# A frame's bound, not a figure: the image process works at the lowest priority, and on a
-# machine busy with other work a frame (even the camera's first answer) can wait seconds.
+# A frame's bound, not a figure: the image process works below the server's priority, and
+# on a machine busy with other work a frame (even the camera's first answer) can wait seconds.
 CAMERA_TIMEOUT_S = "30"
 RUN_TIMEOUT_S = 300.0  # a bound on one run, never a performance assertion
 CAMERA_SETTING = "VISION_CAMERA_ID"  # the camera's address (an OpenCV index or URL)

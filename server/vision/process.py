@@ -7,8 +7,15 @@ several ms at a time, and the event loop (an e-stop's request among what it
 serves) waits for them: with robot calibrations running and every thread of the
 server on one core, the loop's lag at p99 is about five times longer with the
 work on threads than with it here. A process competes for the core through the
-kernel's scheduler, not for the lock, and runs at the lowest priority (`NICE`):
-bulk work beside a control loop takes only what the loop leaves.
+kernel's scheduler, not for the lock, and runs a little below the server
+(`NICE`): on a shared core the control loop gets about three quarters of it.
+Not at the lowest priority: much of the work is the cycle's own (the frame
+before a run, the inspection after it), and at nice 19 any busy process at the
+default priority (a browser, another job on the machine) leaves it about a
+seventieth of a core, so a part's cycle beside a busy loop on every core took
+five times as long; at nice 5 it keeps a quarter of a shared core, the cycle
+holds, and the e-stop during vision work is as fast (docs/benchmarks.md, "A
+part's cycle").
 
 How frames cross: through shared memory, never pickled. Pickling a 1920×1080
 colour frame holds the lock 2.5 ms; `np.copyto` into a shared block lets it
@@ -58,7 +65,7 @@ import numpy as np
 
 T = TypeVar("T")
 
-NICE = 19  # the lowest priority: the image work takes only what the control loop leaves
+NICE = 5  # below the server's control loop, not below every other process (docstring)
 
 
 class ImageProcessFailed(RuntimeError):

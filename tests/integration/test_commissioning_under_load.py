@@ -1,7 +1,7 @@
 """The simulated cell commissions itself even when a frame misses its bound.
 
-The image process renders at the lowest priority: on a machine busy with other work
-its first frames can take longer than vision_processing_timeout. A cell whose
+The image process renders below the server's priority: on a machine busy with other
+work its first frames can take longer than vision_processing_timeout. A cell whose
 commissioning gave up on that started uncommissioned, with no calibration and an
 empty library, and refused every start ("the workpiece library is empty"). Here
 the real simulated camera and image process are used, and the camera's first frame

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from server.common.errors import OperationError
-from server.vision.process import ImageProcess, ImageProcessFailed
+from server.vision.process import NICE, ImageProcess, ImageProcessFailed
 from tests.processes import has_ended, run_python
 
 
@@ -76,6 +76,10 @@ def kept_after_frames() -> float:
     return unique_mb() - before
 
 
+def niceness() -> int:
+    return os.nice(0)
+
+
 def main_module_file() -> str | None:
     """Where the child's main module came from: None when it ran none of the parent's."""
     return getattr(sys.modules["__main__"], "__file__", None)
@@ -106,6 +110,12 @@ async def test_a_frame_is_worked_on_in_another_process_and_comes_back_whole(
     smaller = frame(2, (480, 640))  # another size through the same blocks
     out = await images.call(brighter, 5, frame=smaller, frame_out=(smaller.shape, np.uint8))
     assert np.array_equal(out, brighter(smaller, 5))
+
+
+async def test_the_child_works_below_the_servers_priority(images: ImageProcess) -> None:
+    """Below the control loop, yet not so far that any busy process starves the cycle's
+    own image work (server/vision/process.py, NICE)."""
+    assert await images.call(niceness) == min(19, os.nice(0) + NICE)
 
 
 async def test_an_operation_error_in_the_child_reaches_the_caller_whole(
