@@ -60,13 +60,16 @@ line: $(RUN_STAMP) mosquitto
 # default); the tests of a module that share a fixture set up once (a served cell,
 # rendered frames, the API schema run's server) run on one worker, so it is set up once
 # (--dist loadgroup, tests/xdist_groups.py). The reliability tier (kills, full disks,
-# random faults, the short soak) then runs alone: its servers wait on real device
-# timeouts, which a second worker's servers on the same cores can stretch past them.
+# random faults, the short soak) then runs on its own workers, apart from the other
+# tiers: its servers wait on real device timeouts, chosen to hold beside a busy loop on
+# every core (`make test-loaded`), not beside the other tiers' servers and browsers as
+# well. Last, alone, the test that keeps every core busy itself (marked whole_machine).
 # The slowest tests are listed.
 WORKERS ?= auto
 test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools mosquitto promtool
 	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=20 -m "not reliability"
-	$(PY) -m pytest -m reliability --durations=5
+	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=5 -m "reliability and not whole_machine"
+	$(PY) -m pytest --durations=1 -m whole_machine
 
 # The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
 test-fast: $(TEST_STAMP) node

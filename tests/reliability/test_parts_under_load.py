@@ -22,6 +22,8 @@ import asyncio
 import json
 import os
 
+import pytest
+
 from bench.busy import busy_loop_on_every_core
 from server.bootstrap.cell import Cell
 from server.core.machine.events import StartPayload
@@ -40,6 +42,7 @@ async def until(cell: Cell, *states: State) -> None:
             await asyncio.sleep(0.02)
 
 
+@pytest.mark.whole_machine
 async def test_ten_clean_parts_are_good_with_every_core_busy(tmp_path) -> None:
     cell = Cell(Settings(data_path=tmp_path / "data"))  # the default cell, its bounds too
     await cell.start()
