@@ -63,13 +63,14 @@ line: $(RUN_STAMP) mosquitto
 # random faults, the short soak) then runs on its own workers, apart from the other
 # tiers: its servers wait on real device timeouts, chosen to hold beside a busy loop on
 # every core (`make test-loaded`), not beside the other tiers' servers and browsers as
-# well. Last, alone, the test that keeps every core busy itself (marked whole_machine).
+# well. Last, alone, the one of its tests that keeps every core busy itself (marked
+# whole_machine).
 # The slowest tests are listed.
 WORKERS ?= auto
 test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools mosquitto promtool
 	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=20 -m "not reliability"
-	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=5 -m "reliability and not whole_machine"
-	$(PY) -m pytest --durations=1 -m whole_machine
+	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=5 -m "not whole_machine" tests/reliability
+	$(PY) -m pytest --durations=1 -m whole_machine tests/reliability
 
 # The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
 test-fast: $(TEST_STAMP) node

@@ -6,10 +6,10 @@ open, so a newcomer on a busy laptop saw clean parts judged defective on glue
 volume. The simulated dispenser follows the robot's speed, as a real
 speed-following dispenser does: no glue leaves while the arm stands still.
 
-Nor does the load fault the cell: with the image process at the lowest priority,
-a busy loop per core left it so little of a core that the default cell's frames
-missed vision_processing_timeout (VISION_TIMEOUT) in its first runs
-(server/vision/process.py, NICE).
+Nor does load fault the cell or leave a part uninspected: the image process works
+only a little below the server (server/vision/process.py, NICE). At the lowest
+priority, a busy loop per core left it so little of a core that the default cell's
+frames missed vision_processing_timeout: VISION_TIMEOUT, or "not inspected".
 
 The default simulated cell (simulators in their thread at real speed, the demo
 part, every setting at its default), with a busy loop on every core in processes
