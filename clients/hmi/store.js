@@ -54,9 +54,9 @@ export const hmi = {
   partImage: null,       // blob URL of the last part's inspection image, to release
   pending: new Set(),    // commands whose request is in flight
   shown: 0,              // messages shown so far (render.js: showMessage)
-  renderHooks: [],
+  renderHooks: [],       // drawn again with the command buttons (orders.js: its buttons)
   creating: null,        // the workpiece this page asked to capture: {name}
-  onWorkpieceCreated: () => {}, // app.js: what the capture this page asked for found       // drawn again with the command buttons (orders.js: its buttons)
+  onWorkpieceCreated: () => {}, // app.js: what the capture this page asked for found
   counters: { connects: 0, disconnects: 0, messages: 0, gaps: 0 },
   timers: [],
 };

@@ -152,7 +152,7 @@ def close_on_shutdown(app: Starlette, close: Callable[[], None]) -> None:
     Why here and not at exit: uvicorn, once it has shut down on SIGTERM or Ctrl-C,
     raises the signal again, and the process ends without running its exit
     handlers; the image process (`server/vision/process.py`) and its shared memory
-    were then left to the resource tracker, which warned of them as leaked."""
+    would be left to the resource tracker, which warns of them as leaked."""
     running = app.router.lifespan_context
 
     @contextlib.asynccontextmanager

@@ -112,8 +112,8 @@ def _fields_shared(template: Any) -> Any:
     notice here is a fresh copy of the template whose fields are set to new values
     and never changed after it is triggered, so sharing them is safe, and a field
     still holding the template's value keeps its Variant from one notice to the next
-    (most of the eighty-odd fields a client selects). The copies were most of the
-    work a notice put on the event loop just after its transition
+    (most of the eighty-odd fields a client selects). Those copies would be most of
+    the work a notice puts on the event loop just after its transition
     (bench.plant_latency).
     """
     base = type(template)

@@ -65,8 +65,8 @@ class SpraySettings(BaseModel):
 class SpraySettingsIn(SpraySettings):
     """Spray settings as an edit gives them: something to spray, as the schema says too.
 
-    No bead and no fill gave a part whose every run failed with PATH_EMPTY, leaving the
-    cell in ERROR for a reset. A part stored that way before is still read
+    A part with no bead and no fill would fail every run with PATH_EMPTY, leaving the
+    cell in ERROR for a reset. A part already stored without either is still read
     (`Workpiece` takes plain `SpraySettings`).
     """
 

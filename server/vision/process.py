@@ -12,7 +12,7 @@ kernel's scheduler, not for the lock, and runs a little below the server
 Not at the lowest priority: much of the work is the cycle's own (the frame
 before a run, the inspection after it), and at nice 19 any busy process at the
 default priority (a browser, another job on the machine) leaves it about a
-seventieth of a core, so a part's cycle beside a busy loop on every core took
+seventieth of a core, and a part's cycle beside a busy loop on every core takes
 five times as long; at nice 5 it keeps a quarter of a shared core, the cycle
 holds, and the e-stop during vision work is as fast (docs/benchmarks.md, "A
 part's cycle").
