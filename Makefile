@@ -56,20 +56,23 @@ line: $(RUN_STAMP) mosquitto
 	$(PY) -m server.line.demo --host $(HOST) --data-dir $(DATA)/line $(LINE_ARGS)
 
 # The whole suite includes the benchmarks' smoke test (tests/integration/test_bench_smoke.py).
-# Every tier but reliability runs on WORKERS pytest-xdist workers (one per core by
-# default); the tests of a module that share a fixture set up once (a served cell,
-# rendered frames, the API schema run's server) run on one worker, so it is set up once
-# (--dist loadgroup, tests/xdist_groups.py). The reliability tier (kills, full disks,
-# random faults, the short soak) then runs on its own workers, apart from the other
-# tiers: its servers wait on real device timeouts, chosen to hold beside a busy loop on
-# every core (`make test-loaded`), not beside the other tiers' servers and browsers as
-# well. Last, alone, the one of its tests that keeps every core busy itself (marked
-# whole_machine).
+# Every tier but reliability runs on WORKERS pytest-xdist workers (two per core by
+# default: most tests spend most of their time waiting on a device, a timeout or a
+# browser, and with one worker per core the cores were about 40 % idle). The tests of a
+# module that share a fixture set up once (a served cell, rendered frames, the API
+# schema run's server) run on one worker, so it is set up once (--dist loadgroup,
+# tests/xdist_groups.py). The reliability tier (kills, full disks, random faults, the
+# short soak) then runs on its own RELIABILITY_WORKERS (one per core), apart from the
+# other tiers: its servers wait on real device timeouts, chosen to hold beside a busy
+# loop on every core (`make test-loaded`), not beside the other tiers' servers and
+# browsers as well. Last, alone, the one of its tests that keeps every core busy itself
+# (marked whole_machine).
 # The slowest tests are listed.
-WORKERS ?= auto
+WORKERS ?= $(shell echo $$((2 * $$(nproc))))
+RELIABILITY_WORKERS ?= auto
 test: $(TEST_STAMP) $(BENCH_STAMP) lint browser node deploy-tools mosquitto promtool
 	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=20 -m "not reliability"
-	$(PY) -m pytest -n $(WORKERS) --dist loadgroup --durations=5 -m "not whole_machine" tests/reliability
+	$(PY) -m pytest -n $(RELIABILITY_WORKERS) --dist loadgroup --durations=5 -m "not whole_machine" tests/reliability
 	$(PY) -m pytest --durations=1 -m whole_machine tests/reliability
 
 # The unit tier only (tests/unit, marked `unit` by tests/conftest.py): no lint, no sockets.
