@@ -26,9 +26,10 @@ log = logging.getLogger(__name__)
 
 DEMO_ID = "demo"
 DEMO_BEAD_INSET_MM = -5.0  # the demo part's outline offset: its bead lies inside
-# Tries of a step whose frame did not come in time. The image process works at the lowest
-# priority: on a machine busy with other work its first frames can miss their bound, and a
-# cell left uncommissioned refuses every start ("the workpiece library is empty").
+# Tries of a step whose frame did not come in time. The image process works a little below
+# the server's priority: on a machine busy with other work its first frames can miss their
+# bound, and a cell left uncommissioned refuses every start ("the workpiece library is
+# empty").
 FRAME_TIMEOUT_TRIES = 3
 
 

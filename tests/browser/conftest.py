@@ -9,7 +9,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
-from playwright.async_api import Browser, async_playwright
+from playwright.async_api import Browser, async_playwright, expect
 
 CHROMIUM = Path("/usr/bin/chromium")
 LAUNCH_ARGS = [
@@ -22,6 +22,13 @@ LAUNCH_ARGS = [
     "--disable-component-update",
     "--disable-sync",
 ]
+# How long an assertion on the page waits for what it expects, where the test does not say.
+# Playwright's own default (5 s) is a bound a page can miss while the suite's other workers
+# keep both cores busy (a message that had not yet changed after 5 s, seen at two workers
+# per core under a profiler); a bound on a busy machine, never a performance assertion:
+# a passing assertion returns as soon as it holds.
+EXPECT_TIMEOUT_MS = 20_000
+expect.set_options(timeout=EXPECT_TIMEOUT_MS)
 
 
 def require_chromium() -> None:

@@ -179,7 +179,11 @@ def _board_texture(board: Chessboard) -> tuple[NDArray[np.uint8], float, float]:
     sq_y = np.floor(by / board.square_mm).astype(np.int64) + 1
     in_x = (sq_x >= 0) & (sq_x <= board.cols)
     in_y = (sq_y >= 0) & (sq_y <= board.rows)
-    black = ((sq_x[None, :] + sq_y[:, None]) % 2 == 0) & in_x[None, :] & in_y[:, None]
+    # a square is black where its column and row numbers have the same parity; worked
+    # out per column and per row, then crossed as bytes (the texture has ~10 M pixels)
+    odd_x = (sq_x & 1).astype(np.uint8)
+    odd_y = (sq_y & 1).astype(np.uint8)
+    black = (odd_x[None, :] == odd_y[:, None]) & in_x[None, :] & in_y[:, None]
     plate_lo, plate_x = -board.square_mm - board.margin_mm, board.cols * board.square_mm
     plate = ((bx >= plate_lo) & (bx < plate_x + board.margin_mm))[None, :] & (
         (by >= plate_lo) & (by < board.rows * board.square_mm + board.margin_mm)
@@ -194,6 +198,22 @@ _view_lock = threading.Lock()
 _view_cache: OrderedDict[tuple, NDArray[np.uint8]] = OrderedDict()
 
 
+def _ray_to_texture(pose: BoardPose, origin_x: float, origin_y: float) -> NDArray[np.float64]:
+    """The homography from a camera ray (x, y, 1) to the board texture's pixel (u, v, 1).
+
+    A board point (bx, by, 0) is seen along the ray [r1 r2 t]·(bx, by, 1) (r1, r2: the
+    first two columns of R), so the inverse of that matrix takes a ray back to the
+    board, where 1/depth is left as the third coordinate; then mm to texture pixels.
+    """
+    rot, tvec = pose.rotation, np.asarray(pose.tvec, dtype=np.float64)
+    ray_of_board = np.column_stack([rot[:, 0], rot[:, 1], tvec])
+    res = BOARD_MM_PER_PX
+    mm_to_texture = np.array(
+        [[1.0 / res, 0.0, -origin_x / res], [0.0, 1.0 / res, -origin_y / res], [0.0, 0.0, 1.0]]
+    )
+    return cast(NDArray[np.float64], mm_to_texture @ np.linalg.inv(ray_of_board))
+
+
 def _clean_view(model: CameraModel, board: Chessboard, pose: BoardPose) -> NDArray[np.uint8]:
     """The noiseless, unlit grey view of one pose (cached: views repeat as the camera cycles)."""
     key = (model, board, pose)
@@ -203,20 +223,16 @@ def _clean_view(model: CameraModel, board: Chessboard, pose: BoardPose) -> NDArr
             return _view_cache[key]
     texture, origin_x, origin_y = _board_texture(board)
     rays = normalised_pixel_grid(model)
-    rot, tvec = pose.rotation, np.asarray(pose.tvec)
-    normal = rot[:, 2]  # board plane: normal · X = normal · t
-    denom = normal[0] * rays[..., 0] + normal[1] * rays[..., 1] + normal[2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth = (normal @ tvec) / denom
-    hits = np.isfinite(depth) & (depth > 0)
-    # board coordinates = Rᵀ (depth · ray − t)
-    px = depth * rays[..., 0] - tvec[0]
-    py = depth * rays[..., 1] - tvec[1]
-    pz = depth - tvec[2]
-    bx = rot[0, 0] * px + rot[1, 0] * py + rot[2, 0] * pz
-    by = rot[0, 1] * px + rot[1, 1] * py + rot[2, 1] * pz
-    map_x = np.where(hits, (bx - origin_x) / BOARD_MM_PER_PX, -10.0).astype(np.float32)
-    map_y = np.where(hits, (by - origin_y) / BOARD_MM_PER_PX, -10.0).astype(np.float32)
+    to_texture = _ray_to_texture(pose, origin_x, origin_y)
+    maps = cv2.perspectiveTransform(rays.reshape(-1, 1, 2), to_texture)
+    maps = maps.reshape(*rays.shape[:2], 2).astype(np.float32)
+    # The third homogeneous coordinate is 1/depth: a ray meeting the board's plane behind
+    # the camera (or never) sees the backdrop.
+    inverse_depth = to_texture[2, 0] * rays[..., 0] + to_texture[2, 1] * rays[..., 1]
+    inverse_depth += to_texture[2, 2]
+    behind = ~(inverse_depth > 0)
+    if behind.any():
+        maps[behind] = -10.0
     distance = float(np.linalg.norm(pose.to_camera(board.centre_mm[None, :])))
     footprint_mm = distance / math.sqrt(model.fx * model.fy)
     sigma = footprint_blur_sigma_px() * footprint_mm / BOARD_MM_PER_PX
@@ -225,8 +241,8 @@ def _clean_view(model: CameraModel, board: Chessboard, pose: BoardPose) -> NDArr
         NDArray[np.uint8],
         cv2.remap(
             blurred,
-            map_x,
-            map_y,
+            maps[..., 0],
+            maps[..., 1],
             cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=BACKDROP,
