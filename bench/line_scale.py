@@ -228,13 +228,14 @@ def line_view(broker: BrokerPorts, logs: Path) -> Iterator[str]:
     url = f"http://127.0.0.1:{port}/"
     try:
         deadline = time.monotonic() + 60
-        while True:
-            assert process.poll() is None, (logs / "line-view.log").read_text()
-            with contextlib.suppress(httpx.HTTPError):
-                if httpx.get(url, timeout=2).status_code == 200:
-                    break
-            assert time.monotonic() < deadline, "the line view did not answer"
-            time.sleep(0.2)
+        with httpx.Client(timeout=2) as poller:  # one client (a new one loads the CA store)
+            while True:
+                assert process.poll() is None, (logs / "line-view.log").read_text()
+                with contextlib.suppress(httpx.HTTPError):
+                    if poller.get(url).status_code == 200:
+                        break
+                assert time.monotonic() < deadline, "the line view did not answer"
+                time.sleep(0.2)
         yield url
     finally:
         process.terminate()

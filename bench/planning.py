@@ -132,15 +132,16 @@ def production_server(data_dir: Path, port: int) -> Iterator[subprocess.Popen[st
         )
         try:
             deadline = time.monotonic() + 120
-            while True:
-                if process.poll() is not None:
-                    raise RuntimeError(f"the server exited with {process.returncode}")
-                with contextlib.suppress(httpx.HTTPError):
-                    httpx.get(f"http://127.0.0.1:{port}/health", timeout=1).raise_for_status()
-                    break
-                if time.monotonic() > deadline:
-                    raise RuntimeError("the server did not answer within 120 s")
-                time.sleep(0.1)
+            with httpx.Client(timeout=1) as poller:  # one client (a new one loads the CA store)
+                while True:
+                    if process.poll() is not None:
+                        raise RuntimeError(f"the server exited with {process.returncode}")
+                    with contextlib.suppress(httpx.HTTPError):
+                        poller.get(f"http://127.0.0.1:{port}/health").raise_for_status()
+                        break
+                    if time.monotonic() > deadline:
+                        raise RuntimeError("the server did not answer within 120 s")
+                    time.sleep(0.1)
             yield process
         finally:
             process.terminate()

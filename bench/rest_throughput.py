@@ -118,16 +118,17 @@ def spawned(
         )
         try:
             deadline = time.monotonic() + ready_within
-            while True:
-                if process.poll() is not None:
-                    raise RuntimeError(f"{command} exited with {process.returncode}")
-                with contextlib.suppress(httpx.HTTPError):
-                    url = f"http://127.0.0.1:{port}{ready_path}"
-                    httpx.get(url, timeout=1).raise_for_status()
-                    break
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"{command} did not answer within {ready_within:g} s")
-                time.sleep(0.1)
+            # one client for every poll (a new one loads the CA certificates each time)
+            with httpx.Client(timeout=1) as poller:
+                while True:
+                    if process.poll() is not None:
+                        raise RuntimeError(f"{command} exited with {process.returncode}")
+                    with contextlib.suppress(httpx.HTTPError):
+                        poller.get(f"http://127.0.0.1:{port}{ready_path}").raise_for_status()
+                        break
+                    if time.monotonic() > deadline:
+                        raise RuntimeError(f"{command} did not answer within {ready_within:g} s")
+                    time.sleep(0.1)
             yield process
         finally:
             process.send_signal(stop_signal)

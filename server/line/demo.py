@@ -91,19 +91,23 @@ def say(text: str) -> None:
 
 
 def wait_http(child: Child, url: str, deadline: float) -> None:
-    """Until `url` answers 200; LineFailed if the process exits or the deadline passes."""
-    while True:
-        if child.process.poll() is not None:
-            tail = child.log.read_text(errors="replace")[-1500:]
-            raise LineFailed(f"{child.name} exited with {child.process.returncode}:\n{tail}")
-        try:
-            if httpx.get(url, timeout=2).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        if time.monotonic() > deadline:
-            raise LineFailed(f"{child.name} did not answer {url} in time (log {child.log})")
-        time.sleep(0.5)
+    """Until `url` answers 200; LineFailed if the process exits or the deadline passes.
+
+    One client for every poll: a new one per poll would load the system's CA
+    certificates again each time (tens of milliseconds of CPU) while the cells start."""
+    with httpx.Client(timeout=2) as client:
+        while True:
+            if child.process.poll() is not None:
+                tail = child.log.read_text(errors="replace")[-1500:]
+                raise LineFailed(f"{child.name} exited with {child.process.returncode}:\n{tail}")
+            try:
+                if client.get(url).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline:
+                raise LineFailed(f"{child.name} did not answer {url} in time (log {child.log})")
+            time.sleep(0.5)
 
 
 def stop_all(children: list[Child]) -> None:

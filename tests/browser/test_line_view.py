@@ -15,6 +15,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,13 +69,14 @@ def line(tmp_path: Path) -> Iterator[Line]:
         try:
             assert cell_3.stdout is not None and cell_3.stdout.readline().strip() == "published"
             url = f"http://127.0.0.1:{port}/"
-            while True:
-                assert view.poll() is None, (tmp_path / "line-view.log").read_text()
-                try:
-                    httpx.get(url, timeout=2).raise_for_status()
-                    break
-                except httpx.HTTPError:
-                    pass
+            with httpx.Client(timeout=2) as poller:  # one client (a new one loads the CA store)
+                while True:
+                    assert view.poll() is None, (tmp_path / "line-view.log").read_text()
+                    try:
+                        poller.get(url).raise_for_status()
+                        break
+                    except httpx.HTTPError:
+                        time.sleep(0.1)
             yield Line(broker, url, cell_3)
         finally:
             if cell_3.poll() is None:

@@ -41,14 +41,15 @@ def _start_and_wait_for_exit(data_dir) -> tuple[int, str]:
     )
     try:
         deadline = time.monotonic() + 120  # a hang guard, not a measure
-        while process.poll() is None:
-            assert time.monotonic() < deadline, "the server neither served nor exited"
-            try:
-                httpx.get(f"http://127.0.0.1:{port}/health", timeout=1)
-            except httpx.HTTPError:
-                time.sleep(0.1)
-                continue
-            pytest.fail("the server started serving on a tokens.json it cannot read")
+        with httpx.Client(timeout=1) as poller:  # one client (a new one loads the CA store)
+            while process.poll() is None:
+                assert time.monotonic() < deadline, "the server neither served nor exited"
+                try:
+                    poller.get(f"http://127.0.0.1:{port}/health")
+                except httpx.HTTPError:
+                    time.sleep(0.1)
+                    continue
+                pytest.fail("the server started serving on a tokens.json it cannot read")
         assert process.stdout is not None
         return process.returncode, process.stdout.read()
     finally:
