@@ -52,7 +52,7 @@ from server.storage.workpieces import (
     WorkpieceIn,
 )
 from server.vision.paths import fill_size
-from tests.processes import ROOT, _env
+from tests.processes import ROOT, _env, wait_answering
 from tests.serving import admin_headers, free_port
 
 SPEED_FACTOR = "20"  # the simulated robot's moves (the warm-up, the homing) go 20× faster
@@ -131,17 +131,7 @@ def production_server(data_dir: Path, port: int) -> Iterator[subprocess.Popen[st
             cwd=ROOT,
         )
         try:
-            deadline = time.monotonic() + 120
-            with httpx.Client(timeout=1) as poller:  # one client (a new one loads the CA store)
-                while True:
-                    if process.poll() is not None:
-                        raise RuntimeError(f"the server exited with {process.returncode}")
-                    with contextlib.suppress(httpx.HTTPError):
-                        poller.get(f"http://127.0.0.1:{port}/health").raise_for_status()
-                        break
-                    if time.monotonic() > deadline:
-                        raise RuntimeError("the server did not answer within 120 s")
-                    time.sleep(0.1)
+            wait_answering(process, f"http://127.0.0.1:{port}/health", 120)
             yield process
         finally:
             process.terminate()

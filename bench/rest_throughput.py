@@ -64,7 +64,7 @@ import httpx
 import psutil
 
 from bench.report import emit, percentiles_ms
-from tests.processes import ROOT, _env
+from tests.processes import ROOT, _env, wait_answering
 from tests.serving import admin_headers, free_port
 
 TARGET_RATIO = 0.9
@@ -117,18 +117,7 @@ def spawned(
             cwd=ROOT,
         )
         try:
-            deadline = time.monotonic() + ready_within
-            # one client for every poll (a new one loads the CA certificates each time)
-            with httpx.Client(timeout=1) as poller:
-                while True:
-                    if process.poll() is not None:
-                        raise RuntimeError(f"{command} exited with {process.returncode}")
-                    with contextlib.suppress(httpx.HTTPError):
-                        poller.get(f"http://127.0.0.1:{port}{ready_path}").raise_for_status()
-                        break
-                    if time.monotonic() > deadline:
-                        raise RuntimeError(f"{command} did not answer within {ready_within:g} s")
-                    time.sleep(0.1)
+            wait_answering(process, f"http://127.0.0.1:{port}{ready_path}", ready_within)
             yield process
         finally:
             process.send_signal(stop_signal)

@@ -175,6 +175,24 @@ def server_process(
         log.close()
 
 
+def wait_answering(process: subprocess.Popen[str], url: str, within: float) -> None:
+    """Until GET `url` answers 2xx; RuntimeError if `process` exits first or `within` s pass.
+
+    One client for every poll: a new one per poll loads the system's CA certificates again
+    (~25 ms of CPU each, ten times a second, beside the server starting up)."""
+    deadline = time.monotonic() + within
+    with httpx.Client(timeout=1) as poller:
+        while True:
+            if process.poll() is not None:
+                raise RuntimeError(f"{process.args} exited with {process.returncode}")
+            with contextlib.suppress(httpx.HTTPError):
+                poller.get(url).raise_for_status()
+                return
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{url} did not answer within {within:g} s")
+            time.sleep(0.1)
+
+
 def run_module(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
     """Run `python -m ARGS` to its end (a CLI such as `server backup`), output captured."""
     return run_python("-m", *args, timeout=timeout)
