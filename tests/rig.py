@@ -279,7 +279,13 @@ async def open_rig(
         async with (
             serve(cell, port) as url,
             httpx.AsyncClient(
-                base_url=url, timeout=WAIT_S, headers=admin_headers(data_path)
+                base_url=url,
+                timeout=WAIT_S,
+                headers=admin_headers(data_path),
+                # An idle connection is let go well before the server closes it
+                # (http_keepalive_timeout): at the same 5 s on both ends, a request sent
+                # as the server closed the connection failed with ReadError.
+                limits=httpx.Limits(keepalive_expiry=settings.http_keepalive_timeout / 2),
             ) as api,
         ):
             rig = Rig(api, cell, robot, glue)

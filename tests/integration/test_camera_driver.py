@@ -126,7 +126,9 @@ async def test_stalled_capture_times_out_within_the_timeout() -> None:
     with pytest.raises(DeviceTimeout, match=r"within 0\.3 s"):
         await camera.capture()
     elapsed = time.monotonic() - started
-    assert 0.25 <= elapsed < 2.0
+    # It ended at its timeout, not at the stall's end (there is none): the upper bound only
+    # tells the two apart, on a machine as busy as it may be (2.99 s was seen under load).
+    assert 0.25 <= elapsed < 10.0
     assert not camera.health.connected
     assert [f.code for f in faults] == ["NO_REPLY"]
     camera.clear_faults()
