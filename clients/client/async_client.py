@@ -14,7 +14,13 @@ import httpx
 
 from clients.client import builders
 from clients.client.builders import Call
-from clients.client.config import DEFAULT_URL, default_headers, normalize_url, trust
+from clients.client.config import (
+    DEFAULT_URL,
+    KEEPALIVE_EXPIRY_S,
+    default_headers,
+    normalize_url,
+    trust,
+)
 from clients.client.errors import CommandResult
 from clients.client.stream import MessageStream
 from clients.client.wait import StateWait
@@ -32,10 +38,13 @@ class AsyncCellClient:
         *,
         timeout: float = 10.0,
         ca_file: str | os.PathLike[str] | None = None,
+        keepalive_expiry: float = KEEPALIVE_EXPIRY_S,
     ) -> None:
         """`ca_file`: the CA certificate(s), PEM, that the server's https certificate must
         chain to (a plant's own CA); None trusts the usual public CAs. OSError or
-        ssl.SSLError here when it cannot be read."""
+        ssl.SSLError here when it cannot be read. `keepalive_expiry`: seconds an idle
+        connection is kept (config.KEEPALIVE_EXPIRY_S), below the server's
+        http_keepalive_timeout."""
         self.base_url = normalize_url(base_url)
         self.timeout = timeout
         self.tls = trust(ca_file)
@@ -45,6 +54,7 @@ class AsyncCellClient:
             headers=default_headers(token),
             timeout=timeout,
             verify=self.tls if self.tls is not None else True,
+            limits=httpx.Limits(keepalive_expiry=keepalive_expiry),
         )
 
     async def __aenter__(self) -> Self:
@@ -61,11 +71,17 @@ class AsyncCellClient:
     async def aclose(self) -> None:
         await self._http.aclose()
 
+    async def _request(self, call: Call[Any]) -> httpx.Response:
+        return await self._http.request(call.method, call.path, json=call.json, params=call.params)
+
     async def _send(self, call: Call[T]) -> T:
         try:
-            response = await self._http.request(
-                call.method, call.path, json=call.json, params=call.params
-            )
+            try:
+                response = await self._request(call)
+            except httpx.TransportError as exc:
+                if not builders.may_send_again(call, exc):
+                    raise
+                response = await self._request(call)
         except httpx.TransportError as exc:
             raise builders.unreachable(self.base_url, exc, self.timeout) from exc
         return builders.read(call, response)

@@ -46,6 +46,12 @@ COMMANDS = (
     "purge",
 )
 USER_AGENT = "glue-cell-client/0.1"
+# Seconds an idle kept-alive connection is kept for the next request. The server closes one
+# idle for its http_keepalive_timeout (5 s by default): a request sent just as it does gets
+# no answer, and a command cannot be sent again (the server may have taken it). So a
+# connection is let go well before the server would. Give the clients a shorter one
+# (`keepalive_expiry`) for a server whose timeout is below twice this.
+KEEPALIVE_EXPIRY_S = 2.0
 WS_MAX_MESSAGE_BYTES = 16 * 2**20
 
 

@@ -12,7 +12,13 @@ import httpx
 
 from clients.client import builders
 from clients.client.builders import Call
-from clients.client.config import DEFAULT_URL, default_headers, normalize_url, trust
+from clients.client.config import (
+    DEFAULT_URL,
+    KEEPALIVE_EXPIRY_S,
+    default_headers,
+    normalize_url,
+    trust,
+)
 from clients.client.errors import CommandResult
 from clients.client.wait import StateWait
 
@@ -29,10 +35,13 @@ class CellClient:
         *,
         timeout: float = 10.0,
         ca_file: str | os.PathLike[str] | None = None,
+        keepalive_expiry: float = KEEPALIVE_EXPIRY_S,
     ) -> None:
         """`ca_file`: the CA certificate(s), PEM, that the server's https certificate must
         chain to (a plant's own CA); None trusts the usual public CAs. OSError or
-        ssl.SSLError here when it cannot be read."""
+        ssl.SSLError here when it cannot be read. `keepalive_expiry`: seconds an idle
+        connection is kept (config.KEEPALIVE_EXPIRY_S), below the server's
+        http_keepalive_timeout."""
         self.base_url = normalize_url(base_url)
         self.timeout = timeout
         self.tls = trust(ca_file)
@@ -41,6 +50,7 @@ class CellClient:
             headers=default_headers(token),
             timeout=timeout,
             verify=self.tls if self.tls is not None else True,
+            limits=httpx.Limits(keepalive_expiry=keepalive_expiry),
         )
 
     def __enter__(self) -> Self:
@@ -57,11 +67,17 @@ class CellClient:
     def close(self) -> None:
         self._http.close()
 
+    def _request(self, call: Call[Any]) -> httpx.Response:
+        return self._http.request(call.method, call.path, json=call.json, params=call.params)
+
     def _send(self, call: Call[T]) -> T:
         try:
-            response = self._http.request(
-                call.method, call.path, json=call.json, params=call.params
-            )
+            try:
+                response = self._request(call)
+            except httpx.TransportError as exc:
+                if not builders.may_send_again(call, exc):
+                    raise
+                response = self._request(call)
         except httpx.TransportError as exc:
             raise builders.unreachable(self.base_url, exc, self.timeout) from exc
         return builders.read(call, response)
