@@ -140,17 +140,19 @@ def unreachable(base_url: str, exc: httpx.TransportError, timeout: float) -> Unr
 
 # What a request meets when the server closed its kept-alive connection as it went out.
 _CONNECTION_CLOSED = (httpx.RemoteProtocolError, httpx.ReadError, httpx.WriteError)
-_IDEMPOTENT = frozenset({"GET", "HEAD", "OPTIONS", "PUT", "DELETE"})
+_READS = frozenset({"GET", "HEAD", "OPTIONS"})
 
 
 def may_send_again(call: Call[Any], exc: httpx.TransportError) -> bool:
     """Whether a request that got no answer is sent once more, on a new connection.
 
-    Only a read or another idempotent request (RFC 9110, 9.2.2), and only when the
-    connection closed under it: sending it twice changes nothing. A command is never
-    sent again, as the server may have taken it; its caller is told there was no answer.
+    Only a read (a safe method, RFC 9110, 9.2.1), and only when the connection closed
+    under it: reading twice changes nothing. A command or a change (POST, PUT, PATCH,
+    DELETE) is never sent again, as the server may have taken it: a DELETE sent again
+    would answer 404 for a part it had just removed. Its caller is told there was no
+    answer.
     """
-    return call.method in _IDEMPOTENT and isinstance(exc, _CONNECTION_CLOSED)
+    return call.method in _READS and isinstance(exc, _CONNECTION_CLOSED)
 
 
 def _json(response: httpx.Response) -> Any:

@@ -9,8 +9,8 @@ answers the first request on a connection and closes the connection when the
 second arrives, unanswered.
 
 What the clients do about it: a read (GET) is sent again once on a new connection,
-as reading twice changes nothing; a command (POST) is not, as the server may have
-taken it, and the client says it got no answer. So that commands do not meet the
+as reading twice changes nothing; a command (POST) or a change (PATCH) is not, as the
+server may have taken it, and the client says it got no answer. So that commands do not meet the
 race at the server's default timeout, an idle connection is let go well before it
 (`KEEPALIVE_EXPIRY_S`).
 """
@@ -121,6 +121,14 @@ async def test_the_async_client_does_not_send_a_command_again(peer: Peer) -> Non
         with pytest.raises(Unreachable, match="cannot reach"):
             await client.reset()
     assert peer.requests == [("POST", False), ("POST", True)]
+
+
+def test_a_change_without_an_answer_is_not_sent_again(peer: Peer) -> None:
+    with CellClient(peer.url, "token") as client:
+        client.change_settings(log_retention_days=30)
+        with pytest.raises(Unreachable, match="cannot reach"):
+            client.change_settings(log_retention_days=30)
+    assert peer.requests == [("PATCH", False), ("PATCH", True)]
 
 
 def test_a_connection_idle_past_the_clients_expiry_is_not_used_again(peer: Peer) -> None:
