@@ -7,6 +7,7 @@ recovers the true focal length, and workpiece outlines that map back to their tr
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import cv2
@@ -15,6 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from server.drivers.sim import camera_model
 from server.drivers.sim.camera_model import DEFAULT_CAMERA_MODEL, CameraModel
 from server.drivers.sim.camera_scene import (
     DEFAULT_CHESSBOARD,
@@ -74,6 +76,24 @@ def test_round_trip_from_pixels_over_the_whole_image() -> None:
     u, v = np.meshgrid(np.linspace(0, 1919, 40), np.linspace(0, 1079, 25))
     pixels = np.stack([u, v], axis=-1)
     assert np.abs(MODEL.table_to_pixel(MODEL.pixel_to_table(pixels)) - pixels).max() < 1e-8
+
+
+@pytest.mark.parametrize("block", [1, 777, 1 << 14])
+def test_undistortion_does_not_depend_on_its_block_size(
+    block: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Blocks of points take the same Newton steps as the whole array in one: the rays of a
+    frame's pixels are the same to the bit, whether centre pixels (met in few steps) and
+    corner ones share a block or not."""
+    strong = dataclasses.replace(MODEL, dist=(-0.3, 0.1, 0.001, -0.002, 0.02))
+    u, v = np.meshgrid(np.linspace(0, 1919, 97), np.linspace(0, 1079, 61))
+    pixels = np.stack([u, v], axis=-1)
+    monkeypatch.setattr(camera_model, "NEWTON_BLOCK", pixels.size)  # one block: the whole
+    whole = strong.pixel_to_normalised(pixels)
+    monkeypatch.setattr(camera_model, "NEWTON_BLOCK", block)
+    assert np.array_equal(strong.pixel_to_normalised(pixels), whole)
+    seen = np.stack([(u - strong.cx) / strong.fx, (v - strong.cy) / strong.fy], axis=-1)
+    assert np.abs(strong.distort(whole) - seen).max() < 1e-14
 
 
 def test_default_model_sees_markers_and_the_work_area_around_them() -> None:

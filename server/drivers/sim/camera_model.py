@@ -37,6 +37,9 @@ IMAGE_HEIGHT = 1080
 # the pixel's own area it band-limits the scene before sampling, which is what lets edges and
 # corners be located to a small fraction of a pixel (as with a real, slightly soft lens).
 LENS_BLUR_SIGMA_PX = 0.5
+# Points per block of the undistortion's Newton steps (CameraModel.undistort): a block's
+# temporaries (128 KB each) stay in the CPU's cache.
+NEWTON_BLOCK = 1 << 14
 
 Array = NDArray[np.float64]
 
@@ -214,34 +217,47 @@ class CameraModel:
     # --- inverse: pixel → world -----------------------------------------------------------
 
     def undistort(self, distorted: ArrayLike, *, max_iterations: int = 30) -> Array:
-        """Ideal normalised coordinates whose distortion gives `distorted` (Newton, to 1e-15)."""
+        """Ideal normalised coordinates whose distortion gives `distorted` (Newton, to 1e-15).
+
+        Every point takes the same steps, until the largest step of all is below 1e-15. A
+        step is computed block by block (`NEWTON_BLOCK` points): on a frame's two million
+        pixels, a step over the whole array at once makes each of its twenty temporaries a
+        fresh 16 MB array, and faulting those in cost three times the arithmetic. The
+        result does not depend on the block size, to the bit.
+        """
         target = np.asarray(distorted, dtype=np.float64)
-        tx, ty = target[..., 0], target[..., 1]
+        tx = np.ascontiguousarray(target[..., 0]).reshape(-1)
+        ty = np.ascontiguousarray(target[..., 1]).reshape(-1)
         x, y = tx.copy(), ty.copy()
-        k1, k2, p1, p2, k3 = self.dist
         for _ in range(max_iterations):
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-            res_x = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - tx
-            res_y = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - ty
-            j_xx = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
-            j_xy = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
-            j_yy = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
-            det = j_xx * j_yy - j_xy * j_xy
-            step_x = (j_yy * res_x - j_xy * res_y) / det
-            step_y = (j_xx * res_y - j_xy * res_x) / det
-            x = x - step_x
-            y = y - step_y
-            if (
-                max(
+            largest = 0.0
+            for start in range(0, x.size, NEWTON_BLOCK):
+                block = slice(start, start + NEWTON_BLOCK)
+                step_x, step_y = self._newton_step(x[block], y[block], tx[block], ty[block])
+                x[block] -= step_x
+                y[block] -= step_y
+                largest = max(
+                    largest,
                     float(np.max(np.abs(step_x), initial=0.0)),
                     float(np.max(np.abs(step_y), initial=0.0)),
                 )
-                < 1e-15
-            ):
+            if largest < 1e-15:
                 break
-        return np.stack([x, y], axis=-1)
+        return np.stack([x, y], axis=-1).reshape(target.shape)
+
+    def _newton_step(self, x: Array, y: Array, tx: Array, ty: Array) -> tuple[Array, Array]:
+        """One Newton step of `distort(x, y) = (tx, ty)`: what to subtract from x and y."""
+        k1, k2, p1, p2, k3 = self.dist
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+        res_x = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - tx
+        res_y = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - ty
+        j_xx = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
+        j_xy = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
+        j_yy = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
+        det = j_xx * j_yy - j_xy * j_xy
+        return (j_yy * res_x - j_xy * res_y) / det, (j_xx * res_y - j_xy * res_x) / det
 
     def pixel_to_normalised(self, pixels: ArrayLike) -> Array:
         """Undistorted normalised coordinates (ray direction (x, y, 1)) of pixels (…×2)."""
