@@ -500,7 +500,10 @@ def _build_background(scene: Scene, optics: _TableOptics) -> NDArray[np.uint8]:
     """The table image with its texture and the printed markers (no workpieces)."""
     grid = optics.grid
     rng = np.random.default_rng(scene.seed)
+    # The table image is ~15 M pixels: each step writes into one of two buffers (60 MB each)
+    # rather than into a fresh temporary, whose pages would be faulted in again each time.
     texture = np.zeros((grid.rows, grid.cols), dtype=np.float32)
+    layer = np.empty_like(texture)
     for scale_mm, weight in ((40.0, 1.0), (6.0, 0.4)):  # broad mottling and finer grain
         coarse = rng.standard_normal(
             (
@@ -508,13 +511,18 @@ def _build_background(scene: Scene, optics: _TableOptics) -> NDArray[np.uint8]:
                 math.ceil(grid.cols * grid.res / scale_mm) + 2,
             )
         )
-        texture += weight * cv2.resize(
-            coarse.astype(np.float32), (grid.cols, grid.rows), interpolation=cv2.INTER_CUBIC
+        cv2.resize(
+            coarse.astype(np.float32),
+            (grid.cols, grid.rows),
+            dst=layer,
+            interpolation=cv2.INTER_CUBIC,
         )
+        texture += np.multiply(layer, weight, out=layer)
     texture *= scene.table_texture / max(float(texture.std()), 1e-6)
     image = np.empty((grid.rows, grid.cols, 3), dtype=np.uint8)
     for channel, level in enumerate(scene.table_bgr):
-        image[..., channel] = np.clip(np.rint(texture + level), 0, 255).astype(np.uint8)
+        np.add(texture, level, out=layer)
+        image[..., channel] = np.clip(np.rint(layer, out=layer), 0, 255, out=layer)
     papers = marker_corners_mm(scene, paper=True)
     for marker_id in scene.marker_ids:
         _composite(image, grid, [papers[marker_id]], PAPER_BGR, optics.blur_sigma)
