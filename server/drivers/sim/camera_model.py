@@ -37,9 +37,12 @@ IMAGE_HEIGHT = 1080
 # the pixel's own area it band-limits the scene before sampling, which is what lets edges and
 # corners be located to a small fraction of a pixel (as with a real, slightly soft lens).
 LENS_BLUR_SIGMA_PX = 0.5
-# Points per block of the undistortion's Newton steps (CameraModel.undistort): a block's
-# temporaries (128 KB each) stay in the CPU's cache.
-NEWTON_BLOCK = 1 << 14
+# Points per block of the undistortion's Newton steps (CameraModel.undistort). A block's
+# temporaries (64 KiB of float64 each) stay in the CPU's cache and come from the heap: the
+# server and its image process map every block of 128 KiB or more apart and unmap it when
+# freed (server/common/runtime.py, MMAP_THRESHOLD), so a block twice this size made each
+# temporary fault its pages in again and cost as much as the whole array at once.
+NEWTON_BLOCK = 1 << 13
 
 Array = NDArray[np.float64]
 
@@ -222,8 +225,8 @@ class CameraModel:
         Every point takes the same steps, until the largest step of all is below 1e-15. A
         step is computed block by block (`NEWTON_BLOCK` points): on a frame's two million
         pixels, a step over the whole array at once makes each of its twenty temporaries a
-        fresh 16 MB array, and faulting those in cost three times the arithmetic. The
-        result does not depend on the block size, to the bit.
+        fresh 16 MB mapping, and faulting those in cost twice the arithmetic. The result
+        does not depend on the block size, to the bit.
         """
         target = np.asarray(distorted, dtype=np.float64)
         tx = np.ascontiguousarray(target[..., 0]).reshape(-1)
