@@ -84,12 +84,14 @@ async def test_reset_is_not_offered_while_the_robot_is_known_silent(cell_data) -
 
 
 async def test_the_reset_probe_is_bounded_by_its_setting(cell_data) -> None:
-    # A controller given 30 s per request; the reset waits reset_probe_timeout only.
+    # A controller given 30 s per request; the reset waits reset_probe_timeout only. The
+    # probe renders a camera frame too, so the bound is one a frame meets on a busy machine
+    # (at 0.5 s, the reset after the stall was refused on a clean clone's run).
     async with open_rig(
         cell_data,
         robot_communication_timeout=30.0,
         robot_heartbeat_interval=60,
-        reset_probe_timeout=0.5,
+        reset_probe_timeout=5.0,
     ) as rig:
         await robot_still(rig)
         rig.robot.inject_fault("stall")
@@ -97,10 +99,11 @@ async def test_the_reset_probe_is_bounded_by_its_setting(cell_data) -> None:
         await rig.wait_state("ERROR")
         refused = await rig.reset()
         assert refused.status_code == 409, refused.json()
-        assert "robot: no answer in time (reset_probe_timeout 0.5 s)" in refused.json()["message"]
+        assert "robot: no answer in time (reset_probe_timeout 5 s)" in refused.json()["message"]
         assert (await rig.state())["state"] == "ERROR"
         rig.robot.clear_faults()
-        assert (await rig.reset()).status_code == 202
+        accepted = await rig.reset()
+        assert accepted.status_code == 202, accepted.json()
 
 
 async def test_an_estop_during_the_reset_probe_is_decided_at_once(cell_data) -> None:
