@@ -65,6 +65,7 @@ from bench.estop_latency import StopWitness
 from bench.plant_latency import Cell, auth, cell_environment, free_port, running, wait_idle
 from bench.report import emit, percentiles_ms
 from server.line.broker import DEMO_PASSWORDS, BrokerPorts, start_broker
+from tests.processes import wait_answering
 
 CHROMIUM = "/usr/bin/chromium"
 LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]
@@ -227,15 +228,7 @@ def line_view(broker: BrokerPorts, logs: Path) -> Iterator[str]:
     log.close()
     url = f"http://127.0.0.1:{port}/"
     try:
-        deadline = time.monotonic() + 60
-        with httpx.Client(timeout=2) as poller:  # one client (a new one loads the CA store)
-            while True:
-                assert process.poll() is None, (logs / "line-view.log").read_text()
-                with contextlib.suppress(httpx.HTTPError):
-                    if poller.get(url).status_code == 200:
-                        break
-                assert time.monotonic() < deadline, "the line view did not answer"
-                time.sleep(0.2)
+        wait_answering(process, url, 60, log=logs / "line-view.log")
         yield url
     finally:
         process.terminate()

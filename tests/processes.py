@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Protocol
 
 import httpx
 
@@ -175,8 +176,18 @@ def server_process(
         log.close()
 
 
-def wait_answering(process: subprocess.Popen[str], url: str, within: float) -> None:
-    """Until GET `url` answers 2xx; RuntimeError if `process` exits first or `within` s pass.
+class Child(Protocol):
+    """What a readiness wait reads of a child process (subprocess's Popen or psutil's)."""
+
+    args: Any
+    returncode: int | None
+
+    def poll(self) -> int | None: ...
+
+
+def wait_answering(process: Child, url: str, within: float, *, log: Path | None = None) -> None:
+    """Until GET `url` answers 2xx; RuntimeError if `process` exits first (with the end of
+    its `log`, if given) or `within` s pass.
 
     One client for every poll: a new one per poll loads the system's CA certificates again
     (~25 ms of CPU each, ten times a second, beside the server starting up)."""
@@ -184,7 +195,8 @@ def wait_answering(process: subprocess.Popen[str], url: str, within: float) -> N
     with httpx.Client(timeout=1) as poller:
         while True:
             if process.poll() is not None:
-                raise RuntimeError(f"{process.args} exited with {process.returncode}")
+                tail = f":\n{log.read_text(errors='replace')[-2000:]}" if log else ""
+                raise RuntimeError(f"{process.args} exited with {process.returncode}{tail}")
             with contextlib.suppress(httpx.HTTPError):
                 poller.get(url).raise_for_status()
                 return

@@ -284,7 +284,7 @@ async def open_rig(
                 headers=admin_headers(data_path),
                 # An idle connection is let go well before the server closes it
                 # (http_keepalive_timeout): at the same 5 s on both ends, a request sent
-                # as the server closed the connection failed with ReadError.
+                # as the server closes the connection fails with ReadError.
                 limits=httpx.Limits(keepalive_expiry=settings.http_keepalive_timeout / 2),
             ) as api,
         ):

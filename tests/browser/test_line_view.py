@@ -15,7 +15,6 @@ import re
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +26,7 @@ from playwright.async_api import Browser, ConsoleMessage, Page, expect
 from server.line.broker import BrokerPorts
 from tests.line_broker_fixture import running_broker
 from tests.line_publisher import publish_cell, state_message
-from tests.processes import ROOT, environment, stop
+from tests.processes import ROOT, environment, stop, wait_answering
 from tests.serving import free_port
 
 SHOTS = ROOT / "test-artifacts" / "screenshots"
@@ -69,14 +68,7 @@ def line(tmp_path: Path) -> Iterator[Line]:
         try:
             assert cell_3.stdout is not None and cell_3.stdout.readline().strip() == "published"
             url = f"http://127.0.0.1:{port}/"
-            with httpx.Client(timeout=2) as poller:  # one client (a new one loads the CA store)
-                while True:
-                    assert view.poll() is None, (tmp_path / "line-view.log").read_text()
-                    try:
-                        poller.get(url).raise_for_status()
-                        break
-                    except httpx.HTTPError:
-                        time.sleep(0.1)
+            wait_answering(view, url, 60, log=tmp_path / "line-view.log")  # a hang guard
             yield Line(broker, url, cell_3)
         finally:
             if cell_3.poll() is None:

@@ -4,7 +4,7 @@ The server closes a connection idle for `http_keepalive_timeout` (5 s by default
 0.5 s at the least). A client that keeps idle connections as long or longer sends
 its next request, now and then, just as the server closes the connection: the
 request fails with no answer (httpx's ReadError or RemoteProtocolError), though the
-server is up. `PEER` below does what the server does in that moment, every time: it
+server is up. `Peer` below does what the server does in that moment, every time: it
 answers the first request on a connection and closes the connection when the
 second arrives, unanswered.
 

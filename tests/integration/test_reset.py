@@ -86,7 +86,7 @@ async def test_reset_is_not_offered_while_the_robot_is_known_silent(cell_data) -
 async def test_the_reset_probe_is_bounded_by_its_setting(cell_data) -> None:
     # A controller given 30 s per request; the reset waits reset_probe_timeout only. The
     # probe renders a camera frame too, so the bound is one a frame meets on a busy machine
-    # (at 0.5 s, the reset after the stall was refused on a clean clone's run).
+    # (beside a busy loop per core a frame takes longer than 0.5 s).
     async with open_rig(
         cell_data,
         robot_communication_timeout=30.0,
