@@ -309,7 +309,7 @@ def _devices_seeing(
         devices, release = await build_devices(settings)
         assert isinstance(devices.camera, SimulatedCamera)
         devices.camera.bead_source = dispensed_by(robot, glue)
-        glue.speed_source = robot.speed_fraction  # as server/drivers/sim/host.py wires it
+        glue.speed_source = robot  # as server/drivers/sim/host.py wires it
         if template is not None:
             continue_noise(devices.camera, template)
         if stalled:

@@ -89,6 +89,9 @@ class GlueStatus:
     pressure_psi: float
     temperature_c: float
     alarms: tuple[str, ...] = ()
+    # The dispenser's totaliser (ml since its power-up, wrapping; glue_registers.py):
+    # None from a dispenser that keeps none.
+    dispensed_ml: float | None = None
 
 
 @runtime_checkable

@@ -461,7 +461,7 @@ class ModbusGlueDispenser:
                 if not self._opening:
                     self._valve_may_be_open = False
                 # What /health and the live feed show at once, before the next poll.
-                wear.glue_held(self.health.details, now := time.time())
+                wear.valve_open_held(self.health.details, now := time.time())
                 self.health.details.update(valve_open=False, status_at=now)
                 return
             if time.monotonic() >= deadline:
@@ -526,7 +526,8 @@ class ModbusGlueDispenser:
     def _observe(self, status: GlueStatus, uptime_s: int) -> None:
         """Update health.details and report the onsets one status read shows (module doc)."""
         details, now = self.health.details, time.time()
-        wear.glue_held(details, now, status.flow_ml_min if status.valve_open else 0.0)
+        wear.valve_open_held(details, now)
+        wear.glue_counted(details, status.dispensed_ml)
         details.update(
             valve_open=status.valve_open,
             flow_ml_min=status.flow_ml_min,
@@ -536,6 +537,8 @@ class ModbusGlueDispenser:
             temperature_c=status.temperature_c,
             alarms=list(status.alarms),
             uptime_s=uptime_s,
+            dispensed_ml=status.dispensed_ml,
+            dispensed_at=now,  # a valve's read-back updates status_at, never the count
             status_at=now,
         )
         if status.valve_open:

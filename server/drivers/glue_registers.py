@@ -7,11 +7,17 @@ cannot disagree.
 
 Layout choice: commands and setpoints are holding registers (read FC3, write
 FC6/FC16) at 0-2; everything the dispenser measures or reports is an input
-register (read-only, FC4) at 100-107. The input block also echoes the active
-setpoints, so one FC4 read of 8 registers returns a whole `GlueStatus`: the
+register (read-only, FC4) at 100-109. The input block also echoes the active
+setpoints, so one FC4 read of 10 registers returns a whole `GlueStatus`: the
 monitor poll is a single short exchange, which keeps the RS-485 line free for
 a valve-close command. Addresses are unique across both tables so a register
 is named unambiguously by its address alone in logs.
+
+The dispenser's own totaliser (108-109, the glue it has dispensed since power-up,
+counted in microlitres over 32 bits, high word first as Modbus devices put it)
+is what a part's glue is measured by: a count kept on the device does not depend
+on when the server's polls come, while flow readings integrated on the server
+miss or stretch whatever happens between two polls on a busy machine.
 
 All registers are 16 bits. Engineering value = raw × scale; temperature is a
 signed (two's complement) register, every other one unsigned.
@@ -149,6 +155,33 @@ UPTIME = Register(
     0xFFFF,
 )
 
+# The totaliser: one 32-bit count of microlitres in two registers, high word first. The
+# scales make each word's engineering value a part of the total, so total = high + low.
+TOTAL_UNIT_ML = 0.001
+DISPENSED_HIGH = Register(
+    "DISPENSED_HIGH",
+    108,
+    Table.INPUT,
+    "glue dispensed since power-up, high word (32-bit µl count, wraps)",
+    "ml",
+    TOTAL_UNIT_ML * 65536,
+    0.0,
+    TOTAL_UNIT_ML * 65536 * 65535,
+)
+DISPENSED_LOW = Register(
+    "DISPENSED_LOW",
+    109,
+    Table.INPUT,
+    "glue dispensed since power-up, low word",
+    "ml",
+    TOTAL_UNIT_ML,
+    0.0,
+    TOTAL_UNIT_ML * 65535,
+)
+TOTAL_WRAP_ML = TOTAL_UNIT_ML * (1 << 32)
+# More than a dispenser at its top flow (1 000 ml/min) gives in a minute between two reads.
+TOTAL_WRAP_MARGIN_ML = 1000.0
+
 REGISTERS: tuple[Register, ...] = (
     VALVE_COMMAND,
     FLOW_SETPOINT,
@@ -161,6 +194,8 @@ REGISTERS: tuple[Register, ...] = (
     TEMPERATURE,
     ALARM_BITS,
     UPTIME,
+    DISPENSED_HIGH,
+    DISPENSED_LOW,
 )
 HOLDING_REGISTERS = tuple(r for r in REGISTERS if r.table is Table.HOLDING)
 INPUT_REGISTERS = tuple(r for r in REGISTERS if r.table is Table.INPUT)
@@ -253,6 +288,27 @@ def alarm_bits(names: Iterable[str]) -> int:
     return bits
 
 
+def encode_dispensed(ml: float) -> tuple[int, int]:
+    """The totaliser's two registers (high, low) for `ml` dispensed; the count wraps at 2³²
+    µl (about 4 295 l), as the dispenser's does."""
+    count = round(ml / TOTAL_UNIT_ML) % (1 << 32)
+    return count >> 16, count & 0xFFFF
+
+
+def dispensed_since(before_ml: float, after_ml: float) -> float:
+    """Glue dispensed between two totaliser readings.
+
+    A count that went back wrapped if it was within `TOTAL_WRAP_MARGIN_ML` of its top,
+    and otherwise started again from 0 (the dispenser was powered up again): then what
+    it counted since is what was dispensed.
+    """
+    if after_ml >= before_ml:
+        return round(after_ml - before_ml, 6)
+    if before_ml > TOTAL_WRAP_ML - TOTAL_WRAP_MARGIN_ML:
+        return round(after_ml + TOTAL_WRAP_ML - before_ml, 6)
+    return after_ml
+
+
 def exception_text(code: int) -> str:
     """Human wording of a Modbus exception code, for error messages."""
     return f"Modbus exception {code} ({MODBUS_EXCEPTIONS.get(code, 'unknown')})"
@@ -277,6 +333,9 @@ def decode_status(registers: Sequence[int]) -> GlueStatus:
         pressure_psi=_status_value(registers, PRESSURE_MEASURED),
         temperature_c=_status_value(registers, TEMPERATURE),
         alarms=alarm_names(registers[ALARM_BITS.address - STATUS_ADDRESS]),
+        dispensed_ml=round(
+            _status_value(registers, DISPENSED_HIGH) + _status_value(registers, DISPENSED_LOW), 6
+        ),
     )
 
 

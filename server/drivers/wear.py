@@ -14,6 +14,8 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+from server.drivers.glue_registers import dispensed_since
+
 # The counter names, as health.details keys (the wear meter reads these).
 VALVE_CYCLES = "wear_valve_cycles"
 VALVE_OPEN_S = "wear_valve_open_s"
@@ -38,20 +40,18 @@ def travel_m(before: Sequence[float] | None, after: Sequence[float]) -> float:
     return math.dist(before[:3], after[:3]) / 1000.0
 
 
-def glue_held(details: dict[str, Any], now: float, flow_now: float | None = None) -> None:
-    """A dispenser's open time and glue dispensed since its last status read (`status_at`),
-    while that read saw the valve open: at the mean of the flow it measured and `flow_now`
-    (this read's, 0 with the valve closed), or at its own flow when there is no reading
-    now (the driver's own close, read back).
-
-    Why the mean and not the earlier reading held: a speed-following flow drops as the
-    arm slows at each waypoint, and a read that comes late (a loaded machine) held the
-    flow of a moving arm over a standing one, or the reverse; the mean of the two ends
-    of the interval errs less on a flow that changed within it.
-    """
+def valve_open_held(details: dict[str, Any], now: float) -> None:
+    """A dispenser's open time since its last status read (`status_at`), while that read
+    saw the valve open."""
     held = now - details.get("status_at", now)
     if details.get("valve_open") and held > 0:
-        before = float(details.get("flow_ml_min") or 0.0)
-        flow = before if flow_now is None else (before + flow_now) / 2.0
         add(details, VALVE_OPEN_S, held)
-        add(details, GLUE_ML, flow / 60.0 * held)
+
+
+def glue_counted(details: dict[str, Any], total_ml: float | None) -> None:
+    """Glue dispensed since the last status read, by the dispenser's own totaliser
+    (`dispensed_ml` in `details` is the count that read saw). The device counts every
+    drop whenever it is read, so the figure does not depend on when the polls come."""
+    before = details.get("dispensed_ml")
+    if total_ml is not None and before is not None:
+        add(details, GLUE_ML, dispensed_since(float(before), total_ml))

@@ -9,8 +9,13 @@ dispenser's time constants, as the glue driver's own deviation check allows).
 - out of tolerance (s): each reading stands for the time until the next one (or
   the window's end); the sum over readings further than the tolerance (%) from
   the setpoint;
-- glue dispensed (ml) = ∫ flow dt over the spray windows, each reading held
-  until the next (transient included: that glue is on the part);
+- glue dispensed (ml) = the dispenser's totaliser at its first reading after
+  the last close against its last reading before the first open, both showing
+  the valve closed (`glue_from` "totaliser"): the device counts every drop
+  however far apart the polls are, so neither a stretched nor a late poll
+  changes the figure. Without such a pair (a dispenser that keeps no count, a
+  poll lost) it is ∫ flow dt over the spray windows, each reading held until
+  the next (`glue_from` "flow readings");
 - expected (ml) = Σ setpoint × length / speed over the plan's spray segments.
 """
 
@@ -21,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from server.drivers.glue_registers import dispensed_since
 from server.quality.model import FlowSample, PlannedSegment, SprayWindow
 
 OPENING_TRANSIENT_S = 0.15
@@ -28,6 +34,20 @@ OPENING_TRANSIENT_S = 0.15
 
 def _within(flows: Sequence[FlowSample], window: SprayWindow, end: float) -> list[FlowSample]:
     return [f for f in flows if window.opened_at <= f.at <= end and f.valve_open]
+
+
+def counted_ml(flows: Sequence[FlowSample], windows: Sequence[SprayWindow]) -> float | None:
+    """The totaliser's growth over the spray windows (module docstring); None without a
+    count read with the valve closed before the first open and after the last close."""
+    if not windows or windows[-1].closed_at is None:
+        return None
+    first_open, last_close = windows[0].opened_at, windows[-1].closed_at
+    counts = [f for f in flows if f.total_ml is not None and not f.valve_open]
+    before = [f.total_ml for f in counts if f.at <= first_open]
+    after = [f.total_ml for f in counts if f.at >= last_close]
+    if not before or not after or before[-1] is None or after[0] is None:
+        return None
+    return dispensed_since(before[-1], after[0])
 
 
 def dispensing_consistency(
@@ -56,6 +76,9 @@ def dispensing_consistency(
             off = abs(reading.flow_ml_min - reading.setpoint_ml_min) / reading.setpoint_ml_min
             if off * 100.0 > tolerance_percent:
                 out_of_tolerance_s += held
+    counted = counted_ml(ordered, windows)
+    if counted is not None:
+        glue_ml = counted
     expected_ml = sum(s.expected_ml for s in segments)
     values = np.asarray([f.flow_ml_min for f in judged], dtype=np.float64)
     cv = None
@@ -71,6 +94,7 @@ def dispensing_consistency(
         "tolerance_percent": tolerance_percent,
         "spraying_s": round(sum((w.closed_at or w.opened_at) - w.opened_at for w in windows), 3),
         "glue_ml": round(glue_ml, 4) if windows else None,
+        "glue_from": ("totaliser" if counted is not None else "flow readings") if windows else None,
         "expected_ml": round(expected_ml, 4),
         "glue_ratio_percent": (
             round(glue_ml / expected_ml * 100.0, 2) if windows and expected_ml > 0 else None

@@ -60,6 +60,7 @@ class FlowSample:
     flow_ml_min: float
     setpoint_ml_min: float
     valve_open: bool
+    total_ml: float | None = None  # the dispenser's totaliser (None: it keeps none)
 
 
 @dataclass(slots=True)

@@ -13,7 +13,10 @@ Why it cannot delay a move or a stop:
   the wire: so the sampler adds no Modbus exchange at all. It takes the
   readings the driver's monitor already polls every glue_poll_interval
   (`health.details`, `status_at`), each once. Flow resolution is therefore
-  the monitor's interval (0.1 s by default).
+  the monitor's interval (0.1 s by default). The glue dispensed is the
+  dispenser's own totaliser in those readings, so after the path the run waits
+  for one more poll (`closed_reading`): the first to show the valve closed,
+  whose count holds the last drop.
 
 The trajectory operation tells it which segment the robot draws
 (`drawing`) and when the valve's open and close were answered (`opened`,
@@ -26,11 +29,14 @@ import asyncio
 import contextlib
 import logging
 import time
+from typing import Any
 
 from server.drivers.base import GlueDispenser, Robot
 from server.quality.model import FlowSample, PoseSample, RunSamples, SprayWindow
 
 log = logging.getLogger(__name__)
+
+CLOSED_READING_POLL_S = 0.01  # how often `closed_reading` looks for the monitor's next poll
 
 
 class RunSampler:
@@ -99,8 +105,38 @@ class RunSampler:
                 float(details.get("flow_ml_min") or 0.0),
                 float(details.get("flow_setpoint_ml_min") or 0.0),
                 bool(details.get("valve_open")),
+                self._total_of(details, taken),
             )
         )
+
+    @staticmethod
+    def _total_of(details: dict[str, Any], taken: float) -> float | None:
+        """The totaliser's count if the reading at `taken` carried it (a valve's read-back
+        updates the valve and `status_at` alone)."""
+        total = details.get("dispensed_ml")
+        if total is None or details.get("dispensed_at") != taken:
+            return None
+        return float(total)
+
+    async def closed_reading(self, within: float) -> bool:
+        """Wait up to `within` s for a status reading taken after the valve's last close
+        that shows it closed (quality/dispensing.py counts the glue up to it); whether one
+        came."""
+        windows = self.samples.windows
+        if not windows or windows[-1].closed_at is None:
+            return False
+        closed_at = windows[-1].closed_at
+        deadline = time.monotonic() + within
+        while True:
+            self._take_flow()
+            if any(
+                f.at >= closed_at and not f.valve_open and f.total_ml is not None
+                for f in self.samples.flows[-3:]
+            ):
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            await asyncio.sleep(CLOSED_READING_POLL_S)
 
     async def _take_pose(self, segment: int) -> None:
         details = self.robot.health.details

@@ -124,6 +124,8 @@ def test_decode_status() -> None:
         TEMPERATURE=0xFFFF,
         ALARM_BITS=int(regs.Alarm.RESERVOIR_LOW),
         UPTIME=42,
+        DISPENSED_HIGH=2,
+        DISPENSED_LOW=1500,
     )
     assert regs.decode_status(block) == GlueStatus(
         valve_open=True,
@@ -133,13 +135,28 @@ def test_decode_status() -> None:
         pressure_psi=40.1,
         temperature_c=-0.1,
         alarms=("RESERVOIR_LOW",),
+        dispensed_ml=132.572,  # 2 × 65.536 + 1.5 ml
     )
     assert regs.decode_uptime(block) == 42
 
 
 def test_decode_status_needs_the_whole_block() -> None:
-    with pytest.raises(ValueError, match="8 registers from 100, got 3"):
+    with pytest.raises(ValueError, match="10 registers from 100, got 3"):
         regs.decode_status([0, 0, 0])
+
+
+@given(st.floats(min_value=0.0, max_value=regs.TOTAL_WRAP_ML - 1.0))
+def test_the_totaliser_round_trips_to_the_microlitre(ml: float) -> None:
+    high, low = regs.encode_dispensed(ml)
+    decoded = regs.decode_status(_status_block(DISPENSED_HIGH=high, DISPENSED_LOW=low))
+    assert decoded.dispensed_ml == pytest.approx(ml, abs=0.0005)
+
+
+def test_the_totaliser_wraps_at_two_to_the_32_microlitres() -> None:
+    assert regs.encode_dispensed(regs.TOTAL_WRAP_ML + 0.002) == (0, 2)
+    assert regs.dispensed_since(regs.TOTAL_WRAP_ML - 0.001, 0.002) == pytest.approx(0.003)
+    assert regs.dispensed_since(1.0, 3.5) == 2.5
+    assert regs.dispensed_since(2000.0, 1.0) == 1.0  # not near its top: powered up again
 
 
 def test_map_is_consistent() -> None:

@@ -56,6 +56,38 @@ def test_dispensing_cv_time_out_of_tolerance_and_glue() -> None:
     expected_cv = np.std(judged, ddof=1) / np.mean(judged) * 100
     assert result["cv_percent"] == pytest.approx(expected_cv, abs=1e-3)
     assert result["glue_ratio_percent"] == pytest.approx(83.33, abs=0.01)
+    assert result["glue_from"] == "flow readings"  # these readings carry no count
+
+
+def test_the_glue_is_the_totaliser_s_count_however_sparse_the_readings() -> None:
+    # Two windows; the readings in them are few and late (a busy machine), their flows
+    # say nothing of what happened between them: the count before the first open and
+    # after the last close, both read with the valve closed, is the glue.
+    windows = [SprayWindow(1, 10.0, 11.0), SprayWindow(2, 11.2, 12.5)]
+    flows = [
+        FlowSample(9.5, 0.0, 30.0, False, 100.0),
+        FlowSample(9.9, 0.0, 30.0, False, 100.0),
+        FlowSample(10.9, 90.0, 30.0, True, 100.4),  # held to the close: 1.5 ml by the flows
+        FlowSample(12.3, 30.0, 30.0, True, 101.1),
+        FlowSample(12.45, 0.0, 30.0, False, 101.1),  # closed, but before the last close
+        FlowSample(12.7, 0.0, 30.0, False, 101.2),
+        FlowSample(13.0, 0.0, 30.0, False, 101.2),
+    ]
+    result = dispensing_consistency(flows, windows, [_segment()], 10.0)
+    assert result["glue_ml"] == pytest.approx(1.2)
+    assert result["glue_from"] == "totaliser"
+    assert result["glue_ratio_percent"] == pytest.approx(160.0)
+
+
+def test_without_a_count_after_the_close_the_flows_are_summed() -> None:
+    window = SprayWindow(1, 10.0, 11.0)
+    flows = [
+        FlowSample(9.9, 0.0, 30.0, False, 100.0),
+        FlowSample(10.5, 60.0, 30.0, True, 100.5),  # the monitor's next poll was lost
+    ]
+    result = dispensing_consistency(flows, [window], [_segment()], 10.0)
+    assert result["glue_from"] == "flow readings"
+    assert result["glue_ml"] == pytest.approx(1.0)  # 60 ml/min held over the whole second
 
 
 def test_no_window_no_glue_figures() -> None:

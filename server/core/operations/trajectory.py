@@ -27,7 +27,7 @@ import asyncio
 import logging
 import threading
 import time
-from collections.abc import Awaitable, Callable, Coroutine, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -293,10 +293,10 @@ async def execute_trajectory(ctx: OperationContext) -> OperationResult:
         "waypoints": len(path),
     }
 
-    def inspect(
-        cleared: Callable[[], Awaitable[object]] | None = None,
-    ) -> Coroutine[Any, Any, Inspection]:
-        return inspect_run(ctx, targets, segments, samples, cleared)
+    async def inspect(cleared: Callable[[], Awaitable[object]] | None = None) -> Inspection:
+        # The glue is the dispenser's count up to its first poll after the close.
+        await sampler.closed_reading(ctx.settings.glue_system_timeout)
+        return await inspect_run(ctx, targets, segments, samples, cleared)
 
     if ctx.settings.retract_after_run:
         # The last step, on record like every step: the arm leaves the part for the safe

@@ -14,7 +14,7 @@ approaches the flow setpoint first-order (time constant 50 ms) while the valve
 is open and is zero while it is closed; pressure approaches the pressure
 setpoint (time constant 100 ms); temperature drifts slowly around 25 °C; flow,
 pressure and temperature carry a little noise. With `speed_source` set (the
-robot simulator's `speed_fraction`, wired where both run in one process) it is a
+robot simulator (`ArmSpeed`), wired where both run in one process) it is a
 speed-following dispenser, as real cells use: the active flow setpoint and the
 flow out of the nozzle are the programmed ones scaled by the robot's actual speed
 over its commanded one, so the glue per millimetre of bead does not depend on how
@@ -24,8 +24,11 @@ simulator at speed_factor 4 draws a bead in a quarter of the time, and the flow 
 four times the setpoint meanwhile); a valve opened with the arm at rest (a purge)
 gives the fixed flow until the arm moves (a purge, all along; a run resumed after
 a pause, until the arm sets off again, then the flow follows it). Flows are ml per
-minute of wall time, the clock the server reads and integrates them on, and
-`dispensed_ml` is their integral on it. `speed_factor` > 1 makes the dynamics
+minute of wall time, and `dispensed_ml` is their integral on it: over the stretches the
+arm moved (`RobotSimulator.motion_between`) and the flow model's exact mean between two
+reads, so it does not depend on how often the dispenser is read. The totaliser registers
+(DISPENSED_HIGH/LOW) count what the flow meter measures: `dispensed_ml`, or the pinned
+flow while `force_flow` holds the reading. `speed_factor` > 1 makes the dynamics
 faster (the flow's and the pressure's time constants, a late valve, the
 temperature's drift), like the cell's `simulation_speed_factor`. `close_commanded_at`
 is the time.time() of the last write of "closed" to the valve command; `valve_closed_at`
@@ -76,8 +79,7 @@ import math
 import random
 import sys
 import time
-from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
@@ -91,6 +93,17 @@ from server.drivers.sim.glue_flow import FLOW_TIME_CONSTANT_S
 from server.drivers.sim.standalone import serve_until_signalled, stopped_by_signals
 
 logger = logging.getLogger(__name__)
+
+
+class ArmSpeed(Protocol):
+    """What a speed-following dispenser follows: the robot simulator's speed."""
+
+    def speed_fraction(self) -> float:
+        """The arm's actual speed over its commanded one, now."""
+
+    def motion_between(self, since: float, until: float) -> list[tuple[float, float, float]]:
+        """(start, end, fraction) of each stretch of [since, until] the arm moved."""
+
 
 PRESSURE_TIME_CONSTANT_S = 0.1
 AMBIENT_C = 25.0
@@ -167,10 +180,11 @@ class GlueSimulator:
         self._valve_stuck = False
         self.dropped_requests = 0
         # The robot's speed as a fraction of its programmed one (None: a fixed flow).
-        self.speed_source: Callable[[], float] | None = None
+        self.speed_source: ArmSpeed | None = None
         self._last_motion = 0.0  # time.monotonic() the robot was last seen moving
         self._fixed_flow = False  # the valve opened with the arm at rest: no speed to follow
         self.dispensed_ml = 0.0  # glue out of the nozzle so far (the flow model's integral)
+        self._metered_ml = 0.0  # what the flow meter counted: the totaliser registers
 
     # --- lifecycle ---------------------------------------------------------------
 
@@ -275,6 +289,7 @@ class GlueSimulator:
             "forced_pressure_psi": self._forced_pressure,
             "forced_flow_ml_min": self._forced_flow,
             "forced_temperature_c": self._forced_temperature,
+            "dispensed_ml": round(self._metered_ml, 6),
             "valve_closed_at": self.valve_closed_at,
             "dropped_requests": self.dropped_requests,
         }
@@ -370,7 +385,7 @@ class GlueSimulator:
             self._open_valve(due[1])
 
     def _open_valve(self, wall: float) -> None:
-        self._follow()  # the arm's motion seen up to now
+        self._followed(self._last_update, time.monotonic())  # the arm's motion seen up to now
         self._fixed_flow = time.monotonic() - self._last_motion >= FIXED_FLOW_AFTER_S
         self.valve_opened_at = wall
         self.valve_log.append((wall, True))
@@ -383,12 +398,18 @@ class GlueSimulator:
         now = time.monotonic()
         wall = now - self._last_update
         dt = wall * self._speed
+        followed = self._followed(self._last_update, now)
         self._last_update = now
-        # On the clock the flow is read on (module docstring): ml per minute of wall time.
-        self.dispensed_ml += self._flow * self._follow() / 60.0 * wall
         if self._valve_open:
             target = self._flow_sp * self._clog
-            self._flow += (target - self._flow) * (1 - math.exp(-dt / FLOW_TIME_CONSTANT_S))
+            steps = dt / FLOW_TIME_CONSTANT_S
+            gain = 1 - math.exp(-steps)
+            # The first-order flow's mean over the interval, in ml per minute of wall time.
+            mean = target + (self._flow - target) * (gain / steps if steps > 0 else 1.0)
+            self.dispensed_ml += mean * followed / 60.0
+            forced = self._forced_flow
+            self._metered_ml += (mean * followed if forced is None else forced * wall) / 60.0
+            self._flow += (target - self._flow) * gain
         else:
             self._flow = 0.0
         gain = 1 - math.exp(-dt / PRESSURE_TIME_CONSTANT_S)
@@ -403,16 +424,28 @@ class GlueSimulator:
         return max(0.0, self._pressure + self._jitter(0.05))
 
     def _follow(self) -> float:
-        """The speed-following factor (module docstring): the robot's speed fraction, or
-        1.0, the fixed flow, for a valve opened with the arm at rest (a purge) until the
+        """The speed-following factor now (module docstring): the robot's speed fraction,
+        or 1.0, the fixed flow, for a valve opened with the arm at rest (a purge) until the
         arm moves: once there is motion to follow, the flow follows it to the close."""
-        if self.speed_source is None:
+        if self.speed_source is None or self._fixed_flow:
             return 1.0
-        follow = self.speed_source()
-        if follow > 0.0:
-            self._last_motion = time.monotonic()
-            self._fixed_flow = False
-        return 1.0 if self._fixed_flow else follow
+        return self.speed_source.speed_fraction()
+
+    def _followed(self, since: float, until: float) -> float:
+        """The seconds of [since, until] weighted by the speed-following factor: the wall
+        time at a fixed flow, the arm's motion once there is motion to follow."""
+        if self.speed_source is None:
+            return until - since
+        spans = self.speed_source.motion_between(since, until)
+        if spans:
+            self._last_motion = spans[-1][1]
+        moved = sum((end - start) * fraction for start, end, fraction in spans)
+        if not self._fixed_flow:
+            return moved
+        if not spans:
+            return until - since
+        self._fixed_flow = False
+        return spans[0][0] - since + moved
 
     def _refresh(self, registers: list[int]) -> None:
         """Write the model's present values into the input registers."""
@@ -437,6 +470,9 @@ class GlueSimulator:
             regs.ALARM_BITS: self._alarm_bits,
             regs.UPTIME: int(elapsed) & 0xFFFF,
         }
+        values[regs.DISPENSED_HIGH], values[regs.DISPENSED_LOW] = regs.encode_dispensed(
+            self._metered_ml
+        )
         for register, raw in values.items():
             registers[register.address] = raw
 

@@ -58,7 +58,7 @@ class SimulatorHost:
         if self.robot is not None and self.glue is not None:
             # One thread runs both: the dispenser follows the robot's speed, as a real
             # speed-following dispenser wired to the robot controller does.
-            self.glue.speed_source = self.robot.speed_fraction
+            self.glue.speed_source = self.robot
 
     def stop(self) -> None:
         for simulator in (self.robot, self.glue):

@@ -107,6 +107,10 @@ def motion_duration(start: Sequence[float], target: Sequence[float], speed: floa
     return max(distance, turn) / speed
 
 
+# Stretches of motion kept for `motion_between` (a dispenser reads it at least every few
+# seconds, a handful of moves apart): enough however long its reads are apart on a busy machine.
+MOTION_SPANS = 1024
+
 # Segments the simulator remembers: hundreds of runs of a part (a few to a few hundred moves
 # each), enough for any test between two clearPath calls and for the bead of the part on the
 # table (camera_bead.py); older ones go, so a cell that runs for days holds no more.
@@ -236,6 +240,8 @@ class RobotSimulator:
         self._pose = Pose.from_sequence(home)
         self._motion: _Motion | None = None
         self._ended_mono: float | None = None
+        # (start, end) on time.monotonic() of each finished move, for motion_between
+        self._moved: deque[tuple[float, float]] = deque(maxlen=MOTION_SPANS)
         self._path: deque[PathSegment] = deque(maxlen=PATH_SIZE)  # oldest dropped first
         self._server: asyncio.Server | None = None
         self._clients: dict[asyncio.StreamWriter, asyncio.Task[None] | None] = {}
@@ -331,6 +337,21 @@ class RobotSimulator:
             return self.speed_factor
         blended = self._ended_mono is not None and time.monotonic() - self._ended_mono < BLEND_S
         return self.speed_factor if blended else 0.0
+
+    def motion_between(self, since: float, until: float) -> list[tuple[float, float, float]]:
+        """The stretches of [since, until] (time.monotonic()) in which the arm moved, as
+        (start, end, speed fraction), oldest first. A speed-following dispenser integrates
+        its flow over them, so the glue it counts does not depend on how often it is read;
+        unlike `speed_fraction()` they leave out the blend after a move, which stands for
+        the few milliseconds until the next one is commanded, not for motion: an arm whose
+        next move comes late stands still and lays no glue meanwhile."""
+        self._settle()
+        spans = [(start, end) for start, end in self._moved if end > since]
+        motion = self._motion
+        if motion is not None:
+            spans.append((motion.started_mono, motion.started_mono + motion.duration))
+        clipped = [(max(start, since), min(end, until)) for start, end in spans]
+        return [(start, end, self.speed_factor) for start, end in clipped if end > start]
 
     @property
     def executed_path(self) -> list[PathSegment]:
@@ -449,6 +470,8 @@ class RobotSimulator:
         self._motion = None
         # when it ended as planned (monotonic), for the blend; None after a halt
         self._ended_mono = None if interrupted else motion.started_mono + motion.duration
+        moved_until = time.monotonic() if interrupted else motion.started_mono + motion.duration
+        self._moved.append((motion.started_mono, moved_until))
         self._pose = end
         self._path.append(
             PathSegment(
