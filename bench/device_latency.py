@@ -1,7 +1,7 @@
 """Device round trips against the simulators, through the production clients.
 
 Round-trip time of `getPosition` (JSON-RPC/TCP) and of a Modbus status read
-(RTU over TCP, 8 registers), one request at a time. The software-stop latency,
+(RTU over TCP, 10 registers), one request at a time. The software-stop latency,
 which rides on these, is bench/estop_latency.py.
 """
 
@@ -29,7 +29,7 @@ async def round_trips(host: SimulatorHost, count: int) -> list[dict[str, Any]]:
     rows = []
     for name, call in (
         ("getPosition (JSON-RPC/TCP)", robot.get_position),
-        ("Modbus status read (8 registers)", glue.read_status),
+        ("Modbus status read (10 registers)", glue.read_status),
     ):
         samples = []
         for _ in range(count):
