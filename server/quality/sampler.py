@@ -121,18 +121,18 @@ class RunSampler:
     async def closed_reading(self, within: float) -> bool:
         """Wait up to `within` s for a status reading taken after the valve's last close
         that shows it closed (quality/dispensing.py counts the glue up to it); whether one
-        came."""
+        came. No wait for a dispenser whose readings carry no count."""
         windows = self.samples.windows
         if not windows or windows[-1].closed_at is None:
+            return False
+        if all(f.total_ml is None for f in self.samples.flows):
             return False
         closed_at = windows[-1].closed_at
         deadline = time.monotonic() + within
         while True:
             self._take_flow()
-            if any(
-                f.at >= closed_at and not f.valve_open and f.total_ml is not None
-                for f in self.samples.flows[-3:]
-            ):
+            last = self.samples.flows[-1] if self.samples.flows else None
+            if last and last.at >= closed_at and not last.valve_open and last.total_ml is not None:
                 return True
             if time.monotonic() >= deadline:
                 return False

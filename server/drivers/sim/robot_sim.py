@@ -346,7 +346,11 @@ class RobotSimulator:
         the few milliseconds until the next one is commanded, not for motion: an arm whose
         next move comes late stands still and lays no glue meanwhile."""
         self._settle()
-        spans = [(start, end) for start, end in self._moved if end > since]
+        spans: list[tuple[float, float]] = []
+        for start, end in reversed(self._moved):  # newest first: the moves since `since`
+            if end <= since:
+                break
+            spans.insert(0, (start, end))
         motion = self._motion
         if motion is not None:
             spans.append((motion.started_mono, motion.started_mono + motion.duration))
