@@ -42,12 +42,10 @@ def counted_ml(flows: Sequence[FlowSample], windows: Sequence[SprayWindow]) -> f
     if not windows or windows[-1].closed_at is None:
         return None
     first_open, last_close = windows[0].opened_at, windows[-1].closed_at
-    counts = [f for f in flows if f.total_ml is not None and not f.valve_open]
-    before = [f.total_ml for f in counts if f.at <= first_open]
-    after = [f.total_ml for f in counts if f.at >= last_close]
-    if not before or not after or before[-1] is None or after[0] is None:
-        return None
-    return dispensed_since(before[-1], after[0])
+    counts = [(f.at, f.total_ml) for f in flows if f.total_ml is not None and not f.valve_open]
+    before = [total for at, total in counts if at <= first_open]
+    after = [total for at, total in counts if at >= last_close]
+    return dispensed_since(before[-1], after[0]) if before and after else None
 
 
 def dispensing_consistency(

@@ -46,5 +46,9 @@ def test_a_count_that_started_again_adds_what_it_counted_since_power_up() -> Non
 def test_no_count_without_a_totaliser_or_before_the_first_read() -> None:
     details = read_at(100.0, valve_open=True, total_ml=None)
     wear.glue_counted(details, 3.0)
-    wear.glue_counted(read_at(100.0, valve_open=True), None)
-    assert wear.GLUE_ML not in details
+    first = {"status_at": 100.0, "valve_open": True}  # no read has given a count yet
+    wear.glue_counted(first, 3.0)
+    keeps_none = read_at(100.0, valve_open=True)
+    wear.glue_counted(keeps_none, None)
+    assert wear.GLUE_ML not in details and wear.GLUE_ML not in first
+    assert wear.GLUE_ML not in keeps_none

@@ -181,7 +181,6 @@ class GlueSimulator:
         self.dropped_requests = 0
         # The robot's speed as a fraction of its programmed one (None: a fixed flow).
         self.speed_source: ArmSpeed | None = None
-        self._last_motion = 0.0  # time.monotonic() the robot was last seen moving
         self._fixed_flow = False  # the valve opened with the arm at rest: no speed to follow
         self.dispensed_ml = 0.0  # glue out of the nozzle so far (the flow model's integral)
         self._metered_ml = 0.0  # what the flow meter counted: the totaliser registers
@@ -385,8 +384,9 @@ class GlueSimulator:
             self._open_valve(due[1])
 
     def _open_valve(self, wall: float) -> None:
-        self._followed(self._last_update, time.monotonic())  # the arm's motion seen up to now
-        self._fixed_flow = time.monotonic() - self._last_motion >= FIXED_FLOW_AFTER_S
+        now = time.monotonic()
+        arm = self.speed_source
+        self._fixed_flow = arm is None or not arm.motion_between(now - FIXED_FLOW_AFTER_S, now)
         self.valve_opened_at = wall
         self.valve_log.append((wall, True))
         self._valve_open = True
@@ -437,8 +437,6 @@ class GlueSimulator:
         if self.speed_source is None:
             return until - since
         spans = self.speed_source.motion_between(since, until)
-        if spans:
-            self._last_motion = spans[-1][1]
         moved = sum((end - start) * fraction for start, end, fraction in spans)
         if not self._fixed_flow:
             return moved

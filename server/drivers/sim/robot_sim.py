@@ -350,7 +350,8 @@ class RobotSimulator:
         for start, end in reversed(self._moved):  # newest first: the moves since `since`
             if end <= since:
                 break
-            spans.insert(0, (start, end))
+            spans.append((start, end))
+        spans.reverse()
         motion = self._motion
         if motion is not None:
             spans.append((motion.started_mono, motion.started_mono + motion.duration))
